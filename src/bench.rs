@@ -1,0 +1,1 @@
+//! Benchmarks run by `klipcal bench …`: each prints its measured figure beside its target.

@@ -1,0 +1,64 @@
+//! The command line: clap definitions of every command. Parsing only; `app` runs them.
+
+use std::path::PathBuf;
+
+use clap::{Args, Parser, Subcommand};
+
+/// klipcal: calibration daemon for Klipper printers (Moonraker agent).
+#[derive(Debug, Parser)]
+#[command(name = "klipcal", version, about, long_about = None)]
+pub struct Cli {
+    /// Settings file (default: ~/printer_data/config/klipcal.toml when present, else built-in defaults).
+    #[arg(long, global = true, value_name = "PATH")]
+    pub config: Option<PathBuf>,
+    /// Moonraker websocket URL; overrides `moonraker.url` from the settings file.
+    #[arg(long, global = true, value_name = "URL")]
+    pub moonraker: Option<String>,
+    /// The command to run.
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+/// Every command.
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run the daemon: connect to Moonraker as an agent and serve calibrations.
+    Serve,
+    /// Connect to Moonraker, print what klipcal sees of the printer, and exit.
+    Check(CheckArgs),
+    /// Benchmarks: print measured figures beside their targets.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+/// `klipcal check`
+#[derive(Debug, Args)]
+pub struct CheckArgs {
+    /// Print the summary as one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal bench …`
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// Resident memory and CPU of a running daemon beside Moonraker's and klippy's.
+    Footprint(FootprintArgs),
+}
+
+/// `klipcal bench footprint`
+#[derive(Debug, Args)]
+pub struct FootprintArgs {
+    /// PID of the klipcal daemon to measure.
+    #[arg(long)]
+    pub klipcal_pid: u32,
+    /// PID of Moonraker.
+    #[arg(long)]
+    pub moonraker_pid: u32,
+    /// PID of klippy.
+    #[arg(long)]
+    pub klippy_pid: u32,
+    /// Seconds to measure.
+    #[arg(long, default_value_t = 60.0)]
+    pub seconds: f64,
+}

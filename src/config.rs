@@ -1,0 +1,273 @@
+//! Daemon settings: a TOML file whose every key has an embedded default, so `klipcal serve`
+//! runs with no file on a standard printer host. Unknown keys and bad values are errors that
+//! name the key, the value and what is expected. Reads no environment beyond `HOME`.
+
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+/// A settings error a user can cause.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// The file could not be read.
+    #[error("cannot read config file {path}: {source}")]
+    Read {
+        /// The path tried.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The file is not valid TOML or has an unknown key or a value of the wrong type.
+    #[error("config file {path}: {message}")]
+    Parse {
+        /// The path read.
+        path: PathBuf,
+        /// toml's message, which names the line, the key and what was expected.
+        message: String,
+    },
+    /// A key has a value out of range.
+    #[error("config key `{key}` = {value}: expected {expected}")]
+    Invalid {
+        /// Dotted key name, e.g. `moonraker.url`.
+        key: &'static str,
+        /// The value found.
+        value: String,
+        /// What would be accepted.
+        expected: &'static str,
+    },
+}
+
+/// All settings. See `config/klipcal.toml` for every key and its default.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct Config {
+    /// How to reach Moonraker.
+    pub moonraker: MoonrakerConfig,
+    /// Logging.
+    pub log: LogConfig,
+    /// The daemon's own files.
+    pub daemon: DaemonConfig,
+}
+
+/// `[moonraker]`
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct MoonrakerConfig {
+    /// Websocket URL, `ws://host:port/websocket`.
+    pub url: String,
+    /// API key, sent when Moonraker requires authorization; empty for none.
+    pub api_key: String,
+    /// How long one request may wait for its reply.
+    pub request_timeout_s: f64,
+    /// First reconnect delay.
+    pub reconnect_min_s: f64,
+    /// Cap of the exponential reconnect backoff.
+    pub reconnect_max_s: f64,
+}
+
+/// `[log]`
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct LogConfig {
+    /// `error`, `warn`, `info`, `debug` or `trace`; `RUST_LOG` overrides.
+    pub level: String,
+}
+
+/// `[daemon]`
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct DaemonConfig {
+    /// Where the daemon keeps its database; `~` expands to the home folder.
+    pub data_dir: String,
+}
+
+impl Default for MoonrakerConfig {
+    fn default() -> Self {
+        Self {
+            url: "ws://127.0.0.1:7125/websocket".into(),
+            api_key: String::new(),
+            request_timeout_s: 30.0,
+            reconnect_min_s: 0.5,
+            reconnect_max_s: 30.0,
+        }
+    }
+}
+
+impl Default for LogConfig {
+    fn default() -> Self {
+        Self {
+            level: "info".into(),
+        }
+    }
+}
+
+impl Default for DaemonConfig {
+    fn default() -> Self {
+        Self {
+            data_dir: "~/printer_data/klipcal".into(),
+        }
+    }
+}
+
+impl Default for Config {
+    fn default() -> Self {
+        Self {
+            moonraker: MoonrakerConfig::default(),
+            log: LogConfig::default(),
+            daemon: DaemonConfig::default(),
+        }
+    }
+}
+
+/// The conventional path, `~/printer_data/config/klipcal.toml`.
+pub fn default_path() -> PathBuf {
+    expand_home("~/printer_data/config/klipcal.toml")
+}
+
+/// Expands a leading `~/` to `$HOME/`.
+pub fn expand_home(path: &str) -> PathBuf {
+    match (path.strip_prefix("~/"), std::env::var_os("HOME")) {
+        (Some(rest), Some(home)) => Path::new(&home).join(rest),
+        _ => PathBuf::from(path),
+    }
+}
+
+impl Config {
+    /// Loads settings: `explicit` must exist; without it the default path is read when present,
+    /// else the embedded defaults are used.
+    ///
+    /// # Errors
+    /// An unreadable file, bad TOML, an unknown key or a value out of range.
+    pub fn load(explicit: Option<&Path>) -> Result<Self, Error> {
+        let path = match explicit {
+            Some(p) => p.to_path_buf(),
+            None => {
+                let p = default_path();
+                if !p.exists() {
+                    return Ok(Self::default());
+                }
+                p
+            }
+        };
+        let text = std::fs::read_to_string(&path).map_err(|source| Error::Read {
+            path: path.clone(),
+            source,
+        })?;
+        Self::parse(&text).map_err(|e| match e {
+            Error::Parse { message, .. } => Error::Parse { path, message },
+            other => other,
+        })
+    }
+
+    /// Parses and validates TOML text.
+    ///
+    /// # Errors
+    /// Bad TOML, an unknown key or a value out of range.
+    pub fn parse(text: &str) -> Result<Self, Error> {
+        let cfg: Config = toml::from_str(text).map_err(|e| Error::Parse {
+            path: PathBuf::new(),
+            message: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    fn validate(&self) -> Result<(), Error> {
+        let m = &self.moonraker;
+        if !(m.url.starts_with("ws://") || m.url.starts_with("wss://")) {
+            return Err(Error::Invalid {
+                key: "moonraker.url",
+                value: format!("{:?}", m.url),
+                expected: "a websocket URL such as \"ws://127.0.0.1:7125/websocket\"",
+            });
+        }
+        let positive = [
+            ("moonraker.request_timeout_s", m.request_timeout_s),
+            ("moonraker.reconnect_min_s", m.reconnect_min_s),
+            ("moonraker.reconnect_max_s", m.reconnect_max_s),
+        ];
+        for (key, v) in positive {
+            if !(v.is_finite() && v > 0.0 && v <= 86_400.0) {
+                return Err(Error::Invalid {
+                    key,
+                    value: v.to_string(),
+                    expected: "a number of seconds above 0 and at most 86400",
+                });
+            }
+        }
+        if m.reconnect_max_s < m.reconnect_min_s {
+            return Err(Error::Invalid {
+                key: "moonraker.reconnect_max_s",
+                value: m.reconnect_max_s.to_string(),
+                expected: "a value not below moonraker.reconnect_min_s",
+            });
+        }
+        if !["error", "warn", "info", "debug", "trace"].contains(&self.log.level.as_str()) {
+            return Err(Error::Invalid {
+                key: "log.level",
+                value: format!("{:?}", self.log.level),
+                expected: "one of \"error\", \"warn\", \"info\", \"debug\", \"trace\"",
+            });
+        }
+        Ok(())
+    }
+
+    /// The HTTP base URL derived from the websocket URL (`ws://h:p/websocket` → `http://h:p`).
+    pub fn http_base(&self) -> String {
+        let url = &self.moonraker.url;
+        let (scheme, rest) = if let Some(r) = url.strip_prefix("wss://") {
+            ("https://", r)
+        } else {
+            ("http://", url.strip_prefix("ws://").unwrap_or(url))
+        };
+        let host = rest.split('/').next().unwrap_or(rest);
+        format!("{scheme}{host}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn empty_file_gives_the_embedded_defaults() {
+        let cfg = Config::parse("").unwrap();
+        assert_eq!(cfg, Config::default());
+        assert_eq!(cfg.moonraker.url, "ws://127.0.0.1:7125/websocket");
+        assert_eq!(cfg.http_base(), "http://127.0.0.1:7125");
+    }
+
+    #[test]
+    fn the_documented_example_parses_and_equals_the_defaults() {
+        let text = include_str!("../config/klipcal.toml");
+        assert_eq!(Config::parse(text).unwrap(), Config::default());
+    }
+
+    #[test]
+    fn an_unknown_key_is_named_in_the_error() {
+        let err = Config::parse("[moonraker]\nurll = \"ws://x/websocket\"\n").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("urll"), "{msg}");
+        assert!(msg.contains("url"), "{msg}");
+    }
+
+    #[test]
+    fn a_bad_value_names_key_value_and_expectation() {
+        let err = Config::parse("[moonraker]\nrequest_timeout_s = -1.0\n").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("moonraker.request_timeout_s"), "{msg}");
+        assert!(msg.contains("-1"), "{msg}");
+        assert!(msg.contains("expected"), "{msg}");
+        let err = Config::parse("[log]\nlevel = \"loud\"\n").unwrap_err();
+        assert!(err.to_string().contains("\"loud\""));
+        let err = Config::parse("[moonraker]\nurl = \"http://x\"\n").unwrap_err();
+        assert!(err.to_string().contains("moonraker.url"));
+    }
+
+    #[test]
+    fn a_value_of_the_wrong_type_is_an_error_naming_the_key() {
+        let err = Config::parse("[moonraker]\nrequest_timeout_s = \"ten\"\n").unwrap_err();
+        let msg = err.to_string();
+        assert!(msg.contains("request_timeout_s"), "{msg}");
+    }
+}
