@@ -1,11 +1,17 @@
-//! Builds and runs each command: the daemon's tasks and shutdown token, `check`, the benches.
+//! Builds and runs each command: the daemon's tasks and the one shutdown token every task
+//! listens to, `check`, and the benches. Owns the tokio runtime and logging set-up.
 
 use std::process::ExitCode;
+use std::time::Duration;
 
 use anyhow::Context;
+use serde_json::{Map, Value};
+use tokio_util::sync::CancellationToken;
+use tracing::info;
 
-use crate::cli::{Cli, Command};
+use crate::cli::{BenchCommand, Cli, Command};
 use crate::config::Config;
+use crate::moonraker::{ClientOptions, ConnState, Moonraker};
 
 /// Runs the parsed command line; returns the process exit code.
 ///
@@ -15,12 +21,121 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let mut config = Config::load(cli.config.as_deref()).context("loading settings")?;
     if let Some(url) = cli.moonraker {
         config.moonraker.url = url;
+        config.validate().context("--moonraker")?;
     }
+    init_tracing(&config.log.level);
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
     match cli.command {
-        Command::Serve => {
-            anyhow::bail!("serve: not built yet")
-        }
-        Command::Check(_args) => anyhow::bail!("check: not built yet"),
-        Command::Bench(_b) => anyhow::bail!("bench: not built yet"),
+        Command::Serve => rt.block_on(serve(config)),
+        Command::Check(args) => rt.block_on(check(config, args.json)),
+        Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::bench::footprint(&a)),
     }
+}
+
+fn init_tracing(level: &str) {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| EnvFilter::new(format!("klipcal={level},warn")));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false);
+    // journald stamps every line itself.
+    if std::env::var_os("JOURNAL_STREAM").is_some() {
+        let _ = builder.without_time().try_init();
+    } else {
+        let _ = builder.try_init();
+    }
+}
+
+/// Client options from the settings, with the agent's remote methods.
+pub fn client_options(config: &Config) -> ClientOptions {
+    let m = &config.moonraker;
+    let mut subscriptions = Map::new();
+    for obj in ["print_stats", "heater_bed", "webhooks"] {
+        subscriptions.insert(obj.to_string(), Value::Null);
+    }
+    ClientOptions {
+        url: m.url.clone(),
+        api_key: (!m.api_key.is_empty()).then(|| m.api_key.clone()),
+        request_timeout: Duration::from_secs_f64(m.request_timeout_s),
+        reconnect_min: Duration::from_secs_f64(m.reconnect_min_s),
+        reconnect_max: Duration::from_secs_f64(m.reconnect_max_s),
+        remote_methods: crate::agent::METHODS
+            .iter()
+            .map(|s| s.to_string())
+            .collect(),
+        subscriptions,
+    }
+}
+
+/// Cancels `token` on SIGINT or SIGTERM.
+fn cancel_on_signal(token: CancellationToken) -> anyhow::Result<()> {
+    use tokio::signal::unix::{signal, SignalKind};
+    let mut term = signal(SignalKind::terminate()).context("installing the SIGTERM handler")?;
+    let mut int = signal(SignalKind::interrupt()).context("installing the SIGINT handler")?;
+    tokio::spawn(async move {
+        tokio::select! {
+            _ = term.recv() => info!("SIGTERM: shutting down"),
+            _ = int.recv() => info!("SIGINT: shutting down"),
+            () = token.cancelled() => {}
+        }
+        token.cancel();
+    });
+    Ok(())
+}
+
+async fn serve(config: Config) -> anyhow::Result<ExitCode> {
+    let cancel = CancellationToken::new();
+    cancel_on_signal(cancel.clone())?;
+    info!(version = env!("CARGO_PKG_VERSION"), url = %config.moonraker.url, "klipcal starting");
+    let (m, calls) = Moonraker::spawn(client_options(&config), cancel.clone());
+    let agent = tokio::spawn(crate::agent::serve(m.clone(), calls));
+    cancel.cancelled().await;
+    // Every task selects on the token; give them a moment to close the socket cleanly.
+    let mut state = m.state_watch();
+    let _ = tokio::time::timeout(
+        Duration::from_millis(1500),
+        state.wait_for(|s| *s == ConnState::Stopped),
+    )
+    .await;
+    agent.abort();
+    info!("klipcal stopped");
+    Ok(ExitCode::SUCCESS)
+}
+
+async fn check(config: Config, as_json: bool) -> anyhow::Result<ExitCode> {
+    let cancel = CancellationToken::new();
+    let mut opts = client_options(&config);
+    opts.remote_methods.clear();
+    opts.subscriptions.clear();
+    let (m, _calls) = Moonraker::spawn(opts, cancel.clone());
+    let limit = Duration::from_secs_f64(config.moonraker.request_timeout_s.min(10.0));
+    let result = async {
+        m.wait_connected(limit).await.with_context(|| {
+            "cannot reach Moonraker; is it running, and is moonraker.url (or --moonraker) right?"
+                .to_string()
+        })?;
+        crate::printer::gather(&m)
+            .await
+            .context("asking Moonraker about the printer")
+    }
+    .await;
+    cancel.cancel();
+    let summary = result?;
+    if as_json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        print!("{}", summary.render());
+    }
+    Ok(match summary.problem() {
+        Some(p) => {
+            eprintln!("klipcal check: {p}");
+            ExitCode::from(2)
+        }
+        None => ExitCode::SUCCESS,
+    })
 }

@@ -1,1 +1,100 @@
-//! Benchmarks run by `klipcal bench …`: each prints its measured figure beside its target.
+//! Benchmarks run by `klipcal bench …`: each prints its measured figure beside its target and
+//! the anchor it is compared with, all measured in the same run.
+
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+
+use crate::cli::FootprintArgs;
+
+/// Resident memory (kB) and total CPU time (clock ticks) of a process, from /proc.
+fn sample(pid: u32) -> anyhow::Result<(u64, u64)> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .with_context(|| format!("process {pid} is not running"))?;
+    let rss_kb = status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .with_context(|| format!("no VmRSS for process {pid}"))?;
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .with_context(|| format!("process {pid} is not running"))?;
+    // Fields after the command name (which may hold spaces) start after the last ')'.
+    let rest = stat.rsplit_once(')').map(|(_, r)| r).unwrap_or_default();
+    let fields: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| {
+        fields
+            .get(i)
+            .and_then(|v| v.parse::<u64>().ok())
+            .unwrap_or(0)
+    };
+    // utime and stime are fields 14 and 15 of stat, i.e. 11 and 12 after the state field.
+    Ok((rss_kb, ticks(11) + ticks(12)))
+}
+
+/// `klipcal bench footprint`: samples the daemon's RSS and CPU for the given time beside
+/// Moonraker's and klippy's RSS. Targets: klipcal below 1/5 of Moonraker's RSS and below 0.5 %
+/// of one core on average.
+///
+/// # Errors
+/// A process that is not running.
+pub async fn footprint(a: &FootprintArgs) -> anyhow::Result<ExitCode> {
+    const TICKS_PER_S: f64 = 100.0; // Linux USER_HZ
+    let start = Instant::now();
+    let (_, cpu0) = sample(a.klipcal_pid)?;
+    let mut peak = [0u64; 3];
+    let mut sum = [0u64; 3];
+    let mut n = 0u64;
+    let end = start + Duration::from_secs_f64(a.seconds);
+    while Instant::now() < end {
+        for (i, pid) in [a.klipcal_pid, a.moonraker_pid, a.klippy_pid]
+            .iter()
+            .enumerate()
+        {
+            let (rss, _) = sample(*pid)?;
+            peak[i] = peak[i].max(rss);
+            sum[i] += rss;
+        }
+        n += 1;
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    let (_, cpu1) = sample(a.klipcal_pid)?;
+    let wall = start.elapsed().as_secs_f64();
+    let cpu_pct = (cpu1 - cpu0) as f64 / TICKS_PER_S / wall * 100.0;
+    let mean = |i: usize| sum[i] as f64 / n.max(1) as f64 / 1024.0;
+    let ratio = mean(0) / mean(1);
+    println!("footprint over {wall:.1} s ({n} samples)");
+    println!(
+        "  klipcal   RSS mean {:7.1} MiB, peak {:7.1} MiB",
+        mean(0),
+        peak[0] as f64 / 1024.0
+    );
+    println!(
+        "  moonraker RSS mean {:7.1} MiB, peak {:7.1} MiB   (anchor)",
+        mean(1),
+        peak[1] as f64 / 1024.0
+    );
+    println!(
+        "  klippy    RSS mean {:7.1} MiB, peak {:7.1} MiB   (anchor)",
+        mean(2),
+        peak[2] as f64 / 1024.0
+    );
+    let rss_ok = ratio < 0.2;
+    let cpu_ok = cpu_pct < 0.5;
+    println!(
+        "  klipcal/moonraker RSS {:.3}   target < 0.200   {}",
+        ratio,
+        if rss_ok { "PASS" } else { "FAIL" }
+    );
+    println!(
+        "  klipcal CPU {:.3} % of a core   target < 0.5 %   {}",
+        cpu_pct,
+        if cpu_ok { "PASS" } else { "FAIL" }
+    );
+    Ok(if rss_ok && cpu_ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}

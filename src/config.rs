@@ -38,7 +38,7 @@ pub enum Error {
 }
 
 /// All settings. See `config/klipcal.toml` for every key and its default.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct Config {
     /// How to reach Moonraker.
@@ -109,16 +109,6 @@ impl Default for DaemonConfig {
     }
 }
 
-impl Default for Config {
-    fn default() -> Self {
-        Self {
-            moonraker: MoonrakerConfig::default(),
-            log: LogConfig::default(),
-            daemon: DaemonConfig::default(),
-        }
-    }
-}
-
 /// The conventional path, `~/printer_data/config/klipcal.toml`.
 pub fn default_path() -> PathBuf {
     expand_home("~/printer_data/config/klipcal.toml")
@@ -172,7 +162,11 @@ impl Config {
         Ok(cfg)
     }
 
-    fn validate(&self) -> Result<(), Error> {
+    /// Checks every value's range (also after a command-line override).
+    ///
+    /// # Errors
+    /// The first key whose value is out of range.
+    pub fn validate(&self) -> Result<(), Error> {
         let m = &self.moonraker;
         if !(m.url.starts_with("ws://") || m.url.starts_with("wss://")) {
             return Err(Error::Invalid {

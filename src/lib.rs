@@ -5,6 +5,7 @@
 //! → [`store`] → back out through [`moonraker`] (G-code, uploads) and [`http`].
 //!
 //! - [`cli`]: clap definitions of every command (`serve`, `check`, the offline commands).
+//! - [`agent`]: the remote methods macros and HTTP callers reach; answers on the console or in JSON.
 //! - [`app`]: builds the daemon, owns the tasks and the shutdown token; runs each command.
 //! - [`config`]: daemon settings, TOML with embedded defaults; unknown keys are errors.
 //! - [`moonraker`]: the Moonraker client — protocol types (pure), the websocket actor that owns
@@ -17,6 +18,7 @@
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
 
+pub mod agent;
 pub mod app;
 pub mod bench;
 pub mod calib;

@@ -1,1 +1,401 @@
-//! The printer summary shown by `check` and `klipcal_status`, built from Moonraker's answers.
+//! The printer summary shown by `check` and returned by `klipcal_status`: what klipcal sees of
+//! the printer, built from Moonraker's answers. Building it is pure (`from_answers`); only
+//! `gather` talks to Moonraker.
+
+use serde::Serialize;
+use serde_json::{json, Map, Value};
+
+use crate::moonraker::{self, Moonraker};
+
+/// One X/Y stepper as Klipper runs it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Stepper {
+    /// `stepper_x` or `stepper_y`.
+    pub name: String,
+    /// mm per full rotation.
+    pub rotation_distance_mm: Option<f64>,
+    /// Microsteps per full step.
+    pub microsteps: Option<u64>,
+    /// Full steps per rotation.
+    pub full_steps_per_rotation: Option<u64>,
+    /// Travel limits.
+    pub position_min_mm: Option<f64>,
+    /// Travel limits.
+    pub position_max_mm: Option<f64>,
+}
+
+/// Which features klipcal relies on are available.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Features {
+    /// A `PRINT_START` macro.
+    pub print_start: bool,
+    /// `[skew_correction]` (SET_SKEW).
+    pub skew_correction: bool,
+    /// `[bed_mesh]`.
+    pub bed_mesh: bool,
+    /// `[exclude_object]`.
+    pub exclude_object: bool,
+    /// `[respond]` (RESPOND, needed for console answers to macros).
+    pub respond: bool,
+    /// `SET_BACKLASH_COMPENSATION`.
+    pub set_backlash_compensation: bool,
+    /// `[virtual_sdcard]` (needed to print uploaded jobs).
+    pub virtual_sdcard: bool,
+}
+
+/// Everything `check` prints.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Summary {
+    /// Moonraker's version.
+    pub moonraker_version: String,
+    /// Klipper's state: ready, startup, shutdown, error, disconnected.
+    pub klippy_state: String,
+    /// Klipper's message for its state.
+    pub klippy_message: String,
+    /// Klipper's version.
+    pub klipper_version: String,
+    /// `corexy`, `cartesian`, …
+    pub kinematics: Option<String>,
+    /// stepper_x and stepper_y.
+    pub steppers: Vec<Stepper>,
+    /// Bed limits from the toolhead: [x_min, y_min] and [x_max, y_max].
+    pub axis_min_mm: Option<[f64; 2]>,
+    /// See `axis_min_mm`.
+    pub axis_max_mm: Option<[f64; 2]>,
+    /// Heaters.
+    pub heaters: Vec<String>,
+    /// Temperature sensors.
+    pub sensors: Vec<String>,
+    /// Print state (`standby`, `printing`, `paused`, `complete`, …).
+    pub print_state: Option<String>,
+    /// Features.
+    pub features: Option<Features>,
+}
+
+/// The objects `gather` queries.
+pub fn query_objects() -> Value {
+    json!({
+        "configfile": ["settings"],
+        "toolhead": ["axis_minimum", "axis_maximum"],
+        "heaters": null,
+        "print_stats": ["state"],
+    })
+}
+
+fn f(v: &Value) -> Option<f64> {
+    v.as_f64()
+}
+
+fn xy(v: &Value) -> Option<[f64; 2]> {
+    Some([v.get(0)?.as_f64()?, v.get(1)?.as_f64()?])
+}
+
+fn strings(v: &Value) -> Vec<String> {
+    v.as_array()
+        .map(|a| {
+            a.iter()
+                .filter_map(|s| s.as_str().map(str::to_string))
+                .collect()
+        })
+        .unwrap_or_default()
+}
+
+impl Summary {
+    /// Builds the summary from `server.info`, `printer.info`, and — when Klipper is ready —
+    /// `printer.objects.list`, `printer.gcode.help` and a query of [`query_objects`].
+    pub fn from_answers(
+        server_info: &Value,
+        printer_info: Option<&Value>,
+        objects: Option<&[String]>,
+        gcode_help: Option<&Map<String, Value>>,
+        status: Option<&Map<String, Value>>,
+    ) -> Self {
+        let s = |v: &Value| v.as_str().unwrap_or_default().to_string();
+        let klippy_state = printer_info
+            .and_then(|p| p["state"].as_str())
+            .unwrap_or_else(|| server_info["klippy_state"].as_str().unwrap_or("unknown"))
+            .to_string();
+        let mut out = Summary {
+            moonraker_version: s(&server_info["moonraker_version"]),
+            klippy_state,
+            klippy_message: printer_info
+                .map(|p| s(&p["state_message"]))
+                .unwrap_or_default(),
+            klipper_version: printer_info
+                .map(|p| s(&p["software_version"]))
+                .unwrap_or_default(),
+            kinematics: None,
+            steppers: Vec::new(),
+            axis_min_mm: None,
+            axis_max_mm: None,
+            heaters: Vec::new(),
+            sensors: Vec::new(),
+            print_state: None,
+            features: None,
+        };
+        if let Some(st) = status {
+            let settings = &st
+                .get("configfile")
+                .map_or(&Value::Null, |c| &c["settings"]);
+            out.kinematics = settings["printer"]["kinematics"]
+                .as_str()
+                .map(str::to_string);
+            for name in ["stepper_x", "stepper_y"] {
+                let sec = &settings[name];
+                if sec.is_null() {
+                    continue;
+                }
+                out.steppers.push(Stepper {
+                    name: name.to_string(),
+                    rotation_distance_mm: f(&sec["rotation_distance"]),
+                    microsteps: sec["microsteps"].as_u64(),
+                    full_steps_per_rotation: sec["full_steps_per_rotation"].as_u64(),
+                    position_min_mm: f(&sec["position_min"]),
+                    position_max_mm: f(&sec["position_max"]),
+                });
+            }
+            if let Some(th) = st.get("toolhead") {
+                out.axis_min_mm = xy(&th["axis_minimum"]);
+                out.axis_max_mm = xy(&th["axis_maximum"]);
+            }
+            if let Some(h) = st.get("heaters") {
+                out.heaters = strings(&h["available_heaters"]);
+                out.sensors = strings(&h["available_sensors"]);
+            }
+            out.print_state = st
+                .get("print_stats")
+                .and_then(|p| p["state"].as_str())
+                .map(str::to_string);
+        }
+        if let (Some(objs), Some(help)) = (objects, gcode_help) {
+            let has_obj = |n: &str| objs.iter().any(|o| o == n);
+            let has_cmd = |n: &str| help.contains_key(n) || help.contains_key(&n.to_lowercase());
+            out.features = Some(Features {
+                print_start: has_cmd("PRINT_START"),
+                skew_correction: has_cmd("SET_SKEW"),
+                bed_mesh: has_obj("bed_mesh"),
+                exclude_object: has_obj("exclude_object"),
+                respond: has_cmd("RESPOND"),
+                set_backlash_compensation: has_cmd("SET_BACKLASH_COMPENSATION"),
+                virtual_sdcard: has_obj("virtual_sdcard"),
+            });
+        }
+        out
+    }
+
+    /// Why the printer cannot be calibrated now, if it cannot.
+    pub fn problem(&self) -> Option<String> {
+        if self.klippy_state != "ready" {
+            let msg = self.klippy_message.trim();
+            return Some(if msg.is_empty() {
+                format!("Klipper is not ready (state: {})", self.klippy_state)
+            } else {
+                format!("Klipper is not ready (state: {}): {msg}", self.klippy_state)
+            });
+        }
+        None
+    }
+
+    /// The summary as readable text, one fact a line.
+    pub fn render(&self) -> String {
+        let mut t = String::new();
+        let yes = |b: bool| if b { "yes" } else { "no" };
+        let opt = |v: Option<f64>| v.map_or("?".to_string(), |x| format!("{x}"));
+        t.push_str(&format!("Moonraker       {}\n", self.moonraker_version));
+        t.push_str(&format!(
+            "Klipper         {} ({})\n",
+            if self.klipper_version.is_empty() {
+                "?"
+            } else {
+                &self.klipper_version
+            },
+            self.klippy_state
+        ));
+        if let Some(p) = self.problem() {
+            t.push_str(&format!("Problem         {p}\n"));
+        }
+        if let Some(k) = &self.kinematics {
+            t.push_str(&format!("Kinematics      {k}\n"));
+        }
+        for s in &self.steppers {
+            t.push_str(&format!(
+                "{:<15} rotation_distance {} mm, microsteps {}, full steps {}, travel {}..{} mm\n",
+                s.name,
+                opt(s.rotation_distance_mm),
+                s.microsteps.map_or("?".into(), |v| v.to_string()),
+                s.full_steps_per_rotation
+                    .map_or("?".into(), |v| v.to_string()),
+                opt(s.position_min_mm),
+                opt(s.position_max_mm),
+            ));
+        }
+        if let (Some(a), Some(b)) = (self.axis_min_mm, self.axis_max_mm) {
+            t.push_str(&format!(
+                "Bed limits      X {}..{} mm, Y {}..{} mm\n",
+                a[0], b[0], a[1], b[1]
+            ));
+        }
+        if !self.heaters.is_empty() {
+            t.push_str(&format!("Heaters         {}\n", self.heaters.join(", ")));
+        }
+        if !self.sensors.is_empty() {
+            t.push_str(&format!("Temp. sensors   {}\n", self.sensors.join(", ")));
+        }
+        if let Some(p) = &self.print_state {
+            t.push_str(&format!("Print state     {p}\n"));
+        }
+        if let Some(f) = &self.features {
+            t.push_str("Features\n");
+            let rows = [
+                ("PRINT_START macro", f.print_start, ""),
+                (
+                    "skew_correction",
+                    f.skew_correction,
+                    "add [skew_correction]",
+                ),
+                ("bed_mesh", f.bed_mesh, "add [bed_mesh]"),
+                ("exclude_object", f.exclude_object, "add [exclude_object]"),
+                (
+                    "respond",
+                    f.respond,
+                    "add [respond] (klipcal answers macros with RESPOND)",
+                ),
+                ("SET_BACKLASH_COMPENSATION", f.set_backlash_compensation, ""),
+                (
+                    "virtual_sdcard",
+                    f.virtual_sdcard,
+                    "add [virtual_sdcard] path: ~/printer_data/gcodes",
+                ),
+            ];
+            for (name, ok, hint) in rows {
+                let hint = if !ok && !hint.is_empty() {
+                    format!("  → {hint}")
+                } else {
+                    String::new()
+                };
+                t.push_str(&format!("  {name:<27} {}{hint}\n", yes(ok)));
+            }
+        }
+        t
+    }
+}
+
+/// Asks Moonraker for everything in the summary.
+///
+/// # Errors
+/// When Moonraker cannot be asked at all; Klipper not being ready is not an error (the summary
+/// says so).
+pub async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
+    let server_info = m.server_info().await?;
+    let printer_info = m.printer_info().await.ok();
+    let ready = printer_info
+        .as_ref()
+        .is_some_and(|p| p["state"].as_str() == Some("ready"));
+    if !ready {
+        return Ok(Summary::from_answers(
+            &server_info,
+            printer_info.as_ref(),
+            None,
+            None,
+            None,
+        ));
+    }
+    let objects = m.objects_list().await?;
+    let help = match m.call("printer.gcode.help", Value::Null).await? {
+        Value::Object(h) => h,
+        _ => Map::new(),
+    };
+    let status = m.objects_query(query_objects()).await?;
+    Ok(Summary::from_answers(
+        &server_info,
+        printer_info.as_ref(),
+        Some(&objects),
+        Some(&help),
+        Some(&status),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    type Answers = (
+        Value,
+        Value,
+        Vec<String>,
+        Map<String, Value>,
+        Map<String, Value>,
+    );
+
+    fn answers() -> Answers {
+        let server = json!({"moonraker_version": "v0.11.0", "klippy_state": "ready"});
+        let printer = json!({"state": "ready", "state_message": "Printer is ready",
+                             "software_version": "v0.12.0-276"});
+        let objects = vec![
+            "bed_mesh".to_string(),
+            "exclude_object".into(),
+            "toolhead".into(),
+        ];
+        let help = json!({"SET_SKEW": "", "RESPOND": "", "PRINT_START": ""});
+        let status = json!({
+            "configfile": {"settings": {
+                "printer": {"kinematics": "corexy"},
+                "stepper_x": {"rotation_distance": 40.0, "microsteps": 16,
+                              "full_steps_per_rotation": 200, "position_min": 0.0, "position_max": 300.0},
+                "stepper_y": {"rotation_distance": 40.0, "microsteps": 16,
+                              "full_steps_per_rotation": 200, "position_min": 0.0, "position_max": 300.0}}},
+            "toolhead": {"axis_minimum": [0.0, 0.0, 0.0, 0.0], "axis_maximum": [300.0, 300.0, 250.0, 0.0]},
+            "heaters": {"available_heaters": ["heater_bed", "extruder"],
+                        "available_sensors": ["heater_bed", "extruder"]},
+            "print_stats": {"state": "standby"}
+        });
+        let Value::Object(help) = help else {
+            unreachable!()
+        };
+        let Value::Object(status) = status else {
+            unreachable!()
+        };
+        (server, printer, objects, help, status)
+    }
+
+    #[test]
+    fn a_ready_corexy_printer_is_summarised_with_its_steppers_and_features() {
+        let (server, printer, objects, help, status) = answers();
+        let s = Summary::from_answers(
+            &server,
+            Some(&printer),
+            Some(&objects),
+            Some(&help),
+            Some(&status),
+        );
+        assert_eq!(s.kinematics.as_deref(), Some("corexy"));
+        assert_eq!(s.steppers.len(), 2);
+        assert_eq!(s.steppers[0].rotation_distance_mm, Some(40.0));
+        assert_eq!(s.steppers[1].microsteps, Some(16));
+        assert_eq!(s.axis_max_mm, Some([300.0, 300.0]));
+        let f = s.features.clone().unwrap();
+        assert!(f.print_start && f.skew_correction && f.bed_mesh && f.exclude_object && f.respond);
+        assert!(!f.set_backlash_compensation && !f.virtual_sdcard);
+        assert!(s.problem().is_none());
+        let text = s.render();
+        assert!(text.contains("rotation_distance 40 mm"), "{text}");
+        assert!(
+            text.contains("virtual_sdcard              no  → add [virtual_sdcard]"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn klipper_not_ready_is_a_problem_with_its_message() {
+        let (server, _, _, _, _) = answers();
+        let printer = json!({"state": "error", "state_message": "Option 'x' is not valid",
+                             "software_version": "v0.12"});
+        let s = Summary::from_answers(&server, Some(&printer), None, None, None);
+        let p = s.problem().unwrap();
+        assert!(
+            p.contains("error") && p.contains("Option 'x' is not valid"),
+            "{p}"
+        );
+        assert!(s.features.is_none());
+    }
+}

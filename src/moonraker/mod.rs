@@ -1,1 +1,64 @@
-//! The Moonraker client: protocol types, the websocket actor, the cloneable handle, HTTP files.
+//! The Moonraker client: protocol types (pure), the websocket actor that owns the socket,
+//! the cloneable handle every task uses, and HTTP file transfer. It knows nothing of
+//! calibrations: it carries requests, replies, notifications and agent calls.
+
+mod client;
+mod http;
+pub mod protocol;
+
+pub use client::{AgentCall, ClientOptions, ConnState, Event, Moonraker};
+pub use http::Files;
+pub use protocol::RpcError;
+
+/// Everything that can go wrong talking to Moonraker.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// Not connected to Moonraker right now (it is retried in the background).
+    #[error("not connected to Moonraker at {0}")]
+    NotConnected(String),
+    /// Moonraker answered with an error.
+    #[error("Moonraker refused `{method}`: {message} (code {code})")]
+    Rpc {
+        /// The method called.
+        method: String,
+        /// Moonraker's code.
+        code: i64,
+        /// Moonraker's message (Klipper's error text for G-code).
+        message: String,
+    },
+    /// No reply within the configured time.
+    #[error("no reply from Moonraker to `{method}` within {timeout_s} s")]
+    Timeout {
+        /// The method called.
+        method: String,
+        /// The limit that passed.
+        timeout_s: f64,
+    },
+    /// The connection dropped before the reply came.
+    #[error("connection to Moonraker lost while waiting for `{0}`")]
+    Disconnected(String),
+    /// The daemon is shutting down.
+    #[error("klipcal is shutting down")]
+    Shutdown,
+    /// Moonraker sent something that is not JSON-RPC, or not what was expected.
+    #[error("unexpected data from Moonraker: {0}")]
+    Protocol(String),
+    /// An HTTP request failed.
+    #[error("HTTP {method} {url}: {message}")]
+    Http {
+        /// GET or POST.
+        method: &'static str,
+        /// The URL.
+        url: String,
+        /// What went wrong, with Moonraker's message when it sent one.
+        message: String,
+    },
+}
+
+impl Error {
+    /// Whether the error came from Moonraker or Klipper refusing the request (as opposed to
+    /// the connection).
+    pub fn is_refusal(&self) -> bool {
+        matches!(self, Error::Rpc { .. })
+    }
+}

@@ -1,0 +1,132 @@
+//! The agent's remote methods: what macros (via `action_call_remote_method`) and HTTP callers
+//! (via Moonraker's `/server/extensions/request`) can ask of the daemon. A macro gets no reply,
+//! so its answer goes to the console with `RESPOND`; an HTTP caller gets JSON.
+
+use serde_json::{json, Value};
+use tracing::{info, warn};
+
+use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
+use crate::printer;
+
+/// Every remote method the daemon registers.
+pub const METHODS: &[&str] = &["klipcal_status"];
+
+/// Answers agent calls until the channel closes.
+pub async fn serve(m: Moonraker, mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>) {
+    while let Some(call) = calls.recv().await {
+        let m = m.clone();
+        tokio::spawn(async move { handle(&m, call).await });
+    }
+}
+
+async fn handle(m: &Moonraker, call: AgentCall) {
+    info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
+    let outcome = match call.method.as_str() {
+        "klipcal_status" => status(m).await,
+        other => Err(RpcError {
+            code: -32601,
+            message: format!("unknown method `{other}`; known: {}", METHODS.join(", ")),
+        }),
+    };
+    match call.responder {
+        Some(r) => r.send(outcome),
+        None => {
+            let text = match &outcome {
+                Ok(v) => console_text(&call.method, v),
+                Err(e) => format!("error: {}", e.message),
+            };
+            for line in text.lines() {
+                if let Err(e) = m.gcode(&respond_line(line)).await {
+                    warn!(error = %e, "could not answer on the console");
+                    break;
+                }
+            }
+        }
+    }
+}
+
+async fn status(m: &Moonraker) -> Result<Value, RpcError> {
+    let connection = match m.state() {
+        ConnState::Connected { klippy_state } => {
+            json!({"moonraker": "connected", "klippy_state": klippy_state})
+        }
+        ConnState::Connecting(why) => json!({"moonraker": "connecting", "last_error": why}),
+        ConnState::Stopped => json!({"moonraker": "stopped"}),
+    };
+    let summary = printer::gather(m).await.map_err(|e| RpcError {
+        code: 503,
+        message: e.to_string(),
+    })?;
+    Ok(json!({
+        "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
+        "connection": connection,
+        "printer": summary,
+    }))
+}
+
+fn console_text(method: &str, v: &Value) -> String {
+    match method {
+        "klipcal_status" => {
+            let p = &v["printer"];
+            let mut t = format!(
+                "klipcal {} connected; Klipper {}",
+                v["daemon"]["version"].as_str().unwrap_or("?"),
+                p["klippy_state"].as_str().unwrap_or("?")
+            );
+            if let Some(k) = p["kinematics"].as_str() {
+                t.push_str(&format!(", kinematics {k}"));
+            }
+            if let Some(steppers) = p["steppers"].as_array() {
+                for s in steppers {
+                    t.push_str(&format!(
+                        "\n{} rotation_distance {}",
+                        s["name"].as_str().unwrap_or("?"),
+                        s["rotation_distance_mm"]
+                    ));
+                }
+            }
+            t
+        }
+        _ => v.to_string(),
+    }
+}
+
+/// `RESPOND PREFIX=klipcal MSG="…"` with the message made safe for Klipper's parser: no
+/// quotes, backslashes, or the comment characters `#`, `*`, `;` that end a command's arguments.
+fn respond_line(msg: &str) -> String {
+    let safe: String = msg
+        .chars()
+        .map(|c| match c {
+            '"' => '\'',
+            '\\' => '/',
+            '#' | '*' | ';' => ' ',
+            c if c.is_control() => ' ',
+            c => c,
+        })
+        .collect();
+    format!("RESPOND PREFIX=klipcal MSG=\"{}\"", safe.trim())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn console_answers_cannot_break_out_of_the_respond_command() {
+        let line = respond_line("a \"quoted\" # not a comment; 5*2 \\ end\nnext");
+        assert_eq!(
+            line,
+            "RESPOND PREFIX=klipcal MSG=\"a 'quoted'   not a comment  5 2 / end next\""
+        );
+        assert_eq!(line.matches('"').count(), 2);
+    }
+
+    #[test]
+    fn the_status_answer_on_the_console_names_state_and_rotation_distances() {
+        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {"klippy_state": "ready",
+            "kinematics": "corexy", "steppers": [{"name": "stepper_x", "rotation_distance_mm": 40.0}]}});
+        let t = console_text("klipcal_status", &v);
+        assert!(t.contains("Klipper ready"), "{t}");
+        assert!(t.contains("stepper_x rotation_distance 40.0"), "{t}");
+    }
+}
