@@ -1,0 +1,239 @@
+//! Test helpers: start and stop a bench run (tests/bench/bench.py) and the klipcal daemon,
+//! and small waits on Moonraker. Nothing here asserts; tests do.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use klipcal::moonraker::{ClientOptions, Event, Files, Moonraker};
+use serde_json::{json, Map, Value};
+use tokio_util::sync::CancellationToken;
+
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+fn bench_py(args: &[&str]) -> Result<String, String> {
+    let out = Command::new("python3")
+        .arg(repo().join("tests/bench/bench.py"))
+        .args(args)
+        .stdin(Stdio::null())
+        .output()
+        .map_err(|e| format!("cannot run python3: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "bench.py {args:?} failed: {}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    Ok(String::from_utf8_lossy(&out.stdout).into_owned())
+}
+
+/// One bench run; stopped on drop.
+pub struct Bench {
+    pub dir: tempfile::TempDir,
+    pub info: Value,
+}
+
+impl Bench {
+    /// Starts klippy, Moonraker and the thermal plant. Panics (fails the test) when the bench
+    /// cannot start: tests never skip silently.
+    pub fn start(kinematics: &str) -> Bench {
+        Self::start_with(kinematics, None)
+    }
+
+    pub fn start_with(kinematics: &str, plant_json: Option<&str>) -> Bench {
+        let dir = tempfile::Builder::new()
+            .prefix("kc-")
+            .tempdir_in(std::env::temp_dir())
+            .expect("temp dir");
+        let run_dir = dir.path().to_string_lossy().into_owned();
+        let mut args = vec!["start", "--run-dir", &run_dir, "--kinematics", kinematics];
+        if let Some(p) = plant_json {
+            args.push("--plant-json");
+            args.push(p);
+        }
+        let out = bench_py(&args).unwrap_or_else(|e| panic!("bench did not start: {e}"));
+        let line = out.lines().rev().find(|l| l.starts_with('{')).unwrap_or("");
+        let info: Value =
+            serde_json::from_str(line).unwrap_or_else(|e| panic!("bench output {out:?}: {e}"));
+        Bench { dir, info }
+    }
+
+    pub fn ws_url(&self) -> String {
+        self.info["ws_url"].as_str().unwrap().to_string()
+    }
+
+    pub fn http_url(&self) -> String {
+        self.info["http_url"].as_str().unwrap().to_string()
+    }
+
+    pub fn run_dir(&self) -> String {
+        self.dir.path().to_string_lossy().into_owned()
+    }
+
+    pub fn stop_one(&self, name: &str) {
+        bench_py(&["stop-one", name, "--run-dir", &self.run_dir()]).unwrap();
+    }
+
+    pub fn start_one(&self, name: &str) {
+        bench_py(&["start-one", name, "--run-dir", &self.run_dir()]).unwrap();
+    }
+
+    pub fn files(&self) -> Files {
+        Files::new(&self.http_url(), None, Duration::from_secs(30)).unwrap()
+    }
+
+    /// A test's own Moonraker client (not an agent's methods).
+    pub fn client(&self, subscriptions: Value) -> (Moonraker, CancellationToken) {
+        let cancel = CancellationToken::new();
+        let subs = match subscriptions {
+            Value::Object(m) => m,
+            _ => Map::new(),
+        };
+        let (m, _calls) = Moonraker::spawn(
+            ClientOptions {
+                url: self.ws_url(),
+                api_key: None,
+                request_timeout: Duration::from_secs(20),
+                reconnect_min: Duration::from_millis(200),
+                reconnect_max: Duration::from_secs(1),
+                remote_methods: vec![],
+                subscriptions: subs,
+            },
+            cancel.clone(),
+        );
+        (m, cancel)
+    }
+}
+
+impl Drop for Bench {
+    fn drop(&mut self) {
+        let _ = bench_py(&["stop", "--run-dir", &self.run_dir()]);
+        if std::thread::panicking() {
+            // Keep the logs of a failed test for a look.
+            let kept = self.dir.path().to_path_buf();
+            eprintln!("bench logs kept in {}", kept.display());
+            std::mem::forget(std::mem::replace(
+                &mut self.dir,
+                tempfile::tempdir().expect("temp dir"),
+            ));
+        }
+    }
+}
+
+/// The klipcal daemon as a child process; killed on drop.
+pub struct Daemon {
+    pub child: Child,
+    pub log: PathBuf,
+}
+
+impl Daemon {
+    pub fn start(bench: &Bench) -> Daemon {
+        let dir = bench.dir.path();
+        let cfg = dir.join("klipcal.toml");
+        std::fs::write(
+            &cfg,
+            format!(
+                "[moonraker]\nurl = \"{}\"\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n\
+                 [daemon]\ndata_dir = \"{}\"\n",
+                bench.ws_url(),
+                dir.join("klipcal-data").display()
+            ),
+        )
+        .unwrap();
+        let log = dir.join("klipcal.log");
+        let child = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args(["--config", cfg.to_str().unwrap(), "serve"])
+            .env("RUST_LOG", "klipcal=debug")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .expect("klipcal binary");
+        Daemon { child, log }
+    }
+
+    pub fn log_text(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+
+    /// Sends SIGTERM and waits at most `limit` for the exit; returns the exit status.
+    pub fn terminate(&mut self, limit: Duration) -> Option<std::process::ExitStatus> {
+        let pid = self.child.id().to_string();
+        Command::new("kill").args(["-TERM", &pid]).status().unwrap();
+        let start = Instant::now();
+        while start.elapsed() < limit {
+            if let Some(st) = self.child.try_wait().unwrap() {
+                return Some(st);
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        None
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Waits for an event matching `pred`, at most `limit`.
+pub async fn wait_event(
+    rx: &mut tokio::sync::broadcast::Receiver<Event>,
+    limit: Duration,
+    mut pred: impl FnMut(&Event) -> bool,
+) -> Option<Event> {
+    let deadline = tokio::time::Instant::now() + limit;
+    loop {
+        match tokio::time::timeout_at(deadline, rx.recv()).await {
+            Ok(Ok(e)) if pred(&e) => return Some(e),
+            Ok(Ok(_)) | Ok(Err(tokio::sync::broadcast::error::RecvError::Lagged(_))) => {}
+            _ => return None,
+        }
+    }
+}
+
+/// Polls `f` until it returns Some, at most `limit`.
+pub async fn poll<T, F, Fut>(limit: Duration, mut f: F) -> Option<T>
+where
+    F: FnMut() -> Fut,
+    Fut: std::future::Future<Output = Option<T>>,
+{
+    let deadline = Instant::now() + limit;
+    while Instant::now() < deadline {
+        if let Some(v) = f().await {
+            return Some(v);
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    None
+}
+
+/// Whether Moonraker lists klipcal among its connected agents.
+pub async fn agent_listed(files: &Files) -> bool {
+    match files.get("/server/extensions/list").await {
+        Ok(v) => v["agents"]
+            .as_array()
+            .is_some_and(|a| a.iter().any(|x| x["name"] == "klipcal")),
+        Err(_) => false,
+    }
+}
+
+/// Calls one of klipcal's methods through Moonraker's HTTP extensions endpoint.
+pub async fn extension_request(
+    files: &Files,
+    method: &str,
+    arguments: Value,
+) -> Result<Value, String> {
+    files
+        .post(
+            "/server/extensions/request",
+            &json!({"agent": "klipcal", "method": method, "arguments": arguments}),
+        )
+        .await
+        .map_err(|e| e.to_string())
+}

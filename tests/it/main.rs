@@ -1,0 +1,7 @@
+//! Integration tests: one binary. Each test starts its own bench (a real Moonraker and a real
+//! klippy on loopback, see tests/bench/) and, where needed, the `klipcal` daemon, on free
+//! ports in its own folder, and stops them when done.
+
+mod bench;
+mod daemon;
+mod fake;
