@@ -1,0 +1,575 @@
+#!/usr/bin/env python3
+"""bench.py: starts and stops klipcal's test bench runs: a real klippy (file-output
+mode, no MCU), a real Moonraker and the thermal plant, each run in its own
+directory on free loopback ports. Also runs klippy in batch mode over a G-code
+file. Stdlib only. Does not install anything (tests/bench/setup.sh does) and
+never kills a process it did not start (pids are checked against their
+command line before any signal).
+
+  bench.py start --run-dir DIR [--kinematics corexy|cartesian] [--size MM]
+                 [--plant-json JSON|FILE]
+  bench.py stop --run-dir DIR
+  bench.py start-one klippy|moonraker|plant --run-dir DIR
+  bench.py stop-one klippy|moonraker|plant --run-dir DIR
+  bench.py batch --kinematics corexy|cartesian --size MM --gcode FILE
+                 [--work-dir DIR] [--timeout S]
+
+`start` prints one JSON line (also written to DIR/bench.json).
+Exit status 0 on success; otherwise a reason on stderr and status 1.
+"""
+import argparse
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(os.path.dirname(HERE))
+TEMPLATES = os.path.join(HERE, "templates")
+DICT_PATH = os.path.join(HERE, "mcu_dict.json")
+EXTRAS_SRC = os.path.join(HERE, "klippy_extras", "klipcal_bench.py")
+NAMES = ("plant", "klippy", "moonraker")
+DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
+READY_TIMEOUT_S = 60.0
+UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
+
+
+class BenchError(Exception):
+    pass
+
+
+def bench_home():
+    return os.path.abspath(os.environ.get("KLIPCAL_BENCH_HOME")
+                           or os.path.join(REPO, ".bench"))
+
+
+def venv_python(name):
+    py = os.path.join(bench_home(), "venv-" + name, "bin", "python")
+    if not os.path.exists(py):
+        raise BenchError("%s venv missing at %s: run tests/bench/setup.sh"
+                         % (name, os.path.dirname(os.path.dirname(py))))
+    return py
+
+
+def check_installed():
+    """Fails when setup.sh has not been run since klipcal_bench.py changed."""
+    py = venv_python("klippy")
+    venv_python("moonraker")
+    lib = os.path.join(os.path.dirname(os.path.dirname(py)), "lib")
+    for pyver in sorted(os.listdir(lib)):
+        dst = os.path.join(lib, pyver, "site-packages", "klippy", "extras",
+                           "klipcal_bench.py")
+        if os.path.exists(dst):
+            with open(dst, "rb") as a, open(EXTRAS_SRC, "rb") as b:
+                if a.read() == b.read():
+                    return
+            raise BenchError("installed %s differs from %s: run "
+                             "tests/bench/setup.sh" % (dst, EXTRAS_SRC))
+    raise BenchError("klipcal_bench.py not installed into klippy: run "
+                     "tests/bench/setup.sh")
+
+
+def clean_env():
+    env = dict(os.environ)
+    for k in ("PYTHONPATH", "PYTHONHOME", "VIRTUAL_ENV"):
+        env.pop(k, None)
+    return env
+
+
+# ---------------------------------------------------------------- rendering
+
+def klipcal_cfg_source():
+    repo_cfg = os.path.join(REPO, "config", "klipcal.cfg")
+    if os.path.exists(repo_cfg):
+        return repo_cfg
+    return os.path.join(TEMPLATES, "klipcal.cfg")
+
+
+def render(template, values):
+    with open(os.path.join(TEMPLATES, template)) as f:
+        text = f.read()
+    for key, val in values.items():
+        text = text.replace("@@%s@@" % key, str(val))
+    if "@@" in text:
+        raise BenchError("unfilled placeholder in template %s" % template)
+    return text
+
+
+def write(path, text):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm):
+    values = {
+        "KINEMATICS": kinematics,
+        "SIZE": size_mm,
+        "MESH_MAX": size_mm - 20,
+        "COMMS_DIR": comms_dir,
+        "GCODES_DIR": gcodes_dir,
+    }
+    write(os.path.join(config_dir, "printer.cfg"),
+          render("printer.cfg", values))
+    write(os.path.join(config_dir, "steppers.cfg"),
+          render("steppers.cfg", values))
+    shutil.copyfile(klipcal_cfg_source(),
+                    os.path.join(config_dir, "klipcal.cfg"))
+
+
+def short_sock(run_dir, name):
+    """A unix socket path for `name` that fits sun_path."""
+    path = os.path.join(run_dir, "comms", name)
+    if len(path) <= UNIX_PATH_MAX:
+        return path
+    h = hashlib.sha1(run_dir.encode()).hexdigest()[:12]
+    d = os.path.join(tempfile.gettempdir(), "klipcal-bench-" + h)
+    os.makedirs(d, exist_ok=True)
+    return os.path.join(d, name)
+
+
+# -------------------------------------------------------------------- ports
+
+def pick_port():
+    """A free loopback port not handed out by this bench in the last 5 min
+    (a lock file serialises parallel runs)."""
+    home = bench_home()
+    os.makedirs(home, exist_ok=True)
+    lock_path = os.path.join(home, "ports.lock")
+    book_path = os.path.join(home, "ports.json")
+    with open(lock_path, "a+") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            with open(book_path) as f:
+                book = {int(k): v for k, v in json.load(f).items()}
+        except (OSError, ValueError):
+            book = {}
+        now = time.time()
+        book = {p: t for p, t in book.items() if now - t < 300}
+        for _ in range(50):
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                s.bind(("127.0.0.1", 0))
+                port = s.getsockname()[1]
+            if port not in book:
+                break
+        else:
+            raise BenchError("no free port found")
+        book[port] = now
+        write(book_path, json.dumps(book))
+    return port
+
+
+# ---------------------------------------------------------------- processes
+
+def read_cmdline(pid):
+    try:
+        with open("/proc/%d/cmdline" % pid, "rb") as f:
+            return [a.decode(errors="replace") for a in f.read().split(b"\0")
+                    if a]
+    except OSError:
+        return None
+
+
+def is_alive(pid):
+    """True when pid runs and is not a zombie."""
+    try:
+        with open("/proc/%d/stat" % pid) as f:
+            state = f.read().rsplit(")", 1)[1].split()[0]
+        return state not in ("Z", "X")
+    except (OSError, IndexError):
+        return False
+
+
+def owns(pid, info, name):
+    """True when pid is the `name` process this run started (cmdline check)."""
+    cmd = read_cmdline(pid)
+    if not cmd:
+        return False
+    marker = info["markers"][name]
+    return any(marker in a for a in cmd) and is_alive(pid)
+
+
+def command_for(name, info):
+    rd = info["run_dir"]
+    if name == "klippy":
+        return [venv_python("klippy"), "-m", "klippy.klippy",
+                info["printer_cfg"], "-o", "/dev/null", "-d", info["dict_path"],
+                "-a", info["klippy_sock"], "-I",
+                os.path.join(rd, "comms", "klippy.serial"),
+                "-l", info["klippy_log"]]
+    if name == "moonraker":
+        mr = os.path.join(os.path.dirname(venv_python("moonraker")),
+                          "moonraker")
+        return [venv_python("moonraker"), mr, "-d", rd,
+                "-c", os.path.join(info["config_dir"], "moonraker.conf"),
+                "-l", info["moonraker_log"], "-u", info["moonraker_sock"]]
+    if name == "plant":
+        return [sys.executable, os.path.join(HERE, "plant.py"),
+                "--run-dir", rd, "--klippy-sock", info["klippy_sock"],
+                "--params", os.path.join(rd, "comms", "plant_params.json")]
+    raise BenchError("unknown process name %r (expected one of %s)"
+                     % (name, ", ".join(NAMES)))
+
+
+def spawn(name, info):
+    cmd = command_for(name, info)
+    out_path = os.path.join(info["run_dir"], "logs", name + ".out")
+    with open(out_path, "ab") as out:
+        out.write(("\n=== %s start %s\n" % (time.strftime("%H:%M:%S"),
+                                           " ".join(cmd))).encode())
+        out.flush()
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True,
+                             cwd=info["run_dir"], env=clean_env())
+    info["pids"][name] = p.pid
+    save_info(info)
+    return p
+
+
+def terminate(name, info, timeout_s=10.0):
+    pid = info["pids"].get(name)
+    if not pid:
+        return "not started"
+    if not owns(pid, info, name):
+        info["pids"][name] = None
+        save_info(info)
+        return "already gone"
+    os.kill(pid, signal.SIGTERM)
+    deadline = time.time() + timeout_s
+    while time.time() < deadline and is_alive(pid):
+        time.sleep(0.05)
+    if is_alive(pid) and owns(pid, info, name):
+        os.kill(pid, signal.SIGKILL)
+        while is_alive(pid):
+            time.sleep(0.05)
+    info["pids"][name] = None
+    save_info(info)
+    return "stopped %d" % pid
+
+
+def tail(path, n=30):
+    try:
+        with open(path, errors="replace") as f:
+            return "".join(f.readlines()[-n:])
+    except OSError:
+        return "(no %s)" % path
+
+
+# ------------------------------------------------------------------- waiting
+
+def http_json(url, timeout_s=2.0):
+    with urllib.request.urlopen(url, timeout=timeout_s) as r:
+        return json.loads(r.read().decode())
+
+
+def wait_ready(info, procs, timeout_s=READY_TIMEOUT_S):
+    """Waits until Moonraker reports klippy_state ready."""
+    url = info["http_url"] + "/server/info"
+    deadline = time.time() + timeout_s
+    last = "no answer"
+    while time.time() < deadline:
+        for name in procs:
+            pid = info["pids"].get(name)
+            if pid and not is_alive(pid):
+                log = info["klippy_log"] if name == "klippy" else (
+                    info["moonraker_log"] if name == "moonraker" else
+                    os.path.join(info["run_dir"], "logs", "plant.out"))
+                raise BenchError("%s (pid %d) exited during start; last log "
+                                 "lines of %s:\n%s" % (name, pid, log,
+                                                       tail(log)))
+        try:
+            res = http_json(url)["result"]
+            last = "klippy_state=%s" % res.get("klippy_state")
+            if res.get("klippy_state") == "ready":
+                return
+        except Exception as e:  # not up yet
+            last = str(e)
+        time.sleep(0.1)
+    raise BenchError("Moonraker did not report klippy ready within %.0f s "
+                     "(%s); klippy log:\n%s\nmoonraker log:\n%s"
+                     % (timeout_s, last, tail(info["klippy_log"]),
+                        tail(info["moonraker_log"])))
+
+
+def wait_socket_gone(path, timeout_s=5.0):
+    deadline = time.time() + timeout_s
+    while time.time() < deadline and os.path.exists(path):
+        time.sleep(0.05)
+
+
+# ------------------------------------------------------------------ run info
+
+def info_path(run_dir):
+    return os.path.join(run_dir, "bench.json")
+
+
+def save_info(info):
+    write(info_path(info["run_dir"]), json.dumps(info, indent=1))
+
+
+def load_info(run_dir):
+    try:
+        with open(info_path(run_dir)) as f:
+            return json.load(f)
+    except (OSError, ValueError) as e:
+        raise BenchError("no bench run in %s (%s): start one first"
+                         % (run_dir, e))
+
+
+PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
+               "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
+               "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
+               "comms_dir", "plant_state")
+
+
+def public(info):
+    return {k: info[k] for k in PUBLIC_KEYS if k in info}
+
+
+def load_plant_params(arg):
+    if not arg:
+        return {}
+    text = arg
+    if not arg.lstrip().startswith("{"):
+        try:
+            with open(arg) as f:
+                text = f.read()
+        except OSError as e:
+            raise BenchError("--plant-json: neither JSON nor a readable file: "
+                             "%s" % e)
+    try:
+        params = json.loads(text)
+    except ValueError as e:
+        raise BenchError("--plant-json is not valid JSON: %s" % e)
+    if not isinstance(params, dict):
+        raise BenchError("--plant-json must be a JSON object")
+    return params
+
+
+# ------------------------------------------------------------------ commands
+
+def cmd_start(args):
+    check_installed()
+    rd = os.path.abspath(args.run_dir)
+    if os.path.exists(info_path(rd)):
+        old = load_info(rd)
+        if any(old["pids"].get(n) and owns(old["pids"][n], old, n)
+               for n in NAMES):
+            raise BenchError("a bench run is already active in %s: stop it "
+                             "first" % rd)
+    kin = args.kinematics
+    size = args.size or DEFAULT_SIZE[kin]
+    dirs = {d: os.path.join(rd, d)
+            for d in ("config", "gcodes", "logs", "database", "comms")}
+    for d in dirs.values():
+        os.makedirs(d, exist_ok=True)
+    plant_params = load_plant_params(args.plant_json)
+    write(os.path.join(dirs["comms"], "plant_params.json"),
+          json.dumps(plant_params, indent=1))
+    render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size)
+    info = {
+        "run_dir": rd,
+        "kinematics": kin,
+        "size_mm": size,
+        "config_dir": dirs["config"],
+        "gcodes_dir": dirs["gcodes"],
+        "comms_dir": dirs["comms"],
+        "printer_cfg": os.path.join(dirs["config"], "printer.cfg"),
+        "dict_path": DICT_PATH,
+        "klippy_log": os.path.join(dirs["logs"], "klippy.log"),
+        "moonraker_log": os.path.join(dirs["logs"], "moonraker.log"),
+        "plant_state": os.path.join(dirs["comms"], "plant_state.json"),
+        "klippy_sock": short_sock(rd, "klippy.sock"),
+        "moonraker_sock": short_sock(rd, "moonraker.sock"),
+        "pids": {n: None for n in NAMES},
+        # Substrings that must appear in a pid's cmdline before we signal it.
+        "markers": {
+            "klippy": os.path.join(dirs["config"], "printer.cfg"),
+            "moonraker": os.path.join(dirs["config"], "moonraker.conf"),
+            "plant": os.path.join(dirs["comms"], "plant_params.json"),
+        },
+    }
+    try:
+        for attempt in range(3):
+            port = pick_port()
+            info.update(moonraker_port=port,
+                        http_url="http://127.0.0.1:%d" % port,
+                        ws_url="ws://127.0.0.1:%d/websocket" % port)
+            write(os.path.join(dirs["config"], "moonraker.conf"),
+                  render("moonraker.conf", {
+                      "MOONRAKER_PORT": port,
+                      "KLIPPY_SOCK": info["klippy_sock"]}))
+            save_info(info)
+            if not info["pids"]["plant"]:
+                spawn("plant", info)
+            if not info["pids"]["klippy"]:
+                spawn("klippy", info)
+            spawn("moonraker", info)
+            try:
+                wait_ready(info, NAMES)
+                break
+            except BenchError as e:
+                port_taken = "Address already in use" in tail(
+                    info["moonraker_log"], 200) + tail(
+                    os.path.join(dirs["logs"], "moonraker.out"), 200)
+                if not port_taken or attempt == 2:
+                    raise
+                terminate("moonraker", info)
+                sys.stderr.write("bench: port %d taken, retrying (%s)\n"
+                                 % (port, str(e).splitlines()[0]))
+    except BaseException:
+        for n in reversed(NAMES):
+            try:
+                terminate(n, info)
+            except Exception:
+                pass
+        raise
+    out = json.dumps(public(info))
+    print(out)
+    sys.stdout.flush()
+
+
+def cmd_stop(args):
+    info = load_info(os.path.abspath(args.run_dir))
+    report = {}
+    for name in ("moonraker", "klippy", "plant"):
+        report[name] = terminate(name, info)
+    print(json.dumps({"run_dir": info["run_dir"], "stopped": report}))
+
+
+def cmd_start_one(args):
+    check_installed()
+    info = load_info(os.path.abspath(args.run_dir))
+    name = args.name
+    pid = info["pids"].get(name)
+    if pid and owns(pid, info, name):
+        raise BenchError("%s already running (pid %d) in %s"
+                         % (name, pid, info["run_dir"]))
+    spawn(name, info)
+    if name in ("klippy", "moonraker"):
+        others = [n for n in NAMES if info["pids"].get(n)]
+        if all(info["pids"].get(n) for n in ("klippy", "moonraker")):
+            wait_ready(info, others)
+    print(json.dumps(public(info)))
+
+
+def cmd_stop_one(args):
+    info = load_info(os.path.abspath(args.run_dir))
+    res = terminate(args.name, info)
+    if args.name == "klippy":
+        wait_socket_gone(info["klippy_sock"], 1.0)
+    print(json.dumps({"run_dir": info["run_dir"], args.name: res,
+                      "pids": info["pids"]}))
+
+
+def klippy_errors(log_path):
+    errors = []
+    try:
+        with open(log_path, errors="replace") as f:
+            lines = f.readlines()
+    except OSError:
+        return ["no klippy log at %s" % log_path]
+    for i, line in enumerate(lines):
+        s = line.strip()
+        if s.startswith("!! "):
+            errors.append(s[3:])
+        elif ("Config error" in s or s.startswith("Internal error")
+              or "Traceback" in s or s.startswith("Error ")):
+            errors.append(" ".join(l.strip() for l in lines[i:i + 4]))
+    return errors
+
+
+def cmd_batch(args):
+    check_installed()
+    gcode = os.path.abspath(args.gcode)
+    if not os.path.isfile(gcode):
+        raise BenchError("--gcode %s: no such file" % gcode)
+    if args.work_dir:
+        wd = os.path.abspath(args.work_dir)
+        os.makedirs(wd, exist_ok=True)
+    else:
+        base = os.path.join(bench_home(), "batch")
+        os.makedirs(base, exist_ok=True)
+        wd = tempfile.mkdtemp(prefix="batch-", dir=base)
+    for d in ("config", "comms", "gcodes", "logs"):
+        os.makedirs(os.path.join(wd, d), exist_ok=True)
+    render_printer(os.path.join(wd, "config"), os.path.join(wd, "comms"),
+                   os.path.join(wd, "gcodes"), args.kinematics, args.size)
+    log = os.path.join(wd, "logs", "klippy.log")
+    if os.path.exists(log):
+        os.remove(log)
+    cmd = [venv_python("klippy"), "-m", "klippy.klippy",
+           os.path.join(wd, "config", "printer.cfg"), "-i", gcode,
+           "-o", "/dev/null", "-d", DICT_PATH, "-l", log]
+    out_path = os.path.join(wd, "logs", "klippy.out")
+    t0 = time.time()
+    with open(out_path, "wb") as out:
+        try:
+            p = subprocess.run(cmd, stdin=subprocess.DEVNULL, stdout=out,
+                               stderr=subprocess.STDOUT, env=clean_env(),
+                               cwd=wd, timeout=args.timeout)
+            code = p.returncode
+        except subprocess.TimeoutExpired:
+            code = None
+    errors = klippy_errors(log)
+    if code is None:
+        errors.append("klippy did not finish within %.0f s" % args.timeout)
+    elif code != 0 and not errors:
+        errors.append("klippy exited with status %d: %s"
+                      % (code, tail(out_path, 5).strip()))
+    ok = code == 0 and not errors
+    print(json.dumps({"ok": ok, "errors": errors, "exit_code": code,
+                      "log": log, "work_dir": wd,
+                      "elapsed_s": round(time.time() - t0, 2),
+                      "kinematics": args.kinematics, "size_mm": args.size}))
+    if not ok:
+        sys.stderr.write("bench batch: klippy rejected %s:\n  %s\n"
+                         % (gcode, "\n  ".join(errors)))
+        sys.exit(1)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    p = sub.add_parser("start", help="start klippy, Moonraker and the plant")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--kinematics", choices=("corexy", "cartesian"),
+                   default="corexy")
+    p.add_argument("--size", type=int, default=None,
+                   help="bed size mm (default 300 corexy, 235 cartesian)")
+    p.add_argument("--plant-json", default=None,
+                   help="plant parameters: inline JSON object or a file")
+    p = sub.add_parser("stop", help="stop every process of a run")
+    p.add_argument("--run-dir", required=True)
+    for verb in ("start-one", "stop-one"):
+        p = sub.add_parser(verb)
+        p.add_argument("name", choices=NAMES)
+        p.add_argument("--run-dir", required=True)
+    p = sub.add_parser("batch", help="run klippy over a G-code file")
+    p.add_argument("--kinematics", choices=("corexy", "cartesian"),
+                   required=True)
+    p.add_argument("--size", type=int, required=True,
+                   choices=(120, 235, 250, 300, 350))
+    p.add_argument("--gcode", required=True)
+    p.add_argument("--work-dir", default=None)
+    p.add_argument("--timeout", type=float, default=600.0)
+    args = ap.parse_args()
+    try:
+        {"start": cmd_start, "stop": cmd_stop, "start-one": cmd_start_one,
+         "stop-one": cmd_stop_one, "batch": cmd_batch}[args.cmd](args)
+    except BenchError as e:
+        sys.stderr.write("bench %s: %s\n" % (args.cmd, e))
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,208 @@
+#!/usr/bin/env python3
+"""plant.py: the bench's thermal plant. Reads the bed and nozzle heater power
+that Klipper's own PID computes (klippy's API socket, objects/query) and writes
+the temperatures the `klipcal_file` sensors read. Owns the physics only; it
+never sets a target or a power (that is Klipper's job).
+
+Each heater is two coupled first-order masses and an ambient loss:
+
+    C_h dT_h/dt = P * 1 - (T_h - T_p) / R_hp        heater element (sensor)
+    C_p dT_p/dt = (T_h - T_p) / R_hp - (T_p - T_a) / R_pa    plate
+
+with power P in 0..1. Parameters per heater (JSON):
+  gain_c        steady rise above ambient at full power: R_hp + R_pa
+  split         R_hp / (R_hp + R_pa), 0..1 (how much of the rise sits between
+                heater and plate; larger = stronger power decay at constant T)
+  tau_heater_s  C_h * R_hp: how fast the element follows power (plate fixed)
+  tau_plate_s   relaxation time of the plate with the element held at
+                constant temperature: C_p * R_hp*R_pa/(R_hp+R_pa). At constant
+                sensor temperature the power decays with this time constant
+                from (T-T_a)/(split*gain_c) to (T-T_a)/gain_c.
+Global: accel (simulated seconds per real second), ambient_c, noise_c
+(gaussian sd added to each written reading), seed, period_s (real seconds
+between updates), initial_c (start temperature, default ambient).
+
+Files written in --run-dir/comms: bed_temp, nozzle_temp (one number each,
+replaced atomically) and plant_state.json (sim time, temperatures, powers).
+"""
+import argparse
+import json
+import math
+import os
+import random
+import signal
+import socket
+import sys
+import time
+
+DEFAULTS = {
+    "accel": 1.0,
+    "ambient_c": 25.0,
+    "noise_c": 0.0,
+    "seed": 1,
+    "period_s": 0.05,
+    "bed": {"gain_c": 120.0, "split": 0.5, "tau_heater_s": 30.0,
+            "tau_plate_s": 240.0},
+    "nozzle": {"gain_c": 300.0, "split": 0.3, "tau_heater_s": 6.0,
+               "tau_plate_s": 20.0},
+}
+HEATERS = {"bed": "heater_bed", "nozzle": "extruder"}
+
+
+def merge(base, over):
+    out = dict(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+class Mass2:
+    """Heater element + plate, integrated with small explicit Euler steps."""
+
+    def __init__(self, p, ambient_c, initial_c):
+        gain = float(p["gain_c"])
+        split = float(p["split"])
+        if not (gain > 0 and 0 < split < 1 and p["tau_heater_s"] > 0
+                and p["tau_plate_s"] > 0):
+            raise ValueError("bad heater parameters %r: need gain_c>0, "
+                             "0<split<1, tau_heater_s>0, tau_plate_s>0" % (p,))
+        self.r_hp = split * gain
+        self.r_pa = (1.0 - split) * gain
+        self.c_h = p["tau_heater_s"] / self.r_hp
+        self.c_p = p["tau_plate_s"] * gain / (self.r_hp * self.r_pa)
+        self.max_dt = min(p["tau_heater_s"], p["tau_plate_s"] * split) / 20.0
+        self.ambient_c = ambient_c
+        self.t_heater = self.t_plate = initial_c
+
+    def step(self, dt_s, power):
+        n = max(1, int(math.ceil(dt_s / self.max_dt)))
+        h = dt_s / n
+        for _ in range(n):
+            q_hp = (self.t_heater - self.t_plate) / self.r_hp
+            q_pa = (self.t_plate - self.ambient_c) / self.r_pa
+            self.t_heater += h * (power - q_hp) / self.c_h
+            self.t_plate += h * (q_hp - q_pa) / self.c_p
+
+
+class Klippy:
+    """Polls heater power over klippy's API socket; 0 power when down."""
+
+    def __init__(self, path):
+        self.path = path
+        self.sock = None
+        self.buf = b""
+        self.next_try = 0.0
+
+    def _connect(self):
+        now = time.monotonic()
+        if now < self.next_try:
+            return False
+        self.next_try = now + 0.5
+        try:
+            s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            s.settimeout(1.0)
+            s.connect(self.path)
+            self.sock, self.buf = s, b""
+            return True
+        except OSError:
+            return False
+
+    def powers(self):
+        if self.sock is None and not self._connect():
+            return None
+        req = {"id": 1, "method": "objects/query",
+               "params": {"objects": {"heater_bed": ["power"],
+                                      "extruder": ["power"]}}}
+        try:
+            self.sock.sendall(json.dumps(req).encode() + b"\x03")
+            while b"\x03" not in self.buf:
+                chunk = self.sock.recv(65536)
+                if not chunk:
+                    raise OSError("klippy closed the socket")
+                self.buf += chunk
+            msg, self.buf = self.buf.split(b"\x03", 1)
+            status = json.loads(msg).get("result", {}).get("status", {})
+            return {k: float(status.get(obj, {}).get("power") or 0.0)
+                    for k, obj in HEATERS.items()}
+        except (OSError, ValueError):
+            self.sock.close()
+            self.sock = None
+            return None
+
+
+def write_atomic(path, text):
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--run-dir", required=True)
+    ap.add_argument("--klippy-sock", required=True)
+    ap.add_argument("--params", help="JSON file of parameters")
+    ap.add_argument("--json", help="inline JSON parameters (after --params)")
+    args = ap.parse_args()
+    params = dict(DEFAULTS)
+    try:
+        if args.params and os.path.exists(args.params):
+            with open(args.params) as f:
+                params = merge(params, json.load(f))
+        if args.json:
+            params = merge(params, json.loads(args.json))
+        ambient = float(params["ambient_c"])
+        initial = float(params.get("initial_c", ambient))
+        masses = {k: Mass2(params[k], ambient, initial) for k in HEATERS}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        sys.stderr.write("plant: bad parameters: %s\n" % e)
+        sys.exit(2)
+    comms = os.path.join(args.run_dir, "comms")
+    rng = random.Random(params["seed"])
+    accel = float(params["accel"])
+    period = float(params["period_s"])
+    noise = float(params["noise_c"])
+    klippy = Klippy(args.klippy_sock)
+    running = [True]
+    signal.signal(signal.SIGTERM, lambda *_: running.__setitem__(0, False))
+    sim_t = 0.0
+    power = {k: 0.0 for k in HEATERS}
+    last = time.monotonic()
+    n = 0
+    sys.stdout.write("plant: started with %s\n" % json.dumps(params))
+    sys.stdout.flush()
+    while running[0]:
+        now = time.monotonic()
+        dt_real = min(now - last, 1.0)
+        last = now
+        got = klippy.powers()
+        power = got if got is not None else {k: 0.0 for k in HEATERS}
+        dt_sim = dt_real * accel
+        sim_t += dt_sim
+        for k, m in masses.items():
+            m.step(dt_sim, max(0.0, min(1.0, power[k])))
+        readings = {k: m.t_heater + (rng.gauss(0.0, noise) if noise else 0.0)
+                    for k, m in masses.items()}
+        write_atomic(os.path.join(comms, "bed_temp"), "%.3f\n"
+                     % readings["bed"])
+        write_atomic(os.path.join(comms, "nozzle_temp"), "%.3f\n"
+                     % readings["nozzle"])
+        n += 1
+        if n % 5 == 0 or not running[0]:
+            state = {"sim_t_s": round(sim_t, 3), "connected": got is not None,
+                     "accel": accel}
+            for k, m in masses.items():
+                state[k] = {"heater_c": round(m.t_heater, 3),
+                            "plate_c": round(m.t_plate, 3),
+                            "reading_c": round(readings[k], 3),
+                            "power": power[k]}
+            write_atomic(os.path.join(comms, "plant_state.json"),
+                         json.dumps(state))
+        time.sleep(max(0.0, period - (time.monotonic() - now)))
+
+
+if __name__ == "__main__":
+    main()

