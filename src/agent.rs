@@ -46,6 +46,10 @@ async fn handle(m: &Moonraker, call: AgentCall) {
 }
 
 async fn status(m: &Moonraker) -> Result<Value, RpcError> {
+    let summary = printer::gather(m).await.map_err(|e| RpcError {
+        code: 503,
+        message: e.to_string(),
+    })?;
     let connection = match m.state() {
         ConnState::Connected { klippy_state } => {
             json!({"moonraker": "connected", "klippy_state": klippy_state})
@@ -53,10 +57,6 @@ async fn status(m: &Moonraker) -> Result<Value, RpcError> {
         ConnState::Connecting(why) => json!({"moonraker": "connecting", "last_error": why}),
         ConnState::Stopped => json!({"moonraker": "stopped"}),
     };
-    let summary = printer::gather(m).await.map_err(|e| RpcError {
-        code: 503,
-        message: e.to_string(),
-    })?;
     Ok(json!({
         "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
         "connection": connection,

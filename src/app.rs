@@ -61,6 +61,8 @@ pub fn client_options(config: &Config) -> ClientOptions {
     ClientOptions {
         url: m.url.clone(),
         api_key: (!m.api_key.is_empty()).then(|| m.api_key.clone()),
+        client_name: "klipcal".into(),
+        agent: true,
         request_timeout: Duration::from_secs_f64(m.request_timeout_s),
         reconnect_min: Duration::from_secs_f64(m.reconnect_min_s),
         reconnect_max: Duration::from_secs_f64(m.reconnect_max_s),
@@ -111,6 +113,8 @@ async fn check(config: Config, as_json: bool) -> anyhow::Result<ExitCode> {
     let cancel = CancellationToken::new();
     let mut opts = client_options(&config);
     opts.remote_methods.clear();
+    opts.agent = false;
+    opts.client_name = "klipcal-check".into();
     opts.subscriptions.clear();
     let (m, _calls) = Moonraker::spawn(opts, cancel.clone());
     let limit = Duration::from_secs_f64(config.moonraker.request_timeout_s.min(10.0));

@@ -25,6 +25,11 @@ pub struct ClientOptions {
     pub url: String,
     /// Sent in `server.connection.identify` when set.
     pub api_key: Option<String>,
+    /// `client_name` in `server.connection.identify`.
+    pub client_name: String,
+    /// Identify as an agent (the daemon) or as a plain client (`check`, tests): Moonraker
+    /// accepts one agent per name.
+    pub agent: bool,
     /// Per-request reply timeout.
     pub request_timeout: Duration,
     /// First reconnect delay.
@@ -425,9 +430,9 @@ impl Moonraker {
     async fn setup(&self) -> Result<(), Error> {
         let opts = &self.shared.opts;
         let mut ident = json!({
-            "client_name": "klipcal",
+            "client_name": opts.client_name,
             "version": env!("CARGO_PKG_VERSION"),
-            "type": "agent",
+            "type": if opts.agent { "agent" } else { "other" },
             "url": "https://github.com/klipcal/klipcal",
         });
         if let Some(key) = &opts.api_key {

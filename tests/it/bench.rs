@@ -96,6 +96,8 @@ impl Bench {
             ClientOptions {
                 url: self.ws_url(),
                 api_key: None,
+                client_name: "klipcal-test".into(),
+                agent: false,
                 request_timeout: Duration::from_secs(20),
                 reconnect_min: Duration::from_millis(200),
                 reconnect_max: Duration::from_secs(1),

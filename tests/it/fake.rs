@@ -51,6 +51,8 @@ fn options(url: String) -> ClientOptions {
     ClientOptions {
         url,
         api_key: None,
+        client_name: "klipcal-test".into(),
+        agent: false,
         request_timeout: Duration::from_millis(500),
         reconnect_min: Duration::from_millis(50),
         reconnect_max: Duration::from_millis(200),
