@@ -3,10 +3,12 @@
 //!
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
+//! - [`edit`]: [`set_value`], one option's value replaced in place in the file Klipper uses.
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
 pub mod config;
+pub mod edit;
 pub mod facts;
 pub mod files;
 
@@ -15,6 +17,7 @@ use std::path::PathBuf;
 pub use config::{
     Config, ConfigOption, Origin, SaveConfigStatus, Section, ShadowedOption, SourceFile,
 };
+pub use edit::{set_value, FileEdit};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 
@@ -91,6 +94,43 @@ pub enum Error {
         /// What a valid value looks like.
         expected: String,
     },
+    /// The option to edit is not defined in any file.
+    #[error("[{section}] {key} is not defined in any config file; klipcal only changes existing options (add it by hand first)")]
+    NotDefined {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+    },
+    /// The option to edit spans several lines.
+    #[error("[{section}] {key} spans lines {first_line}-{last_line} of {path}; klipcal only edits one-line values")]
+    MultiLineValue {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// File holding it.
+        path: PathBuf,
+        /// First line.
+        first_line: usize,
+        /// Last line.
+        last_line: usize,
+    },
+    /// The replacement value would not read back as written.
+    #[error("cannot set [{section}] {key} to '{value}': {reason}")]
+    BadNewValue {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// The refused value.
+        value: String,
+        /// Why.
+        reason: String,
+    },
+    /// Re-reading the edited files did not give the expected config (an internal bug).
+    #[error("config edit check failed: {0}")]
+    EditCheck(String),
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),
