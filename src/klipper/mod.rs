@@ -4,6 +4,8 @@
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`], one option's value replaced in place in the file Klipper uses.
+//! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
+//!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
@@ -11,6 +13,7 @@ pub mod config;
 pub mod edit;
 pub mod facts;
 pub mod files;
+pub mod gcode_cmd;
 
 use std::path::PathBuf;
 
@@ -20,6 +23,7 @@ pub use config::{
 pub use edit::{set_value, FileEdit};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
+pub use gcode_cmd::GcodeCmd;
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.
 #[derive(Debug, thiserror::Error)]
@@ -131,6 +135,32 @@ pub enum Error {
     /// Re-reading the edited files did not give the expected config (an internal bug).
     #[error("config edit check failed: {0}")]
     EditCheck(String),
+    /// A G-code command, parameter or value name outside `[A-Za-z0-9_.-]+`.
+    #[error("G-code {what} '{name}' is not allowed; expected letters, digits, '_', '.' or '-'")]
+    BadName {
+        /// What the name is (command name, parameter name, value).
+        what: String,
+        /// The refused name.
+        name: String,
+    },
+    /// A G-code number that is NaN or infinite.
+    #[error("G-code parameter {key} = {value} is not a finite number")]
+    BadNumber {
+        /// Parameter name.
+        key: String,
+        /// The value.
+        value: f64,
+    },
+    /// Text Klipper would not read back unchanged inside `"..."`.
+    #[error("G-code parameter {key} text {value:?} cannot be sent: {reason}")]
+    BadText {
+        /// Parameter name.
+        key: String,
+        /// The refused text.
+        value: String,
+        /// Why.
+        reason: String,
+    },
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),
