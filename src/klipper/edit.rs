@@ -17,6 +17,23 @@ use super::config::{py_isspace, Config};
 use super::files::MemFiles;
 use super::Error;
 
+/// One value changed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ValueChange {
+    /// Section name as written.
+    pub section: String,
+    /// Lowercased option name.
+    pub key: String,
+    /// 1-based line changed.
+    pub line: usize,
+    /// True when the changed line is in the SAVE_CONFIG block.
+    pub in_save_config: bool,
+    /// The value before the edit.
+    pub old_value: String,
+    /// The value written.
+    pub new_value: String,
+}
+
 /// One file to rewrite.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FileEdit {
@@ -24,14 +41,10 @@ pub struct FileEdit {
     pub path: PathBuf,
     /// Its index in [`Config::files`].
     pub file: usize,
-    /// 1-based line changed.
-    pub line: usize,
-    /// True when the changed line is in the SAVE_CONFIG block.
-    pub in_save_config: bool,
-    /// The value before the edit.
-    pub old_value: String,
     /// The file's complete new text; identical to the old text except the value bytes.
     pub new_text: String,
+    /// The values changed in this file, in file order.
+    pub changes: Vec<ValueChange>,
 }
 
 /// Replaces the effective value of `[section] key` (key case-insensitive, section exact) with
@@ -52,39 +65,103 @@ pub fn set_value(
     key: &str,
     new_value: &str,
 ) -> Result<FileEdit, Error> {
-    check_new_value(section, key, new_value)?;
-    let option = config
-        .option(section, key)
-        .ok_or_else(|| Error::NotDefined {
-            section: section.to_string(),
-            key: key.to_lowercase(),
-        })?;
-    let origin = &option.origin;
-    if origin.last_line != origin.first_line || option.value.contains('\n') {
-        return Err(Error::MultiLineValue {
-            section: section.to_string(),
-            key: option.key.clone(),
-            path: origin.path.clone(),
-            first_line: origin.first_line,
-            last_line: origin.last_line,
-        });
+    let mut edits = set_values(config, &[(section, key, new_value)])?;
+    edits
+        .pop()
+        .ok_or_else(|| Error::EditCheck("no file to edit".into()))
+}
+
+/// Several values at once (e.g. `rotation_distance` of `stepper_x` and `stepper_y`): one
+/// [`FileEdit`] per file touched, in [`Config::files`] order. All or nothing: any refused value
+/// fails the whole call.
+///
+/// # Errors
+/// As [`set_value`]; also [`Error::BadNewValue`] when one option is named twice.
+pub fn set_values(config: &Config, values: &[(&str, &str, &str)]) -> Result<Vec<FileEdit>, Error> {
+    // (file, value span, change), sorted so each file's changes are in text order
+    let mut planned: Vec<(usize, std::ops::Range<usize>, ValueChange)> = Vec::new();
+    for &(section, key, new_value) in values {
+        check_new_value(section, key, new_value)?;
+        let option = config
+            .option(section, key)
+            .ok_or_else(|| Error::NotDefined {
+                section: section.to_string(),
+                key: key.to_lowercase(),
+            })?;
+        let origin = &option.origin;
+        if origin.last_line != origin.first_line || option.value.contains('\n') {
+            return Err(Error::MultiLineValue {
+                section: section.to_string(),
+                key: option.key.clone(),
+                path: origin.path.clone(),
+                first_line: origin.first_line,
+                last_line: origin.last_line,
+            });
+        }
+        if planned
+            .iter()
+            .any(|(_, _, c)| c.section == section && c.key == option.key)
+        {
+            return Err(Error::BadNewValue {
+                section: section.to_string(),
+                key: option.key.clone(),
+                value: new_value.to_string(),
+                reason: "the option is named twice in one edit".into(),
+            });
+        }
+        planned.push((
+            origin.file,
+            origin.value_span.clone(),
+            ValueChange {
+                section: section.to_string(),
+                key: option.key.clone(),
+                line: origin.first_line,
+                in_save_config: origin.in_save_config,
+                old_value: option.value.clone(),
+                new_value: new_value.to_string(),
+            },
+        ));
     }
-    let old_text = &config.files()[origin.file].text;
-    let span = origin.value_span.clone();
-    let mut new_text = String::with_capacity(old_text.len() + new_value.len());
-    new_text.push_str(&old_text[..span.start]);
-    new_text.push_str(new_value);
-    new_text.push_str(&old_text[span.end..]);
-    let edit = FileEdit {
-        path: origin.path.clone(),
-        file: origin.file,
-        line: origin.first_line,
-        in_save_config: origin.in_save_config,
-        old_value: option.value.clone(),
-        new_text,
-    };
-    verify(config, section, &option.key, new_value, &edit)?;
-    Ok(edit)
+    planned.sort_by_key(|(file, span, _)| (*file, span.start));
+    let mut edits: Vec<FileEdit> = Vec::new();
+    for (file, _, change) in planned {
+        if edits.last().map(|e| e.file) != Some(file) {
+            edits.push(FileEdit {
+                path: config.files()[file].path.clone(),
+                file,
+                new_text: String::new(),
+                changes: Vec::new(),
+            });
+        }
+        if let Some(edit) = edits.last_mut() {
+            edit.changes.push(change);
+        }
+    }
+    for edit in &mut edits {
+        edit.new_text = apply(config, edit)?;
+    }
+    verify(config, &edits)?;
+    Ok(edits)
+}
+
+/// The file's text with every change's value bytes replaced.
+fn apply(config: &Config, edit: &FileEdit) -> Result<String, Error> {
+    let old_text = &config.files()[edit.file].text;
+    let mut out = String::with_capacity(old_text.len() + 64);
+    let mut pos = 0;
+    for change in &edit.changes {
+        let span = config
+            .option(&change.section, &change.key)
+            .map(|o| o.origin.value_span.clone())
+            .ok_or_else(|| {
+                Error::EditCheck(format!("[{}] {} vanished", change.section, change.key))
+            })?;
+        out.push_str(&old_text[pos..span.start]);
+        out.push_str(&change.new_value);
+        pos = span.end;
+    }
+    out.push_str(&old_text[pos..]);
+    Ok(out)
 }
 
 fn check_new_value(section: &str, key: &str, value: &str) -> Result<(), Error> {
@@ -115,21 +192,14 @@ fn check_new_value(section: &str, key: &str, value: &str) -> Result<(), Error> {
     Ok(())
 }
 
-/// Re-parses the files with the edit applied and compares every effective option.
-fn verify(
-    config: &Config,
-    section: &str,
-    key: &str,
-    new_value: &str,
-    edit: &FileEdit,
-) -> Result<(), Error> {
+/// Re-parses the files with the edits applied and compares every effective option.
+fn verify(config: &Config, edits: &[FileEdit]) -> Result<(), Error> {
     let mut files = MemFiles::new();
     for (i, f) in config.files().iter().enumerate() {
-        let text = if i == edit.file {
-            edit.new_text.as_str()
-        } else {
-            f.text.as_str()
-        };
+        let text = edits
+            .iter()
+            .find(|e| e.file == i)
+            .map_or(f.text.as_str(), |e| e.new_text.as_str());
         files.insert(&f.path, text);
     }
     let main = &config.files()[0].path;
@@ -146,15 +216,19 @@ fn verify(
             .collect()
     };
     let mut expected = flatten(config);
-    for entry in &mut expected {
-        if entry.0 == section && entry.1 == key {
-            entry.2 = new_value.to_string();
+    for change in edits.iter().flat_map(|e| &e.changes) {
+        for entry in &mut expected {
+            if entry.0 == change.section && entry.1 == change.key {
+                entry.2.clone_from(&change.new_value);
+            }
         }
     }
     if flatten(&after) != expected {
-        return Err(Error::EditCheck(format!(
-            "re-reading the edited files does not give [{section}] {key} = {new_value} with every other option unchanged"
-        )));
+        return Err(Error::EditCheck(
+            "re-reading the edited files does not give the new values with every other option \
+             unchanged"
+                .into(),
+        ));
     }
     Ok(())
 }
@@ -173,8 +247,8 @@ mod tests {
             edit.path,
             PathBuf::from("/home/pi/printer_data/config/steppers.cfg")
         );
-        assert_eq!(edit.old_value, "40");
-        assert!(!edit.in_save_config);
+        assert_eq!(edit.changes[0].old_value, "40");
+        assert!(!edit.changes[0].in_save_config);
         let expected = STEPPERS_CFG.replacen(
             "rotation_distance = 40 ; GT2 20T",
             "rotation_distance = 40.1234 ; GT2 20T",
@@ -190,7 +264,7 @@ mod tests {
         let cfg = fixture();
         let edit = set_value(&cfg, "stepper_x", "MICROSTEPS", "8").unwrap();
         assert_eq!(edit.file, 0);
-        assert_eq!(edit.old_value, "32");
+        assert_eq!(edit.changes[0].old_value, "32");
         let expected = PRINTER_CFG.replacen(
             "[stepper_x]\nmicrosteps: 32",
             "[stepper_x]\nmicrosteps: 8",
@@ -205,7 +279,7 @@ mod tests {
     fn an_option_only_in_the_save_config_block_is_edited_inside_the_block() {
         let cfg = fixture();
         let edit = set_value(&cfg, "skew_correction calilantern", "xy_skew", "-0.00093").unwrap();
-        assert!(edit.in_save_config);
+        assert!(edit.changes[0].in_save_config);
         let expected = PRINTER_CFG.replacen("#*# xy_skew = 0.0012", "#*# xy_skew = -0.00093", 1);
         assert_ne!(expected, PRINTER_CFG);
         assert_eq!(edit.new_text, expected);
@@ -244,6 +318,57 @@ mod tests {
             }
         }
         assert!(edited > 25, "only {edited} options edited");
+    }
+
+    #[test]
+    fn several_values_in_one_file_and_across_files_are_edited_together() {
+        // values: the converged A/B result quoted in shared/seeds/README.md (source 000)
+        let cfg = fixture();
+        let edits = set_values(
+            &cfg,
+            &[
+                ("stepper_y", "rotation_distance", "39.94284"),
+                ("stepper_x", "rotation_distance", "40.10289"),
+                ("skew_correction calilantern", "xy_skew", "0.0009"),
+            ],
+        )
+        .unwrap();
+        assert_eq!(edits.len(), 2);
+        assert_eq!(edits[0].file, 0);
+        assert_eq!(
+            edits[0].new_text,
+            PRINTER_CFG.replacen("#*# xy_skew = 0.0012", "#*# xy_skew = 0.0009", 1)
+        );
+        let expected = STEPPERS_CFG
+            .replacen(
+                "rotation_distance: 40\n",
+                "rotation_distance: 40.10289\n",
+                1,
+            )
+            .replacen(
+                "rotation_distance = 40 ;",
+                "rotation_distance = 39.94284 ;",
+                1,
+            );
+        assert_eq!(edits[1].new_text, expected);
+        let keys: Vec<&str> = edits[1]
+            .changes
+            .iter()
+            .map(|c| c.section.as_str())
+            .collect();
+        assert_eq!(
+            keys,
+            ["stepper_x", "stepper_y"],
+            "changes are in file order"
+        );
+        assert!(set_values(
+            &cfg,
+            &[
+                ("stepper_x", "microsteps", "8"),
+                ("stepper_x", "Microsteps", "4")
+            ]
+        )
+        .is_err());
     }
 
     #[test]

@@ -3,7 +3,8 @@
 //!
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
-//! - [`edit`]: [`set_value`], one option's value replaced in place in the file Klipper uses.
+//! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
+//!   reads them from.
 //! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
 //!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
@@ -20,7 +21,7 @@ use std::path::PathBuf;
 pub use config::{
     Config, ConfigOption, Origin, SaveConfigStatus, Section, ShadowedOption, SourceFile,
 };
-pub use edit::{set_value, FileEdit};
+pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
