@@ -926,6 +926,18 @@ gcode:
     }
 
     #[test]
+    fn nested_includes_resolve_against_the_including_files_folder() {
+        let files = MemFiles::new()
+            .with("/c/printer.cfg", "[include macros/main.cfg]\n")
+            .with("/c/macros/main.cfg", "[include helpers.cfg]\n")
+            .with("/c/macros/helpers.cfg", "[m]\nfrom: macros\n")
+            .with("/c/helpers.cfg", "[m]\nfrom: top\n");
+        let cfg = Config::load(&files, Path::new("/c/printer.cfg")).unwrap();
+        assert_eq!(cfg.get("m", "from"), Some("macros"));
+        assert_eq!(cfg.files().len(), 3);
+    }
+
+    #[test]
     fn a_wildcard_include_matching_nothing_is_fine_but_a_missing_file_is_an_error() {
         let ok = MemFiles::new().with("/c/printer.cfg", "[include none/*.cfg]\n[a]\nx: 1\n");
         assert!(Config::load(&ok, Path::new("/c/printer.cfg")).is_ok());
