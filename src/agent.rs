@@ -5,6 +5,7 @@
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
+use crate::klipper::gcode_cmd::{self, GcodeCmd};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
 
@@ -91,20 +92,14 @@ fn console_text(method: &str, v: &Value) -> String {
     }
 }
 
-/// `RESPOND PREFIX=klipcal MSG="…"` with the message made safe for Klipper's parser: no
-/// quotes, backslashes, or the comment characters `#`, `*`, `;` that end a command's arguments.
+/// `RESPOND PREFIX=klipcal MSG="…"`, the message made safe for Klipper's parser (characters
+/// that would end or break the command are replaced).
 fn respond_line(msg: &str) -> String {
-    let safe: String = msg
-        .chars()
-        .map(|c| match c {
-            '"' => '\'',
-            '\\' => '/',
-            '#' | '*' | ';' => ' ',
-            c if c.is_control() => ' ',
-            c => c,
-        })
-        .collect();
-    format!("RESPOND PREFIX=klipcal MSG=\"{}\"", safe.trim())
+    GcodeCmd::new("RESPOND")
+        .word("PREFIX", gcode_cmd::RESPOND_PREFIX)
+        .text_lossy("MSG", msg)
+        .build()
+        .unwrap_or_else(|_| "RESPOND PREFIX=klipcal MSG=\"(unprintable answer)\"".to_string())
 }
 
 #[cfg(test)]
@@ -114,11 +109,15 @@ mod tests {
     #[test]
     fn console_answers_cannot_break_out_of_the_respond_command() {
         let line = respond_line("a \"quoted\" # not a comment; 5*2 \\ end\nnext");
-        assert_eq!(
-            line,
-            "RESPOND PREFIX=klipcal MSG=\"a 'quoted'   not a comment  5 2 / end next\""
+        assert!(line.starts_with("RESPOND PREFIX=klipcal MSG=\""), "{line}");
+        assert_eq!(line.matches('"').count(), 2, "{line}");
+        for bad in ['#', ';', '*', '\\', '\n'] {
+            assert!(!line.contains(bad), "{line}");
+        }
+        assert!(
+            line.contains("not a comment") && line.contains("next"),
+            "{line}"
         );
-        assert_eq!(line.matches('"').count(), 2);
     }
 
     #[test]

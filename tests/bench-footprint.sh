@@ -1,0 +1,28 @@
+#!/usr/bin/env bash
+# Footprint benchmark: starts a bench (real Moonraker + klippy + thermal plant) and the release
+# daemon connected and subscribed to it, then `klipcal bench footprint` samples for SECONDS
+# (default 60) and prints klipcal's RSS and CPU beside Moonraker's and klippy's RSS.
+# Targets: klipcal RSS < 1/5 of Moonraker's; CPU < 0.5 % of one core on average.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+seconds="${1:-60}"
+bash tests/bench/setup.sh >/dev/null
+cargo build --release --quiet
+run="$(mktemp -d /tmp/kc-fp-XXXXXX)"
+cleanup() {
+    [[ -n "${daemon:-}" ]] && kill "$daemon" 2>/dev/null || true
+    python3 tests/bench/bench.py stop --run-dir "$run" >/dev/null 2>&1 || true
+    rm -rf "$run"
+}
+trap cleanup EXIT
+info="$(python3 tests/bench/bench.py start --run-dir "$run" | tail -n 1)"
+field() { python3 -c "import json,sys; v=json.loads(sys.argv[1]); print(eval('v'+sys.argv[2]))" "$info" "$1"; }
+ws="$(field '["ws_url"]')"
+# Heat the bed so status updates keep flowing while we measure.
+curl -s -X POST "$(field '["http_url"]')/printer/gcode/script?script=SET_HEATER_TEMPERATURE%20HEATER=heater_bed%20TARGET=60" >/dev/null
+HOME="$run" ./target/release/klipcal --moonraker "$ws" serve 2>"$run/klipcal.log" &
+daemon=$!
+sleep 3
+./target/release/klipcal bench footprint --klipcal-pid "$daemon" \
+    --moonraker-pid "$(field '["pids"]["moonraker"]')" --klippy-pid "$(field '["pids"]["klippy"]')" \
+    --seconds "$seconds"
