@@ -17,6 +17,7 @@
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
+//! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
 
 pub mod agent;
@@ -31,3 +32,4 @@ pub mod klipper;
 pub mod layout;
 pub mod moonraker;
 pub mod printer;
+pub mod store;

@@ -1,0 +1,325 @@
+//! Persistence of calibration sessions and readings in an embedded SQLite database under the
+//! data directory. A session is stored as a JSON document with its state beside it, written
+//! before each step acts; readings are rows of their own, saved the moment they arrive. It
+//! knows nothing of what a state means.
+
+use std::path::Path;
+use std::sync::Mutex;
+
+use rusqlite::{params, Connection, OptionalExtension};
+use serde_json::Value;
+
+/// A storage error.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// SQLite failed.
+    #[error("session database: {0}")]
+    Sql(#[from] rusqlite::Error),
+    /// A stored document is not valid JSON (the file was edited or damaged).
+    #[error("session database: stored session {id} is damaged: {message}")]
+    Damaged {
+        /// Session id.
+        id: i64,
+        /// The JSON error.
+        message: String,
+    },
+    /// The folder for the database cannot be created.
+    #[error("cannot create the data folder {path}: {source}")]
+    Folder {
+        /// The folder.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+}
+
+/// States after which a session no longer runs.
+pub const FINAL_STATES: &[&str] = &["converged", "failed", "cancelled", "done"];
+
+/// One stored session.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SessionRow {
+    /// Id.
+    pub id: i64,
+    /// Kind, e.g. `ab`.
+    pub kind: String,
+    /// State name.
+    pub state: String,
+    /// The whole document.
+    pub doc: Value,
+}
+
+/// One caliper reading.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadingRow {
+    /// Row id.
+    pub id: i64,
+    /// Round number (1-based).
+    pub round: i64,
+    /// Pair id, e.g. `A-D1`.
+    pub pair: String,
+    /// Millimetres.
+    pub value_mm: f64,
+}
+
+/// The database.
+#[derive(Debug)]
+pub struct Store {
+    conn: Mutex<Connection>,
+}
+
+const SCHEMA: &str = "
+CREATE TABLE IF NOT EXISTS sessions (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    kind TEXT NOT NULL,
+    state TEXT NOT NULL,
+    doc TEXT NOT NULL,
+    created_at TEXT NOT NULL DEFAULT (datetime('now')),
+    updated_at TEXT NOT NULL DEFAULT (datetime('now'))
+);
+CREATE TABLE IF NOT EXISTS readings (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    session_id INTEGER NOT NULL REFERENCES sessions(id),
+    round INTEGER NOT NULL,
+    pair TEXT NOT NULL,
+    value_mm REAL NOT NULL,
+    entered_at TEXT NOT NULL DEFAULT (datetime('now'))
+);
+CREATE INDEX IF NOT EXISTS readings_by_session ON readings(session_id, round);
+";
+
+impl Store {
+    /// Opens (creating when needed) `dir/klipcal.sqlite`.
+    ///
+    /// # Errors
+    /// The folder cannot be created or SQLite cannot open the file.
+    pub fn open(dir: &Path) -> Result<Self, Error> {
+        std::fs::create_dir_all(dir).map_err(|source| Error::Folder {
+            path: dir.display().to_string(),
+            source,
+        })?;
+        let conn = Connection::open(dir.join("klipcal.sqlite"))?;
+        conn.pragma_update(None, "journal_mode", "WAL")?;
+        conn.pragma_update(None, "synchronous", "FULL")?;
+        Self::init(conn)
+    }
+
+    /// An in-memory database, for tests.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn in_memory() -> Result<Self, Error> {
+        Self::init(Connection::open_in_memory()?)
+    }
+
+    fn init(conn: Connection) -> Result<Self, Error> {
+        conn.execute_batch(SCHEMA)?;
+        Ok(Self {
+            conn: Mutex::new(conn),
+        })
+    }
+
+    fn conn(&self) -> std::sync::MutexGuard<'_, Connection> {
+        self.conn
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    /// Stores a new session; returns its id.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn create_session(&self, kind: &str, state: &str, doc: &Value) -> Result<i64, Error> {
+        let c = self.conn();
+        c.execute(
+            "INSERT INTO sessions (kind, state, doc) VALUES (?1, ?2, ?3)",
+            params![kind, state, doc.to_string()],
+        )?;
+        Ok(c.last_insert_rowid())
+    }
+
+    /// Replaces a session's state and document.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn save_session(&self, id: i64, state: &str, doc: &Value) -> Result<(), Error> {
+        self.conn().execute(
+            "UPDATE sessions SET state = ?2, doc = ?3, updated_at = datetime('now') WHERE id = ?1",
+            params![id, state, doc.to_string()],
+        )?;
+        Ok(())
+    }
+
+    fn row(id: i64, kind: String, state: String, doc: String) -> Result<SessionRow, Error> {
+        let doc = serde_json::from_str(&doc).map_err(|e| Error::Damaged {
+            id,
+            message: e.to_string(),
+        })?;
+        Ok(SessionRow {
+            id,
+            kind,
+            state,
+            doc,
+        })
+    }
+
+    /// One session.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged document.
+    pub fn session(&self, id: i64) -> Result<Option<SessionRow>, Error> {
+        let r = self
+            .conn()
+            .query_row(
+                "SELECT id, kind, state, doc FROM sessions WHERE id = ?1",
+                params![id],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+            )
+            .optional()?;
+        r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
+    /// The newest session that has not reached a final state.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged document.
+    pub fn active_session(&self) -> Result<Option<SessionRow>, Error> {
+        let placeholders = FINAL_STATES
+            .iter()
+            .map(|s| format!("'{s}'"))
+            .collect::<Vec<_>>()
+            .join(",");
+        let sql = format!(
+            "SELECT id, kind, state, doc FROM sessions WHERE state NOT IN ({placeholders}) \
+             ORDER BY id DESC LIMIT 1"
+        );
+        let r = self
+            .conn()
+            .query_row(&sql, [], |r| {
+                Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?))
+            })
+            .optional()?;
+        r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
+    /// The newest session of any state.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged document.
+    pub fn latest_session(&self) -> Result<Option<SessionRow>, Error> {
+        let r = self
+            .conn()
+            .query_row(
+                "SELECT id, kind, state, doc FROM sessions ORDER BY id DESC LIMIT 1",
+                [],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+            )
+            .optional()?;
+        r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
+    /// Saves one reading; returns its row id.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn add_reading(
+        &self,
+        session: i64,
+        round: i64,
+        pair: &str,
+        value_mm: f64,
+    ) -> Result<i64, Error> {
+        let c = self.conn();
+        c.execute(
+            "INSERT INTO readings (session_id, round, pair, value_mm) VALUES (?1, ?2, ?3, ?4)",
+            params![session, round, pair, value_mm],
+        )?;
+        Ok(c.last_insert_rowid())
+    }
+
+    /// Removes a pair's readings of one round (to enter them again); returns how many.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn clear_readings(&self, session: i64, round: i64, pair: &str) -> Result<usize, Error> {
+        Ok(self.conn().execute(
+            "DELETE FROM readings WHERE session_id = ?1 AND round = ?2 AND pair = ?3",
+            params![session, round, pair],
+        )?)
+    }
+
+    /// Every reading of a session's round, in the order entered.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn readings(&self, session: i64, round: i64) -> Result<Vec<ReadingRow>, Error> {
+        let c = self.conn();
+        let mut st = c.prepare(
+            "SELECT id, round, pair, value_mm FROM readings \
+             WHERE session_id = ?1 AND round = ?2 ORDER BY id",
+        )?;
+        let rows = st
+            .query_map(params![session, round], |r| {
+                Ok(ReadingRow {
+                    id: r.get(0)?,
+                    round: r.get(1)?,
+                    pair: r.get(2)?,
+                    value_mm: r.get(3)?,
+                })
+            })?
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(rows)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn a_session_and_its_readings_survive_reopening_the_database() {
+        let dir = tempfile::tempdir().unwrap();
+        let id = {
+            let s = Store::open(dir.path()).unwrap();
+            let id = s
+                .create_session("ab", "preflight", &json!({"round": 1}))
+                .unwrap();
+            s.save_session(id, "measuring", &json!({"round": 1, "x": 2}))
+                .unwrap();
+            s.add_reading(id, 1, "A-D1", 10.02).unwrap();
+            s.add_reading(id, 1, "A-D1", 10.03).unwrap();
+            id
+        };
+        let s = Store::open(dir.path()).unwrap();
+        let row = s.active_session().unwrap().unwrap();
+        assert_eq!((row.id, row.state.as_str()), (id, "measuring"));
+        assert_eq!(row.doc["x"], 2);
+        let r = s.readings(id, 1).unwrap();
+        assert_eq!(
+            r.iter().map(|r| r.value_mm).collect::<Vec<_>>(),
+            vec![10.02, 10.03]
+        );
+    }
+
+    #[test]
+    fn a_finished_session_is_not_active() {
+        let s = Store::in_memory().unwrap();
+        let id = s.create_session("ab", "preflight", &json!({})).unwrap();
+        s.save_session(id, "cancelled", &json!({})).unwrap();
+        assert!(s.active_session().unwrap().is_none());
+        assert_eq!(s.latest_session().unwrap().unwrap().state, "cancelled");
+    }
+
+    #[test]
+    fn clearing_a_pair_keeps_the_other_pairs() {
+        let s = Store::in_memory().unwrap();
+        let id = s.create_session("ab", "measuring", &json!({})).unwrap();
+        s.add_reading(id, 1, "A-D1", 10.0).unwrap();
+        s.add_reading(id, 1, "A-D2", 150.0).unwrap();
+        assert_eq!(s.clear_readings(id, 1, "A-D1").unwrap(), 1);
+        let r = s.readings(id, 1).unwrap();
+        assert_eq!(r.len(), 1);
+        assert_eq!(r[0].pair, "A-D2");
+    }
+}
