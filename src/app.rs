@@ -22,5 +22,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Check(_args) => anyhow::bail!("check: not built yet"),
         Command::Bench(_b) => anyhow::bail!("bench: not built yet"),
+        Command::Pylons(args) => {
+            crate::pylons_cmd::run(&args)?;
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }

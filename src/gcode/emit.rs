@@ -113,9 +113,11 @@ pub(crate) fn expand_template(
             match &rest[1..end] {
                 "bed_temp_c" => out.push_str(&num(o.bed_temp_c, 1)),
                 "nozzle_temp_c" => out.push_str(&num(o.nozzle_temp_c, 1)),
-                other => return Err(bad(format!(
+                other => {
+                    return Err(bad(format!(
                     "unknown placeholder {{{other}}}; expected {{bed_temp_c}} or {{nozzle_temp_c}}"
-                ))),
+                )))
+                }
             }
             rest = &rest[end + 1..];
             continue;

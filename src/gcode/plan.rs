@@ -328,10 +328,17 @@ pub(crate) fn place(m: &Machine, o: &Options) -> Result<Placed, Error> {
         ));
     }
     if fit.min_gap_mm < o.group_gap_mm {
-        why.push(format!(
-            "pylons {} and {} of different groups are {:.1} mm apart (at least {} mm needed)",
-            fit.gap_pylons.0, fit.gap_pylons.1, fit.min_gap_mm, o.group_gap_mm
-        ));
+        why.push(if fit.min_gap_mm <= 0.0 {
+            format!(
+                "pylons {} and {} of different groups overlap by {:.1} mm (at least {} mm gap needed)",
+                fit.gap_pylons.0, fit.gap_pylons.1, -fit.min_gap_mm, o.group_gap_mm
+            )
+        } else {
+            format!(
+                "pylons {} and {} of different groups are {:.1} mm apart (at least {} mm needed)",
+                fit.gap_pylons.0, fit.gap_pylons.1, fit.min_gap_mm, o.group_gap_mm
+            )
+        });
     }
     let head = format!(
         "layout `{}` ({} groups of 3, D1 = {} mm, D2 = {} mm) does not fit this printer: {}",
@@ -350,7 +357,7 @@ pub(crate) fn place(m: &Machine, o: &Options) -> Result<Placed, Error> {
         None => Err(Error::DoesNotFit(format!(
             "{head}. No --d2 makes this layout fit{}",
             match o.layout {
-                LayoutKind::Full => "; try --layout paper",
+                LayoutKind::Full => "; try --layout paper or a shorter --pylon-length",
                 LayoutKind::Paper => "; the printable area is too small for these pylons",
             }
         ))),
