@@ -59,6 +59,7 @@ pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machin
         has_print_start: facts.has_print_start,
         max_velocity_mm_s: number(config, "printer", "max_velocity")?,
         max_accel_mm_s2: number(config, "printer", "max_accel")?,
+        square_corner_velocity_mm_s: number(config, "printer", "square_corner_velocity")?,
     })
 }
 

@@ -5,6 +5,7 @@
 
 use std::fmt::Write as _;
 
+use super::estimate::Planner;
 use super::plan::{self, Placed};
 use super::slice::{Layer, Role};
 use super::{Error, Machine, Options, Summary};
@@ -147,9 +148,8 @@ struct Writer<'a> {
     retracted: bool,
     filament_area_mm2: f64,
     extruded_mm: f64,
-    time_s: f64,
+    time: Planner,
     travel_mm_s: f64,
-    accel_mm_s2: f64,
 }
 
 impl Writer<'_> {
@@ -166,7 +166,8 @@ impl Writer<'_> {
                 num(self.o.retract_speed_mm_s * 60.0, 0)
             );
             self.line(&l);
-            self.time_s += self.o.retract_mm / self.o.retract_speed_mm_s;
+            self.time
+                .stop(self.o.retract_mm / self.o.retract_speed_mm_s);
         }
         self.retracted = true;
     }
@@ -179,7 +180,8 @@ impl Writer<'_> {
                 num(self.o.retract_speed_mm_s * 60.0, 0)
             );
             self.line(&l);
-            self.time_s += self.o.retract_mm / self.o.retract_speed_mm_s;
+            self.time
+                .stop(self.o.retract_mm / self.o.retract_speed_mm_s);
         }
         self.retracted = false;
     }
@@ -188,7 +190,9 @@ impl Writer<'_> {
         if (z - self.pos[2]).abs() > 1e-9 {
             let l = format!("G1 Z{} F600", num(z, 3));
             self.line(&l);
-            self.time_s += move_time_s((z - self.pos[2]).abs(), 10.0, self.accel_mm_s2);
+            // Z moves: 10 mm/s at a typical max_z_accel of 100 mm/s²
+            self.time
+                .stop(move_time_s((z - self.pos[2]).abs(), 10.0, 100.0));
             self.pos[2] = z;
         }
     }
@@ -203,7 +207,8 @@ impl Writer<'_> {
                 num(self.travel_mm_s * 60.0, 0)
             );
             self.line(&l);
-            self.time_s += move_time_s(d, self.travel_mm_s, self.accel_mm_s2);
+            self.time
+                .xy([p[0] - self.pos[0], p[1] - self.pos[1]], self.travel_mm_s);
             self.pos[0] = p[0];
             self.pos[1] = p[1];
         }
@@ -219,7 +224,6 @@ impl Writer<'_> {
     }
 
     fn extrude(&mut self, pts: &[[f64; 2]], width_mm: f64, height_mm: f64, speed_mm_s: f64) {
-        let mut len = 0.0;
         let f = num(speed_mm_s * 60.0, 0);
         let mut first = true;
         for p in pts.iter().skip(1) {
@@ -237,12 +241,12 @@ impl Writer<'_> {
             };
             first = false;
             self.line(&l);
+            self.time
+                .xy([p[0] - self.pos[0], p[1] - self.pos[1]], speed_mm_s);
             self.extruded_mm += e;
             self.pos[0] = p[0];
             self.pos[1] = p[1];
-            len += d;
         }
-        self.time_s += move_time_s(len, speed_mm_s, self.accel_mm_s2);
     }
 }
 
@@ -328,9 +332,8 @@ pub(crate) fn emit(
         retracted: true,
         filament_area_mm2,
         extruded_mm: 0.0,
-        time_s: o.bed_soak_s,
+        time: Planner::new(o.accel_mm_s2, m.square_corner_velocity_mm_s.unwrap_or(5.0)),
         travel_mm_s,
-        accel_mm_s2: o.accel_mm_s2,
     };
 
     let precision = plan::precision_bound(o.d1_mm, o.d2_mm);
@@ -475,6 +478,7 @@ pub(crate) fn emit(
         w.line(&l);
     }
 
+    let estimated_time_s = w.time.total_s() + o.bed_soak_s;
     let filament_mm = w.extruded_mm;
     let volume_cm3 = filament_mm * filament_area_mm2 / 1000.0;
     let filament_g = volume_cm3 * o.filament_density_g_cm3;
@@ -482,7 +486,7 @@ pub(crate) fn emit(
     let summary = Summary {
         filament_mm,
         filament_g,
-        estimated_time_s: w.time_s,
+        estimated_time_s,
         layers: layers.len(),
         line_width_mm,
         precision_bound: precision,
@@ -494,7 +498,7 @@ pub(crate) fn emit(
     w.line(&format!("; total filament used [g] = {:.2}", filament_g));
     w.line(&format!(
         "; estimated printing time (normal mode) = {}",
-        duration_text(w.time_s)
+        duration_text(estimated_time_s)
     ));
     w.line(&format!("; total layers count = {}", layers.len()));
     w.line("");
@@ -534,7 +538,7 @@ impl Writer<'_> {
             num(p[1], 4),
             num(self.travel_mm_s * 60.0, 0)
         ));
-        self.time_s += 1.0;
+        self.time.stop(1.0);
         self.pos[0] = p[0];
         self.pos[1] = p[1];
     }

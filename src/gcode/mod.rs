@@ -8,6 +8,7 @@
 //! preview.
 
 mod emit;
+mod estimate;
 mod plan;
 mod slice;
 mod svg;
@@ -141,6 +142,8 @@ pub struct Machine {
     pub max_velocity_mm_s: Option<f64>,
     /// `[printer] max_accel`, restored at the end when known.
     pub max_accel_mm_s2: Option<f64>,
+    /// `[printer] square_corner_velocity` for the time estimate (Klipper's default 5 mm/s).
+    pub square_corner_velocity_mm_s: Option<f64>,
 }
 
 /// Everything about the job that is not a printer fact. [`Options::default`] is the paper's

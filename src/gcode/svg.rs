@@ -165,6 +165,7 @@ mod tests {
             has_print_start: false,
             max_velocity_mm_s: None,
             max_accel_mm_s2: None,
+            square_corner_velocity_mm_s: None,
         };
         let o = Options {
             layout: LayoutKind::Full,

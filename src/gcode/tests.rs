@@ -142,6 +142,7 @@ fn machine(kinematics: Kinematics, size_mm: f64) -> Machine {
         has_print_start: false,
         max_velocity_mm_s: Some(300.0),
         max_accel_mm_s2: Some(3000.0),
+        square_corner_velocity_mm_s: None,
     }
 }
 
