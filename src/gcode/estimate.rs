@@ -101,7 +101,11 @@ impl Planner {
         // junction caps: start of leg i; the chain starts and ends at rest
         let mut cap = Vec::with_capacity(n + 1);
         cap.push(0.0);
-        cap.extend(self.chain.windows(2).map(|w| self.junction_v2(&w[0], &w[1])));
+        cap.extend(
+            self.chain
+                .windows(2)
+                .map(|w| self.junction_v2(&w[0], &w[1])),
+        );
         cap.push(0.0);
         // backward: the most each leg may start with and still slow down in time
         let mut back = cap.clone();

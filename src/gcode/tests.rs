@@ -170,7 +170,15 @@ fn job_for(m: &Machine, layout: LayoutKind) -> Option<(Options, Job)> {
     }
 }
 
-fn all_jobs() -> Vec<(String, Machine, Options, Job)> {
+type FixtureJob = (String, Machine, Options, Job);
+
+/// Every fixture's jobs, generated once for all tests.
+fn all_jobs() -> &'static [FixtureJob] {
+    static JOBS: std::sync::OnceLock<Vec<FixtureJob>> = std::sync::OnceLock::new();
+    JOBS.get_or_init(generate_all)
+}
+
+fn generate_all() -> Vec<FixtureJob> {
     let mut out = Vec::new();
     for (name, kin, size) in FIXTURES {
         let m = machine(kin, size);
@@ -223,7 +231,7 @@ fn every_fixture_gets_a_paper_job_and_the_big_ones_a_full_job() {
 #[test]
 fn outer_measured_faces_of_each_pair_are_nominal_within_a_micrometre() {
     for (name, m, o, job) in all_jobs() {
-        let w = o.line_width(&m);
+        let w = o.line_width(m);
         let r = replay(&job.gcode);
         let chamfer_start = o.pylon_height_mm - o.chamfer_height_mm;
         for pair in &job.layout.pairs {
@@ -273,7 +281,7 @@ fn each_pylon_extrudes_its_solid_volume_times_flow_within_3_percent() {
     for (name, m, o, job) in all_jobs() {
         let area = std::f64::consts::PI * m.filament_diameter_mm.powi(2) / 4.0;
         let r = replay(&job.gcode);
-        let expected = solid_volume_mm3(&o) * o.flow;
+        let expected = solid_volume_mm3(o) * o.flow;
         for p in &job.layout.pylons {
             let fed: f64 = r
                 .moves
@@ -407,7 +415,7 @@ fn seams_sit_on_the_rounded_ends_never_on_a_measured_face() {
                 let s = d[0] * u[0] + d[1] * u[1];
                 let t = d[0] * a[0] + d[1] * a[1];
                 let on_straight_part = t.abs() < (p.length - p.thickness) / 2.0 - 1e-3;
-                let on_outer_line = s.abs() > p.thickness / 2.0 - o.line_width(&m) - 1e-3;
+                let on_outer_line = s.abs() > p.thickness / 2.0 - o.line_width(m) - 1e-3;
                 assert!(
                     !(on_straight_part && on_outer_line),
                     "{name} line {}: a path starts on a measured face",
@@ -516,30 +524,11 @@ fn full_layout_on_120_mm_says_which_layout_to_use() {
         ..Options::default()
     };
     match generate(&m, &o) {
-        Err(Error::DoesNotFit(text)) => assert!(
-            text.contains("--d2") || text.contains("--layout paper"),
-            "{text}"
-        ),
-        Ok(_) => {}
+        Err(Error::DoesNotFit(text)) => {
+            assert!(text.contains("--layout paper"), "{text}");
+            assert!(text.contains("by ") || text.contains("overlap"), "{text}");
+        }
+        Ok(_) => panic!("four 150 mm groups cannot fit a 120 mm bed"),
         Err(other) => panic!("{other}"),
-    }
-}
-
-#[test]
-#[ignore]
-fn dump_fixture_jobs() {
-    for (name, _m, o, job) in all_jobs() {
-        let file = format!("/tmp/gc/{}.gcode", name.replace('/', "-"));
-        let _ = std::fs::write(&file, &job.gcode);
-        let _ = std::fs::write(file.replace(".gcode", ".svg"), &job.svg);
-        println!(
-            "{name}: d2 {} mm, {} layers, {:.0} s, {:.1} mm, {:.2} g, {} lines",
-            o.d2_mm,
-            job.summary.layers,
-            job.summary.estimated_time_s,
-            job.summary.filament_mm,
-            job.summary.filament_g,
-            job.gcode.lines().count()
-        );
     }
 }
