@@ -78,16 +78,20 @@ pub(crate) fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout)
             -deg,
             p.id
         );
-        // the id beside the slab's −axis end
-        let lab = [
-            p.center[0] - p.axis[0] * (l / 2.0 + 4.0),
-            p.center[1] - p.axis[1] * (l / 2.0 + 4.0),
-        ];
+        // the id along the slab, upright, with a halo so it reads on the slab
+        let mut text_deg = -(deg + 90.0);
+        while text_deg <= -90.0 {
+            text_deg += 180.0;
+        }
+        while text_deg > 90.0 {
+            text_deg -= 180.0;
+        }
         let _ = writeln!(
             s,
-            r##"<text x="{:.2}" y="{:.2}" font-size="4" text-anchor="middle" dominant-baseline="middle" fill="{colour}">{}</text>"##,
-            sx(lab[0]),
-            sy(lab[1]),
+            r##"<text x="0" y="0" font-size="3" text-anchor="middle" dominant-baseline="middle" fill="#212529" stroke="#ffffff" stroke-width="0.6" paint-order="stroke" transform="translate({:.3} {:.3}) rotate({:.3})">{}</text>"##,
+            sx(p.center[0]),
+            sy(p.center[1]),
+            text_deg,
             p.id
         );
     }
