@@ -112,7 +112,7 @@ pub struct PylonsArgs {
     /// Extra G-code after the built-in end (e.g. PRINT_END, which usually turns the bed off).
     #[arg(long, value_name = "TEXT")]
     pub end_template: Option<String>,
-    /// Seconds to dwell after the bed reached temperature (built-in start only).
+    /// Seconds to dwell after the bed reached temperature, before the nozzle heats.
     #[arg(long, default_value_t = 0.0, value_name = "S")]
     pub bed_soak_s: f64,
     /// Where to write the G-code.

@@ -388,6 +388,9 @@ pub(crate) fn emit(
                 w.line(&l);
             }
             w.line(&format!("M190 S{bed}"));
+            if o.bed_soak_s > 0.0 {
+                w.line(&format!("G4 P{}", num(o.bed_soak_s * 1000.0, 0)));
+            }
             w.line(&format!("M109 S{noz}"));
         }
         None => {

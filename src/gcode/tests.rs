@@ -532,3 +532,26 @@ fn full_layout_on_120_mm_says_which_layout_to_use() {
         Err(other) => panic!("{other}"),
     }
 }
+
+#[test]
+fn a_bed_soak_dwells_after_the_bed_heats_and_counts_in_the_estimate() {
+    for has_print_start in [false, true] {
+        let mut m = machine(Kinematics::CoreXy, 250.0);
+        m.has_print_start = has_print_start;
+        let plain = generate(&m, &Options::default()).expect("fits");
+        let o = Options {
+            bed_soak_s: 600.0,
+            ..Options::default()
+        };
+        let soaked = generate(&m, &o).expect("fits");
+        let g = &soaked.gcode;
+        let (bed, dwell, nozzle) = (
+            g.find("M190 S80").unwrap_or(usize::MAX),
+            g.find("G4 P600000").unwrap_or(usize::MAX),
+            g.find("M109 S240").unwrap_or(usize::MAX),
+        );
+        assert!(bed < dwell && dwell < nozzle, "{has_print_start}");
+        let added = soaked.summary.estimated_time_s - plain.summary.estimated_time_s;
+        assert!((added - 600.0).abs() < 1e-6, "{added}");
+    }
+}
