@@ -32,6 +32,10 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve => rt.block_on(serve(config)),
         Command::Check(args) => rt.block_on(check(config, args.json)),
         Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::bench::footprint(&a)),
+        Command::Pylons(args) => {
+            crate::pylons_cmd::run(&args)?;
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 

@@ -29,6 +29,8 @@ pub enum Command {
     /// Benchmarks: print measured figures beside their targets.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Generate the pylon calibration print (G-code, layout.json, optional SVG preview) offline.
+    Pylons(Box<PylonsArgs>),
 }
 
 /// `klipcal check`
@@ -61,4 +63,65 @@ pub struct FootprintArgs {
     /// Seconds to measure.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
+}
+
+/// `klipcal pylons`
+#[derive(Debug, Args)]
+pub struct PylonsArgs {
+    /// The printer's Klipper config (printer.cfg); its [include]s are followed.
+    #[arg(long, value_name = "PATH")]
+    pub printer_cfg: PathBuf,
+    /// Kinematics, overriding [printer] kinematics: corexy or cartesian.
+    #[arg(long, value_name = "corexy|cartesian")]
+    pub kinematics: Option<String>,
+    /// `paper`: two groups along the motor directions; `full`: four groups (adds the other two
+    /// directions, for scale along X and Y and the shear from one print).
+    #[arg(long, default_value = "paper", value_name = "paper|full")]
+    pub layout: String,
+    /// Outer edge-to-edge distance pylon 1 → pylon 2, mm.
+    #[arg(long, default_value_t = 10.0, value_name = "MM")]
+    pub d1: f64,
+    /// Outer edge-to-edge distance pylon 1 → pylon 3, mm.
+    #[arg(long, default_value_t = 150.0, value_name = "MM")]
+    pub d2: f64,
+    /// Bed temperature, °C (the bed stays on at the end).
+    #[arg(long, default_value_t = 80.0, value_name = "C")]
+    pub bed_temp: f64,
+    /// Nozzle temperature, °C.
+    #[arg(long, default_value_t = 240.0, value_name = "C")]
+    pub nozzle_temp: f64,
+    /// Filament diameter, mm (default: [extruder] filament_diameter).
+    #[arg(long, value_name = "MM")]
+    pub filament_diameter: Option<f64>,
+    /// Nozzle diameter, mm (default: [extruder] nozzle_diameter).
+    #[arg(long, value_name = "MM")]
+    pub nozzle_diameter: Option<f64>,
+    /// Layer height, mm.
+    #[arg(long, default_value_t = 0.2, value_name = "MM")]
+    pub layer_height: f64,
+    /// Where the groups cross, printer X,Y mm (default: the middle of the printable area).
+    #[arg(long, value_name = "X,Y")]
+    pub center: Option<String>,
+    /// Pylon length, mm (shorter pylons let a full layout fit a small bed).
+    #[arg(long, default_value_t = 53.6, value_name = "MM")]
+    pub pylon_length: f64,
+    /// Start command used when the config has a PRINT_START macro; placeholders
+    /// {bed_temp_c} and {nozzle_temp_c}.
+    #[arg(long, value_name = "TEXT")]
+    pub start_template: Option<String>,
+    /// Extra G-code after the built-in end (e.g. PRINT_END, which usually turns the bed off).
+    #[arg(long, value_name = "TEXT")]
+    pub end_template: Option<String>,
+    /// Seconds to dwell after the bed reached temperature, before the nozzle heats.
+    #[arg(long, default_value_t = 0.0, value_name = "S")]
+    pub bed_soak_s: f64,
+    /// Where to write the G-code.
+    #[arg(long, value_name = "PATH")]
+    pub out: PathBuf,
+    /// Where to write layout.json.
+    #[arg(long, value_name = "PATH")]
+    pub layout_out: PathBuf,
+    /// Where to write the SVG preview.
+    #[arg(long, value_name = "PATH")]
+    pub svg: Option<PathBuf>,
 }

@@ -15,6 +15,7 @@
 //!   through the `klipper::Files` trait; [`fsio`] is the small std::fs implementation.
 //! - [`gcode`]: PURE. The pylon job generator (geometry → toolpaths → G-code text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget.
+//! - [`pylons_cmd`]: `klipcal pylons` — reads the Klipper config, runs [`gcode`], writes the files.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
@@ -32,4 +33,5 @@ pub mod klipper;
 pub mod layout;
 pub mod moonraker;
 pub mod printer;
+pub mod pylons_cmd;
 pub mod store;
