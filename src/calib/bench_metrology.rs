@@ -1,0 +1,1 @@
+//! PURE: the closed-loop simulated metrology benchmark.

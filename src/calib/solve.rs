@@ -1,0 +1,1 @@
+//! PURE: layout + readings + printer facts → one solution.
