@@ -284,7 +284,8 @@ fn propagate(fit: &MetricFit, f: &dyn Fn(&Vector3<f64>) -> f64) -> Estimate {
     }
 }
 
-/// Maps a fitted metric onto stepper scales and Klipper skew.
+/// Maps a fitted metric onto stepper scales (new/old rotation_distance) and the total Klipper
+/// skew factor to set, given the factor `current_xy` that was active during the print.
 ///
 /// - CoreXY, [`ShearTo::Motors`]: kA = √G_AA, kB = √G_BB (motor basis): scale along A and B
 ///   becomes exactly 1 and the XY shear vanishes; X/Y anisotropy stays.
@@ -293,13 +294,13 @@ fn propagate(fit: &MetricFit, f: &dyn Fn(&Vector3<f64>) -> f64) -> Estimate {
 ///   identity (physical = M·K⁻¹·S·c with S Klipper's x − y·xy); without shear observed, only
 ///   kx, ky from the two axes.
 #[must_use]
-pub fn corrections(fit: &MetricFit, shear_to: ShearTo) -> Corrections {
+pub fn corrections(fit: &MetricFit, shear_to: ShearTo, current_xy: f64) -> Corrections {
     let kin = fit.kinematics;
-    let g = move |h: &Vector3<f64>| metric_xy(kin, h);
-    let g_motor = |h: &Vector3<f64>| {
-        let m = Matrix2::new(h[0], h[1], h[1], h[2]);
-        m.try_inverse().unwrap_or_else(Matrix2::identity)
-    };
+    // The print saw M·S(current); the corrections act on M = (M·S)·S(current)⁻¹.
+    let s_inv = Matrix2::new(1.0, current_xy, 0.0, 1.0);
+    let g = move |h: &Vector3<f64>| s_inv.transpose() * metric_xy(kin, h) * s_inv;
+    let r = kin.motor_basis();
+    let g_motor = move |h: &Vector3<f64>| r.transpose() * g(h) * r;
     let shear_factor = fit.full.then(|| {
         propagate(fit, &|h| {
             let g = g(h);
@@ -443,7 +444,7 @@ mod tests {
         let m = machine_matrix(kin, [1.012, 0.991], 0.0);
         let fit = fit_metric(kin, &observe(&m, &[45.0, -45.0, 0.0, 90.0])).expect("fit");
         assert!(fit.full);
-        let c = corrections(&fit, ShearTo::Motors);
+        let c = corrections(&fit, ShearTo::Motors, 0.0);
         assert!((c.stepper_scale[0].value - 1.012).abs() < 1e-9, "{c:?}");
         assert!((c.stepper_scale[1].value - 0.991).abs() < 1e-9);
         let after = corrected_matrix(
@@ -463,7 +464,7 @@ mod tests {
         let kin = Kinematics::Cartesian;
         let m = machine_matrix(kin, [1.006, 0.996], 0.4f64.to_radians());
         let fit = fit_metric(kin, &observe(&m, &[0.0, 90.0, 45.0, -45.0])).expect("fit");
-        let c = corrections(&fit, ShearTo::Motors);
+        let c = corrections(&fit, ShearTo::Motors, 0.0);
         let f = c.xy_factor.expect("skew applied").value;
         assert!((f - 0.4f64.to_radians().tan()).abs() < 1e-4, "{f}");
         let after = corrected_matrix(
@@ -477,12 +478,35 @@ mod tests {
     }
 
     #[test]
+    fn a_second_round_with_skew_already_set_reports_the_total_factor() {
+        let kin = Kinematics::Cartesian;
+        let m = machine_matrix(kin, [1.01, 0.985], 0.4f64.to_radians());
+        let fresh = corrections(
+            &fit_metric(kin, &observe(&m, &[0.0, 90.0, 45.0, -45.0])).expect("fit"),
+            ShearTo::Motors,
+            0.0,
+        );
+        let half = 0.5 * fresh.xy_factor.expect("skew").value;
+        let printed = corrected_matrix(kin, &m, [1.0, 1.0], half);
+        let again = corrections(
+            &fit_metric(kin, &observe(&printed, &[0.0, 90.0, 45.0, -45.0])).expect("fit"),
+            ShearTo::Motors,
+            half,
+        );
+        let (f1, f2) = (fresh.xy_factor.expect("skew").value, again.xy_factor.expect("skew").value);
+        assert!((f1 - f2).abs() < 1e-9, "{f1} {f2}");
+        for i in 0..2 {
+            assert!((fresh.stepper_scale[i].value - again.stepper_scale[i].value).abs() < 1e-9);
+        }
+    }
+
+    #[test]
     fn corexy_shear_can_go_to_klipper_skew_instead() {
         let kin = Kinematics::CoreXy;
         let phi = 0.3f64.to_radians();
         let m = machine_matrix(kin, [1.004, 1.004], phi);
         let fit = fit_metric(kin, &observe(&m, &[45.0, -45.0, 0.0, 90.0])).expect("fit");
-        let c = corrections(&fit, ShearTo::KlipperSkew);
+        let c = corrections(&fit, ShearTo::KlipperSkew, 0.0);
         let f = c.xy_factor.expect("skew").value;
         assert!((f - phi.tan()).abs() < 1e-6, "{f}");
         assert!((c.stepper_scale[0].value - 1.004).abs() < 1e-5);
@@ -502,7 +526,7 @@ mod tests {
         let m = machine_matrix(kin, [1.01, 0.99], 0.0);
         let fit = fit_metric(kin, &observe(&m, &[0.0, 90.0])).expect("fit");
         assert!(!fit.full);
-        let c = corrections(&fit, ShearTo::Motors);
+        let c = corrections(&fit, ShearTo::Motors, 0.0);
         assert!(c.xy_factor.is_none() && c.shear_factor.is_none() && c.anisotropy.is_none());
         assert!((c.stepper_scale[0].value - 1.01).abs() < 1e-12);
         assert!(fit_metric(kin, &observe(&m, &[0.0])).is_err());
