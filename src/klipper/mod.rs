@@ -1,2 +1,97 @@
 //! PURE: Klipper config files (parse, follow includes, edit one value in place, the SAVE_CONFIG
 //! block) and G-code command text built from typed values. No I/O beyond what callers pass in.
+//!
+//! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
+//! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
+//! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
+//!   Moonraker's `configfile.config` JSON through one code path.
+
+pub mod config;
+pub mod facts;
+pub mod files;
+
+use std::path::PathBuf;
+
+pub use config::{
+    Config, ConfigOption, Origin, SaveConfigStatus, Section, ShadowedOption, SourceFile,
+};
+pub use facts::{Kinematics, PrinterFacts, Stepper};
+pub use files::{Files, MemFiles};
+
+/// Everything that can go wrong reading Klipper config text or building G-code text.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A file could not be read (or a folder listed while globbing).
+    #[error("cannot read Klipper config file {path}: {source}")]
+    Read {
+        /// The file or glob pattern.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// `[include x]` without wildcards naming a file that does not exist.
+    #[error(
+        "{path} line {line}: include file '{pattern}' does not exist \
+         (an include without wildcards must name an existing file)"
+    )]
+    IncludeNotFound {
+        /// The including file.
+        path: PathBuf,
+        /// 1-based line of the `[include]`.
+        line: usize,
+        /// The resolved pattern.
+        pattern: PathBuf,
+    },
+    /// A file includes itself, directly or through others.
+    #[error("recursive include of config file '{path}' (include chain: {chain})")]
+    IncludeCycle {
+        /// The file included again.
+        path: PathBuf,
+        /// The include chain, outermost first.
+        chain: String,
+    },
+    /// A line Klipper's parser rejects.
+    #[error("{path} line {line}: {message}")]
+    Syntax {
+        /// The file.
+        path: PathBuf,
+        /// 1-based line.
+        line: usize,
+        /// What is wrong and what is expected.
+        message: String,
+    },
+    /// A section klipcal needs is absent.
+    #[error("the Klipper config has no [{section}] section; {expected}")]
+    MissingSection {
+        /// Section name.
+        section: String,
+        /// Why it is needed.
+        expected: String,
+    },
+    /// A required option is absent.
+    #[error("[{section}] has no '{key}' option; expected {expected}")]
+    MissingOption {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// What a valid value looks like.
+        expected: String,
+    },
+    /// An option's value cannot be used.
+    #[error("[{section}] {key} = '{value}' is not valid; expected {expected}")]
+    BadValue {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// The raw value.
+        value: String,
+        /// What a valid value looks like.
+        expected: String,
+    },
+    /// Moonraker's `configfile.config` JSON does not have the expected shape.
+    #[error("Moonraker configfile.config is malformed: {0}")]
+    Settings(String),
+}
