@@ -4,7 +4,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 
-use crate::cli::{Cli, Command};
+use crate::cli::{BenchCommand, Cli, Command};
 use crate::config::Config;
 
 /// Runs the parsed command line; returns the process exit code.
@@ -21,6 +21,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             anyhow::bail!("serve: not built yet")
         }
         Command::Check(_args) => anyhow::bail!("check: not built yet"),
+        Command::Solve(args) => crate::solve_cmd::run(&args),
+        Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
         Command::Bench(_b) => anyhow::bail!("bench: not built yet"),
     }
 }

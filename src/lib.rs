@@ -16,6 +16,8 @@
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
+//! - [`solve_cmd`]: `klipcal solve` — reads layout, readings and printer config, prints the
+//!   pure solver's result.
 
 pub mod app;
 pub mod bench;
@@ -27,3 +29,4 @@ pub mod klipper;
 pub mod layout;
 pub mod moonraker;
 pub mod printer;
+pub mod solve_cmd;

@@ -47,7 +47,10 @@ pub fn simulated_layout(kin: Kinematics, full: bool, d1_mm: f64, d2_mm: f64) -> 
             150.0 - n[0] * d2_mm / 2.0 + perp[0] * offset,
             150.0 - n[1] * d2_mm / 2.0 + perp[1] * offset,
         ];
-        for (j, along) in [0.0, d1_mm - thickness, d2_mm - thickness].into_iter().enumerate() {
+        for (j, along) in [0.0, d1_mm - thickness, d2_mm - thickness]
+            .into_iter()
+            .enumerate()
+        {
             pylons.push(Pylon {
                 id: format!("{g}{}", j + 1),
                 center: [origin[0] + n[0] * along, origin[1] + n[1] * along],
@@ -150,7 +153,10 @@ pub fn print_and_measure(
         .iter()
         .map(|py| (py.id.as_str(), p.width_scatter_mm * normal(rng)))
         .collect();
-    let minv_t = m.try_inverse().unwrap_or_else(Matrix2::identity).transpose();
+    let minv_t = m
+        .try_inverse()
+        .unwrap_or_else(Matrix2::identity)
+        .transpose();
     let mut out = RawReadings::new();
     for pair in &layout.pairs {
         let pylon = |id: &str| layout.pylons.iter().find(|py| py.id == id);
@@ -205,8 +211,12 @@ fn std_dev(values: &[f64]) -> f64 {
 }
 
 /// Directions residual errors are reported along, degrees.
-pub const REPORT_DIRECTIONS: [(&str, f64); 4] =
-    [("X", 0.0), ("Y", 90.0), ("+45° (A)", 45.0), ("−45° (B)", -45.0)];
+pub const REPORT_DIRECTIONS: [(&str, f64); 4] = [
+    ("X", 0.0),
+    ("Y", 90.0),
+    ("+45° (A)", 45.0),
+    ("−45° (B)", -45.0),
+];
 
 /// One estimate's spread beside its Cramér–Rao bound.
 #[derive(Debug, Clone, PartialEq)]
@@ -275,6 +285,7 @@ fn facts(kin: Kinematics) -> MotionFacts {
         rotation_distance_mm: 40.0,
         microsteps: 64,
         full_steps_per_rotation: 400,
+        gear_ratio: 1.0,
     };
     MotionFacts {
         kinematics: kin,
@@ -298,7 +309,10 @@ pub fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioR
     let mut est_err: Vec<Vec<f64>> = vec![Vec::new(); 3];
     for _ in 0..cfg.machines {
         let r = p.motor_scale_range;
-        let alpha = [uniform(&mut rng, 1.0 - r, 1.0 + r), uniform(&mut rng, 1.0 - r, 1.0 + r)];
+        let alpha = [
+            uniform(&mut rng, 1.0 - r, 1.0 + r),
+            uniform(&mut rng, 1.0 - r, 1.0 + r),
+        ];
         let phi = uniform(&mut rng, -p.frame_skew_deg, p.frame_skew_deg).to_radians();
         let shrink = uniform(&mut rng, p.shrink.0, p.shrink.1);
         let m_true = machine_matrix(kin, alpha, phi);
@@ -421,7 +435,10 @@ pub fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioR
         prints: stats(&prints),
         not_converged,
         crb,
-        common_method: vec![(na.into(), stats(&common[0])), (nb.into(), stats(&common[1]))],
+        common_method: vec![
+            (na.into(), stats(&common[0])),
+            (nb.into(), stats(&common[1])),
+        ],
     }
 }
 
@@ -490,7 +507,7 @@ pub fn all_targets_met(reports: &[ScenarioReport]) -> bool {
     reports.iter().all(|r| {
         r.failures == 0
             && r.residual.iter().all(|(name, s)| {
-                target_um_per_100mm(r.kinematics, r.full, name).is_none_or(|t| s.p95 <= t)
+                target_um_per_100mm(r.kinematics, r.full, name).map_or(true, |t| s.p95 <= t)
             })
             && r.crb.iter().all(|c| c.spread <= 1.5 * c.crb)
     })
@@ -561,7 +578,11 @@ pub fn format_report(reports: &[ScenarioReport]) -> String {
     let _ = writeln!(
         s,
         "\nall targets: {}",
-        if all_targets_met(reports) { "met" } else { "NOT met" }
+        if all_targets_met(reports) {
+            "met"
+        } else {
+            "NOT met"
+        }
     );
     s
 }
@@ -585,7 +606,11 @@ mod tests {
                 }
             }
             // the common method is far worse: shrinkage is not cancelled
-            assert!(r.common_method.iter().all(|(_, s)| s.median > 100.0), "{:?}", r.common_method);
+            assert!(
+                r.common_method.iter().all(|(_, s)| s.median > 100.0),
+                "{:?}",
+                r.common_method
+            );
         }
     }
 
@@ -603,7 +628,11 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(1);
         let raw = print_and_measure(&layout, &m, 0.007, 0.0, &p, &mut rng);
         let sol = solve(&layout, &raw, &facts(kin), &SolveOptions::default()).expect("solves");
-        assert!((sol.stepper_x.scale - 1.013).abs() < 1e-9, "{}", sol.stepper_x.scale);
+        assert!(
+            (sol.stepper_x.scale - 1.013).abs() < 1e-9,
+            "{}",
+            sol.stepper_x.scale
+        );
         assert!((sol.stepper_y.scale - 0.992).abs() < 1e-9);
         assert!((sol.stepper_x.rotation_distance_new - 40.0 * 1.013).abs() < 1e-7);
     }

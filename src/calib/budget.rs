@@ -33,6 +33,8 @@ pub struct BudgetInputs {
     pub full_steps_per_rotation: u32,
     /// Microsteps (paper: 64).
     pub microsteps: u32,
+    /// Klipper `gear_ratio` product (1 without a gearbox).
+    pub gear_ratio: f64,
     /// Instrument trueness, ±mm (paper: 0.02).
     pub instrument_trueness_mm: f64,
     /// Near nominal distance, mm (paper: 10).
@@ -56,6 +58,7 @@ impl Default for BudgetInputs {
             rotation_distance_mm: 40.0,
             full_steps_per_rotation: 400,
             microsteps: 64,
+            gear_ratio: 1.0,
             instrument_trueness_mm: 0.02,
             d1_mm: 10.0,
             d2_mm: 150.0,
@@ -72,7 +75,7 @@ pub struct ErrorBudget {
     pub filament_mm: f64,
     /// Measurement: 3 × 1.253 σ/√n (the 3σ bound of a median of n readings).
     pub measurement_mm: f64,
-    /// Motor resolution: half a microstep, rotation_distance / (full_steps × microsteps) / 2.
+    /// Motor resolution: half a microstep, rotation_distance / (full_steps × microsteps × gear_ratio) / 2.
     pub motor_mm: f64,
     /// Sum of the four.
     pub max_mm: f64,
@@ -91,7 +94,9 @@ pub fn error_budget(inp: &BudgetInputs) -> ErrorBudget {
         * inp.line_width_mm;
     let sigma = (inp.caliper_precision_3sigma_mm / 3.0).max(inp.observed_sigma_mm.unwrap_or(0.0));
     let measurement_mm = 3.0 * 1.253 * sigma / (inp.readings_per_pair.max(1) as f64).sqrt();
-    let steps = f64::from(inp.full_steps_per_rotation.max(1)) * f64::from(inp.microsteps.max(1));
+    let steps = f64::from(inp.full_steps_per_rotation.max(1))
+        * f64::from(inp.microsteps.max(1))
+        * inp.gear_ratio.max(f64::MIN_POSITIVE);
     let motor_mm = inp.rotation_distance_mm / steps / 2.0;
     let max_mm = bed_mm + filament_mm + measurement_mm + motor_mm;
     let span = (inp.d2_mm - inp.d1_mm).abs().max(f64::MIN_POSITIVE);

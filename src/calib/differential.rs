@@ -133,14 +133,15 @@ pub fn new_rotation_distance(current_mm: f64, scale: f64) -> f64 {
     current_mm * scale
 }
 
-/// Steps per mm for firmware that uses it: full_steps × microsteps / rotation_distance.
+/// Steps per mm for firmware that uses it: full_steps × microsteps × gear_ratio / rotation_distance.
 #[must_use]
 pub fn steps_per_mm(
     full_steps_per_rotation: u32,
     microsteps: u32,
+    gear_ratio: f64,
     rotation_distance_mm: f64,
 ) -> f64 {
-    f64::from(full_steps_per_rotation) * f64::from(microsteps) / rotation_distance_mm
+    f64::from(full_steps_per_rotation) * f64::from(microsteps) * gear_ratio / rotation_distance_mm
 }
 
 /// A group has converged when |α − 1| is below its precision bound.
@@ -232,7 +233,7 @@ mod tests {
         // seed README: one author converged at 40.10289 / 39.94284 from 40.
         let a = 40.10289 / 40.0;
         assert!((new_rotation_distance(40.0, a) - 40.10289).abs() < 1e-9);
-        assert!((steps_per_mm(400, 64, 40.0) - 640.0).abs() < 1e-12);
+        assert!((steps_per_mm(400, 64, 1.0, 40.0) - 640.0).abs() < 1e-12);
     }
 
     #[test]

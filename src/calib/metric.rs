@@ -14,6 +14,7 @@ use super::Error;
 #[serde(rename_all = "snake_case")]
 pub enum Kinematics {
     /// stepper_x moves A = x + y (direction +45°), stepper_y moves B = x − y (−45°).
+    #[serde(rename = "corexy")]
     CoreXy,
     /// stepper_x moves X, stepper_y moves Y.
     Cartesian,
@@ -41,6 +42,15 @@ impl Kinematics {
         match self {
             Self::CoreXy => [[r, r], [r, -r]],
             Self::Cartesian => [[1.0, 0.0], [0.0, 1.0]],
+        }
+    }
+
+    /// Klipper's name: `corexy` or `cartesian`.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::CoreXy => "corexy",
+            Self::Cartesian => "cartesian",
         }
     }
 
@@ -493,7 +503,10 @@ mod tests {
             ShearTo::Motors,
             half,
         );
-        let (f1, f2) = (fresh.xy_factor.expect("skew").value, again.xy_factor.expect("skew").value);
+        let (f1, f2) = (
+            fresh.xy_factor.expect("skew").value,
+            again.xy_factor.expect("skew").value,
+        );
         assert!((f1 - f2).abs() < 1e-9, "{f1} {f2}");
         for i in 0..2 {
             assert!((fresh.stepper_scale[i].value - again.stepper_scale[i].value).abs() < 1e-9);

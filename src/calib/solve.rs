@@ -21,6 +21,8 @@ pub struct StepperFacts {
     pub microsteps: u32,
     /// Klipper `full_steps_per_rotation` (200 unless set).
     pub full_steps_per_rotation: u32,
+    /// Klipper `gear_ratio` product (1.0 without a gearbox).
+    pub gear_ratio: f64,
 }
 
 /// The printer facts the solver needs (a subset of the Klipper config).
@@ -190,7 +192,8 @@ pub struct Solution {
     pub anisotropy: AnisotropyResult,
     /// The error budget of the least precise group (largest bound).
     pub error_budget: ErrorBudget,
-    /// Every stepper scale (and an applied skew factor) within its precision bound of 1.
+    /// Every stepper scale within its precision bound of 1, and an applied skew factor within
+    /// the bound of the factor that was active during the print.
     pub converged: bool,
     /// Per group.
     pub groups: Vec<GroupResult>,
@@ -207,9 +210,13 @@ fn check_facts(name: &str, s: &StepperFacts) -> Result<(), Error> {
             s.rotation_distance_mm
         )));
     }
-    if s.microsteps == 0 || s.full_steps_per_rotation == 0 {
+    if s.microsteps == 0
+        || s.full_steps_per_rotation == 0
+        || s.gear_ratio.is_nan()
+        || s.gear_ratio <= 0.0
+    {
         return Err(Error::Facts(format!(
-            "{name}: microsteps and full_steps_per_rotation must be positive"
+            "{name}: microsteps, full_steps_per_rotation and gear_ratio must be positive"
         )));
     }
     Ok(())
@@ -230,8 +237,12 @@ pub fn solve(
     check_facts("stepper_x", &facts.stepper_x)?;
     check_facts("stepper_y", &facts.stepper_y)?;
     let kin = facts.kinematics;
-    let layout_kin = Kinematics::parse(&layout.kinematics)
-        .map_err(|_| Error::Layout(format!("kinematics `{}` is not corexy or cartesian", layout.kinematics)))?;
+    let layout_kin = Kinematics::parse(&layout.kinematics).map_err(|_| {
+        Error::Layout(format!(
+            "kinematics `{}` is not corexy or cartesian",
+            layout.kinematics
+        ))
+    })?;
     if layout_kin != kin {
         return Err(Error::Layout(format!(
             "the layout was generated for {:?} but the printer config says {:?}; expected the layout of a job for this printer",
@@ -268,8 +279,7 @@ pub fn solve(
         let direction_deg = pairs.first().map_or(0.0, |p| p.direction_deg);
         for p in &pairs {
             let diff = (p.direction_deg - direction_deg).rem_euclid(180.0);
-            if diff > 0.01 && diff < 179.99
-            {
+            if diff > 0.01 && diff < 179.99 {
                 return Err(Error::Layout(format!(
                     "group {gid}: pair {} measures along {}° but the group along {direction_deg}°; expected one direction per group",
                     p.id, p.direction_deg
@@ -301,7 +311,9 @@ pub fn solve(
         })
         .collect();
     let fit = metric::fit_metric(kin, &dirs)?;
-    let shear_to = if opts.shear_to == ShearTo::KlipperSkew && (!fit.full || kin == Kinematics::Cartesian) {
+    let shear_to = if opts.shear_to == ShearTo::KlipperSkew
+        && (!fit.full || kin == Kinematics::Cartesian)
+    {
         if !fit.full {
             warnings.push(
                 "shear to Klipper skew was asked for, but this layout does not observe skew (print the `full` layout)".into(),
@@ -318,7 +330,10 @@ pub fn solve(
     let budgets: Vec<ErrorBudget> = scales
         .iter()
         .map(|(g, centres)| {
-            let n = [g.direction_deg.to_radians().cos(), g.direction_deg.to_radians().sin()];
+            let n = [
+                g.direction_deg.to_radians().cos(),
+                g.direction_deg.to_radians().sin(),
+            ];
             let along = |u: [f64; 2]| (n[0] * u[0] + n[1] * u[1]).abs();
             let stepper = if along(ua) > 0.99 {
                 facts.stepper_x
@@ -328,7 +343,9 @@ pub fn solve(
                 // off the motor axes both motors move: charge the coarser step
                 let step = |s: &StepperFacts| {
                     s.rotation_distance_mm
-                        / f64::from(s.full_steps_per_rotation * s.microsteps)
+                        / (f64::from(s.full_steps_per_rotation)
+                            * f64::from(s.microsteps)
+                            * s.gear_ratio)
                 };
                 if step(&facts.stepper_x) >= step(&facts.stepper_y) {
                     facts.stepper_x
@@ -348,6 +365,7 @@ pub fn solve(
                 rotation_distance_mm: stepper.rotation_distance_mm,
                 full_steps_per_rotation: stepper.full_steps_per_rotation,
                 microsteps: stepper.microsteps,
+                gear_ratio: stepper.gear_ratio,
                 d1_mm: g.d1_mm,
                 d2_mm: g.d2_mm,
                 ..opts.budget
@@ -406,11 +424,13 @@ pub fn solve(
         steps_per_mm_old: differential::steps_per_mm(
             s.full_steps_per_rotation,
             s.microsteps,
+            s.gear_ratio,
             s.rotation_distance_mm,
         ),
         steps_per_mm_new: differential::steps_per_mm(
             s.full_steps_per_rotation,
             s.microsteps,
+            s.gear_ratio,
             s.rotation_distance_mm * e.value,
         ),
     };
@@ -470,7 +490,8 @@ pub fn solve(
     };
     let anisotropy = match corr.anisotropy {
         Some(a) => {
-            let significant = a.value.abs() > 3.0 * a.uncertainty && a.value.abs() > worst.precision;
+            let significant =
+                a.value.abs() > 3.0 * a.uncertainty && a.value.abs() > worst.precision;
             if significant && corr.anisotropy_left {
                 warnings.push(format!(
                     "X/Y anisotropy {:+.4} % (± {:.4} %): X and Y travel differ by more than the noise, which A/B rotation distances cannot fix (a frame or belt-path issue)",
@@ -509,12 +530,17 @@ pub fn solve(
     let py = prec_of(ub);
     let px = if px.is_nan() { worst.precision } else { px };
     let py = if py.is_nan() { worst.precision } else { py };
+    // an applied skew has converged when the factor to set no longer changes
+    let skew_settled = !skew.applied
+        || (skew.xy_factor.unwrap_or(0.0) - opts.current_xy_factor).abs() < worst.precision;
     let converged = differential::converged(stepper_x.scale, px)
         && differential::converged(stepper_y.scale, py)
-        && skew.applied.then(|| skew.xy_factor.unwrap_or(0.0).abs() < worst.precision).unwrap_or(true);
+        && skew_settled;
     if let Some(prev) = &opts.previous {
         let now: Vec<(String, f64)> = groups.iter().map(|g| (g.group.clone(), g.scale)).collect();
-        if let Some(w) = differential::swap_warning(prev, &now, worst.precision, &format!("{na} and {nb}")) {
+        if let Some(w) =
+            differential::swap_warning(prev, &now, worst.precision, &format!("{na} and {nb}"))
+        {
             warnings.push(w);
         }
     }
@@ -534,4 +560,204 @@ pub fn solve(
         },
         warnings,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::bench_metrology::{print_and_measure, simulated_layout, SimParams};
+    use crate::calib::metric::machine_matrix;
+    use rand::SeedableRng;
+
+    fn facts(kin: Kinematics) -> MotionFacts {
+        let s = StepperFacts {
+            rotation_distance_mm: 40.0,
+            microsteps: 64,
+            full_steps_per_rotation: 400,
+            gear_ratio: 1.0,
+        };
+        MotionFacts {
+            kinematics: kin,
+            stepper_x: s,
+            stepper_y: s,
+        }
+    }
+
+    fn readings(
+        kin: Kinematics,
+        full: bool,
+        alpha: [f64; 2],
+        skew_deg: f64,
+    ) -> (Layout, RawReadings) {
+        let layout = simulated_layout(kin, full, 10.0, 150.0);
+        let p = SimParams {
+            width_scatter_mm: 0.0,
+            caliper_sigma_mm: 0.0,
+            ..SimParams::default()
+        };
+        let m = machine_matrix(kin, alpha, skew_deg.to_radians());
+        let mut rng = rand::rngs::StdRng::seed_from_u64(7);
+        let raw = print_and_measure(&layout, &m, 0.005, 0.0, &p, &mut rng);
+        (layout, raw)
+    }
+
+    #[test]
+    fn a_paper_corexy_round_gives_new_rotation_distances_and_the_json_fields() {
+        let (layout, raw) = readings(Kinematics::CoreXy, false, [1.004, 0.997], 0.0);
+        let sol = solve(
+            &layout,
+            &raw,
+            &facts(Kinematics::CoreXy),
+            &SolveOptions::default(),
+        )
+        .expect("solves");
+        assert!((sol.stepper_x.rotation_distance_new - 40.0 * 1.004).abs() < 1e-6);
+        assert!((sol.stepper_y.rotation_distance_new - 40.0 * 0.997).abs() < 1e-6);
+        assert!(!sol.converged);
+        assert!(!sol.skew.observed);
+        let json = serde_json::to_value(&sol).expect("serialises");
+        for key in [
+            "stepper_x",
+            "stepper_y",
+            "skew",
+            "anisotropy",
+            "error_budget",
+            "converged",
+            "warnings",
+        ] {
+            assert!(json.get(key).is_some(), "missing {key}");
+        }
+        for key in [
+            "rotation_distance_old",
+            "rotation_distance_new",
+            "scale",
+            "uncertainty",
+        ] {
+            assert!(
+                json["stepper_x"].get(key).is_some(),
+                "missing stepper_x.{key}"
+            );
+        }
+        for key in [
+            "observed",
+            "xy_factor",
+            "angle_deg",
+            "set_skew",
+            "uncertainty",
+        ] {
+            assert!(json["skew"].get(key).is_some(), "missing skew.{key}");
+        }
+    }
+
+    #[test]
+    fn a_converged_machine_reports_converged() {
+        let (layout, raw) = readings(Kinematics::CoreXy, true, [1.0, 1.0], 0.0);
+        let sol = solve(
+            &layout,
+            &raw,
+            &facts(Kinematics::CoreXy),
+            &SolveOptions::default(),
+        )
+        .expect("solves");
+        assert!(sol.converged, "{:?}", sol.stepper_x);
+    }
+
+    #[test]
+    fn a_full_cartesian_round_sets_a_skew_that_klipper_turns_back_into_the_factor() {
+        let (layout, raw) = readings(Kinematics::Cartesian, true, [1.003, 0.998], 0.3);
+        let sol = solve(
+            &layout,
+            &raw,
+            &facts(Kinematics::Cartesian),
+            &SolveOptions::default(),
+        )
+        .expect("solves");
+        assert!(sol.skew.observed && sol.skew.applied);
+        let f = sol.skew.xy_factor.expect("factor");
+        assert!((f - 0.3f64.to_radians().tan()).abs() < 1e-6, "{f}");
+        let cmd = sol.skew.set_skew.expect("command");
+        let n: Vec<f64> = cmd
+            .trim_start_matches("SET_SKEW XY=")
+            .split(',')
+            .map(|s| s.parse().expect("number"))
+            .collect();
+        let back = skew::calc_skew_factor(n[0], n[1], n[2]).expect("valid");
+        assert!((back - f).abs() < 1e-6);
+    }
+
+    #[test]
+    fn a_paper_cartesian_round_says_skew_was_not_observed() {
+        let (layout, raw) = readings(Kinematics::Cartesian, false, [1.003, 0.998], 0.3);
+        let sol = solve(
+            &layout,
+            &raw,
+            &facts(Kinematics::Cartesian),
+            &SolveOptions::default(),
+        )
+        .expect("solves");
+        assert!(!sol.skew.observed);
+        assert!(sol
+            .warnings
+            .iter()
+            .any(|w| w.contains("skew was not observed")));
+    }
+
+    #[test]
+    fn bad_inputs_are_errors_that_name_the_pair() {
+        let kin = Kinematics::CoreXy;
+        let (layout, raw) = readings(kin, false, [1.0, 1.0], 0.0);
+        let f = facts(kin);
+        let o = SolveOptions::default();
+
+        let mut r = raw.clone();
+        r.insert("Z-D9".into(), vec![1.0, 1.0, 1.0]);
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(matches!(e, Error::UnknownPair { .. }) && e.to_string().contains("Z-D9"));
+
+        let mut r = raw.clone();
+        r.remove("B-D2");
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(e.to_string().contains("B-D2"), "{e}");
+
+        let mut r = raw.clone();
+        r.insert("A-D1".into(), vec![10.0, 10.01]);
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(matches!(e, Error::TooFewReadings { .. }) && e.to_string().contains("A-D1"));
+
+        let mut r = raw.clone();
+        r.insert("A-D2".into(), vec![9.0, 9.0, 9.0]);
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(matches!(e, Error::NotIncreasing { .. }) && e.to_string().contains("A-D2"));
+
+        let mut r = raw.clone();
+        let d1 = r["A-D1"][0];
+        r.insert("A-D2".into(), vec![d1 + 150.0; 5]);
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(matches!(e, Error::ScaleOutOfRange { .. }) && e.to_string().contains("A-D2"));
+
+        let mut r = raw.clone();
+        r.insert("B-D1".into(), vec![10.0, -10.0, 10.0]);
+        let e = solve(&layout, &r, &f, &o).unwrap_err();
+        assert!(e.to_string().contains("B-D1") && e.to_string().contains("positive"));
+
+        let e = solve(&layout, &raw, &facts(Kinematics::Cartesian), &o).unwrap_err();
+        assert!(e.to_string().contains("layout"), "{e}");
+    }
+
+    #[test]
+    fn a_correction_that_made_things_worse_warns_of_swapped_motors() {
+        let (layout, raw) = readings(Kinematics::CoreXy, false, [1.008, 0.992], 0.0);
+        let opts = SolveOptions {
+            previous: Some(vec![("A".into(), 0.996), ("B".into(), 1.004)]),
+            ..SolveOptions::default()
+        };
+        let sol = solve(&layout, &raw, &facts(Kinematics::CoreXy), &opts).expect("solves");
+        assert!(
+            sol.warnings
+                .iter()
+                .any(|w| w.contains("A and B may be swapped")),
+            "{:?}",
+            sol.warnings
+        );
+    }
 }
