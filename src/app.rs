@@ -36,6 +36,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             crate::pylons_cmd::run(&args)?;
             Ok(ExitCode::SUCCESS)
         }
+        Command::Solve(args) => crate::solve_cmd::run(&args),
+        Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
     }
 }
 

@@ -2,7 +2,7 @@
 
 use std::path::PathBuf;
 
-use clap::{Args, Parser, Subcommand};
+use clap::{Args, Parser, Subcommand, ValueEnum};
 
 /// klipcal: calibration daemon for Klipper printers (Moonraker agent).
 #[derive(Debug, Parser)]
@@ -26,6 +26,8 @@ pub enum Command {
     Serve,
     /// Connect to Moonraker, print what klipcal sees of the printer, and exit.
     Check(CheckArgs),
+    /// Offline: solve rotation distances and skew from a pylon layout and caliper readings.
+    Solve(SolveArgs),
     /// Benchmarks: print measured figures beside their targets.
     #[command(subcommand)]
     Bench(BenchCommand),
@@ -46,6 +48,67 @@ pub struct CheckArgs {
 pub enum BenchCommand {
     /// Resident memory and CPU of a running daemon beside Moonraker's and klippy's.
     Footprint(FootprintArgs),
+    /// Closed-loop calibration accuracy on simulated machines, against the paper and the bound.
+    Metrology(MetrologyArgs),
+}
+
+/// `klipcal solve`
+#[derive(Debug, Args)]
+pub struct SolveArgs {
+    /// layout.json of the printed job.
+    #[arg(long, value_name = "PATH")]
+    pub layout: PathBuf,
+    /// Readings: JSON `{"A-D1":[10.02,…],…}` or CSV `pair,reading` rows, mm.
+    #[arg(long, value_name = "PATH")]
+    pub readings: PathBuf,
+    /// Klipper printer.cfg (its [include]s are followed).
+    #[arg(long, value_name = "PATH")]
+    pub printer_cfg: PathBuf,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+    /// CoreXY: where the shear goes (`motors`: A/B rotation distances, as the paper;
+    /// `klipper-skew`: matched belts, skewed frame).
+    #[arg(long, value_enum, default_value_t = ShearToArg::Motors)]
+    pub shear_to: ShearToArg,
+    /// Klipper xy skew factor that was active during the print (0 = skew correction off).
+    #[arg(long, default_value_t = 0.0, value_name = "FACTOR")]
+    pub current_xy_skew: f64,
+    /// The previous round's `solve --json` output, to check the last correction helped.
+    #[arg(long, value_name = "PATH")]
+    pub previous: Option<PathBuf>,
+    /// Caliper precision as a 3σ bound, mm.
+    #[arg(long, default_value_t = 0.02, value_name = "MM")]
+    pub caliper_precision_mm: f64,
+    /// Caliper trueness (accuracy), ± mm.
+    #[arg(long, default_value_t = 0.02, value_name = "MM")]
+    pub caliper_trueness_mm: f64,
+    /// Bed temperature band during print and measurement, ± K.
+    #[arg(long, default_value_t = 2.0, value_name = "K")]
+    pub bed_temp_band_k: f64,
+}
+
+/// `--shear-to`
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ShearToArg {
+    /// A/B rotation distances absorb the shear.
+    Motors,
+    /// Klipper's skew_correction takes the shear; A and B get one common scale.
+    KlipperSkew,
+}
+
+/// `klipcal bench metrology`
+#[derive(Debug, Args)]
+pub struct MetrologyArgs {
+    /// Random machines per scenario.
+    #[arg(long, default_value_t = 1000)]
+    pub machines: usize,
+    /// RNG seed.
+    #[arg(long, default_value_t = 4)]
+    pub seed: u64,
+    /// Print limit of the convergence loop.
+    #[arg(long, default_value_t = 8)]
+    pub max_prints: usize,
 }
 
 /// `klipcal bench footprint`

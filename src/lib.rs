@@ -20,6 +20,8 @@
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
+//! - [`solve_cmd`]: `klipcal solve` — reads layout, readings and printer config, prints the
+//!   pure solver's result.
 
 pub mod agent;
 pub mod app;
@@ -34,4 +36,5 @@ pub mod layout;
 pub mod moonraker;
 pub mod printer;
 pub mod pylons_cmd;
+pub mod solve_cmd;
 pub mod store;

@@ -1,2 +1,121 @@
 //! PURE: the calibration math — statistics, differential scale, geometry fit, error budget.
-//! No I/O, no clock: time and readings come in as arguments.
+//! No I/O, no clock: time and readings come in as arguments; files are read by the callers.
+//!
+//! - [`readings`]: caliper readings → robust centre per pair (parse JSON/CSV text, outliers).
+//! - [`differential`]: the paper's method — scale α per group, new rotation_distance, steps/mm,
+//!   convergence and the A/B swap check between rounds.
+//! - [`budget`]: the paper's error budget (section 3): ε_bed, ε_filament, ε_measurement, ε_motor.
+//! - [`metric`]: the in-plane metric fitted from every group at once, mapped onto the
+//!   corrections the printer has (rotation distances, Klipper skew).
+//! - [`skew`]: Klipper's skew correction (`calc_skew_factor`, its inverse, the toolhead
+//!   position it commands), the classic AC/BD/AD method and the Prusa-style point fit.
+//! - [`solve`]: layout + readings + printer facts → one [`solve::Solution`].
+//! - [`bench_metrology`]: the closed-loop simulated benchmark behind `klipcal bench metrology`.
+
+pub mod bench_metrology;
+pub mod budget;
+pub mod differential;
+pub mod metric;
+pub mod readings;
+pub mod skew;
+pub mod solve;
+
+/// Everything the calibration math can reject. Messages name the pair or group and say what
+/// is expected.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Error {
+    /// The readings text is not valid JSON of the expected shape.
+    #[error("readings: {0}; expected a JSON object mapping pair ids to arrays of mm readings, e.g. {{\"A-D1\":[10.02,10.03,10.01]}}")]
+    ReadingsJson(String),
+    /// A CSV line could not be read.
+    #[error(
+        "readings CSV line {line}: {message}; expected `pair,reading` rows, e.g. `A-D1,10.02`"
+    )]
+    ReadingsCsv {
+        /// 1-based line number.
+        line: usize,
+        /// What was wrong.
+        message: String,
+    },
+    /// A reading that is not a finite number.
+    #[error("pair {pair}: reading #{index} is {found}; expected a number of millimetres")]
+    NotANumber {
+        /// Pair id.
+        pair: String,
+        /// 1-based position in the pair's list.
+        index: usize,
+        /// What was found instead.
+        found: String,
+    },
+    /// A zero or negative reading.
+    #[error("pair {pair}: reading #{index} is {value} mm; expected a positive distance in mm")]
+    NonPositive {
+        /// Pair id.
+        pair: String,
+        /// 1-based position in the pair's list.
+        index: usize,
+        /// The reading.
+        value: f64,
+    },
+    /// Too few readings for a robust centre.
+    #[error("pair {pair}: {count} reading(s); expected at least {min} (the paper takes 5)")]
+    TooFewReadings {
+        /// Pair id.
+        pair: String,
+        /// How many were given.
+        count: usize,
+        /// The minimum.
+        min: usize,
+    },
+    /// A reading for a pair the layout does not have.
+    #[error("pair {pair} is not in the layout; expected one of: {known}")]
+    UnknownPair {
+        /// Pair id.
+        pair: String,
+        /// The layout's pair ids, comma separated.
+        known: String,
+    },
+    /// A layout pair without readings.
+    #[error("pair {pair} has no readings; expected an array of mm readings for every pair in the layout")]
+    MissingPair {
+        /// Pair id.
+        pair: String,
+    },
+    /// The far pair of a group did not read longer than the near one.
+    #[error("group {group}: {far} reads {far_mm:.3} mm, not more than {near} at {near_mm:.3} mm; expected the longer nominal distance to read longer (pairs swapped or mislabelled?)")]
+    NotIncreasing {
+        /// Group id.
+        group: String,
+        /// Near pair id.
+        near: String,
+        /// Its centre reading.
+        near_mm: f64,
+        /// Far pair id.
+        far: String,
+        /// Its centre reading.
+        far_mm: f64,
+    },
+    /// A scale beyond what a belt printer can plausibly be off.
+    #[error("group {group} (pairs {pairs}): scale {scale:.5} is {pct:+.2} % off; expected within ±{limit_pct} % — check the readings and that they belong to these pairs")]
+    ScaleOutOfRange {
+        /// Group id.
+        group: String,
+        /// Pair ids of the group.
+        pairs: String,
+        /// The scale found.
+        scale: f64,
+        /// (scale − 1) in percent.
+        pct: f64,
+        /// The limit in percent.
+        limit_pct: f64,
+    },
+    /// The layout cannot be solved as given.
+    #[error("layout: {0}")]
+    Layout(String),
+    /// A printer fact the solver needs is unusable.
+    #[error("printer facts: {0}")]
+    Facts(String),
+    /// A fit that has too few or degenerate inputs.
+    #[error("fit: {0}")]
+    Fit(String),
+}

@@ -1,0 +1,318 @@
+//! PURE: XY skew — Klipper's skew_correction arithmetic (klippy/extras/skew_correction.py:
+//! `calc_skew_factor`, the `x' = x − y·xy` transform), the SET_SKEW lengths that give a wanted
+//! factor, the classic AC/BD/AD method, and the Prusa-style point fit (seed 001). No I/O.
+
+use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
+use serde::Serialize;
+
+use super::Error;
+
+/// Klipper's `calc_skew_factor(ac, bd, ad)`, line for line: the other side of the
+/// parallelogram from the diagonals, the angle between the sides, and tan(π/2 − angle).
+/// Returns `None` when the lengths do not form a parallelogram (Klipper would raise).
+#[must_use]
+pub fn calc_skew_factor(ac: f64, bd: f64, ad: f64) -> Option<f64> {
+    let side = (2.0 * ac * ac + 2.0 * bd * bd - 4.0 * ad * ad).sqrt() / 2.0;
+    let cos = (ac * ac - side * side - ad * ad) / (2.0 * side * ad);
+    let f = (std::f64::consts::FRAC_PI_2 - cos.acos()).tan();
+    f.is_finite().then_some(f)
+}
+
+/// The `SET_SKEW XY=AC,BD,AD` lengths (mm) of a rhombus with sides `side_mm` whose
+/// [`calc_skew_factor`] is `xy_factor`: AC = s√(2 + 2 sin ψ), BD = s√(2 − 2 sin ψ), AD = s,
+/// ψ = atan(xy_factor).
+#[must_use]
+pub fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
+    let sin = xy_factor.atan().sin();
+    [
+        side_mm * (2.0 + 2.0 * sin).sqrt(),
+        side_mm * (2.0 - 2.0 * sin).sqrt(),
+        side_mm,
+    ]
+}
+
+/// The `SET_SKEW XY=…` command for a factor, lengths printed with 4 decimals (the factor they
+/// give through Klipper's formula is within 1e-6 of the wanted one for |factor| < 0.05).
+#[must_use]
+pub fn set_skew_command(xy_factor: f64) -> String {
+    let [ac, bd, ad] = set_skew_lengths(xy_factor, 100.0);
+    format!("SET_SKEW XY={ac:.4},{bd:.4},{ad:.4}")
+}
+
+/// Klipper's toolhead (kinematic) XY for a commanded XY with skew factor `xy_factor` in the XY
+/// plane and none in XZ/YZ (`calc_skew`: x' = x − y·xy, y' = y). This is what
+/// `toolhead.get_position()` reports after `G1 X.. Y..` once `SET_SKEW` is active.
+#[must_use]
+pub fn klipper_toolhead_xy(commanded: [f64; 2], xy_factor: f64) -> [f64; 2] {
+    [commanded[0] - commanded[1] * xy_factor, commanded[1]]
+}
+
+/// Klipper's classic method: AC, BD, AD measured on a printed square → its skew factor.
+///
+/// # Errors
+/// Non-positive lengths or lengths that do not form a parallelogram.
+pub fn classic_skew_factor(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<f64, Error> {
+    if !(ac_mm > 0.0 && bd_mm > 0.0 && ad_mm > 0.0) {
+        return Err(Error::Fit(format!(
+            "AC={ac_mm}, BD={bd_mm}, AD={ad_mm}: expected three positive lengths in mm"
+        )));
+    }
+    calc_skew_factor(ac_mm, bd_mm, ad_mm).ok_or_else(|| {
+        Error::Fit(format!(
+            "AC={ac_mm}, BD={bd_mm}, AD={ad_mm} do not form a parallelogram; expected the two diagonals and one side of the printed square"
+        ))
+    })
+}
+
+/// Prusa firmware's skew classes (seed 001; its thresholds 0.12° and 0.25°).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SkewClass {
+    /// |skew| ≤ 0.12°.
+    Perfect,
+    /// 0.12° < |skew| ≤ 0.25°.
+    Mild,
+    /// |skew| > 0.25°.
+    Extreme,
+}
+
+/// Classifies a skew angle with Prusa's thresholds.
+#[must_use]
+pub fn classify_skew(angle_deg: f64) -> SkewClass {
+    match angle_deg.abs() {
+        a if a > 0.25 => SkewClass::Extreme,
+        a if a > 0.12 => SkewClass::Mild,
+        _ => SkewClass::Perfect,
+    }
+}
+
+/// The Prusa-style fit: measured = shift + x·(cos a_x, sin a_x) + y·(−sin a_y, cos a_y).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct PointFit {
+    /// Bed shift, mm.
+    pub shift_mm: [f64; 2],
+    /// Angle of the X axis from +X, degrees.
+    pub x_axis_deg: f64,
+    /// Angle of the Y axis from +Y, degrees.
+    pub y_axis_deg: f64,
+    /// Skew a_x − a_y, degrees: the axes are this much closer than 90°; equals atan of
+    /// Klipper's xy factor.
+    pub skew_deg: f64,
+    /// Klipper's xy factor tan(a_x − a_y).
+    pub xy_factor: f64,
+    /// Standard uncertainties of shift x, shift y, a_x, a_y (mm, mm, deg, deg).
+    pub uncertainty: [f64; 4],
+    /// Standard uncertainty of the skew, degrees.
+    pub skew_uncertainty_deg: f64,
+    /// RMS residual, mm.
+    pub rms_mm: f64,
+    /// Prusa's class of the skew.
+    pub class: SkewClass,
+}
+
+/// Fits shift and the two axis angles (no scaling) to 4–9 (or more) measured reference points
+/// by Gauss–Newton, as the Prusa MK2 firmware does (seed 001, "Data Processing").
+///
+/// # Errors
+/// Fewer than 4 points, mismatched lengths, non-finite values, or a degenerate set (points on a line).
+pub fn fit_points(nominal: &[[f64; 2]], measured: &[[f64; 2]]) -> Result<PointFit, Error> {
+    let n = nominal.len();
+    if n < 4 || measured.len() != n {
+        return Err(Error::Fit(format!(
+            "{n} nominal and {} measured points; expected the same number, at least 4",
+            measured.len()
+        )));
+    }
+    if nominal
+        .iter()
+        .chain(measured)
+        .flatten()
+        .any(|v| !v.is_finite())
+    {
+        return Err(Error::Fit(
+            "a point coordinate is not a finite number".into(),
+        ));
+    }
+    let model = |p: &Vector4<f64>, q: [f64; 2]| -> [f64; 2] {
+        [
+            p[0] + q[0] * p[2].cos() - q[1] * p[3].sin(),
+            p[1] + q[0] * p[2].sin() + q[1] * p[3].cos(),
+        ]
+    };
+    let mut p = Vector4::zeros();
+    for (q, m) in nominal.iter().zip(measured) {
+        p[0] += (m[0] - q[0]) / n as f64;
+        p[1] += (m[1] - q[1]) / n as f64;
+    }
+    let mut jtj = Matrix4::zeros();
+    let mut r = DVector::zeros(2 * n);
+    for _ in 0..50 {
+        let mut j = DMatrix::zeros(2 * n, 4);
+        for (i, (q, m)) in nominal.iter().zip(measured).enumerate() {
+            let f = model(&p, *q);
+            r[2 * i] = m[0] - f[0];
+            r[2 * i + 1] = m[1] - f[1];
+            j[(2 * i, 0)] = 1.0;
+            j[(2 * i + 1, 1)] = 1.0;
+            j[(2 * i, 2)] = -q[0] * p[2].sin();
+            j[(2 * i + 1, 2)] = q[0] * p[2].cos();
+            j[(2 * i, 3)] = -q[1] * p[3].cos();
+            j[(2 * i + 1, 3)] = -q[1] * p[3].sin();
+        }
+        jtj = (j.transpose() * &j).fixed_view::<4, 4>(0, 0).into_owned();
+        let jtr: Vector4<f64> = (j.transpose() * &r).fixed_rows::<4>(0).into_owned();
+        let Some(step) = jtj.cholesky().map(|c| c.solve(&jtr)) else {
+            return Err(Error::Fit(
+                "the reference points are degenerate (on one line); expected points spread over the bed".into(),
+            ));
+        };
+        p += step;
+        if step.norm() < 1e-13 {
+            break;
+        }
+    }
+    // Residuals at the final parameters.
+    let mut ss = 0.0;
+    for (q, m) in nominal.iter().zip(measured) {
+        let f = model(&p, *q);
+        ss += (m[0] - f[0]).powi(2) + (m[1] - f[1]).powi(2);
+    }
+    let _ = &r;
+    let dof = (2 * n - 4).max(1) as f64;
+    let var = ss / dof;
+    let cov = jtj
+        .try_inverse()
+        .ok_or_else(|| Error::Fit("singular normal matrix".into()))?
+        * var;
+    let skew_rad = p[2] - p[3];
+    let skew_var = cov[(2, 2)] + cov[(3, 3)] - 2.0 * cov[(2, 3)];
+    let skew_deg = skew_rad.to_degrees();
+    Ok(PointFit {
+        shift_mm: [p[0], p[1]],
+        x_axis_deg: p[2].to_degrees(),
+        y_axis_deg: p[3].to_degrees(),
+        skew_deg,
+        xy_factor: skew_rad.tan(),
+        uncertainty: [
+            cov[(0, 0)].sqrt(),
+            cov[(1, 1)].sqrt(),
+            cov[(2, 2)].sqrt().to_degrees(),
+            cov[(3, 3)].sqrt().to_degrees(),
+        ],
+        skew_uncertainty_deg: skew_var.max(0.0).sqrt().to_degrees(),
+        rms_mm: (ss / n as f64).sqrt(),
+        class: classify_skew(skew_deg),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Physical XY of a commanded point on a machine whose frame shears x by `f`·y.
+    fn sheared(c: [f64; 2], f: f64) -> [f64; 2] {
+        [c[0] + f * c[1], c[1]]
+    }
+
+    #[test]
+    fn set_skew_lengths_give_the_wanted_factor_through_klippers_formula() {
+        for f in [-0.02, -0.00873, 0.0, 0.001, 0.00873, 0.03] {
+            let [ac, bd, ad] = set_skew_lengths(f, 100.0);
+            let back = calc_skew_factor(ac, bd, ad).expect("valid parallelogram");
+            assert!((back - f).abs() < 1e-12, "{f} → {back}");
+        }
+    }
+
+    #[test]
+    fn the_printed_command_round_trips_within_a_micro_radian() {
+        let f = 0.0061234;
+        let cmd = set_skew_command(f);
+        let nums: Vec<f64> = cmd
+            .trim_start_matches("SET_SKEW XY=")
+            .split(',')
+            .map(|s| s.parse().expect("number"))
+            .collect();
+        let back = calc_skew_factor(nums[0], nums[1], nums[2]).expect("valid");
+        assert!((back - f).abs() < 1e-6, "{cmd} → {back}");
+    }
+
+    #[test]
+    fn a_square_printed_on_a_sheared_machine_measures_to_its_shear() {
+        // Klipper's docs: A lower left, B upper left, C upper right, D lower right.
+        let f = 0.0087; // ≈ 0.5°
+        let (a, b, c, d) = (
+            sheared([0.0, 0.0], f),
+            sheared([0.0, 100.0], f),
+            sheared([100.0, 100.0], f),
+            sheared([100.0, 0.0], f),
+        );
+        let dist =
+            |p: [f64; 2], q: [f64; 2]| ((p[0] - q[0]).powi(2) + (p[1] - q[1]).powi(2)).sqrt();
+        let got = classic_skew_factor(dist(a, c), dist(b, d), dist(a, d)).expect("valid");
+        assert!((got - f).abs() < 1e-12, "{got}");
+        // …and Klipper's transform with that factor cancels the shear.
+        let cmd = [100.0, 100.0];
+        let phys = sheared(klipper_toolhead_xy(cmd, got), f);
+        assert!((phys[0] - cmd[0]).abs() < 1e-9 && (phys[1] - cmd[1]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn a_positive_factor_moves_the_toolhead_to_smaller_x_for_positive_y() {
+        let p = klipper_toolhead_xy([100.0, 100.0], 0.01);
+        assert!((p[0] - 99.0).abs() < 1e-12 && p[1] == 100.0);
+    }
+
+    #[test]
+    fn impossible_lengths_are_an_error() {
+        assert!(classic_skew_factor(10.0, 10.0, 100.0).is_err());
+        assert!(classic_skew_factor(0.0, 10.0, 10.0).is_err());
+    }
+
+    #[test]
+    fn the_point_fit_recovers_shift_and_axis_angles_of_nine_points() {
+        // seed 001 "Data Processing": 9 points, shift + two axis angles, no scaling.
+        let nominal: Vec<[f64; 2]> = (0..9)
+            .map(|i| {
+                [
+                    37.0 + 90.0 * f64::from(i % 3),
+                    18.0 + 90.0 * f64::from(i / 3),
+                ]
+            })
+            .collect();
+        let (ax, ay) = (0.1f64.to_radians(), (-0.2f64).to_radians());
+        let noise = [0.02, -0.01, 0.0, 0.015, -0.02, 0.01, -0.005, 0.0, 0.01];
+        let measured: Vec<[f64; 2]> = nominal
+            .iter()
+            .enumerate()
+            .map(|(i, q)| {
+                [
+                    0.5 + q[0] * ax.cos() - q[1] * ay.sin() + noise[i],
+                    -0.3 + q[0] * ax.sin() + q[1] * ay.cos() - noise[8 - i],
+                ]
+            })
+            .collect();
+        let fit = fit_points(&nominal, &measured).expect("fit");
+        assert!((fit.shift_mm[0] - 0.5).abs() < 0.03 && (fit.shift_mm[1] + 0.3).abs() < 0.03);
+        assert!(
+            (fit.skew_deg - 0.3).abs() < 3.0 * fit.skew_uncertainty_deg + 1e-3,
+            "{fit:?}"
+        );
+        assert!(fit.skew_uncertainty_deg > 0.0 && fit.skew_uncertainty_deg < 0.05);
+        assert_eq!(fit.class, SkewClass::Extreme);
+        assert!((fit.xy_factor - fit.skew_deg.to_radians().tan()).abs() < 1e-15);
+    }
+
+    #[test]
+    fn prusa_thresholds_classify_skew() {
+        assert_eq!(classify_skew(0.1), SkewClass::Perfect);
+        assert_eq!(classify_skew(-0.2), SkewClass::Mild);
+        assert_eq!(classify_skew(0.3), SkewClass::Extreme);
+    }
+
+    #[test]
+    fn the_point_fit_refuses_collinear_or_too_few_points() {
+        let line: Vec<[f64; 2]> = (0..5).map(|i| [f64::from(i) * 10.0, 0.0]).collect();
+        assert!(fit_points(&line, &line).is_err());
+        assert!(fit_points(&line[..3], &line[..3]).is_err());
+    }
+}
