@@ -44,7 +44,7 @@ pub(crate) struct PlacedPylon {
 
 impl PlacedPylon {
     /// The core segment of the stadium footprint: the long axis between the centres of the
-    /// rounded ends, for a slab of `thickness_mm` × `length_mm` inset by `inset_mm`.
+    /// rounded ends of a slab `length_mm` long and `thickness_mm` thick.
     pub fn core(&self, length_mm: f64, thickness_mm: f64) -> ([f64; 2], [f64; 2]) {
         let half = (length_mm - thickness_mm) / 2.0;
         (
