@@ -33,8 +33,13 @@ pub enum Error {
         expected: String,
     },
     /// The groups do not fit the printable area or would touch each other.
-    #[error("{0}")]
-    DoesNotFit(String),
+    #[error("{message}")]
+    DoesNotFit {
+        /// What does not fit and by how much, with the suggestion.
+        message: String,
+        /// The largest whole-mm D2 that fits, when one does.
+        suggested_d2_mm: Option<f64>,
+    },
     /// A start or end template has a character or placeholder that is not allowed.
     #[error("{which} template {template:?}: {reason}")]
     Template {

@@ -349,18 +349,21 @@ pub(crate) fn place(m: &Machine, o: &Options) -> Result<Placed, Error> {
         why.join("; ")
     );
     match suggest_d2(m, o, &groups) {
-        Some(d2) => Err(Error::DoesNotFit(format!(
+        Some(d2) => Err(Error::DoesNotFit {
+            message: format!(
             "{head}. Try --d2 {d2:.0}: it fits, with a scale precision bound of {:.3} % instead of {:.3} % (paper §3.7)",
             100.0 * precision_bound(o.d1_mm, d2),
             100.0 * precision_bound(o.d1_mm, o.d2_mm)
-        ))),
-        None => Err(Error::DoesNotFit(format!(
+            ),
+            suggested_d2_mm: Some(d2.round()),
+        }),
+        None => Err(Error::DoesNotFit { suggested_d2_mm: None, message: format!(
             "{head}. No --d2 makes this layout fit{}",
             match o.layout {
                 LayoutKind::Full => "; try --layout paper or a shorter --pylon-length",
                 LayoutKind::Paper => "; the printable area is too small for these pylons",
             }
-        ))),
+        )}),
     }
 }
 
@@ -486,7 +489,7 @@ mod tests {
     fn a_120_mm_bed_gets_a_clear_error_with_a_d2_that_fits() {
         let m = machine(Kinematics::CoreXy, 120.0);
         let err = place(&m, &Options::default()).expect_err("150 mm cannot fit");
-        let Error::DoesNotFit(text) = err else {
+        let Error::DoesNotFit { message: text, .. } = err else {
             panic!("wrong error {err:?}")
         };
         assert!(text.contains("passes the printable area"), "{text}");

@@ -155,14 +155,12 @@ fn job_for(m: &Machine, layout: LayoutKind) -> Option<(Options, Job)> {
     };
     match generate(m, &o) {
         Ok(job) => Some((o, job)),
-        Err(Error::DoesNotFit(text)) => {
-            let d2: f64 = text
-                .split("Try --d2 ")
-                .nth(1)?
-                .split(':')
-                .next()?
-                .parse()
-                .ok()?;
+        Err(Error::DoesNotFit {
+            message,
+            suggested_d2_mm,
+        }) => {
+            let d2 = suggested_d2_mm?;
+            assert!(message.contains(&format!("Try --d2 {d2}")), "{message}");
             let o = Options { d2_mm: d2, ..o };
             Some((o.clone(), generate(m, &o).expect("the suggested --d2 fits")))
         }
@@ -524,7 +522,7 @@ fn full_layout_on_120_mm_says_which_layout_to_use() {
         ..Options::default()
     };
     match generate(&m, &o) {
-        Err(Error::DoesNotFit(text)) => {
+        Err(Error::DoesNotFit { message: text, .. }) => {
             assert!(text.contains("--layout paper"), "{text}");
             assert!(text.contains("by ") || text.contains("overlap"), "{text}");
         }

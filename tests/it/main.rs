@@ -5,3 +5,4 @@
 mod bench;
 mod daemon;
 mod fake;
+mod pylons;
