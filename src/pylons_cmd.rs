@@ -29,8 +29,27 @@ fn number(config: &Config, section: &str, key: &str) -> anyhow::Result<Option<f6
 /// Missing or bad config values the flags do not override; kinematics other than corexy and
 /// cartesian.
 pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machine> {
+    machine_with(
+        config,
+        args.kinematics.as_deref(),
+        args.nozzle_diameter,
+        args.filament_diameter,
+    )
+}
+
+/// The generator's printer facts from a loaded Klipper config, with optional overrides of the
+/// kinematics and the nozzle and filament diameters (the daemon passes none).
+///
+/// # Errors
+/// A config without the facts the job needs, or kinematics other than corexy/cartesian.
+pub fn machine_with(
+    config: &Config,
+    kinematics: Option<&str>,
+    nozzle_diameter: Option<f64>,
+    filament_diameter: Option<f64>,
+) -> anyhow::Result<Machine> {
     let facts = PrinterFacts::from_config(config).context("reading the printer facts")?;
-    let kinematics = match (&args.kinematics, &facts.kinematics) {
+    let kinematics = match (kinematics, &facts.kinematics) {
         (Some(k), _) => Kinematics::parse(k)?,
         (None, klipper::Kinematics::CoreXy) => Kinematics::CoreXy,
         (None, klipper::Kinematics::Cartesian) => Kinematics::Cartesian,
@@ -39,12 +58,10 @@ pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machin
              pass --kinematics to override"
         ),
     };
-    let nozzle_diameter_mm = args
-        .nozzle_diameter
+    let nozzle_diameter_mm = nozzle_diameter
         .or(facts.nozzle_diameter_mm)
         .ok_or_else(|| anyhow!("no [extruder] nozzle_diameter; pass --nozzle-diameter"))?;
-    let filament_diameter_mm = args
-        .filament_diameter
+    let filament_diameter_mm = filament_diameter
         .or(facts.filament_diameter_mm)
         .ok_or_else(|| anyhow!("no [extruder] filament_diameter; pass --filament-diameter"))?;
     Ok(Machine {
