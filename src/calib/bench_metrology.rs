@@ -549,7 +549,8 @@ pub fn format_report(reports: &[ScenarioReport]) -> String {
         );
         let _ = writeln!(
             s,
-            "  estimate spread vs Cramér–Rao bound (µm/100 mm)   spread     CRB   ratio   target"
+            "  estimate spread vs Cramér–Rao bound (caliper + width scatter + bed drift), µm/100 mm\n    {:<46}  spread     CRB   ratio   target",
+            ""
         );
         for c in &r.crb {
             let ratio = c.spread / c.crb;
@@ -605,12 +606,44 @@ mod tests {
                     assert!(st.p95 <= t, "{kin:?} {name}: p95 {} > {t}", st.p95);
                 }
             }
+            for c in &r.crb {
+                assert!(
+                    c.spread <= 1.5 * c.crb,
+                    "{kin:?} {}: {} vs CRB {}",
+                    c.name,
+                    c.spread,
+                    c.crb
+                );
+            }
             // the common method is far worse: shrinkage is not cancelled
             assert!(
                 r.common_method.iter().all(|(_, s)| s.median > 100.0),
                 "{:?}",
                 r.common_method
             );
+        }
+    }
+
+    #[test]
+    fn a_small_closed_loop_run_meets_the_paper_layout_targets_and_converges() {
+        let cfg = BenchConfig {
+            machines: 150,
+            ..BenchConfig::default()
+        };
+        for kin in [Kinematics::CoreXy, Kinematics::Cartesian] {
+            let r = run_scenario(kin, false, &cfg);
+            assert_eq!(r.failures, 0);
+            let checked = r
+                .residual
+                .iter()
+                .filter_map(|(name, st)| {
+                    target_um_per_100mm(kin, false, name).map(|t| (name, st, t))
+                })
+                .inspect(|(name, st, t)| assert!(st.p95 <= *t, "{kin:?} {name}: p95 {}", st.p95))
+                .count();
+            assert_eq!(checked, 2, "both motor directions carry the paper target");
+            assert_eq!(r.not_converged, 0);
+            assert!(r.prints.p95 <= 3.0, "{:?}", r.prints);
         }
     }
 
