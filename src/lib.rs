@@ -10,7 +10,8 @@
 //! - [`moonraker`]: the Moonraker client — protocol types (pure), the websocket actor that owns
 //!   the socket, the cloneable handle, the agent's remote methods, HTTP file transfer.
 //! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place) and
-//!   G-code command text built from typed values, never from pasted user text.
+//!   G-code command text built from typed values, never from pasted user text. Files reach it
+//!   through the `klipper::Files` trait; [`fsio`] is the small std::fs implementation.
 //! - [`gcode`]: PURE. The pylon job generator (geometry → toolpaths → G-code text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
@@ -24,6 +25,7 @@ pub mod bench;
 pub mod calib;
 pub mod cli;
 pub mod config;
+pub mod fsio;
 pub mod gcode;
 pub mod klipper;
 pub mod layout;

@@ -148,23 +148,29 @@ impl Config {
             sources: Vec::new(),
             by_path: BTreeMap::new(),
         };
-        let main_path = normalize_path(main_path);
-        let main = loader.file(&main_path)?;
+        let main = loader.file(main_path)?;
         let lines = split_lines(main, &loader.sources[main].text);
         let (regular, autosave, status) = split_save_config(lines);
 
         // Pass 1: the regular config alone, to find SAVE_CONFIG options it shadows.
         let mut regular_cfg = Parser::default();
         let mut visited = Vec::new();
-        loader.parse_lines(&mut regular_cfg, &main_path, regular.clone(), &mut visited)?;
+        loader.parse_lines(&mut regular_cfg, main_path, regular.clone(), &mut visited)?;
 
         let (autosave, shadowed) = strip_duplicates(autosave, &regular_cfg);
+        // Klipper also parses the block alone (`self.autosave`); it must parse by itself.
+        loader.parse_lines(
+            &mut Parser::default(),
+            main_path,
+            autosave.clone(),
+            &mut visited,
+        )?;
 
         // Pass 2: regular + (block without duplicates), as one text, like Klipper.
         let mut all = Parser::default();
         let mut combined = regular;
         combined.extend(autosave);
-        loader.parse_lines(&mut all, &main_path, combined, &mut visited)?;
+        loader.parse_lines(&mut all, main_path, combined, &mut visited)?;
 
         let sources = loader.sources;
         let sections = all
@@ -404,7 +410,8 @@ struct Loader<'a> {
 impl Loader<'_> {
     /// Reads (once) and registers a file; returns its index.
     fn file(&mut self, path: &Path) -> Result<usize, Error> {
-        if let Some(&i) = self.by_path.get(path) {
+        let key = normalize_path(path);
+        if let Some(&i) = self.by_path.get(&key) {
             return Ok(i);
         }
         let text = self.files.read(path).map_err(|e| Error::Read {
@@ -413,14 +420,15 @@ impl Loader<'_> {
         })?;
         let i = self.sources.len();
         self.sources.push(SourceFile {
-            path: path.to_path_buf(),
+            path: key.clone(),
             text,
         });
-        self.by_path.insert(path.to_path_buf(), i);
+        self.by_path.insert(key, i);
         Ok(i)
     }
 
-    /// `PrinterConfig._parse_config` for one file's lines.
+    /// `PrinterConfig._parse_config` for one file's lines; `path` as it was named (includes are
+    /// resolved against its folder), compared normalised to detect recursion.
     fn parse_lines(
         &mut self,
         parser: &mut Parser,
@@ -428,15 +436,16 @@ impl Loader<'_> {
         lines: Vec<Line>,
         visited: &mut Vec<PathBuf>,
     ) -> Result<(), Error> {
-        if visited.iter().any(|v| v == path) {
+        let key = normalize_path(path);
+        if visited.contains(&key) {
             let mut chain: Vec<String> = visited.iter().map(|p| p.display().to_string()).collect();
-            chain.push(path.display().to_string());
+            chain.push(key.display().to_string());
             return Err(Error::IncludeCycle {
-                path: path.to_path_buf(),
+                path: key,
                 chain: chain.join(" -> "),
             });
         }
-        visited.push(path.to_path_buf());
+        visited.push(key);
         parser.reset_chunk();
         for mut line in lines {
             if let Some(pos) = line.text.find('#') {
@@ -468,13 +477,12 @@ impl Loader<'_> {
     ) -> Result<(), Error> {
         let dir = from.parent().unwrap_or(Path::new(""));
         let pattern = dir.join(spec);
-        let mut found = self
-            .files
-            .glob(&normalize_path(&pattern))
-            .map_err(|e| Error::Read {
-                path: pattern.clone(),
-                source: e,
-            })?;
+        // The pattern goes out as written (Python does not normalise it either: on a real file
+        // system `missing/../x.cfg` does not exist); identity uses the normalised path.
+        let mut found = self.files.glob(&pattern).map_err(|e| Error::Read {
+            path: pattern.clone(),
+            source: e,
+        })?;
         if found.is_empty() && !has_magic(&pattern.to_string_lossy()) {
             return Err(Error::IncludeNotFound {
                 path: from.to_path_buf(),
@@ -484,7 +492,6 @@ impl Loader<'_> {
         }
         found.sort_by(|a, b| a.as_os_str().cmp(b.as_os_str()));
         for inc in found {
-            let inc = normalize_path(&inc);
             let idx = self.file(&inc)?;
             let lines = split_lines(idx, &self.sources[idx].text);
             self.parse_lines(parser, &inc, lines, visited)?;
@@ -916,6 +923,18 @@ gcode:
         let cfg = Config::load(&files, Path::new("/c/printer.cfg")).unwrap();
         assert_eq!(cfg.get("s", "v"), Some("b"));
         assert_eq!(cfg.get("s", "only_a"), Some("1"));
+    }
+
+    #[test]
+    fn nested_includes_resolve_against_the_including_files_folder() {
+        let files = MemFiles::new()
+            .with("/c/printer.cfg", "[include macros/main.cfg]\n")
+            .with("/c/macros/main.cfg", "[include helpers.cfg]\n")
+            .with("/c/macros/helpers.cfg", "[m]\nfrom: macros\n")
+            .with("/c/helpers.cfg", "[m]\nfrom: top\n");
+        let cfg = Config::load(&files, Path::new("/c/printer.cfg")).unwrap();
+        assert_eq!(cfg.get("m", "from"), Some("macros"));
+        assert_eq!(cfg.files().len(), 3);
     }
 
     #[test]

@@ -27,6 +27,8 @@ pub trait Files {
 }
 
 /// Files held in memory, keyed by their lexically normalised path (`a/./b/../c` → `a/c`).
+/// Folders exist only through the files in them, so `missing/../x.cfg` finds `x.cfg` here where
+/// a real file system (and Klipper) would not.
 #[derive(Debug, Clone, Default)]
 pub struct MemFiles {
     files: BTreeMap<PathBuf, String>,

@@ -3,20 +3,28 @@
 //!
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
+//! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
+//!   reads them from.
+//! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
+//!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
 pub mod config;
+pub mod edit;
 pub mod facts;
 pub mod files;
+pub mod gcode_cmd;
 
 use std::path::PathBuf;
 
 pub use config::{
     Config, ConfigOption, Origin, SaveConfigStatus, Section, ShadowedOption, SourceFile,
 };
+pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
+pub use gcode_cmd::GcodeCmd;
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.
 #[derive(Debug, thiserror::Error)]
@@ -90,6 +98,69 @@ pub enum Error {
         value: String,
         /// What a valid value looks like.
         expected: String,
+    },
+    /// The option to edit is not defined in any file.
+    #[error("[{section}] {key} is not defined in any config file; klipcal only changes existing options (add it by hand first)")]
+    NotDefined {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+    },
+    /// The option to edit spans several lines.
+    #[error("[{section}] {key} spans lines {first_line}-{last_line} of {path}; klipcal only edits one-line values")]
+    MultiLineValue {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// File holding it.
+        path: PathBuf,
+        /// First line.
+        first_line: usize,
+        /// Last line.
+        last_line: usize,
+    },
+    /// The replacement value would not read back as written.
+    #[error("cannot set [{section}] {key} to '{value}': {reason}")]
+    BadNewValue {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// The refused value.
+        value: String,
+        /// Why.
+        reason: String,
+    },
+    /// Re-reading the edited files did not give the expected config (an internal bug).
+    #[error("config edit check failed: {0}")]
+    EditCheck(String),
+    /// A G-code command, parameter or value name outside `[A-Za-z0-9_.-]+`.
+    #[error("G-code {what} '{name}' is not allowed; expected letters, digits, '_', '.' or '-'")]
+    BadName {
+        /// What the name is (command name, parameter name, value).
+        what: String,
+        /// The refused name.
+        name: String,
+    },
+    /// A G-code number that is NaN or infinite.
+    #[error("G-code parameter {key} = {value} is not a finite number")]
+    BadNumber {
+        /// Parameter name.
+        key: String,
+        /// The value.
+        value: f64,
+    },
+    /// Text Klipper would not read back unchanged inside `"..."`.
+    #[error("G-code parameter {key} text {value:?} cannot be sent: {reason}")]
+    BadText {
+        /// Parameter name.
+        key: String,
+        /// The refused text.
+        value: String,
+        /// Why.
+        reason: String,
     },
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
