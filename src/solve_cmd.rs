@@ -2,8 +2,7 @@
 //! the pure solver in `calib::solve`, and prints text or JSON. File reading and printing only;
 //! no calibration math here.
 
-use std::io;
-use std::path::{Component, Path, PathBuf};
+use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -13,59 +12,9 @@ use crate::calib::readings::parse_readings;
 use crate::calib::skew::SkewClass;
 use crate::calib::solve::{solve, MotionFacts, Solution, SolveOptions, StepperFacts};
 use crate::cli::{ShearToArg, SolveArgs};
-use crate::klipper::files::{component_matches, has_magic};
-use crate::klipper::{Config, Files, PrinterFacts};
+use crate::fsio::FsFiles;
+use crate::klipper::{Config, PrinterFacts};
 use crate::layout::Layout;
-
-/// std::fs reader for the Klipper config loader. To be replaced by `crate::fsio::FsFiles` from
-/// the `klipper` branch once that file is committed there.
-struct DiskFiles;
-
-impl Files for DiskFiles {
-    fn read(&self, path: &Path) -> io::Result<String> {
-        std::fs::read_to_string(path)
-    }
-
-    fn glob(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
-        let comps: Vec<Component<'_>> = pattern.components().collect();
-        let mut candidates = vec![PathBuf::new()];
-        for (i, comp) in comps.iter().enumerate() {
-            let last = i + 1 == comps.len();
-            let text = comp.as_os_str().to_string_lossy();
-            let wild = matches!(comp, Component::Normal(_)) && has_magic(&text);
-            let mut next = Vec::new();
-            for base in &candidates {
-                if !wild {
-                    let p = base.join(comp.as_os_str());
-                    let ok = if last { p.exists() } else { p.is_dir() };
-                    if ok || matches!(comp, Component::RootDir | Component::Prefix(_)) {
-                        next.push(p);
-                    }
-                    continue;
-                }
-                let dir = if base.as_os_str().is_empty() {
-                    Path::new(".")
-                } else {
-                    base.as_path()
-                };
-                let Ok(entries) = std::fs::read_dir(dir) else {
-                    continue;
-                };
-                for entry in entries.flatten() {
-                    let name = entry.file_name();
-                    if component_matches(&text, &name.to_string_lossy()) {
-                        let p = base.join(&name);
-                        if last || p.is_dir() {
-                            next.push(p);
-                        }
-                    }
-                }
-            }
-            candidates = next;
-        }
-        Ok(candidates)
-    }
-}
 
 /// The solver's printer facts from Klipper's.
 ///
@@ -131,7 +80,7 @@ pub fn load_and_solve(args: &SolveArgs) -> anyhow::Result<Solution> {
         .with_context(|| format!("reading the readings {}", args.readings.display()))?;
     let raw = parse_readings(&readings_text)
         .with_context(|| format!("readings {}", args.readings.display()))?;
-    let config = Config::load(&DiskFiles, &args.printer_cfg)
+    let config = Config::load(&FsFiles, &args.printer_cfg)
         .with_context(|| format!("reading the Klipper config {}", args.printer_cfg.display()))?;
     let pf = PrinterFacts::from_config(&config)
         .with_context(|| format!("Klipper config {}", args.printer_cfg.display()))?;
@@ -227,7 +176,15 @@ pub fn format_solution(s: &Solution) -> String {
     }
     let sk = &s.skew;
     if !sk.observed {
-        let _ = writeln!(o, "skew: not observed by this layout");
+        let _ = writeln!(
+            o,
+            "skew: not observed by this layout{}",
+            if s.kinematics == Kinematics::CoreXy {
+                " (on a CoreXY the A/B correction removes the shear anyway)"
+            } else {
+                " (print the `full` layout to fit it)"
+            }
+        );
     } else {
         let _ = writeln!(
             o,

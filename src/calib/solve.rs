@@ -479,7 +479,11 @@ pub fn solve(
                 applied,
                 xy_factor: Some(f),
                 angle_deg: Some(f.atan().to_degrees()),
-                set_skew: applied.then(|| skew::set_skew_command(f)),
+                set_skew: if applied {
+                    skew::set_skew_command(f)
+                } else {
+                    None
+                },
                 uncertainty: Some(u),
                 measured_shear_factor: Some(shear.value),
                 measured_shear_deg: Some(shear_deg),
