@@ -238,6 +238,8 @@ pub struct ScenarioReport {
     pub full: bool,
     /// Machines simulated.
     pub machines: usize,
+    /// D1 and D2 of the layout, mm.
+    pub d_mm: (f64, f64),
     /// Solver errors (should be 0).
     pub failures: usize,
     /// Residual motion error after one print along [`REPORT_DIRECTIONS`], and the shear; in
@@ -430,6 +432,7 @@ pub fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioR
         kinematics: kin,
         full,
         machines: cfg.machines,
+        d_mm: p.d_mm,
         failures,
         residual: residual_named,
         prints: stats(&prints),
@@ -529,6 +532,17 @@ pub fn format_report(reports: &[ScenarioReport]) -> String {
             s,
             "\n== {kin}, {lay} layout: {} machines, {} solver failure(s)",
             r.machines, r.failures
+        );
+        let groups: Vec<String> = layout_groups(r.kinematics, r.full)
+            .iter()
+            .map(|(g, deg)| format!("{g} ({deg:+.0}°)"))
+            .collect();
+        let _ = writeln!(
+            s,
+            "  layout: groups {}, D1 {} mm, D2 {} mm; per print: new bed drift, pylon widths, caliper noise",
+            groups.join(", "),
+            r.d_mm.0,
+            r.d_mm.1
         );
         let _ = writeln!(
             s,
