@@ -2,8 +2,7 @@
 //! the pure solver in `calib::solve`, and prints text or JSON. File reading and printing only;
 //! no calibration math here.
 
-use std::io;
-use std::path::{Component, Path, PathBuf};
+use std::path::Path;
 use std::process::ExitCode;
 
 use anyhow::Context;
@@ -13,59 +12,9 @@ use crate::calib::readings::parse_readings;
 use crate::calib::skew::SkewClass;
 use crate::calib::solve::{solve, MotionFacts, Solution, SolveOptions, StepperFacts};
 use crate::cli::{ShearToArg, SolveArgs};
-use crate::klipper::files::{component_matches, has_magic};
-use crate::klipper::{Config, Files, PrinterFacts};
+use crate::fsio::FsFiles;
+use crate::klipper::{Config, PrinterFacts};
 use crate::layout::Layout;
-
-/// std::fs reader for the Klipper config loader. To be replaced by `crate::fsio::FsFiles` from
-/// the `klipper` branch once that file is committed there.
-struct DiskFiles;
-
-impl Files for DiskFiles {
-    fn read(&self, path: &Path) -> io::Result<String> {
-        std::fs::read_to_string(path)
-    }
-
-    fn glob(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
-        let comps: Vec<Component<'_>> = pattern.components().collect();
-        let mut candidates = vec![PathBuf::new()];
-        for (i, comp) in comps.iter().enumerate() {
-            let last = i + 1 == comps.len();
-            let text = comp.as_os_str().to_string_lossy();
-            let wild = matches!(comp, Component::Normal(_)) && has_magic(&text);
-            let mut next = Vec::new();
-            for base in &candidates {
-                if !wild {
-                    let p = base.join(comp.as_os_str());
-                    let ok = if last { p.exists() } else { p.is_dir() };
-                    if ok || matches!(comp, Component::RootDir | Component::Prefix(_)) {
-                        next.push(p);
-                    }
-                    continue;
-                }
-                let dir = if base.as_os_str().is_empty() {
-                    Path::new(".")
-                } else {
-                    base.as_path()
-                };
-                let Ok(entries) = std::fs::read_dir(dir) else {
-                    continue;
-                };
-                for entry in entries.flatten() {
-                    let name = entry.file_name();
-                    if component_matches(&text, &name.to_string_lossy()) {
-                        let p = base.join(&name);
-                        if last || p.is_dir() {
-                            next.push(p);
-                        }
-                    }
-                }
-            }
-            candidates = next;
-        }
-        Ok(candidates)
-    }
-}
 
 /// The solver's printer facts from Klipper's.
 ///
@@ -113,12 +62,12 @@ fn previous_round(path: &Path) -> anyhow::Result<Vec<(String, f64)>> {
         .collect())
 }
 
-/// Runs `klipcal solve`.
+/// Reads the three inputs and solves; the solution's warnings include config notes.
 ///
 /// # Errors
 /// Unreadable files, a bad layout, readings or printer config; the message names the file,
 /// pair or option and what is expected.
-pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
+pub fn load_and_solve(args: &SolveArgs) -> anyhow::Result<Solution> {
     let layout_text = std::fs::read_to_string(&args.layout)
         .with_context(|| format!("reading the layout {}", args.layout.display()))?;
     let layout: Layout = serde_json::from_str(&layout_text).with_context(|| {
@@ -131,7 +80,7 @@ pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
         .with_context(|| format!("reading the readings {}", args.readings.display()))?;
     let raw = parse_readings(&readings_text)
         .with_context(|| format!("readings {}", args.readings.display()))?;
-    let config = Config::load(&DiskFiles, &args.printer_cfg)
+    let config = Config::load(&FsFiles, &args.printer_cfg)
         .with_context(|| format!("reading the Klipper config {}", args.printer_cfg.display()))?;
     let pf = PrinterFacts::from_config(&config)
         .with_context(|| format!("Klipper config {}", args.printer_cfg.display()))?;
@@ -159,6 +108,15 @@ pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
             "the config has [skew_correction]: if a skew profile was active during the print, pass its factor with --current-xy-skew (the paper asks for skew correction off while calibrating)".into(),
         );
     }
+    Ok(sol)
+}
+
+/// Runs `klipcal solve`: prints the solution as text, or as one JSON object with `--json`.
+///
+/// # Errors
+/// See [`load_and_solve`].
+pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
+    let sol = load_and_solve(args)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&sol)?);
     } else {
@@ -218,7 +176,15 @@ pub fn format_solution(s: &Solution) -> String {
     }
     let sk = &s.skew;
     if !sk.observed {
-        let _ = writeln!(o, "skew: not observed by this layout");
+        let _ = writeln!(
+            o,
+            "skew: not observed by this layout{}",
+            if s.kinematics == Kinematics::CoreXy {
+                " (on a CoreXY the A/B correction removes the shear anyway)"
+            } else {
+                " (print the `full` layout to fit it)"
+            }
+        );
     } else {
         let _ = writeln!(
             o,
@@ -293,4 +259,75 @@ pub fn format_solution(s: &Solution) -> String {
         let _ = writeln!(o, "warning: {w}");
     }
     o
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::bench_metrology::simulated_layout;
+
+    const STEPPERS: &str = "[stepper_x]\nstep_pin: PB0\ndir_pin: PB1\nenable_pin: !PB2\nmicrosteps: 64\nrotation_distance: 40\nfull_steps_per_rotation: 400\nendstop_pin: PB3\nposition_endstop: 300\nposition_max: 300\n[stepper_y]\nstep_pin: PC0\ndir_pin: PC1\nenable_pin: !PC2\nmicrosteps: 32\nrotation_distance: 40\nendstop_pin: PC3\nposition_endstop: 300\nposition_max: 300\n";
+
+    fn args(dir: &Path, readings: &str) -> SolveArgs {
+        SolveArgs {
+            layout: dir.join("layout.json"),
+            readings: dir.join(readings),
+            printer_cfg: dir.join("printer.cfg"),
+            json: false,
+            shear_to: ShearToArg::Motors,
+            current_xy_skew: 0.0,
+            previous: None,
+            caliper_precision_mm: 0.02,
+            caliper_trueness_mm: 0.02,
+            bed_temp_band_k: 2.0,
+        }
+    }
+
+    fn write_inputs(dir: &Path) {
+        let layout = simulated_layout(Kinematics::CoreXy, false, 10.0, 150.0);
+        let w = |name: &str, text: &str| std::fs::write(dir.join(name), text).expect("write");
+        w(
+            "layout.json",
+            &serde_json::to_string(&layout).expect("json"),
+        );
+        w("printer.cfg", "[include steppers/*.cfg]\n[printer]\nkinematics: corexy\nmax_velocity: 300\nmax_accel: 3000\n");
+        std::fs::create_dir(dir.join("steppers")).expect("mkdir");
+        w("steppers/xy.cfg", STEPPERS);
+        let mut csv = String::from("pair,reading\n");
+        for (pair, d) in [
+            ("A-D1", 10.05),
+            ("A-D2", 150.61),
+            ("B-D1", 10.04),
+            ("B-D2", 149.62),
+        ] {
+            for delta in [0.0, 0.01, -0.01, 0.0, 0.005] {
+                csv.push_str(&format!("{pair},{:.3}\n", d + delta));
+            }
+        }
+        w("readings.csv", &csv);
+    }
+
+    #[test]
+    fn csv_readings_and_an_included_stepper_config_solve_end_to_end() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_inputs(dir.path());
+        let sol = load_and_solve(&args(dir.path(), "readings.csv")).expect("solves");
+        assert!((sol.stepper_x.scale - 140.56 / 140.0).abs() < 1e-9);
+        assert!((sol.stepper_x.rotation_distance_new - 40.0 * 140.56 / 140.0).abs() < 1e-7);
+        // stepper_y: 200 full steps (default) × 32 microsteps / 40 mm
+        assert!((sol.stepper_y.steps_per_mm_old - 160.0).abs() < 1e-9);
+        let text = format_solution(&sol);
+        assert!(
+            text.contains("rotation_distance 40.0000 → 40.1600"),
+            "{text}"
+        );
+    }
+
+    #[test]
+    fn a_missing_readings_file_names_the_file() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_inputs(dir.path());
+        let err = load_and_solve(&args(dir.path(), "nope.json")).unwrap_err();
+        assert!(format!("{err:#}").contains("nope.json"));
+    }
 }

@@ -238,6 +238,8 @@ pub struct ScenarioReport {
     pub full: bool,
     /// Machines simulated.
     pub machines: usize,
+    /// D1 and D2 of the layout, mm.
+    pub d_mm: (f64, f64),
     /// Solver errors (should be 0).
     pub failures: usize,
     /// Residual motion error after one print along [`REPORT_DIRECTIONS`], and the shear; in
@@ -430,6 +432,7 @@ pub fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioR
         kinematics: kin,
         full,
         machines: cfg.machines,
+        d_mm: p.d_mm,
         failures,
         residual: residual_named,
         prints: stats(&prints),
@@ -530,6 +533,17 @@ pub fn format_report(reports: &[ScenarioReport]) -> String {
             "\n== {kin}, {lay} layout: {} machines, {} solver failure(s)",
             r.machines, r.failures
         );
+        let groups: Vec<String> = layout_groups(r.kinematics, r.full)
+            .iter()
+            .map(|(g, deg)| format!("{g} ({deg:+.0}°)"))
+            .collect();
+        let _ = writeln!(
+            s,
+            "  layout: groups {}, D1 {} mm, D2 {} mm; per print: new bed drift, pylon widths, caliper noise",
+            groups.join(", "),
+            r.d_mm.0,
+            r.d_mm.1
+        );
         let _ = writeln!(
             s,
             "  residual motion error after one print, µm/100 mm   median     p95   target (p95)"
@@ -549,7 +563,8 @@ pub fn format_report(reports: &[ScenarioReport]) -> String {
         );
         let _ = writeln!(
             s,
-            "  estimate spread vs Cramér–Rao bound (µm/100 mm)   spread     CRB   ratio   target"
+            "  estimate spread vs Cramér–Rao bound (caliper + width scatter + bed drift), µm/100 mm\n    {:<46}  spread     CRB   ratio   target",
+            ""
         );
         for c in &r.crb {
             let ratio = c.spread / c.crb;
@@ -605,12 +620,44 @@ mod tests {
                     assert!(st.p95 <= t, "{kin:?} {name}: p95 {} > {t}", st.p95);
                 }
             }
+            for c in &r.crb {
+                assert!(
+                    c.spread <= 1.5 * c.crb,
+                    "{kin:?} {}: {} vs CRB {}",
+                    c.name,
+                    c.spread,
+                    c.crb
+                );
+            }
             // the common method is far worse: shrinkage is not cancelled
             assert!(
                 r.common_method.iter().all(|(_, s)| s.median > 100.0),
                 "{:?}",
                 r.common_method
             );
+        }
+    }
+
+    #[test]
+    fn a_small_closed_loop_run_meets_the_paper_layout_targets_and_converges() {
+        let cfg = BenchConfig {
+            machines: 150,
+            ..BenchConfig::default()
+        };
+        for kin in [Kinematics::CoreXy, Kinematics::Cartesian] {
+            let r = run_scenario(kin, false, &cfg);
+            assert_eq!(r.failures, 0);
+            let checked = r
+                .residual
+                .iter()
+                .filter_map(|(name, st)| {
+                    target_um_per_100mm(kin, false, name).map(|t| (name, st, t))
+                })
+                .inspect(|(name, st, t)| assert!(st.p95 <= *t, "{kin:?} {name}: p95 {}", st.p95))
+                .count();
+            assert_eq!(checked, 2, "both motor directions carry the paper target");
+            assert_eq!(r.not_converged, 0);
+            assert!(r.prints.p95 <= 3.0, "{:?}", r.prints);
         }
     }
 

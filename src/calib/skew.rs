@@ -31,12 +31,13 @@ pub fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
     ]
 }
 
-/// The `SET_SKEW XY=…` command for a factor, lengths printed with 4 decimals (the factor they
-/// give through Klipper's formula is within 1e-6 of the wanted one for |factor| < 0.05).
+/// The `SET_SKEW XY=…` command for a factor (lengths of a 100 mm rhombus, built by
+/// `klipper::gcode_cmd` with up to 6 decimals, so Klipper's formula gives back the factor within
+/// 1e-7); `None` for a non-finite factor.
 #[must_use]
-pub fn set_skew_command(xy_factor: f64) -> String {
+pub fn set_skew_command(xy_factor: f64) -> Option<String> {
     let [ac, bd, ad] = set_skew_lengths(xy_factor, 100.0);
-    format!("SET_SKEW XY={ac:.4},{bd:.4},{ad:.4}")
+    crate::klipper::gcode_cmd::set_skew_xy(ac, bd, ad).ok()
 }
 
 /// Klipper's toolhead (kinematic) XY for a commanded XY with skew factor `xy_factor` in the XY
@@ -224,16 +225,16 @@ mod tests {
     }
 
     #[test]
-    fn the_printed_command_round_trips_within_a_micro_radian() {
+    fn the_printed_command_round_trips_within_a_tenth_of_a_micro_radian() {
         let f = 0.0061234;
-        let cmd = set_skew_command(f);
+        let cmd = set_skew_command(f).expect("finite factor");
         let nums: Vec<f64> = cmd
             .trim_start_matches("SET_SKEW XY=")
             .split(',')
             .map(|s| s.parse().expect("number"))
             .collect();
         let back = calc_skew_factor(nums[0], nums[1], nums[2]).expect("valid");
-        assert!((back - f).abs() < 1e-6, "{cmd} → {back}");
+        assert!((back - f).abs() < 1e-7, "{cmd} → {back}");
     }
 
     #[test]

@@ -383,7 +383,7 @@ pub fn solve(
         .zip(&budgets)
         .zip(&fit.residuals)
         .map(|(((g, centres), b), r)| {
-            if r.flagged {
+            if r.flagged && fit.dof >= 2 {
                 warnings.push(format!(
                     "group {}: its scale {:.5} disagrees with the other groups' geometry ({:.5}) by {:.1} σ — a bad reading or a warped pylon; re-measure pairs {}",
                     g.group, g.scale, r.fitted, r.standardized, g.pairs.join(", ")
@@ -414,6 +414,15 @@ pub fn solve(
         })
         .collect();
 
+    // With one redundant group every residual is the same size: which group is bad is unknown.
+    if fit.dof == 1 && fit.residuals.iter().any(|r| r.flagged) {
+        warnings.push(format!(
+            "the groups disagree with any one in-plane geometry by {:.1} σ (χ² {:.1} on 1 dof) — a bad reading or a warped pylon in one of groups {}; re-measure them",
+            fit.chi2.sqrt(),
+            fit.chi2,
+            groups.iter().map(|g| g.group.as_str()).collect::<Vec<_>>().join(", ")
+        ));
+    }
     let (na, nb) = kin.motor_names();
     let stepper = |dir: &str, s: &StepperFacts, e: &Estimate| StepperResult {
         direction: dir.into(),
@@ -479,7 +488,11 @@ pub fn solve(
                 applied,
                 xy_factor: Some(f),
                 angle_deg: Some(f.atan().to_degrees()),
-                set_skew: applied.then(|| skew::set_skew_command(f)),
+                set_skew: if applied {
+                    skew::set_skew_command(f)
+                } else {
+                    None
+                },
                 uncertainty: Some(u),
                 measured_shear_factor: Some(shear.value),
                 measured_shear_deg: Some(shear_deg),
@@ -742,6 +755,29 @@ mod tests {
 
         let e = solve(&layout, &raw, &facts(Kinematics::Cartesian), &o).unwrap_err();
         assert!(e.to_string().contains("layout"), "{e}");
+    }
+
+    #[test]
+    fn a_bad_reading_in_a_full_layout_is_flagged() {
+        let kin = Kinematics::CoreXy;
+        let (layout, mut raw) = readings(kin, true, [1.002, 0.999], 0.1);
+        let clean = solve(&layout, &raw, &facts(kin), &SolveOptions::default()).expect("solves");
+        assert!(
+            !clean.warnings.iter().any(|w| w.contains("disagree")),
+            "{:?}",
+            clean.warnings
+        );
+        if let Some(v) = raw.get_mut("X-D2") {
+            v.iter_mut().for_each(|x| *x += 0.05);
+        }
+        let bad = solve(&layout, &raw, &facts(kin), &SolveOptions::default()).expect("solves");
+        assert!(
+            bad.warnings
+                .iter()
+                .any(|w| w.contains("disagree") && w.contains('X')),
+            "{:?}",
+            bad.warnings
+        );
     }
 
     #[test]
