@@ -6,3 +6,4 @@ mod bench;
 mod daemon;
 mod fake;
 mod pylons;
+mod skew;
