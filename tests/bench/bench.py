@@ -39,6 +39,10 @@ EXTRAS_SRC = os.path.join(HERE, "klippy_extras", "klipcal_bench.py")
 NAMES = ("plant", "klippy", "moonraker")
 DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
 READY_TIMEOUT_S = 60.0
+# PID gains (Klipper units) for the default plant at accel 1, from
+# tune_pid.py (Klipper's PID_CALIBRATE algorithm run on the plant model).
+PID_GAINS = {"BED": (60.647, 6.646, 138.351),
+             "NOZZLE": (35.191, 11.261, 27.493)}
 UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
 
 
@@ -110,14 +114,22 @@ def write(path, text):
     os.replace(tmp, path)
 
 
-def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm):
-    values = {
+def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
+                   accel=1.0):
+    """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir. The
+    PID gains are rescaled for a plant running `accel` times real time."""
+    values = {}
+    for heater, (kp, ki, kd) in PID_GAINS.items():
+        values[heater + "_KP"] = "%.4f" % kp
+        values[heater + "_KI"] = "%.4f" % (ki * accel)
+        values[heater + "_KD"] = "%.4f" % (kd / accel)
+    values.update({
         "KINEMATICS": kinematics,
         "SIZE": size_mm,
         "MESH_MAX": size_mm - 20,
         "COMMS_DIR": comms_dir,
         "GCODES_DIR": gcodes_dir,
-    }
+    })
     write(os.path.join(config_dir, "printer.cfg"),
           render("printer.cfg", values))
     write(os.path.join(config_dir, "steppers.cfg"),
@@ -375,7 +387,14 @@ def cmd_start(args):
     plant_params = load_plant_params(args.plant_json)
     write(os.path.join(dirs["comms"], "plant_params.json"),
           json.dumps(plant_params, indent=1))
-    render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size)
+    try:
+        accel = float(plant_params.get("accel", 1.0))
+    except (TypeError, ValueError):
+        raise BenchError("plant accel must be a number")
+    if not accel > 0:
+        raise BenchError("plant accel must be > 0")
+    render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
+                   accel)
     info = {
         "run_dir": rd,
         "kinematics": kin,
@@ -480,12 +499,29 @@ def klippy_errors(log_path):
         return ["no klippy log at %s" % log_path]
     for i, line in enumerate(lines):
         s = line.strip()
-        if s.startswith("!! "):
-            errors.append(s[3:])
+        resp = "klipcal_bench response: "
+        if s.startswith(resp + "!! "):
+            errors.append(s[len(resp) + 3:])
+        elif s.startswith(resp + "// Unknown command"):
+            # klippy only warns about unknown commands; a generator must not
+            # emit any.
+            errors.append(s[len(resp) + 3:])
         elif ("Config error" in s or s.startswith("Internal error")
               or "Traceback" in s or s.startswith("Error ")):
             errors.append(" ".join(l.strip() for l in lines[i:i + 4]))
     return errors
+
+
+def prune_old(base, age_s):
+    """Removes batch work dirs older than age_s (their logs were reported)."""
+    now = time.time()
+    for name in os.listdir(base):
+        path = os.path.join(base, name)
+        try:
+            if name.startswith("batch-") and now - os.path.getmtime(path) > age_s:
+                shutil.rmtree(path, ignore_errors=True)
+        except OSError:
+            pass
 
 
 def cmd_batch(args):
@@ -499,6 +535,7 @@ def cmd_batch(args):
     else:
         base = os.path.join(bench_home(), "batch")
         os.makedirs(base, exist_ok=True)
+        prune_old(base, 3600.0)
         wd = tempfile.mkdtemp(prefix="batch-", dir=base)
     for d in ("config", "comms", "gcodes", "logs"):
         os.makedirs(os.path.join(wd, d), exist_ok=True)
