@@ -11,6 +11,9 @@ command line before any signal).
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR
+  bench.py watchdog --run-dir DIR --owner-pid PID   (started by start
+                 --owner-pid: stops the run when PID exits, e.g. a test
+                 process that died without calling stop)
   bench.py batch --kinematics corexy|cartesian --size MM --gcode FILE
                  [--work-dir DIR] [--timeout S]
 
@@ -250,7 +253,7 @@ def spawn(name, info):
 def terminate(name, info, timeout_s=10.0):
     pid = info["pids"].get(name)
     if not pid:
-        return "not started"
+        return "not running"
     if not owns(pid, info, name):
         info["pids"][name] = None
         save_info(info)
@@ -340,7 +343,7 @@ def load_info(run_dir):
 PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
                "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
                "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
-               "comms_dir", "plant_state")
+               "comms_dir", "plant_state", "watchdog_pid")
 
 
 def public(info):
@@ -452,17 +455,93 @@ def cmd_start(args):
             except Exception:
                 pass
         raise
+    if args.owner_pid:
+        start_watchdog(info, args.owner_pid)
     out = json.dumps(public(info))
     print(out)
     sys.stdout.flush()
 
 
+def start_watchdog(info, owner_pid):
+    if not is_alive(owner_pid):
+        raise BenchError("--owner-pid %d is not a running process" % owner_pid)
+    cmd = [sys.executable, os.path.abspath(__file__), "watchdog", "--run-dir",
+           info["run_dir"], "--owner-pid", str(owner_pid)]
+    with open(os.path.join(info["run_dir"], "logs", "watchdog.out"),
+              "ab") as out:
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True,
+                             env=clean_env())
+    info["watchdog_pid"] = p.pid
+    save_info(info)
+
+
+def proc_start_time(pid):
+    try:
+        with open("/proc/%d/stat" % pid) as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def cmd_watchdog(args):
+    """Stops the run once the owner process is gone (or pid reused)."""
+    rd = os.path.abspath(args.run_dir)
+    born = proc_start_time(args.owner_pid)
+    while True:
+        time.sleep(0.5)
+        if born is None or proc_start_time(args.owner_pid) != born:
+            break
+        try:
+            info = load_info(rd)
+        except BenchError:
+            return
+        if info.get("watchdog_pid") != os.getpid():
+            return  # the run was stopped or restarted without us
+    info = load_info(rd)
+    sys.stdout.write("watchdog: owner %d gone, stopping %s\n"
+                     % (args.owner_pid, rd))
+    for name in ("moonraker", "klippy", "plant"):
+        sys.stdout.write("  %s: %s\n" % (name, terminate(name, info)))
+    remove_short_sock_dir(info)
+    info["watchdog_pid"] = None
+    save_info(info)
+
+
+def stop_watchdog(info):
+    pid = info.get("watchdog_pid")
+    if pid and pid != os.getpid():
+        cmd = read_cmdline(pid) or []
+        if "watchdog" in cmd and info["run_dir"] in cmd and is_alive(pid):
+            os.kill(pid, signal.SIGTERM)
+    info["watchdog_pid"] = None
+    save_info(info)
+
+
 def cmd_stop(args):
     info = load_info(os.path.abspath(args.run_dir))
+    stop_watchdog(info)
     report = {}
     for name in ("moonraker", "klippy", "plant"):
         report[name] = terminate(name, info)
+    remove_short_sock_dir(info)
     print(json.dumps({"run_dir": info["run_dir"], "stopped": report}))
+
+
+def remove_short_sock_dir(info):
+    """Removes the /tmp/klipcal-bench-* socket dir of a long run dir path."""
+    d = os.path.dirname(info["klippy_sock"])
+    if not os.path.basename(d).startswith("klipcal-bench-"):
+        return
+    for name in ("klippy.sock", "moonraker.sock"):
+        try:
+            os.remove(os.path.join(d, name))
+        except OSError:
+            pass
+    try:
+        os.rmdir(d)
+    except OSError:
+        pass
 
 
 def cmd_start_one(args):
@@ -585,6 +664,11 @@ def main():
                    help="bed size mm (default 300 corexy, 235 cartesian)")
     p.add_argument("--plant-json", default=None,
                    help="plant parameters: inline JSON object or a file")
+    p.add_argument("--owner-pid", type=int, default=None,
+                   help="stop this run when that process exits")
+    p = sub.add_parser("watchdog")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--owner-pid", type=int, required=True)
     p = sub.add_parser("stop", help="stop every process of a run")
     p.add_argument("--run-dir", required=True)
     for verb in ("start-one", "stop-one"):
@@ -602,7 +686,8 @@ def main():
     args = ap.parse_args()
     try:
         {"start": cmd_start, "stop": cmd_stop, "start-one": cmd_start_one,
-         "stop-one": cmd_stop_one, "batch": cmd_batch}[args.cmd](args)
+         "stop-one": cmd_stop_one, "batch": cmd_batch,
+         "watchdog": cmd_watchdog}[args.cmd](args)
     except BenchError as e:
         sys.stderr.write("bench %s: %s\n" % (args.cmd, e))
         sys.exit(1)
