@@ -224,15 +224,17 @@ def checks(a, b):
     if len(eo["objects"]) != 2:
         fail("exclude_object objects %r" % eo)
 
-    # Pause / resume / exclude / cancel during a BENCH_SLEEP
-    upload(a, "bench_long.gcode", PRINT % {"sleep": 60})
-    post(a, "/printer/print/start?filename=bench_long.gcode")
+    # Pause / resume / exclude during a BENCH_SLEEP; the sleep's rest runs
+    upload(a, "bench_8s.gcode", PRINT % {"sleep": 8})
+    t_start = time.time()
+    post(a, "/printer/print/start?filename=bench_8s.gcode")
     wait_for("printing", lambda: print_state(a) == "printing", 20)
     time.sleep(1.0)
     t = time.time()
     post(a, "/printer/print/pause")
     wait_for("paused", lambda: print_state(a) == "paused", 20)
     log("paused during BENCH_SLEEP in %.1f s" % (time.time() - t))
+    time.sleep(2.0)
     post(a, "/printer/print/resume")
     wait_for("printing again", lambda: print_state(a) == "printing", 20)
     time.sleep(2.0)
@@ -240,9 +242,25 @@ def checks(a, b):
         fail("after RESUME the rest of BENCH_SLEEP should still run")
     gcode(a, "EXCLUDE_OBJECT NAME=PYLON_B")
     ex = query(a, "exclude_object")["exclude_object"]["excluded_objects"]
-    post(a, "/printer/print/cancel")
-    wait_for("cancelled", lambda: print_state(a) == "cancelled", 20)
-    log("resume, exclude (%s), cancel ok" % ex)
+    wait_for("complete", lambda: print_state(a) == "complete", 30)
+    ps = query(a, "print_stats")["print_stats"]
+    log("resume, exclude (%s), complete after %.1f s wall, print_duration "
+        "%.1f s" % (ex, time.time() - t_start, ps["print_duration"]))
+    if ps["print_duration"] < 7.0:
+        fail("BENCH_SLEEP SECONDS=8 should make the print last >= 8 s")
+
+    # Cancel during a long sleep, then reprint: the sleep starts afresh
+    upload(a, "bench_long.gcode", PRINT % {"sleep": 60})
+    for attempt in range(2):
+        post(a, "/printer/print/start?filename=bench_long.gcode")
+        wait_for("printing", lambda: print_state(a) == "printing", 20)
+        time.sleep(3.0)
+        if print_state(a) != "printing":
+            fail("long print stopped early (attempt %d)" % attempt)
+        t = time.time()
+        post(a, "/printer/print/cancel")
+        wait_for("cancelled", lambda: print_state(a) == "cancelled", 20)
+        log("cancel during BENCH_SLEEP took %.1f s" % (time.time() - t))
 
     # KLIPCAL_STATUS reaches a websocket client
     m = asyncio.run(remote_method_roundtrip(a))

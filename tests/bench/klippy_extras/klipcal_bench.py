@@ -96,8 +96,11 @@ class KlipcalBench:
         self.printer = config.get_printer()
         self.reactor = self.printer.get_reactor()
         self.t0 = self.reactor.monotonic()
-        # (print file, position) of a BENCH_SLEEP cut short, and its rest
+        # (print file, position) of a BENCH_SLEEP cut short, and its rest;
+        # forgotten when the print file is reset (cancel, new print).
         self.interrupted = None
+        self.printer.register_event_handler("virtual_sdcard:reset_file",
+                                            self._forget_interrupted)
         pheaters = self.printer.load_object(config, 'heaters')
         pheaters.add_sensor_factory(
             'klipcal_file', lambda cfg: FileTemperatureSensor(cfg, self))
@@ -112,6 +115,9 @@ class KlipcalBench:
     def _log_response(self, msg):
         for line in msg.split('\n'):
             logging.info("klipcal_bench response: %s", line)
+
+    def _forget_interrupted(self):
+        self.interrupted = None
 
     def read_time(self, eventtime):
         """Reading timestamp: real seconds since this module loaded."""
