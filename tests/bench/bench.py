@@ -305,6 +305,7 @@ def wait_ready(info, procs, timeout_s=READY_TIMEOUT_S):
             res = http_json(url)["result"]
             last = "klippy_state=%s" % res.get("klippy_state")
             if res.get("klippy_state") == "ready":
+                check_identity(info)
                 return
         except Exception as e:  # not up yet
             last = str(e)
@@ -313,6 +314,49 @@ def wait_ready(info, procs, timeout_s=READY_TIMEOUT_S):
                      "(%s); klippy log:\n%s\nmoonraker log:\n%s"
                      % (timeout_s, last, tail(info["klippy_log"]),
                         tail(info["moonraker_log"])))
+
+
+def check_identity(info):
+    """Fails when the Moonraker on our port is not this run's (port race)."""
+    cfg = http_json(info["http_url"] + "/server/config")["result"]["config"]
+    sock = cfg.get("server", {}).get("klippy_uds_address")
+    if sock != info["klippy_sock"]:
+        raise BenchError("port %d answers for another Moonraker (klippy socket "
+                         "%s)" % (info["moonraker_port"], sock))
+
+
+def klippy_state(sock_path):
+    """klippy's own state over its API socket, or None when unreachable."""
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(2.0)
+            s.connect(sock_path)
+            s.sendall(b'{"id": 1, "method": "info", "params": {}}\x03')
+            buf = b""
+            while b"\x03" not in buf:
+                chunk = s.recv(65536)
+                if not chunk:
+                    return None
+                buf += chunk
+        return json.loads(buf.split(b"\x03")[0])["result"]["state"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def wait_klippy_ready(info, timeout_s=READY_TIMEOUT_S):
+    deadline = time.time() + timeout_s
+    state = None
+    while time.time() < deadline:
+        pid = info["pids"].get("klippy")
+        if pid and not is_alive(pid):
+            raise BenchError("klippy (pid %d) exited during start:\n%s"
+                             % (pid, tail(info["klippy_log"])))
+        state = klippy_state(info["klippy_sock"])
+        if state == "ready":
+            return
+        time.sleep(0.1)
+    raise BenchError("klippy not ready within %.0f s (state %s):\n%s"
+                     % (timeout_s, state, tail(info["klippy_log"])))
 
 
 def wait_socket_gone(path, timeout_s=5.0):
@@ -553,10 +597,11 @@ def cmd_start_one(args):
         raise BenchError("%s already running (pid %d) in %s"
                          % (name, pid, info["run_dir"]))
     spawn(name, info)
-    if name in ("klippy", "moonraker"):
-        others = [n for n in NAMES if info["pids"].get(n)]
-        if all(info["pids"].get(n) for n in ("klippy", "moonraker")):
-            wait_ready(info, others)
+    running = [n for n in NAMES if info["pids"].get(n)]
+    if "klippy" in running and "moonraker" in running:
+        wait_ready(info, running)
+    elif name == "klippy":
+        wait_klippy_ready(info)
     print(json.dumps(public(info)))
 
 
