@@ -128,9 +128,9 @@ class KlipcalBench:
                             " the rest")
 
     def cmd_BENCH_SLEEP(self, gcmd):
-        # The G-code mutex is released while sleeping, so PAUSE / CANCEL_PRINT
-        # and status requests run meanwhile (on a real printer a long dwell
-        # sits in the motion queue and does not block them either). When
+        # The G-code mutex is released while sleeping, so other G-code (PAUSE,
+        # CANCEL_PRINT, scripts sent through Moonraker) runs meanwhile, as it
+        # would between the lines of a real print. When
         # virtual_sdcard is asked to pause, the sleep stops and the file is
         # rewound to this line, so RESUME sleeps the remaining time.
         seconds = gcmd.get_float('SECONDS', minval=0., maxval=3600.)
@@ -160,6 +160,7 @@ class KlipcalBench:
         finally:
             if held:
                 mutex.lock()
+
 
 def load_config(config):
     return KlipcalBench(config)
