@@ -42,10 +42,6 @@ EXTRAS_SRC = os.path.join(HERE, "klippy_extras", "klipcal_bench.py")
 NAMES = ("plant", "klippy", "moonraker")
 DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
 READY_TIMEOUT_S = 60.0
-# PID gains (Klipper units) for the default plant at accel 1, from
-# tune_pid.py (Klipper's PID_CALIBRATE algorithm run on the plant model).
-PID_GAINS = {"BED": (60.647, 6.646, 138.351),
-             "NOZZLE": (35.191, 11.261, 27.493)}
 UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
 
 
@@ -117,15 +113,44 @@ def write(path, text):
     os.replace(tmp, path)
 
 
+def pid_gains(plant_params):
+    """PID gains for this plant, from tune_pid.py (Klipper's PID_CALIBRATE
+    algorithm run offline on the plant model), cached in the bench home."""
+    text = json.dumps(plant_params, sort_keys=True)
+    h = hashlib.sha1(text.encode())
+    for f in ("tune_pid.py", "plant.py"):
+        with open(os.path.join(HERE, f), "rb") as fh:
+            h.update(fh.read())
+    cache_dir = os.path.join(bench_home(), "pid-cache")
+    cache = os.path.join(cache_dir, h.hexdigest() + ".json")
+    try:
+        with open(cache) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        pass
+    p = subprocess.run([venv_python("klippy"), os.path.join(HERE, "tune_pid.py"),
+                        "--plant-json", text], capture_output=True, text=True,
+                       env=clean_env())
+    if p.returncode != 0:
+        raise BenchError("tune_pid.py failed for plant %s:\n%s"
+                         % (text, p.stderr.strip()))
+    gains = json.loads(p.stdout)
+    os.makedirs(cache_dir, exist_ok=True)
+    write(cache, json.dumps(gains))
+    return gains
+
+
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
-                   accel=1.0):
-    """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir. The
-    PID gains are rescaled for a plant running `accel` times real time."""
+                   plant_params):
+    """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
+    PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
-    for heater, (kp, ki, kd) in PID_GAINS.items():
+    gains = pid_gains(plant_params)
+    for heater, key in (("BED", "bed"), ("NOZZLE", "nozzle")):
+        kp, ki, kd = gains[key]
         values[heater + "_KP"] = "%.4f" % kp
-        values[heater + "_KI"] = "%.4f" % (ki * accel)
-        values[heater + "_KD"] = "%.4f" % (kd / accel)
+        values[heater + "_KI"] = "%.4f" % ki
+        values[heater + "_KD"] = "%.4f" % kd
     values.update({
         "KINEMATICS": kinematics,
         "SIZE": size_mm,
@@ -441,7 +466,7 @@ def cmd_start(args):
     if not accel > 0:
         raise BenchError("plant accel must be > 0")
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
-                   accel)
+                   plant_params)
     info = {
         "run_dir": rd,
         "kinematics": kin,
@@ -664,7 +689,7 @@ def cmd_batch(args):
     for d in ("config", "comms", "gcodes", "logs"):
         os.makedirs(os.path.join(wd, d), exist_ok=True)
     render_printer(os.path.join(wd, "config"), os.path.join(wd, "comms"),
-                   os.path.join(wd, "gcodes"), args.kinematics, args.size)
+                   os.path.join(wd, "gcodes"), args.kinematics, args.size, {})
     log = os.path.join(wd, "logs", "klippy.log")
     if os.path.exists(log):
         os.remove(log)
