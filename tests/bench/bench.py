@@ -10,7 +10,7 @@ command line before any signal).
                  [--plant-json JSON|FILE]
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
-  bench.py stop-one klippy|moonraker|plant --run-dir DIR
+  bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
   bench.py watchdog --run-dir DIR --owner-pid PID   (started by start
                  --owner-pid: stops the run when PID exits, e.g. a test
                  process that died without calling stop)
@@ -275,7 +275,7 @@ def spawn(name, info):
     return p
 
 
-def terminate(name, info, timeout_s=10.0):
+def terminate(name, info, timeout_s=10.0, sig=signal.SIGTERM):
     pid = info["pids"].get(name)
     if not pid:
         return "not running"
@@ -283,7 +283,7 @@ def terminate(name, info, timeout_s=10.0):
         info["pids"][name] = None
         save_info(info)
         return "already gone"
-    os.kill(pid, signal.SIGTERM)
+    os.kill(pid, sig)
     deadline = time.time() + timeout_s
     while time.time() < deadline and is_alive(pid):
         time.sleep(0.05)
@@ -632,7 +632,8 @@ def cmd_start_one(args):
 
 def cmd_stop_one(args):
     info = load_info(os.path.abspath(args.run_dir))
-    res = terminate(args.name, info)
+    res = terminate(args.name, info,
+                    sig=signal.SIGKILL if args.kill else signal.SIGTERM)
     if args.name == "klippy":
         wait_socket_gone(info["klippy_sock"], 1.0)
     print(json.dumps({"run_dir": info["run_dir"], args.name: res,
@@ -745,6 +746,9 @@ def main():
         p = sub.add_parser(verb)
         p.add_argument("name", choices=NAMES)
         p.add_argument("--run-dir", required=True)
+        if verb == "stop-one":
+            p.add_argument("--kill", action="store_true",
+                           help="SIGKILL at once (a crash) instead of SIGTERM")
     p = sub.add_parser("batch", help="run klippy over a G-code file")
     p.add_argument("--kinematics", choices=("corexy", "cartesian"),
                    required=True)

@@ -29,6 +29,7 @@ if dpkg -s libusb-dev >/dev/null 2>&1; then
     say "libusb-dev already installed"
 else
     say "installing libusb-dev (apt-get)"
+    export DEBIAN_FRONTEND=noninteractive
     if ! (apt-get install -y libusb-dev >"$home/apt.log" 2>&1 ||
           { apt-get update >>"$home/apt.log" 2>&1 &&
             apt-get install -y libusb-dev >>"$home/apt.log" 2>&1; }); then
