@@ -10,7 +10,10 @@ command line before any signal).
                  [--plant-json JSON|FILE]
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
-  bench.py stop-one klippy|moonraker|plant --run-dir DIR
+  bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
+  bench.py watchdog --run-dir DIR --owner-pid PID   (started by start
+                 --owner-pid: stops the run when PID exits, e.g. a test
+                 process that died without calling stop)
   bench.py batch --kinematics corexy|cartesian --size MM --gcode FILE
                  [--work-dir DIR] [--timeout S]
 
@@ -110,14 +113,51 @@ def write(path, text):
     os.replace(tmp, path)
 
 
-def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm):
-    values = {
+def pid_gains(plant_params):
+    """PID gains for this plant, from tune_pid.py (Klipper's PID_CALIBRATE
+    algorithm run offline on the plant model), cached in the bench home."""
+    text = json.dumps(plant_params, sort_keys=True)
+    h = hashlib.sha1(text.encode())
+    for f in ("tune_pid.py", "plant.py"):
+        with open(os.path.join(HERE, f), "rb") as fh:
+            h.update(fh.read())
+    cache_dir = os.path.join(bench_home(), "pid-cache")
+    cache = os.path.join(cache_dir, h.hexdigest() + ".json")
+    try:
+        with open(cache) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        pass
+    p = subprocess.run([venv_python("klippy"), os.path.join(HERE, "tune_pid.py"),
+                        "--plant-json", text], capture_output=True, text=True,
+                       env=clean_env())
+    if p.returncode != 0:
+        raise BenchError("tune_pid.py failed for plant %s:\n%s"
+                         % (text, p.stderr.strip()))
+    gains = json.loads(p.stdout)
+    os.makedirs(cache_dir, exist_ok=True)
+    write(cache, json.dumps(gains))
+    return gains
+
+
+def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
+                   plant_params):
+    """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
+    PID gains tuned for the run's plant (parameters and time acceleration)."""
+    values = {}
+    gains = pid_gains(plant_params)
+    for heater, key in (("BED", "bed"), ("NOZZLE", "nozzle")):
+        kp, ki, kd = gains[key]
+        values[heater + "_KP"] = "%.4f" % kp
+        values[heater + "_KI"] = "%.4f" % ki
+        values[heater + "_KD"] = "%.4f" % kd
+    values.update({
         "KINEMATICS": kinematics,
         "SIZE": size_mm,
         "MESH_MAX": size_mm - 20,
         "COMMS_DIR": comms_dir,
         "GCODES_DIR": gcodes_dir,
-    }
+    })
     write(os.path.join(config_dir, "printer.cfg"),
           render("printer.cfg", values))
     write(os.path.join(config_dir, "steppers.cfg"),
@@ -235,15 +275,15 @@ def spawn(name, info):
     return p
 
 
-def terminate(name, info, timeout_s=10.0):
+def terminate(name, info, timeout_s=10.0, sig=signal.SIGTERM):
     pid = info["pids"].get(name)
     if not pid:
-        return "not started"
+        return "not running"
     if not owns(pid, info, name):
         info["pids"][name] = None
         save_info(info)
         return "already gone"
-    os.kill(pid, signal.SIGTERM)
+    os.kill(pid, sig)
     deadline = time.time() + timeout_s
     while time.time() < deadline and is_alive(pid):
         time.sleep(0.05)
@@ -290,6 +330,7 @@ def wait_ready(info, procs, timeout_s=READY_TIMEOUT_S):
             res = http_json(url)["result"]
             last = "klippy_state=%s" % res.get("klippy_state")
             if res.get("klippy_state") == "ready":
+                check_identity(info)
                 return
         except Exception as e:  # not up yet
             last = str(e)
@@ -298,6 +339,49 @@ def wait_ready(info, procs, timeout_s=READY_TIMEOUT_S):
                      "(%s); klippy log:\n%s\nmoonraker log:\n%s"
                      % (timeout_s, last, tail(info["klippy_log"]),
                         tail(info["moonraker_log"])))
+
+
+def check_identity(info):
+    """Fails when the Moonraker on our port is not this run's (port race)."""
+    cfg = http_json(info["http_url"] + "/server/config")["result"]["config"]
+    sock = cfg.get("server", {}).get("klippy_uds_address")
+    if sock != info["klippy_sock"]:
+        raise BenchError("port %d answers for another Moonraker (klippy socket "
+                         "%s)" % (info["moonraker_port"], sock))
+
+
+def klippy_state(sock_path):
+    """klippy's own state over its API socket, or None when unreachable."""
+    try:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as s:
+            s.settimeout(2.0)
+            s.connect(sock_path)
+            s.sendall(b'{"id": 1, "method": "info", "params": {}}\x03')
+            buf = b""
+            while b"\x03" not in buf:
+                chunk = s.recv(65536)
+                if not chunk:
+                    return None
+                buf += chunk
+        return json.loads(buf.split(b"\x03")[0])["result"]["state"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def wait_klippy_ready(info, timeout_s=READY_TIMEOUT_S):
+    deadline = time.time() + timeout_s
+    state = None
+    while time.time() < deadline:
+        pid = info["pids"].get("klippy")
+        if pid and not is_alive(pid):
+            raise BenchError("klippy (pid %d) exited during start:\n%s"
+                             % (pid, tail(info["klippy_log"])))
+        state = klippy_state(info["klippy_sock"])
+        if state == "ready":
+            return
+        time.sleep(0.1)
+    raise BenchError("klippy not ready within %.0f s (state %s):\n%s"
+                     % (timeout_s, state, tail(info["klippy_log"])))
 
 
 def wait_socket_gone(path, timeout_s=5.0):
@@ -328,7 +412,7 @@ def load_info(run_dir):
 PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
                "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
                "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
-               "comms_dir", "plant_state")
+               "comms_dir", "plant_state", "watchdog_pid")
 
 
 def public(info):
@@ -375,7 +459,14 @@ def cmd_start(args):
     plant_params = load_plant_params(args.plant_json)
     write(os.path.join(dirs["comms"], "plant_params.json"),
           json.dumps(plant_params, indent=1))
-    render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size)
+    try:
+        accel = float(plant_params.get("accel", 1.0))
+    except (TypeError, ValueError):
+        raise BenchError("plant accel must be a number")
+    if not accel > 0:
+        raise BenchError("plant accel must be > 0")
+    render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
+                   plant_params)
     info = {
         "run_dir": rd,
         "kinematics": kin,
@@ -433,17 +524,93 @@ def cmd_start(args):
             except Exception:
                 pass
         raise
+    if args.owner_pid:
+        start_watchdog(info, args.owner_pid)
     out = json.dumps(public(info))
     print(out)
     sys.stdout.flush()
 
 
+def start_watchdog(info, owner_pid):
+    if not is_alive(owner_pid):
+        raise BenchError("--owner-pid %d is not a running process" % owner_pid)
+    cmd = [sys.executable, os.path.abspath(__file__), "watchdog", "--run-dir",
+           info["run_dir"], "--owner-pid", str(owner_pid)]
+    with open(os.path.join(info["run_dir"], "logs", "watchdog.out"),
+              "ab") as out:
+        p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out,
+                             stderr=subprocess.STDOUT, start_new_session=True,
+                             env=clean_env())
+    info["watchdog_pid"] = p.pid
+    save_info(info)
+
+
+def proc_start_time(pid):
+    try:
+        with open("/proc/%d/stat" % pid) as f:
+            return f.read().rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+def cmd_watchdog(args):
+    """Stops the run once the owner process is gone (or pid reused)."""
+    rd = os.path.abspath(args.run_dir)
+    born = proc_start_time(args.owner_pid)
+    while True:
+        time.sleep(0.5)
+        if born is None or proc_start_time(args.owner_pid) != born:
+            break
+        try:
+            info = load_info(rd)
+        except BenchError:
+            return
+        if info.get("watchdog_pid") != os.getpid():
+            return  # the run was stopped or restarted without us
+    info = load_info(rd)
+    sys.stdout.write("watchdog: owner %d gone, stopping %s\n"
+                     % (args.owner_pid, rd))
+    for name in ("moonraker", "klippy", "plant"):
+        sys.stdout.write("  %s: %s\n" % (name, terminate(name, info)))
+    remove_short_sock_dir(info)
+    info["watchdog_pid"] = None
+    save_info(info)
+
+
+def stop_watchdog(info):
+    pid = info.get("watchdog_pid")
+    if pid and pid != os.getpid():
+        cmd = read_cmdline(pid) or []
+        if "watchdog" in cmd and info["run_dir"] in cmd and is_alive(pid):
+            os.kill(pid, signal.SIGTERM)
+    info["watchdog_pid"] = None
+    save_info(info)
+
+
 def cmd_stop(args):
     info = load_info(os.path.abspath(args.run_dir))
+    stop_watchdog(info)
     report = {}
     for name in ("moonraker", "klippy", "plant"):
         report[name] = terminate(name, info)
+    remove_short_sock_dir(info)
     print(json.dumps({"run_dir": info["run_dir"], "stopped": report}))
+
+
+def remove_short_sock_dir(info):
+    """Removes the /tmp/klipcal-bench-* socket dir of a long run dir path."""
+    d = os.path.dirname(info["klippy_sock"])
+    if not os.path.basename(d).startswith("klipcal-bench-"):
+        return
+    for name in ("klippy.sock", "moonraker.sock"):
+        try:
+            os.remove(os.path.join(d, name))
+        except OSError:
+            pass
+    try:
+        os.rmdir(d)
+    except OSError:
+        pass
 
 
 def cmd_start_one(args):
@@ -455,16 +622,18 @@ def cmd_start_one(args):
         raise BenchError("%s already running (pid %d) in %s"
                          % (name, pid, info["run_dir"]))
     spawn(name, info)
-    if name in ("klippy", "moonraker"):
-        others = [n for n in NAMES if info["pids"].get(n)]
-        if all(info["pids"].get(n) for n in ("klippy", "moonraker")):
-            wait_ready(info, others)
+    running = [n for n in NAMES if info["pids"].get(n)]
+    if "klippy" in running and "moonraker" in running:
+        wait_ready(info, running)
+    elif name == "klippy":
+        wait_klippy_ready(info)
     print(json.dumps(public(info)))
 
 
 def cmd_stop_one(args):
     info = load_info(os.path.abspath(args.run_dir))
-    res = terminate(args.name, info)
+    res = terminate(args.name, info,
+                    sig=signal.SIGKILL if args.kill else signal.SIGTERM)
     if args.name == "klippy":
         wait_socket_gone(info["klippy_sock"], 1.0)
     print(json.dumps({"run_dir": info["run_dir"], args.name: res,
@@ -480,12 +649,29 @@ def klippy_errors(log_path):
         return ["no klippy log at %s" % log_path]
     for i, line in enumerate(lines):
         s = line.strip()
-        if s.startswith("!! "):
-            errors.append(s[3:])
+        resp = "klipcal_bench response: "
+        if s.startswith(resp + "!! "):
+            errors.append(s[len(resp) + 3:])
+        elif s.startswith(resp + "// Unknown command"):
+            # klippy only warns about unknown commands; a generator must not
+            # emit any.
+            errors.append(s[len(resp) + 3:])
         elif ("Config error" in s or s.startswith("Internal error")
               or "Traceback" in s or s.startswith("Error ")):
             errors.append(" ".join(l.strip() for l in lines[i:i + 4]))
     return errors
+
+
+def prune_old(base, age_s):
+    """Removes batch work dirs older than age_s (their logs were reported)."""
+    now = time.time()
+    for name in os.listdir(base):
+        path = os.path.join(base, name)
+        try:
+            if name.startswith("batch-") and now - os.path.getmtime(path) > age_s:
+                shutil.rmtree(path, ignore_errors=True)
+        except OSError:
+            pass
 
 
 def cmd_batch(args):
@@ -499,11 +685,12 @@ def cmd_batch(args):
     else:
         base = os.path.join(bench_home(), "batch")
         os.makedirs(base, exist_ok=True)
+        prune_old(base, 3600.0)
         wd = tempfile.mkdtemp(prefix="batch-", dir=base)
     for d in ("config", "comms", "gcodes", "logs"):
         os.makedirs(os.path.join(wd, d), exist_ok=True)
     render_printer(os.path.join(wd, "config"), os.path.join(wd, "comms"),
-                   os.path.join(wd, "gcodes"), args.kinematics, args.size)
+                   os.path.join(wd, "gcodes"), args.kinematics, args.size, {})
     log = os.path.join(wd, "logs", "klippy.log")
     if os.path.exists(log):
         os.remove(log)
@@ -548,12 +735,20 @@ def main():
                    help="bed size mm (default 300 corexy, 235 cartesian)")
     p.add_argument("--plant-json", default=None,
                    help="plant parameters: inline JSON object or a file")
+    p.add_argument("--owner-pid", type=int, default=None,
+                   help="stop this run when that process exits")
+    p = sub.add_parser("watchdog")
+    p.add_argument("--run-dir", required=True)
+    p.add_argument("--owner-pid", type=int, required=True)
     p = sub.add_parser("stop", help="stop every process of a run")
     p.add_argument("--run-dir", required=True)
     for verb in ("start-one", "stop-one"):
         p = sub.add_parser(verb)
         p.add_argument("name", choices=NAMES)
         p.add_argument("--run-dir", required=True)
+        if verb == "stop-one":
+            p.add_argument("--kill", action="store_true",
+                           help="SIGKILL at once (a crash) instead of SIGTERM")
     p = sub.add_parser("batch", help="run klippy over a G-code file")
     p.add_argument("--kinematics", choices=("corexy", "cartesian"),
                    required=True)
@@ -565,7 +760,8 @@ def main():
     args = ap.parse_args()
     try:
         {"start": cmd_start, "stop": cmd_stop, "start-one": cmd_start_one,
-         "stop-one": cmd_stop_one, "batch": cmd_batch}[args.cmd](args)
+         "stop-one": cmd_stop_one, "batch": cmd_batch,
+         "watchdog": cmd_watchdog}[args.cmd](args)
     except BenchError as e:
         sys.stderr.write("bench %s: %s\n" % (args.cmd, e))
         sys.exit(1)

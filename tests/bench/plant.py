@@ -6,14 +6,16 @@ never sets a target or a power (that is Klipper's job).
 
 Each heater is two coupled first-order masses and an ambient loss:
 
-    C_h dT_h/dt = P * 1 - (T_h - T_p) / R_hp        heater element (sensor)
+    C_h dT_h/dt = P * 1 - (T_h - T_p) / R_hp        heater element
     C_p dT_p/dt = (T_h - T_p) / R_hp - (T_p - T_a) / R_pa    plate
 
+and the sensor reading lags T_h by a first-order sensor_tau_s,
 with power P in 0..1. Parameters per heater (JSON):
   gain_c        steady rise above ambient at full power: R_hp + R_pa
   split         R_hp / (R_hp + R_pa), 0..1 (how much of the rise sits between
                 heater and plate; larger = stronger power decay at constant T)
   tau_heater_s  C_h * R_hp: how fast the element follows power (plate fixed)
+  sensor_tau_s  first-order lag of the thermistor behind the element
   tau_plate_s   relaxation time of the plate with the element held at
                 constant temperature: C_p * R_hp*R_pa/(R_hp+R_pa). At constant
                 sensor temperature the power decays with this time constant
@@ -30,6 +32,7 @@ import json
 import math
 import os
 import random
+import select
 import signal
 import socket
 import sys
@@ -42,9 +45,9 @@ DEFAULTS = {
     "seed": 1,
     "period_s": 0.05,
     "bed": {"gain_c": 120.0, "split": 0.5, "tau_heater_s": 30.0,
-            "tau_plate_s": 240.0},
+            "tau_plate_s": 240.0, "sensor_tau_s": 2.0},
     "nozzle": {"gain_c": 300.0, "split": 0.3, "tau_heater_s": 6.0,
-               "tau_plate_s": 20.0},
+               "tau_plate_s": 20.0, "sensor_tau_s": 1.0},
 }
 HEATERS = {"bed": "heater_bed", "nozzle": "extruder"}
 
@@ -73,9 +76,13 @@ class Mass2:
         self.r_pa = (1.0 - split) * gain
         self.c_h = p["tau_heater_s"] / self.r_hp
         self.c_p = p["tau_plate_s"] * gain / (self.r_hp * self.r_pa)
-        self.max_dt = min(p["tau_heater_s"], p["tau_plate_s"] * split) / 20.0
+        self.sensor_tau_s = float(p.get("sensor_tau_s", 0.0))
+        taus = [p["tau_heater_s"], p["tau_plate_s"] * split]
+        if self.sensor_tau_s > 0:
+            taus.append(self.sensor_tau_s)
+        self.max_dt = min(taus) / 20.0
         self.ambient_c = ambient_c
-        self.t_heater = self.t_plate = initial_c
+        self.t_heater = self.t_plate = self.t_sensor = initial_c
 
     def step(self, dt_s, power):
         n = max(1, int(math.ceil(dt_s / self.max_dt)))
@@ -85,16 +92,24 @@ class Mass2:
             q_pa = (self.t_plate - self.ambient_c) / self.r_pa
             self.t_heater += h * (power - q_hp) / self.c_h
             self.t_plate += h * (q_hp - q_pa) / self.c_p
+            if self.sensor_tau_s > 0:
+                self.t_sensor += h * (self.t_heater - self.t_sensor) \
+                    / self.sensor_tau_s
+            else:
+                self.t_sensor = self.t_heater
 
 
 class Klippy:
-    """Polls heater power over klippy's API socket; 0 power when down."""
+    """Heater power from klippy's API socket (objects/subscribe: klippy pushes
+    changes every 250 ms). Power reads 0 while klippy is down, as heaters are
+    off when the host is."""
 
     def __init__(self, path):
         self.path = path
         self.sock = None
         self.buf = b""
         self.next_try = 0.0
+        self.power = {k: 0.0 for k in HEATERS}
 
     def _connect(self):
         now = time.monotonic()
@@ -105,32 +120,54 @@ class Klippy:
             s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
             s.settimeout(1.0)
             s.connect(self.path)
+            req = {"id": 1, "method": "objects/subscribe",
+                   "params": {"objects": {o: ["power"]
+                                          for o in HEATERS.values()},
+                              "response_template": {}}}
+            s.sendall(json.dumps(req).encode() + b"\x03")
+            s.setblocking(False)
             self.sock, self.buf = s, b""
             return True
         except OSError:
             return False
 
-    def powers(self):
-        if self.sock is None and not self._connect():
-            return None
-        req = {"id": 1, "method": "objects/query",
-               "params": {"objects": {"heater_bed": ["power"],
-                                      "extruder": ["power"]}}}
-        try:
-            self.sock.sendall(json.dumps(req).encode() + b"\x03")
-            while b"\x03" not in self.buf:
-                chunk = self.sock.recv(65536)
-                if not chunk:
-                    raise OSError("klippy closed the socket")
-                self.buf += chunk
-            msg, self.buf = self.buf.split(b"\x03", 1)
-            status = json.loads(msg).get("result", {}).get("status", {})
-            return {k: float(status.get(obj, {}).get("power") or 0.0)
-                    for k, obj in HEATERS.items()}
-        except (OSError, ValueError):
+    def _drop(self):
+        if self.sock is not None:
             self.sock.close()
-            self.sock = None
-            return None
+        self.sock = None
+        self.power = {k: 0.0 for k in HEATERS}
+
+    def _apply(self, status):
+        for k, obj in HEATERS.items():
+            p = status.get(obj, {}).get("power")
+            if p is not None:
+                self.power[k] = float(p)
+
+    def poll(self, timeout_s):
+        """Waits up to timeout_s for updates; returns True when connected."""
+        if self.sock is None and not self._connect():
+            time.sleep(timeout_s)
+            return False
+        try:
+            r, _, _ = select.select([self.sock], [], [], timeout_s)
+            if not r:
+                return True
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise OSError("klippy closed the socket")
+            self.buf += chunk
+            while b"\x03" in self.buf:
+                msg, self.buf = self.buf.split(b"\x03", 1)
+                m = json.loads(msg)
+                if "error" in m:
+                    raise OSError("klippy: %s" % m["error"])
+                status = (m.get("result") or m.get("params") or {}).get(
+                    "status", {})
+                self._apply(status)
+            return True
+        except (OSError, ValueError):
+            self._drop()
+            return False
 
 
 def write_atomic(path, text):
@@ -169,22 +206,29 @@ def main():
     running = [True]
     signal.signal(signal.SIGTERM, lambda *_: running.__setitem__(0, False))
     sim_t = 0.0
-    power = {k: 0.0 for k in HEATERS}
     last = time.monotonic()
     n = 0
     sys.stdout.write("plant: started with %s\n" % json.dumps(params))
     sys.stdout.flush()
+    connected = False
+    next_step = time.monotonic()
     while running[0]:
+        # Take power updates until the next physics step is due.
+        while running[0]:
+            wait = next_step - time.monotonic()
+            if wait <= 0:
+                break
+            connected = klippy.poll(wait)
+        next_step += period
         now = time.monotonic()
         dt_real = min(now - last, 1.0)
         last = now
-        got = klippy.powers()
-        power = got if got is not None else {k: 0.0 for k in HEATERS}
+        power = dict(klippy.power)
         dt_sim = dt_real * accel
         sim_t += dt_sim
         for k, m in masses.items():
             m.step(dt_sim, max(0.0, min(1.0, power[k])))
-        readings = {k: m.t_heater + (rng.gauss(0.0, noise) if noise else 0.0)
+        readings = {k: m.t_sensor + (rng.gauss(0.0, noise) if noise else 0.0)
                     for k, m in masses.items()}
         write_atomic(os.path.join(comms, "bed_temp"), "%.3f\n"
                      % readings["bed"])
@@ -192,17 +236,18 @@ def main():
                      % readings["nozzle"])
         n += 1
         if n % 5 == 0 or not running[0]:
-            state = {"sim_t_s": round(sim_t, 3), "connected": got is not None,
+            state = {"sim_t_s": round(sim_t, 3), "connected": connected,
                      "accel": accel}
             for k, m in masses.items():
                 state[k] = {"heater_c": round(m.t_heater, 3),
+                            "sensor_c": round(m.t_sensor, 3),
                             "plate_c": round(m.t_plate, 3),
                             "reading_c": round(readings[k], 3),
                             "power": power[k]}
             write_atomic(os.path.join(comms, "plant_state.json"),
                          json.dumps(state))
-        time.sleep(max(0.0, period - (time.monotonic() - now)))
-
+        if next_step < time.monotonic() - 1.0:
+            next_step = time.monotonic()
 
 if __name__ == "__main__":
     main()

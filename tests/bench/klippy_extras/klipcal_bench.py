@@ -15,6 +15,9 @@
 # Readings here are stamped with real reactor time (seconds since this module
 # loaded), which also keeps the heater's pwm clocks small.
 #
+# In batch mode (-i FILE) every G-code response is also written to the log as
+# "klipcal_bench response: ..." (klippy has nowhere else to send it there).
+#
 # Config of a sensor (in [extruder] / [heater_bed]):
 #   sensor_type: klipcal_file
 #   sensor_file: /abs/path/bed_temp     # one number, degrees C
@@ -93,32 +96,70 @@ class KlipcalBench:
         self.printer = config.get_printer()
         self.reactor = self.printer.get_reactor()
         self.t0 = self.reactor.monotonic()
+        # (print file, position) of a BENCH_SLEEP cut short, and its rest;
+        # forgotten when the print file is reset (cancel, new print).
+        self.interrupted = None
+        self.printer.register_event_handler("virtual_sdcard:reset_file",
+                                            self._forget_interrupted)
         pheaters = self.printer.load_object(config, 'heaters')
         pheaters.add_sensor_factory(
             'klipcal_file', lambda cfg: FileTemperatureSensor(cfg, self))
         gcode = self.printer.lookup_object('gcode')
         gcode.register_command('BENCH_SLEEP', self.cmd_BENCH_SLEEP,
                                desc=self.cmd_BENCH_SLEEP_help)
+        # Batch mode (-i FILE) has no terminal for G-code responses: log them
+        # so `bench.py batch` can report klippy's own error lines ("!! ...").
+        if self.printer.get_start_args().get('debuginput'):
+            gcode.register_output_handler(self._log_response)
+
+    def _log_response(self, msg):
+        for line in msg.split('\n'):
+            logging.info("klipcal_bench response: %s", line)
+
+    def _forget_interrupted(self):
+        self.interrupted = None
 
     def read_time(self, eventtime):
         """Reading timestamp: real seconds since this module loaded."""
         return eventtime - self.t0
 
     cmd_BENCH_SLEEP_help = ("Sleep SECONDS of real time (lets a bench print"
-                            " last); ends early when the print is paused")
+                            " last); a pause interrupts it and RESUME sleeps"
+                            " the rest")
 
     def cmd_BENCH_SLEEP(self, gcmd):
+        # The G-code mutex is released while sleeping, so other G-code (PAUSE,
+        # CANCEL_PRINT, scripts sent through Moonraker) runs meanwhile, as it
+        # would between the lines of a real print. When
+        # virtual_sdcard is asked to pause, the sleep stops and the file is
+        # rewound to this line, so RESUME sleeps the remaining time.
         seconds = gcmd.get_float('SECONDS', minval=0., maxval=3600.)
         sdcard = self.printer.lookup_object('virtual_sdcard', None)
-        end = self.reactor.monotonic() + seconds
-        while True:
-            now = self.reactor.monotonic()
-            if now >= end:
-                break
-            if sdcard is not None and sdcard.must_pause_work:
-                gcmd.respond_info("BENCH_SLEEP interrupted by pause/cancel")
-                break
-            self.reactor.pause(min(end, now + 0.1))
+        from_sd = sdcard is not None and sdcard.is_cmd_from_sd()
+        key = None
+        if from_sd:
+            key = (id(sdcard.current_file), sdcard.file_position)
+            if self.interrupted is not None and self.interrupted[0] == key:
+                seconds = self.interrupted[1]
+            self.interrupted = None
+        mutex = self.printer.lookup_object('gcode').get_mutex()
+        held = mutex.test()
+        if held:
+            mutex.unlock()
+        try:
+            end = self.reactor.monotonic() + seconds
+            while True:
+                now = self.reactor.monotonic()
+                if now >= end:
+                    break
+                if from_sd and sdcard.must_pause_work:
+                    self.interrupted = (key, end - now)
+                    sdcard.next_file_position = sdcard.file_position
+                    break
+                self.reactor.pause(min(end, now + 0.1))
+        finally:
+            if held:
+                mutex.lock()
 
 
 def load_config(config):
