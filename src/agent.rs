@@ -5,32 +5,82 @@
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
+use crate::jobs::ab::is_user_error;
+use crate::jobs::Jobs;
 use crate::klipper::gcode_cmd::{self, GcodeCmd};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
 
 /// Every remote method the daemon registers.
-pub const METHODS: &[&str] = &["klipcal_status"];
+pub const METHODS: &[&str] = &[
+    "klipcal_status",
+    "klipcal_ab_start",
+    "klipcal_measure",
+    "klipcal_solve",
+    "klipcal_apply",
+    "klipcal_cancel",
+];
 
 /// Answers agent calls until the channel closes.
-pub async fn serve(m: Moonraker, mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>) {
+pub async fn serve(
+    m: Moonraker,
+    jobs: Option<Jobs>,
+    mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>,
+) {
     while let Some(call) = calls.recv().await {
         let m = m.clone();
-        tokio::spawn(async move { handle(&m, call).await });
+        let jobs = jobs.clone();
+        tokio::spawn(async move { handle(&m, jobs.as_ref(), call).await });
     }
 }
 
-async fn handle(m: &Moonraker, call: AgentCall) {
+fn rpc_error(e: &anyhow::Error) -> RpcError {
+    RpcError {
+        code: if is_user_error(e) { 400 } else { 500 },
+        message: format!("{e:#}"),
+    }
+}
+
+async fn job_call(jobs: Option<&Jobs>, method: &str, args: &Value) -> Result<Value, RpcError> {
+    let Some(jobs) = jobs else {
+        return Err(RpcError {
+            code: 503,
+            message: "calibration sessions are not available (no session database)".into(),
+        });
+    };
+    let r = match method {
+        "klipcal_ab_start" => jobs.start(args).await,
+        "klipcal_measure" => jobs.measure(args).await,
+        "klipcal_solve" => jobs.solve().await,
+        "klipcal_apply" => jobs.apply(args).await,
+        "klipcal_cancel" => jobs.cancel(args).await,
+        _ => unreachable!("only job methods are routed here"),
+    };
+    r.map_err(|e| rpc_error(&e))
+}
+
+async fn handle(m: &Moonraker, jobs: Option<&Jobs>, call: AgentCall) {
     info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
     let outcome = match call.method.as_str() {
-        "klipcal_status" => status(m).await,
+        "klipcal_status" => status(m, jobs).await,
+        "klipcal_ab_start" | "klipcal_measure" | "klipcal_solve" | "klipcal_apply"
+        | "klipcal_cancel" => job_call(jobs, &call.method, &call.params).await,
         other => Err(RpcError {
             code: -32601,
             message: format!("unknown method `{other}`; known: {}", METHODS.join(", ")),
         }),
     };
     match call.responder {
-        Some(r) => r.send(outcome),
+        // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
+        // klipcal RPC error"), so failures travel as a JSON result the caller can read.
+        Some(r) => r.send(Ok(match outcome {
+            Ok(Value::Object(mut o)) => {
+                o.insert("ok".into(), json!(true));
+                Value::Object(o)
+            }
+            Ok(other) => json!({"ok": true, "result": other}),
+            Err(e) => json!({"ok": false, "error": {"code": e.code, "message": e.message}}),
+        })),
         None => {
             let text = match &outcome {
                 Ok(v) => console_text(&call.method, v),
@@ -46,7 +96,7 @@ async fn handle(m: &Moonraker, call: AgentCall) {
     }
 }
 
-async fn status(m: &Moonraker) -> Result<Value, RpcError> {
+async fn status(m: &Moonraker, jobs: Option<&Jobs>) -> Result<Value, RpcError> {
     let summary = printer::gather(m).await.map_err(|e| RpcError {
         code: 503,
         message: e.to_string(),
@@ -62,6 +112,10 @@ async fn status(m: &Moonraker) -> Result<Value, RpcError> {
         "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
         "connection": connection,
         "printer": summary,
+        "session": match jobs {
+            Some(j) => j.status().map_err(|e| rpc_error(&e))?,
+            None => Value::Null,
+        },
     }))
 }
 
@@ -86,9 +140,22 @@ fn console_text(method: &str, v: &Value) -> String {
                     ));
                 }
             }
+            if let Some(sess) = v.get("session").filter(|s| !s.is_null()) {
+                t.push_str(&format!(
+                    "\nsession {}: {} — {}",
+                    sess["id"],
+                    sess["state"].as_str().unwrap_or("?"),
+                    sess["progress"].as_str().unwrap_or("")
+                ));
+                for m in sess["missing"].as_array().into_iter().flatten() {
+                    t.push_str(&format!("\n  {}", m.as_str().unwrap_or("")));
+                }
+            }
             t
         }
-        _ => v.to_string(),
+        _ => v["message"]
+            .as_str()
+            .map_or_else(|| v.to_string(), str::to_string),
     }
 }
 

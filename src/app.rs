@@ -101,7 +101,36 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     cancel_on_signal(cancel.clone())?;
     info!(version = env!("CARGO_PKG_VERSION"), url = %config.moonraker.url, "klipcal starting");
     let (m, calls) = Moonraker::spawn(client_options(&config), cancel.clone());
-    let agent = tokio::spawn(crate::agent::serve(m.clone(), calls));
+    let files = crate::moonraker::Files::new(
+        &config.http_base(),
+        (!config.moonraker.api_key.is_empty()).then(|| config.moonraker.api_key.clone()),
+        Duration::from_secs_f64(config.moonraker.request_timeout_s.max(60.0)),
+    )?;
+    let data_dir = crate::config::expand_home(&config.daemon.data_dir);
+    let jobs = match crate::store::Store::open(&data_dir) {
+        Ok(store) => Some(crate::jobs::Jobs::new(
+            m.clone(),
+            files,
+            store,
+            config.ab.clone(),
+            config.soak.clone(),
+            cancel.clone(),
+        )),
+        Err(e) => {
+            tracing::error!(error = %e, "calibration sessions disabled");
+            None
+        }
+    };
+    if let Some(j) = jobs.clone() {
+        tokio::spawn(j.clone().hold_watchdog());
+        let m2 = m.clone();
+        tokio::spawn(async move {
+            if m2.wait_connected(Duration::from_secs(86_400)).await.is_ok() {
+                j.resume().await;
+            }
+        });
+    }
+    let agent = tokio::spawn(crate::agent::serve(m.clone(), jobs, calls));
     cancel.cancelled().await;
     // Every task selects on the token; give them a moment to close the socket cleanly.
     let mut state = m.state_watch();

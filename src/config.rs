@@ -25,6 +25,9 @@ pub enum Error {
         /// toml's message, which names the line, the key and what was expected.
         message: String,
     },
+    /// A `[soak]` key has a value out of range.
+    #[error("config key {0}")]
+    Soak(#[from] crate::calib::soak::SoakParamsError),
     /// A key has a value out of range.
     #[error("config key `{key}` = {value}: expected {expected}")]
     Invalid {
@@ -47,6 +50,51 @@ pub struct Config {
     pub log: LogConfig,
     /// The daemon's own files.
     pub daemon: DaemonConfig,
+    /// Differential A/B (X/Y) calibration sessions.
+    pub ab: AbConfig,
+    /// Thermal soak detection (bed power watching, paper §3.1).
+    pub soak: crate::calib::soak::SoakParams,
+}
+
+/// `[ab]`: defaults of a differential rotation_distance calibration session.
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct AbConfig {
+    /// `paper` (two groups along the motor directions) or `full` (four groups: also the
+    /// in-plane shear from one print).
+    pub layout: String,
+    /// Bed temperature for the print and the readings; 0 prints on an unheated bed (no soak).
+    pub bed_temp_c: f64,
+    /// Nozzle temperature.
+    pub nozzle_temp_c: f64,
+    /// Readings per pair before the pair counts as measured.
+    pub readings_per_pair: usize,
+    /// Wait after the print for the part to cool on the hot bed before asking for readings.
+    pub cooldown_s: f64,
+    /// Longest the bed is held hot after the print; then heaters go off.
+    pub hold_max_s: f64,
+    /// A change of rotation_distance beyond this needs FORCE=1.
+    pub max_change_pct: f64,
+    /// Longest wait for the bed to reach equilibrium before printing anyway is refused.
+    pub soak_max_s: f64,
+    /// Readings further than this from a pair's nominal distance are refused, mm.
+    pub reading_tolerance_mm: f64,
+}
+
+impl Default for AbConfig {
+    fn default() -> Self {
+        Self {
+            layout: "paper".into(),
+            bed_temp_c: 60.0,
+            nozzle_temp_c: 215.0,
+            readings_per_pair: 5,
+            cooldown_s: 720.0,
+            hold_max_s: 1800.0,
+            max_change_pct: 3.0,
+            soak_max_s: 3600.0,
+            reading_tolerance_mm: 2.0,
+        }
+    }
 }
 
 /// `[moonraker]`
@@ -196,6 +244,82 @@ impl Config {
                 expected: "a value not below moonraker.reconnect_min_s",
             });
         }
+        let ab = &self.ab;
+        if !["paper", "full"].contains(&ab.layout.as_str()) {
+            return Err(Error::Invalid {
+                key: "ab.layout",
+                value: format!("{:?}", ab.layout),
+                expected: "\"paper\" or \"full\"",
+            });
+        }
+        let ranges = [
+            (
+                "ab.bed_temp_c",
+                ab.bed_temp_c,
+                0.0,
+                130.0,
+                "°C from 0 (unheated) to 130",
+            ),
+            (
+                "ab.nozzle_temp_c",
+                ab.nozzle_temp_c,
+                150.0,
+                320.0,
+                "°C from 150 to 320",
+            ),
+            (
+                "ab.cooldown_s",
+                ab.cooldown_s,
+                0.0,
+                7200.0,
+                "seconds from 0 to 7200",
+            ),
+            (
+                "ab.hold_max_s",
+                ab.hold_max_s,
+                0.0,
+                14_400.0,
+                "seconds from 0 to 14400",
+            ),
+            (
+                "ab.max_change_pct",
+                ab.max_change_pct,
+                0.01,
+                20.0,
+                "a percentage from 0.01 to 20",
+            ),
+            (
+                "ab.soak_max_s",
+                ab.soak_max_s,
+                0.0,
+                14_400.0,
+                "seconds from 0 to 14400",
+            ),
+            (
+                "ab.reading_tolerance_mm",
+                ab.reading_tolerance_mm,
+                0.01,
+                50.0,
+                "mm from 0.01 to 50",
+            ),
+        ];
+        for (key, v, lo, hi, expected) in ranges {
+            if !(v.is_finite() && (lo..=hi).contains(&v)) {
+                return Err(Error::Invalid {
+                    key,
+                    value: v.to_string(),
+                    expected,
+                });
+            }
+        }
+        if !(3..=20).contains(&ab.readings_per_pair) {
+            return Err(Error::Invalid {
+                key: "ab.readings_per_pair",
+                value: ab.readings_per_pair.to_string(),
+                expected: "a whole number from 3 to 20",
+            });
+        }
+        self.soak.validate()?;
         if !["error", "warn", "info", "debug", "trace"].contains(&self.log.level.as_str()) {
             return Err(Error::Invalid {
                 key: "log.level",

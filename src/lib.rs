@@ -16,6 +16,7 @@
 //! - [`gcode`]: PURE. The pylon job generator (geometry → toolpaths → G-code text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget.
 //! - [`pylons_cmd`]: `klipcal pylons` — reads the Klipper config, runs [`gcode`], writes the files.
+//! - [`jobs`]: the only place Moonraker I/O meets the math: one persisted state machine per calibration.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
@@ -31,6 +32,7 @@ pub mod cli;
 pub mod config;
 pub mod fsio;
 pub mod gcode;
+pub mod jobs;
 pub mod klipper;
 pub mod layout;
 pub mod moonraker;

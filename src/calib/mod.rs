@@ -119,3 +119,4 @@ pub enum Error {
     #[error("fit: {0}")]
     Fit(String),
 }
+pub mod soak;

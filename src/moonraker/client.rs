@@ -662,21 +662,13 @@ fn dispatch(
                 id,
                 tx: shared.tx.clone(),
             };
-            if shared.opts.remote_methods.contains(&method) {
-                let _ = agent_tx.send(AgentCall {
-                    method,
-                    params,
-                    responder: Some(responder),
-                });
-            } else {
-                responder.send(Err(RpcError {
-                    code: -32601,
-                    message: format!(
-                        "klipcal has no method `{method}`; it has: {}",
-                        shared.opts.remote_methods.join(", ")
-                    ),
-                }));
-            }
+            // Every forwarded request goes to the daemon, which answers unknown methods
+            // with the list of known ones.
+            let _ = agent_tx.send(AgentCall {
+                method,
+                params,
+                responder: Some(responder),
+            });
         }
         Incoming::Notification { method, params } => {
             if shared.opts.remote_methods.contains(&method) {

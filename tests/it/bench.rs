@@ -49,7 +49,16 @@ impl Bench {
             .tempdir_in(std::env::temp_dir())
             .expect("temp dir");
         let run_dir = dir.path().to_string_lossy().into_owned();
-        let mut args = vec!["start", "--run-dir", &run_dir, "--kinematics", kinematics];
+        let owner = std::process::id().to_string();
+        let mut args = vec![
+            "start",
+            "--run-dir",
+            &run_dir,
+            "--kinematics",
+            kinematics,
+            "--owner-pid",
+            &owner,
+        ];
         if let Some(p) = plant_json {
             args.push("--plant-json");
             args.push(p);
@@ -133,13 +142,18 @@ pub struct Daemon {
 
 impl Daemon {
     pub fn start(bench: &Bench) -> Daemon {
+        Self::start_with(bench, "")
+    }
+
+    /// Starts the daemon with extra TOML appended to its settings (e.g. `[ab]`, `[soak]`).
+    pub fn start_with(bench: &Bench, extra_toml: &str) -> Daemon {
         let dir = bench.dir.path();
         let cfg = dir.join("klipcal.toml");
         std::fs::write(
             &cfg,
             format!(
                 "[moonraker]\nurl = \"{}\"\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n\
-                 [daemon]\ndata_dir = \"{}\"\n",
+                 [daemon]\ndata_dir = \"{}\"\n{extra_toml}\n",
                 bench.ws_url(),
                 dir.join("klipcal-data").display()
             ),
@@ -231,11 +245,15 @@ pub async fn extension_request(
     method: &str,
     arguments: Value,
 ) -> Result<Value, String> {
-    files
+    let v = files
         .post(
             "/server/extensions/request",
             &json!({"agent": "klipcal", "method": method, "arguments": arguments}),
         )
         .await
-        .map_err(|e| e.to_string())
+        .map_err(|e| e.to_string())?;
+    if v["ok"] == json!(false) {
+        return Err(v["error"]["message"].as_str().unwrap_or("").to_string());
+    }
+    Ok(v)
 }

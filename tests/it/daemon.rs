@@ -171,7 +171,10 @@ async fn klipcal_status_over_http_returns_the_printer_summary() {
     let err = extension_request(&bench.files(), "klipcal_nope", json!({}))
         .await
         .unwrap_err();
-    assert!(err.contains("500") || err.contains("error"), "{err}");
+    assert!(
+        err.contains("unknown method") && err.contains("klipcal_status"),
+        "{err}"
+    );
 }
 
 #[tokio::test]

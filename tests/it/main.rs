@@ -6,4 +6,5 @@ mod bench;
 mod daemon;
 mod fake;
 mod pylons;
+mod session;
 mod skew;

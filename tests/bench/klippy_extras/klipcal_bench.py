@@ -101,6 +101,15 @@ class KlipcalBench:
         self.interrupted = None
         self.printer.register_event_handler("virtual_sdcard:reset_file",
                                             self._forget_interrupted)
+        # Fault injection for rollback tests: refuse to start when stepper_x's
+        # rotation_distance exceeds this (a stand-in for any config Klipper rejects).
+        limit = config.getfloat('reject_rotation_distance_above', None)
+        if limit is not None:
+            rd = config.getsection('stepper_x').getfloat('rotation_distance')
+            if rd > limit:
+                raise config.error(
+                    "klipcal_bench: stepper_x rotation_distance %.6f is above"
+                    " reject_rotation_distance_above %.6f" % (rd, limit))
         pheaters = self.printer.load_object(config, 'heaters')
         pheaters.add_sensor_factory(
             'klipcal_file', lambda cfg: FileTemperatureSensor(cfg, self))

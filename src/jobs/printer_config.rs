@@ -1,0 +1,272 @@
+//! The printer's Klipper config as Moonraker serves it: fetch every file of the `config` root
+//! into memory (so the pure parser follows includes and globs), and write edited values back —
+//! backup first, edit in place, FIRMWARE_RESTART, confirm through configfile.settings, restore
+//! the backups byte for byte when Klipper does not come back. Only while the printer is idle.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{anyhow, bail, Context};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use crate::klipper::{self, Config, MemFiles};
+use crate::moonraker::{Event, Files, Moonraker};
+
+/// The loaded config and where its files live.
+pub struct PrinterConfig {
+    /// The parsed config.
+    pub config: Config,
+    /// Absolute folder of Moonraker's `config` root.
+    pub root: PathBuf,
+}
+
+/// One value to write: `[section] key = value`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ValueSet {
+    /// Section, e.g. `stepper_x`.
+    pub section: String,
+    /// Option, e.g. `rotation_distance`.
+    pub key: String,
+    /// New value text.
+    pub value: String,
+}
+
+/// What an apply did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ApplyReport {
+    /// Files changed, relative to the config root.
+    pub files: Vec<String>,
+    /// Where the backups went, relative to the config root.
+    pub backup_dir: String,
+    /// `(section, key, old, new)` for each value.
+    pub changes: Vec<(String, String, String, String)>,
+}
+
+/// Reads every `.cfg`/`.conf` file of the config root (except klipcal's backups) through
+/// Moonraker, and parses the config Klipper runs (`printer.info` → `config_file`).
+///
+/// # Errors
+/// Moonraker failures, or a config Klipper's own rules reject.
+pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig> {
+    let roots = files.get("/server/files/roots").await?;
+    let root = roots
+        .as_array()
+        .and_then(|a| a.iter().find(|r| r["name"] == "config"))
+        .and_then(|r| r["path"].as_str())
+        .map(PathBuf::from)
+        .ok_or_else(|| anyhow!("Moonraker has no `config` root"))?;
+    let info = m.printer_info().await?;
+    let main = info["config_file"]
+        .as_str()
+        .map(PathBuf::from)
+        .ok_or_else(|| anyhow!("printer.info names no config_file"))?;
+    let list = files.get("/server/files/list?root=config").await?;
+    let mut mem = MemFiles::new();
+    for item in list.as_array().into_iter().flatten() {
+        let Some(rel) = item["path"].as_str() else {
+            continue;
+        };
+        let wanted = rel.ends_with(".cfg") || rel.ends_with(".conf");
+        if !wanted || rel.starts_with("klipcal_backups/") {
+            continue;
+        }
+        let bytes = files.download("config", rel).await?;
+        mem.insert(root.join(rel), String::from_utf8_lossy(&bytes).into_owned());
+    }
+    let config =
+        Config::load(&mem, &main).with_context(|| format!("reading {}", main.display()))?;
+    Ok(PrinterConfig { config, root })
+}
+
+impl PrinterConfig {
+    fn rel(&self, path: &Path) -> anyhow::Result<String> {
+        path.strip_prefix(&self.root)
+            .map(|p| p.to_string_lossy().into_owned())
+            .map_err(|_| {
+                anyhow!(
+                    "{} is outside Moonraker's config folder {}; klipcal edits only files there",
+                    path.display(),
+                    self.root.display()
+                )
+            })
+    }
+}
+
+async fn klipper_state(m: &Moonraker) -> Option<(String, String)> {
+    let info = m.printer_info().await.ok()?;
+    Some((
+        info["state"].as_str().unwrap_or("").to_string(),
+        info["state_message"].as_str().unwrap_or("").to_string(),
+    ))
+}
+
+/// FIRMWARE_RESTART and wait until Klipper is ready or has failed; returns its final state
+/// and message.
+async fn restart(m: &Moonraker, limit: Duration) -> anyhow::Result<(String, String)> {
+    let mut rx = m.events();
+    m.firmware_restart().await?;
+    let deadline = tokio::time::Instant::now() + limit;
+    // Wait for the restart to begin, then for ready (notify_klippy_ready) or a settled error.
+    let mut saw_ready = false;
+    while tokio::time::Instant::now() < deadline {
+        match tokio::time::timeout(Duration::from_millis(500), rx.recv()).await {
+            Ok(Ok(Event::KlippyReady)) => {
+                saw_ready = true;
+                break;
+            }
+            Ok(_) => {}
+            Err(_) => {
+                if let Some((state, msg)) = klipper_state(m).await {
+                    if state == "error" || state == "shutdown" {
+                        return Ok((state, msg));
+                    }
+                }
+            }
+        }
+    }
+    if !saw_ready {
+        if let Some(s) = klipper_state(m).await {
+            return Ok(s);
+        }
+        bail!("Klipper did not come back within {} s", limit.as_secs());
+    }
+    Ok(klipper_state(m)
+        .await
+        .unwrap_or(("ready".into(), String::new())))
+}
+
+/// Writes the values where Klipper reads them, restarts Klipper, and confirms them through
+/// `configfile.settings`; on failure restores every touched file from its backup, restarts
+/// again and returns Klipper's message.
+///
+/// # Errors
+/// A value that cannot be edited, a Moonraker failure, or Klipper failing on the new config
+/// (after the rollback).
+pub async fn apply(
+    m: &Moonraker,
+    files: &Files,
+    pc: &PrinterConfig,
+    values: &[ValueSet],
+    stamp: &str,
+) -> anyhow::Result<ApplyReport> {
+    let triples: Vec<(&str, &str, &str)> = values
+        .iter()
+        .map(|v| (v.section.as_str(), v.key.as_str(), v.value.as_str()))
+        .collect();
+    let edits = klipper::set_values(&pc.config, &triples)?;
+    let backup_dir = format!("klipcal_backups/{stamp}");
+    let mut report = ApplyReport {
+        files: Vec::new(),
+        backup_dir: backup_dir.clone(),
+        changes: Vec::new(),
+    };
+    let mut originals = Vec::new();
+    for e in &edits {
+        let rel = pc.rel(&e.path)?;
+        let old = pc.config.files()[e.file].text.clone();
+        files
+            .upload(
+                "config",
+                &format!("{backup_dir}/{rel}"),
+                old.clone().into_bytes(),
+            )
+            .await
+            .with_context(|| format!("backing up {rel}"))?;
+        originals.push((rel.clone(), old));
+        for c in &e.changes {
+            report.changes.push((
+                c.section.clone(),
+                c.key.clone(),
+                c.old_value.clone(),
+                c.new_value.clone(),
+            ));
+        }
+        report.files.push(rel);
+    }
+    for (e, (rel, _)) in edits.iter().zip(&originals) {
+        files
+            .upload("config", rel, e.new_text.clone().into_bytes())
+            .await
+            .with_context(|| format!("writing {rel}"))?;
+    }
+    let (state, msg) = restart(m, Duration::from_secs(60)).await?;
+    let verified = if state == "ready" {
+        verify(m, values).await
+    } else {
+        Err(anyhow!("Klipper came up in state `{state}`: {msg}"))
+    };
+    if let Err(why) = verified {
+        for (rel, old) in &originals {
+            files
+                .upload("config", rel, old.clone().into_bytes())
+                .await
+                .with_context(|| format!("restoring {rel} from {backup_dir}"))?;
+        }
+        let (state2, msg2) = restart(m, Duration::from_secs(60)).await?;
+        bail!(
+            "the new values were rolled back: {why:#}. The config files are restored from \
+             {backup_dir} and Klipper is {state2}{}",
+            if msg2.is_empty() {
+                String::new()
+            } else {
+                format!(" ({})", msg2.trim())
+            }
+        );
+    }
+    Ok(report)
+}
+
+async fn verify(m: &Moonraker, values: &[ValueSet]) -> anyhow::Result<()> {
+    let cf = m.configfile().await?;
+    for v in values {
+        let got = &cf["settings"][v.section.to_lowercase()][v.key.to_lowercase()];
+        let want: Option<f64> = v.value.parse().ok();
+        let ok = match (got.as_f64(), want) {
+            (Some(g), Some(w)) => (g - w).abs() <= 1e-9 * w.abs().max(1.0),
+            _ => got == &json!(v.value),
+        };
+        if !ok {
+            bail!(
+                "Klipper runs [{}] {} = {got}, not the {} written",
+                v.section,
+                v.key,
+                v.value
+            );
+        }
+    }
+    Ok(())
+}
+
+/// A timestamp for backup folders (UTC, `YYYYMMDD-HHMMSS`), from the Unix time.
+pub fn stamp(unix_s: u64) -> String {
+    let t = std::time::UNIX_EPOCH + Duration::from_secs(unix_s);
+    humantime::format_rfc3339_seconds(t)
+        .to_string()
+        .chars()
+        .filter(|c| c.is_ascii_digit() || *c == 'T')
+        .map(|c| if c == 'T' { '-' } else { c })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backup_folder_stamps_are_civil_utc_times() {
+        assert_eq!(stamp(0), "19700101-000000");
+        assert_eq!(stamp(1_795_000_000), "20261118-110640");
+    }
+
+    #[test]
+    fn values_parse_back_to_the_same_json() {
+        let v = ValueSet {
+            section: "stepper_x".into(),
+            key: "rotation_distance".into(),
+            value: "40.1".into(),
+        };
+        let back: ValueSet = serde_json::from_value(json!(v)).unwrap();
+        assert_eq!(back, v);
+    }
+}

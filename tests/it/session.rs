@@ -1,0 +1,529 @@
+//! A whole A/B calibration session on the bench (issue 5 §6): start, heat, soak by bed power,
+//! print, hold, measure (readings simulated from a known true rotation distance), solve,
+//! apply — over HTTP and through the macros — plus bad readings, apply while printing, a daemon
+//! killed while measuring, a cancelled print, a rollback and the hold limit.
+
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::bench::{agent_listed, extension_request, poll, Bench, Daemon};
+
+/// A plant fast enough for a test: 20 simulated seconds per real second, a 100 s plate.
+pub const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0}}"#;
+
+/// Daemon settings for tests: no cool-down, short soak windows in real seconds.
+pub fn settings(hold_max_s: f64) -> String {
+    format!(
+        "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 240.0\n\
+         [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 2.0\ntrend_window_s = 4.0\n\
+         tau_min_s = 0.5\ntau_max_s = 600.0\n"
+    )
+}
+
+/// The "true" rotation distances of the bench printer (its config says 40 for both).
+const TRUE_X: f64 = 40.2;
+const TRUE_Y: f64 = 39.9;
+
+/// What a caliper reads for a pair on a CoreXY whose motors move `true/config` times the
+/// commanded distance: stepper_x drives A (+45°), stepper_y drives B (−45°). The pylon width
+/// and shrinkage term `w` cancels in d2 − d1 (seed 000 §2).
+fn simulated_readings(pair: &Value) -> Vec<f64> {
+    let nominal = pair["nominal_mm"].as_f64().unwrap();
+    let alpha = match pair["group"].as_str().unwrap() {
+        "A" => TRUE_X / 40.0,
+        "B" => TRUE_Y / 40.0,
+        g => panic!("paper layout has only A and B, got {g}"),
+    };
+    let w = -0.06;
+    [0.0, 0.004, -0.003, 0.002, -0.001]
+        .iter()
+        .map(|n| ((nominal * alpha + w + n) * 1000.0).round() / 1000.0)
+        .collect()
+}
+
+async fn session(bench: &Bench) -> Value {
+    extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .map(|v| v["session"].clone())
+        .unwrap_or(Value::Null)
+}
+
+async fn wait_state(bench: &Bench, state: &str, limit: Duration) -> Value {
+    let got = poll(limit, || async {
+        let s = session(bench).await;
+        (s["state"] == state).then_some(s)
+    })
+    .await;
+    match got {
+        Some(s) => s,
+        None => panic!("session never reached {state}: {}", session(bench).await),
+    }
+}
+
+async fn started(bench: &Bench, hold_max_s: f64) -> Daemon {
+    let d = Daemon::start_with(bench, &settings(hold_max_s));
+    let files = bench.files();
+    assert!(
+        poll(Duration::from_secs(30), || async {
+            agent_listed(&files).await.then_some(())
+        })
+        .await
+        .is_some(),
+        "daemon did not connect:\n{}",
+        d.log_text()
+    );
+    d
+}
+
+fn steppers_cfg(bench: &Bench) -> String {
+    std::fs::read_to_string(bench.dir.path().join("config/steppers.cfg")).unwrap()
+}
+
+#[tokio::test]
+async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_truth() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let d = started(&bench, 600.0).await;
+    let files = bench.files();
+    let before = steppers_cfg(&bench);
+
+    let r = extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    assert_eq!(r["state"], "preflight", "{r}");
+    // A second start while one runs is refused.
+    let again = extension_request(&files, "klipcal_ab_start", json!({}))
+        .await
+        .unwrap_err();
+    assert!(again.contains("KLIPCAL_CANCEL"), "{again}");
+
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let log = d.log_text();
+    assert!(
+        log.contains("bed soaking") || log.contains("bed stable"),
+        "{log}"
+    );
+    let pairs = s["pairs"].as_array().unwrap().clone();
+    assert_eq!(pairs.len(), 4, "{s}");
+    // The bed is still hot for the readings.
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let hb = m
+        .objects_query(json!({"heater_bed": ["target"]}))
+        .await
+        .unwrap();
+    assert_eq!(hb["heater_bed"]["target"], json!(60.0));
+
+    for p in &pairs {
+        let r = extension_request(
+            &files,
+            "klipcal_measure",
+            json!({"pair": p["id"], "values": simulated_readings(p)}),
+        )
+        .await
+        .unwrap();
+        assert_eq!(r["count"], 5, "{r}");
+    }
+    let sol = extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    let sol = &sol["solution"];
+    for (name, truth) in [("stepper_x", TRUE_X), ("stepper_y", TRUE_Y)] {
+        let new = sol[name]["rotation_distance_new"].as_f64().unwrap();
+        let u = sol[name]["uncertainty"].as_f64().unwrap();
+        assert!(u > 0.0 && u < 1e-3, "{name} uncertainty {u}");
+        assert!(
+            (new - truth).abs() <= 3.0 * u * 40.0 + 1e-3,
+            "{name}: {new} vs truth {truth} (u {u})"
+        );
+    }
+    let applied = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        ["applied", "converged"].contains(&applied["state"].as_str().unwrap()),
+        "{applied}"
+    );
+
+    // Klipper runs the new values, and the file differs only in those two values.
+    let new_x = sol["stepper_x"]["rotation_distance_new"].as_f64().unwrap();
+    let cf = m.configfile().await.unwrap();
+    let running = cf["settings"]["stepper_x"]["rotation_distance"]
+        .as_f64()
+        .unwrap();
+    assert!((running - new_x).abs() < 1e-5, "{running} vs {new_x}");
+    let after = steppers_cfg(&bench);
+    let changed: Vec<(&str, &str)> = before
+        .lines()
+        .zip(after.lines())
+        .filter(|(a, b)| a != b)
+        .collect();
+    assert_eq!(before.lines().count(), after.lines().count());
+    assert_eq!(changed.len(), 2, "{changed:?}");
+    for (old, new) in changed {
+        assert!(old.contains("rotation_distance") && new.contains("rotation_distance"));
+        let strip = |l: &str| l.split(['=', ':']).next().unwrap().to_string();
+        assert_eq!(strip(old), strip(new));
+    }
+    // The backup is the original, byte for byte.
+    let backups = bench.dir.path().join("config/klipcal_backups");
+    let stamp = std::fs::read_dir(&backups)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert_eq!(
+        std::fs::read_to_string(stamp.join("steppers.cfg")).unwrap(),
+        before
+    );
+}
+
+#[tokio::test]
+async fn bad_readings_are_refused_one_by_one_and_nothing_entered_is_lost() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let d = started(&bench, 600.0).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let pair = s["pairs"][0].clone();
+    let id = pair["id"].as_str().unwrap().to_string();
+    let good = simulated_readings(&pair);
+    extension_request(
+        &files,
+        "klipcal_measure",
+        json!({"pair": id, "values": [good[0], good[1]]}),
+    )
+    .await
+    .unwrap();
+    // Unknown pair.
+    let e = extension_request(
+        &files,
+        "klipcal_measure",
+        json!({"pair": "Z-D9", "values": [10.0]}),
+    )
+    .await
+    .unwrap_err();
+    assert!(e.contains("unknown pair") && e.contains(&id), "{e}");
+    // Not a number, zero, negative, far from nominal: each refused, naming the pair.
+    for bad in ["abc", "0", "-10.0", "99.5"] {
+        let e = extension_request(
+            &files,
+            "klipcal_measure",
+            json!({"pair": id, "values": bad}),
+        )
+        .await
+        .unwrap_err();
+        assert!(e.contains(&id) && e.contains("refused"), "{bad}: {e}");
+    }
+    // A mixed entry keeps the good value and refuses the bad one.
+    let r = extension_request(
+        &files,
+        "klipcal_measure",
+        json!({"pair": id, "values": format!("{},oops", good[2])}),
+    )
+    .await
+    .unwrap();
+    assert_eq!(r["count"], 3, "{r}");
+    assert_eq!(r["refused"].as_array().unwrap().len(), 1, "{r}");
+    // Solving too early names what is missing.
+    let e = extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("pair") || e.contains("reading"), "{e}");
+    let s = session(&bench).await;
+    assert_eq!(s["readings"][&id].as_array().unwrap().len(), 3, "{s}");
+    drop(d);
+}
+
+#[tokio::test]
+async fn a_session_driven_through_the_macros_answers_on_the_console() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let d = started(&bench, 600.0).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = m.events();
+    m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    for p in s["pairs"].as_array().unwrap() {
+        let vals: Vec<String> = simulated_readings(p)
+            .iter()
+            .map(|v| format!("{v}"))
+            .collect();
+        m.gcode(&format!(
+            "KLIPCAL_MEASURE PAIR={} VALUES={}",
+            p["id"].as_str().unwrap(),
+            vals.join(",")
+        ))
+        .await
+        .unwrap();
+    }
+    let all = poll(Duration::from_secs(10), || async {
+        let s = session(&bench).await;
+        let n: usize = s["readings"]
+            .as_object()?
+            .values()
+            .map(|v| v.as_array().map_or(0, Vec::len))
+            .sum();
+        (n == 20).then_some(())
+    })
+    .await;
+    assert!(
+        all.is_some(),
+        "readings via macros: {}",
+        session(&bench).await
+    );
+    m.gcode("KLIPCAL_AB_SOLVE").await.unwrap();
+    wait_state(&bench, "solved", Duration::from_secs(20)).await;
+    m.gcode("KLIPCAL_AB_APPLY").await.unwrap();
+    let s = poll(Duration::from_secs(90), || async {
+        let s = session(&bench).await;
+        ["applied", "converged"]
+            .contains(&s["state"].as_str().unwrap_or(""))
+            .then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("not applied: {}\n{}", futures_lite(&bench), d.log_text()));
+    assert_eq!(s["rounds"][0]["applied"]["files"], json!(["steppers.cfg"]));
+    // The daemon's answers reached the console.
+    let mut lines = Vec::new();
+    while let Ok(e) = rx.try_recv() {
+        if let klipcal::moonraker::Event::GcodeResponse(l) = e {
+            lines.push(l);
+        }
+    }
+    let text = lines.join("\n");
+    assert!(text.contains("saved"), "{text}");
+    assert!(text.contains("rotation_distance"), "{text}");
+    assert!(text.contains("action:prompt_begin"), "{text}");
+}
+
+fn futures_lite(bench: &Bench) -> String {
+    bench.run_dir()
+}
+
+/// Rewrites the bench's printer.cfg and restarts Klipper on it.
+async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
+    let path = bench.dir.path().join("config/printer.cfg");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let new = edit(&text);
+    assert_ne!(text, new, "the edit changed nothing");
+    std::fs::write(&path, new).unwrap();
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = m.events();
+    m.firmware_restart().await.unwrap();
+    use klipcal::moonraker::Event;
+    crate::bench::wait_event(&mut rx, Duration::from_secs(30), |e| {
+        *e == Event::KlippyDisconnected
+    })
+    .await
+    .expect("Klipper went down for the restart");
+    crate::bench::wait_event(&mut rx, Duration::from_secs(30), |e| *e == Event::KlippyReady)
+        .await
+        .expect("Klipper ready after the reconfiguration");
+}
+
+/// PRINT_START sleeps in real time, so the calibration print lasts.
+fn slow_print_start(text: &str) -> String {
+    text.replacen("  G92 E0\n", "  G92 E0\n  BENCH_SLEEP SECONDS=60\n", 1)
+}
+
+async fn measure_all(bench: &Bench, pairs: &[Value]) {
+    for p in pairs {
+        extension_request(
+            &bench.files(),
+            "klipcal_measure",
+            json!({"pair": p["id"], "values": simulated_readings(p)}),
+        )
+        .await
+        .unwrap();
+    }
+}
+
+#[tokio::test]
+async fn a_daemon_killed_while_measuring_resumes_with_nothing_lost() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let mut d = started(&bench, 600.0).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let pairs = s["pairs"].as_array().unwrap().clone();
+    measure_all(&bench, &pairs[..2]).await;
+    d.child.kill().unwrap();
+    d.child.wait().unwrap();
+    // Klipper and Moonraker restart too while the daemon is away.
+    bench.stop_one("moonraker");
+    bench.start_one("moonraker");
+    let _d2 = started(&bench, 600.0).await;
+    let s = wait_state(&bench, "measuring", Duration::from_secs(30)).await;
+    let n: usize = s["readings"]
+        .as_object()
+        .unwrap()
+        .values()
+        .map(|v| v.as_array().unwrap().len())
+        .sum();
+    assert_eq!(n, 10, "readings lost: {s}");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    m.firmware_restart().await.unwrap();
+    measure_all(&bench, &pairs[2..]).await;
+    let sol = poll(Duration::from_secs(30), || async {
+        extension_request(&files, "klipcal_solve", json!({}))
+            .await
+            .ok()
+    })
+    .await
+    .expect("solve after the restarts");
+    assert!(sol["solution"]["stepper_x"]["rotation_distance_new"]
+        .as_f64()
+        .is_some());
+}
+
+#[tokio::test]
+async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    reconfigure(&bench, slow_print_start).await;
+    let _d = started(&bench, 600.0).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 50}))
+        .await
+        .unwrap();
+    wait_state(&bench, "printing", Duration::from_secs(240)).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    // Apply is refused while the print runs.
+    let e = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("printing") || e.contains("apply follows"), "{e}");
+    poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await
+    .expect("print running");
+    m.gcode("CANCEL_PRINT").await.unwrap();
+    let s = wait_state(&bench, "cancelled", Duration::from_secs(30)).await;
+    assert!(s["reason"].as_str().unwrap().contains("cancelled"), "{s}");
+    let st = m
+        .objects_query(json!({"heater_bed": ["target"], "extruder": ["target"]}))
+        .await
+        .unwrap();
+    assert_eq!(st["heater_bed"]["target"], json!(0.0));
+    assert_eq!(st["extruder"]["target"], json!(0.0));
+}
+
+#[tokio::test]
+async fn apply_is_refused_while_another_print_runs() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let _d = started(&bench, 600.0).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    measure_all(&bench, s["pairs"].as_array().unwrap()).await;
+    extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    files
+        .upload(
+            "gcodes",
+            "other.gcode",
+            b"G28\nBENCH_SLEEP SECONDS=60\n".to_vec(),
+        )
+        .await
+        .unwrap();
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    m.print_start("other.gcode").await.unwrap();
+    poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await
+    .expect("other print running");
+    let before = steppers_cfg(&bench);
+    let e = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("a print is printing"), "{e}");
+    assert_eq!(steppers_cfg(&bench), before);
+    assert_eq!(session(&bench).await["state"], "solved");
+    m.gcode("CANCEL_PRINT").await.unwrap();
+}
+
+#[tokio::test]
+async fn an_edit_klipper_rejects_is_rolled_back_byte_for_byte() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    // The bench's klippy refuses stepper_x rotation_distance above 40.1; the truth is 40.2.
+    reconfigure(&bench, |t| {
+        t.replacen(
+            "[klipcal_bench]\n",
+            "[klipcal_bench]\nreject_rotation_distance_above: 40.1\n",
+            1,
+        )
+    })
+    .await;
+    let _d = started(&bench, 600.0).await;
+    let files = bench.files();
+    let before = steppers_cfg(&bench);
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    measure_all(&bench, s["pairs"].as_array().unwrap()).await;
+    extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    let e = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("rolled back"), "{e}");
+    assert!(
+        e.contains("reject_rotation_distance_above"),
+        "Klipper's message: {e}"
+    );
+    assert_eq!(steppers_cfg(&bench), before, "not restored byte for byte");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let info = m.printer_info().await.unwrap();
+    assert_eq!(info["state"], "ready", "{info}");
+    assert_eq!(session(&bench).await["state"], "solved");
+}
+
+#[tokio::test]
+async fn heaters_go_off_after_the_maximum_hold() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let _d = started(&bench, 3.0).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 50}))
+        .await
+        .unwrap();
+    wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let s = poll(Duration::from_secs(30), || async {
+        let s = session(&bench).await;
+        (s["heaters_off"] == json!(true)).then_some(s)
+    })
+    .await
+    .expect("heaters not turned off after the hold limit");
+    assert!(s["notes"].to_string().contains("hold limit"), "{s}");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let st = m
+        .objects_query(json!({"heater_bed": ["target"]}))
+        .await
+        .unwrap();
+    assert_eq!(st["heater_bed"]["target"], json!(0.0));
+}
