@@ -56,8 +56,9 @@ pub struct Config {
     pub soak: crate::calib::soak::SoakParams,
 }
 
-/// `[ab]`: defaults of a differential rotation_distance calibration session.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+/// `[ab]`: defaults of a differential rotation_distance calibration session (each session
+/// stores its own copy, with the start call's arguments).
+#[derive(Debug, Clone, Deserialize, serde::Serialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct AbConfig {
     /// `paper` (two groups along the motor directions) or `full` (four groups: also the

@@ -353,8 +353,7 @@ impl SoakDetector {
     /// later than the previous one are ignored; a change of target restarts the soak.
     /// The status changes at most once per `bin_s`.
     pub fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
-        if !(t_s.is_finite() && power.is_finite() && temp_c.is_finite() && target_c.is_finite())
-        {
+        if !(t_s.is_finite() && power.is_finite() && temp_c.is_finite() && target_c.is_finite()) {
             return self.status.clone();
         }
         if self.last_t_s.is_some_and(|last| t_s <= last) {
@@ -570,7 +569,10 @@ impl SoakDetector {
         }
         let (tau, (p_inf, amp, _)) = match solve(n, &s, self.sum_y, self.sum_yy) {
             Some(f) => (refined, f),
-            None => (self.taus[k], solve(n, &self.sums[k], self.sum_y, self.sum_yy)?),
+            None => (
+                self.taus[k],
+                solve(n, &self.sums[k], self.sum_y, self.sum_yy)?,
+            ),
         };
         let remaining = (amp * (-(now_s - t0) / tau).exp()).max(0.0);
         // Residual scatter of the bins about the fit, and its lag-1 autocorrelation: the

@@ -121,29 +121,6 @@ pub struct Round {
     pub applied: Option<ApplyReport>,
 }
 
-/// Per-session settings, copied from `[ab]` and the start call's arguments.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct SessionOptions {
-    /// `paper` or `full`.
-    pub layout: String,
-    /// °C; 0 = unheated.
-    pub bed_temp_c: f64,
-    /// °C.
-    pub nozzle_temp_c: f64,
-    /// Readings a pair needs.
-    pub readings_per_pair: usize,
-    /// Part cool-down after the print, s.
-    pub cooldown_s: f64,
-    /// Longest hot hold after the print, s.
-    pub hold_max_s: f64,
-    /// Largest change without FORCE, %.
-    pub max_change_pct: f64,
-    /// Longest soak, s.
-    pub soak_max_s: f64,
-    /// Refuse readings this far from nominal, mm.
-    pub reading_tolerance_mm: f64,
-}
-
 /// The whole session document, stored as JSON.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Session {
@@ -155,8 +132,8 @@ pub struct Session {
     pub reason: Option<String>,
     /// The current step in words (with an ETA while soaking).
     pub progress: String,
-    /// Settings.
-    pub options: SessionOptions,
+    /// Settings: `[ab]` with the start call's arguments.
+    pub options: AbConfig,
     /// Rounds so far; the last is the current one.
     pub rounds: Vec<Round>,
     /// Things the user should know (skew cleared, heaters turned off, …).
@@ -415,9 +392,27 @@ impl Jobs {
             .await;
     }
 
+    /// Heaters off, and Klipper's idle timeout back to its configured value (the session
+    /// stretched it over the measuring window).
     async fn heaters_off(&self) -> anyhow::Result<()> {
         self.inner.m.gcode("TURN_OFF_HEATERS").await?;
+        let cf = self.inner.m.configfile().await?;
+        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
+            self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
+        }
         Ok(())
+    }
+
+    /// Sets Klipper's XY skew back to what it was before the session cleared it.
+    async fn restore_skew(&self, xy_before: Option<f64>) {
+        if let Some(cmd) = xy_before
+            .filter(|v| *v != 0.0)
+            .and_then(crate::calib::skew::set_skew_command)
+        {
+            if let Err(e) = self.inner.m.gcode(&cmd).await {
+                warn!(error = %e, "could not restore the skew correction");
+            }
+        }
     }
 
     /// Drives the automatic states until the session waits for the user or ends.
@@ -846,16 +841,11 @@ impl Jobs {
                 )))
             }
             None => {
-                let options = SessionOptions {
+                let options = AbConfig {
                     layout,
                     bed_temp_c: bed,
                     nozzle_temp_c: nozzle,
-                    readings_per_pair: d.readings_per_pair,
-                    cooldown_s: d.cooldown_s,
-                    hold_max_s: d.hold_max_s,
-                    max_change_pct: d.max_change_pct,
-                    soak_max_s: d.soak_max_s,
-                    reading_tolerance_mm: d.reading_tolerance_mm,
+                    ..d.clone()
                 };
                 let mut s = Session {
                     id: 0,
@@ -1149,11 +1139,7 @@ impl Jobs {
                 .await?;
                 // Klipper restarted: heaters are off and the idle timeout is the configured
                 // one again. Restore the skew that was active before the session.
-                if let Some(xy) = skew_before.filter(|v| *v != 0.0) {
-                    if let Some(cmd) = crate::calib::skew::set_skew_command(xy) {
-                        let _ = self.inner.m.gcode(&cmd).await;
-                    }
-                }
+                self.restore_skew(skew_before).await;
                 self.console(&format!("A/B calibration {msg}")).await;
                 Ok(json!({"state": next.name(), "applied": report, "message": msg}))
             }
@@ -1196,11 +1182,7 @@ impl Jobs {
             Ok(())
         })
         .await?;
-        if let Some(xy) = s.skew_before.filter(|v| *v != 0.0) {
-            if let Some(cmd) = crate::calib::skew::set_skew_command(xy) {
-                let _ = self.inner.m.gcode(&cmd).await;
-            }
-        }
+        self.restore_skew(s.skew_before).await;
         let _ = self
             .inner
             .m

@@ -15,7 +15,7 @@ pub const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heat
 /// Daemon settings for tests: no cool-down, short soak windows in real seconds.
 pub fn settings(hold_max_s: f64) -> String {
     format!(
-        "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 240.0\n\
+        "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 600.0\n\
          [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 2.0\ntrend_window_s = 4.0\n\
          tau_min_s = 0.5\ntau_max_s = 600.0\n"
     )
@@ -76,6 +76,16 @@ async fn started(bench: &Bench, hold_max_s: f64) -> Daemon {
     d
 }
 
+/// A daemon with a session started on a cold bed (no soak) and waiting for readings.
+async fn measuring_session(bench: &Bench) -> (Daemon, Value) {
+    let d = started(bench, 600.0).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    let s = wait_state(bench, "measuring", Duration::from_secs(400)).await;
+    (d, s)
+}
+
 fn steppers_cfg(bench: &Bench) -> String {
     std::fs::read_to_string(bench.dir.path().join("config/steppers.cfg")).unwrap()
 }
@@ -97,7 +107,7 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         .unwrap_err();
     assert!(again.contains("KLIPCAL_CANCEL"), "{again}");
 
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
     let log = d.log_text();
     assert!(
         log.contains("bed soaking") || log.contains("bed stable"),
@@ -182,12 +192,8 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
 #[tokio::test]
 async fn bad_readings_are_refused_one_by_one_and_nothing_entered_is_lost() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    let d = started(&bench, 600.0).await;
+    let (d, s) = measuring_session(&bench).await;
     let files = bench.files();
-    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
-        .await
-        .unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
     let pair = s["pairs"][0].clone();
     let id = pair["id"].as_str().unwrap().to_string();
     let good = simulated_readings(&pair);
@@ -246,7 +252,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     let mut rx = m.events();
     m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
     for p in s["pairs"].as_array().unwrap() {
         let vals: Vec<String> = simulated_readings(p)
             .iter()
@@ -321,9 +327,11 @@ async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
     })
     .await
     .expect("Klipper went down for the restart");
-    crate::bench::wait_event(&mut rx, Duration::from_secs(30), |e| *e == Event::KlippyReady)
-        .await
-        .expect("Klipper ready after the reconfiguration");
+    crate::bench::wait_event(&mut rx, Duration::from_secs(30), |e| {
+        *e == Event::KlippyReady
+    })
+    .await
+    .expect("Klipper ready after the reconfiguration");
 }
 
 /// PRINT_START sleeps in real time, so the calibration print lasts.
@@ -346,12 +354,8 @@ async fn measure_all(bench: &Bench, pairs: &[Value]) {
 #[tokio::test]
 async fn a_daemon_killed_while_measuring_resumes_with_nothing_lost() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    let mut d = started(&bench, 600.0).await;
+    let (mut d, s) = measuring_session(&bench).await;
     let files = bench.files();
-    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
-        .await
-        .unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
     let pairs = s["pairs"].as_array().unwrap().clone();
     measure_all(&bench, &pairs[..2]).await;
     d.child.kill().unwrap();
@@ -393,7 +397,7 @@ async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
     extension_request(&files, "klipcal_ab_start", json!({"bed": 50}))
         .await
         .unwrap();
-    wait_state(&bench, "printing", Duration::from_secs(240)).await;
+    wait_state(&bench, "printing", Duration::from_secs(400)).await;
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     // Apply is refused while the print runs.
@@ -424,12 +428,8 @@ async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
 #[tokio::test]
 async fn apply_is_refused_while_another_print_runs() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    let _d = started(&bench, 600.0).await;
+    let (_d, s) = measuring_session(&bench).await;
     let files = bench.files();
-    extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
-        .await
-        .unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
     measure_all(&bench, s["pairs"].as_array().unwrap()).await;
     extension_request(&files, "klipcal_solve", json!({}))
         .await
@@ -482,7 +482,7 @@ async fn an_edit_klipper_rejects_is_rolled_back_byte_for_byte() {
     extension_request(&files, "klipcal_ab_start", json!({"bed": 0}))
         .await
         .unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(240)).await;
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
     measure_all(&bench, s["pairs"].as_array().unwrap()).await;
     extension_request(&files, "klipcal_solve", json!({}))
         .await
@@ -506,21 +506,29 @@ async fn an_edit_klipper_rejects_is_rolled_back_byte_for_byte() {
 #[tokio::test]
 async fn heaters_go_off_after_the_maximum_hold() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    let _d = started(&bench, 3.0).await;
-    let files = bench.files();
-    extension_request(&files, "klipcal_ab_start", json!({"bed": 50}))
+    let d = started(&bench, 20.0).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 0}))
         .await
         .unwrap();
-    wait_state(&bench, "measuring", Duration::from_secs(240)).await;
-    let s = poll(Duration::from_secs(30), || async {
+    wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    // The bed is hot while the user measures (heated here, as the print was on a cold bed).
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    m.gcode("SET_HEATER_TEMPERATURE HEATER=heater_bed TARGET=50")
+        .await
+        .unwrap();
+    let s = poll(Duration::from_secs(60), || async {
         let s = session(&bench).await;
         (s["heaters_off"] == json!(true)).then_some(s)
     })
     .await
-    .expect("heaters not turned off after the hold limit");
+    .unwrap_or_else(|| {
+        panic!(
+            "heaters not turned off after the hold limit:\n{}",
+            d.log_text()
+        )
+    });
     assert!(s["notes"].to_string().contains("hold limit"), "{s}");
-    let (m, _c) = bench.client(json!({}));
-    m.wait_connected(Duration::from_secs(30)).await.unwrap();
     let st = m
         .objects_query(json!({"heater_bed": ["target"]}))
         .await
