@@ -23,7 +23,12 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         config.moonraker.url = url;
         config.validate().context("--moonraker")?;
     }
-    init_tracing(&config.log.level);
+    // Only the daemon logs at the configured level; one-shot commands print their own output.
+    let level = match cli.command {
+        Command::Serve => config.log.level.as_str(),
+        _ => "warn",
+    };
+    init_tracing(level);
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
