@@ -32,6 +32,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve => rt.block_on(serve(config)),
         Command::Check(args) => rt.block_on(check(config, args.json)),
         Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::bench::footprint(&a)),
+        Command::Bench(BenchCommand::Soak(a)) => crate::soak_cmd::bench(&a),
+        // The settings have no `[soak]` table yet: the detector's defaults.
+        Command::SoakDetect(a) => {
+            crate::soak_cmd::detect(&a, &crate::calib::soak::SoakParams::default())
+        }
     }
 }
 

@@ -29,6 +29,9 @@ pub enum Command {
     /// Benchmarks: print measured figures beside their targets.
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Offline: replay a recorded bed trace through the thermal soak detector and print when
+    /// it declares equilibrium, and why.
+    SoakDetect(SoakDetectArgs),
 }
 
 /// `klipcal check`
@@ -44,6 +47,8 @@ pub struct CheckArgs {
 pub enum BenchCommand {
     /// Resident memory and CPU of a running daemon beside Moonraker's and klippy's.
     Footprint(FootprintArgs),
+    /// The thermal soak detector on simulated beds, against the 1 % moment and a fixed preheat.
+    Soak(BenchSoakArgs),
 }
 
 /// `klipcal bench footprint`
@@ -61,4 +66,29 @@ pub struct FootprintArgs {
     /// Seconds to measure.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
+}
+
+/// `klipcal soak-detect`
+#[derive(Debug, Args)]
+pub struct SoakDetectArgs {
+    /// CSV trace with columns `t_s,power,temp_c,target_c` (power 0..1; a header row is allowed).
+    #[arg(long, value_name = "PATH")]
+    pub trace: PathBuf,
+    /// Print one JSON object (`{"stable_at_s": …, …}`) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal bench soak`
+#[derive(Debug, Args)]
+pub struct BenchSoakArgs {
+    /// Number of random simulated beds.
+    #[arg(long, default_value_t = 400)]
+    pub beds: usize,
+    /// Seed of the random beds (the same seed gives the same beds).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Also print every bed that failed a target, with the detector's explanation.
+    #[arg(long)]
+    pub show_failures: bool,
 }

@@ -17,6 +17,8 @@
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
+//! - [`soak_cmd`]: the thermal soak commands: `soak-detect` (replay a bed trace through
+//!   [`calib::soak`]) and `bench soak` (simulated beds).
 
 pub mod agent;
 pub mod app;
@@ -29,3 +31,4 @@ pub mod klipper;
 pub mod layout;
 pub mod moonraker;
 pub mod printer;
+pub mod soak_cmd;
