@@ -43,6 +43,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Solve(args) => crate::solve_cmd::run(&args),
         Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
+        Command::Bench(BenchCommand::Soak(a)) => crate::soak_cmd::bench(&a),
+        Command::SoakDetect(a) => crate::soak_cmd::detect(&a, &config.soak),
     }
 }
 

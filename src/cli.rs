@@ -33,6 +33,9 @@ pub enum Command {
     Bench(BenchCommand),
     /// Generate the pylon calibration print (G-code, layout.json, optional SVG preview) offline.
     Pylons(Box<PylonsArgs>),
+    /// Offline: replay a recorded bed trace through the thermal soak detector and print when
+    /// it declares equilibrium, and why.
+    SoakDetect(SoakDetectArgs),
 }
 
 /// `klipcal check`
@@ -50,6 +53,8 @@ pub enum BenchCommand {
     Footprint(FootprintArgs),
     /// Closed-loop calibration accuracy on simulated machines, against the paper and the bound.
     Metrology(MetrologyArgs),
+    /// The thermal soak detector on simulated beds, against the 1 % moment and a fixed preheat.
+    Soak(BenchSoakArgs),
 }
 
 /// `klipcal solve`
@@ -187,4 +192,29 @@ pub struct PylonsArgs {
     /// Where to write the SVG preview.
     #[arg(long, value_name = "PATH")]
     pub svg: Option<PathBuf>,
+}
+
+/// `klipcal soak-detect`
+#[derive(Debug, Args)]
+pub struct SoakDetectArgs {
+    /// CSV trace with columns `t_s,power,temp_c,target_c` (power 0..1; a header row is allowed).
+    #[arg(long, value_name = "PATH")]
+    pub trace: PathBuf,
+    /// Print one JSON object (`{"stable_at_s": …, …}`) instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal bench soak`
+#[derive(Debug, Args)]
+pub struct BenchSoakArgs {
+    /// Number of random simulated beds.
+    #[arg(long, default_value_t = 400)]
+    pub beds: usize,
+    /// Seed of the random beds (the same seed gives the same beds).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Also print every bed that failed a target, with the detector's explanation.
+    #[arg(long)]
+    pub show_failures: bool,
 }

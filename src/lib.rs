@@ -23,6 +23,8 @@
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
 //! - [`solve_cmd`]: `klipcal solve` — reads layout, readings and printer config, prints the
 //!   pure solver's result.
+//! - [`soak_cmd`]: the thermal soak commands: `soak-detect` (replay a bed trace through
+//!   [`calib::soak`]) and `bench soak` (simulated beds).
 
 pub mod agent;
 pub mod app;
@@ -38,5 +40,6 @@ pub mod layout;
 pub mod moonraker;
 pub mod printer;
 pub mod pylons_cmd;
+pub mod soak_cmd;
 pub mod solve_cmd;
 pub mod store;

@@ -10,6 +10,7 @@
 //! - [`skew`]: Klipper's skew correction (`calc_skew_factor`, its inverse, the toolhead
 //!   position it commands), the classic AC/BD/AD method and the Prusa-style point fit.
 //! - [`solve`]: layout + readings + printer facts → one [`solve::Solution`].
+//! - [`soak`]: thermal equilibrium of the bed from its heater power (paper §3.1), with an ETA.
 //! - [`bench_metrology`]: the closed-loop simulated benchmark behind `klipcal bench metrology`.
 
 pub mod bench_metrology;
@@ -18,6 +19,7 @@ pub mod differential;
 pub mod metric;
 pub mod readings;
 pub mod skew;
+pub mod soak;
 pub mod solve;
 
 /// Everything the calibration math can reject. Messages name the pair or group and say what
@@ -119,4 +121,3 @@ pub enum Error {
     #[error("fit: {0}")]
     Fit(String),
 }
-pub mod soak;

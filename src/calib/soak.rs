@@ -3,18 +3,24 @@
 //! predict the time left. No I/O and no clock: every sample carries its own time.
 //!
 //! How it decides. Samples are averaged into bins of `bin_s` (smoothing the controller's
-//! jitter). Once the bin temperature is within `temp_band_c` of the target and the controller
-//! had `settle_s` to settle, every bin is added to a least-squares fit of
-//! `P(t) = P∞ + A·e^(−(t−t0)/τ)` (τ searched on a log grid, P∞ and A solved linearly for each τ,
-//! sums kept incrementally). The remaining fall `R = A·e^(−(now−t0)/τ)` equals τ × the current
-//! downward slope; a fixed slope threshold cannot serve both a 2-minute and a 30-minute plate,
-//! so the threshold is on R. Stable when, all at once:
-//! - the temperature stayed in the band since the soak began, for at least `min_soak_s`;
-//! - the fitted remaining fall `R ≤ max_remaining` and, when a decay was seen at all, the soak
-//!   has lasted `span_taus` time constants (so τ is measured, not guessed);
-//! - the smoothed power fell by no more than `max_window_drop` (plus twice its noise) over the
-//!   trailing window of `max(trend_window_s, τ)`: the plain trend check, which guards the fit
-//!   against a model that does not match the bed.
+//! jitter). A bin counts once its temperature is within `temp_band_c` of the target and the
+//! heater is below `saturated_power` (it has headroom, so the controller is in charge); after
+//! `settle_s` for the controller to settle, every bin goes into a least-squares fit of
+//! `P(t) = P∞ + A·e^(−(t−t0)/τ)` over the last `fit_taus` time constants (τ searched on a log
+//! grid, P∞ and A solved linearly for each τ, sums kept incrementally). The remaining fall
+//! `R = A·e^(−(now−t0)/τ)` equals τ × the current downward slope: a fixed slope threshold cannot
+//! serve both a 2-minute and a 30-minute plate, so the threshold is on R. Stable when, at once:
+//! - the temperature stayed in the band (short excursions skipped) for at least `min_soak_s`,
+//!   and for the trend window, which is longer for a noisier heater;
+//! - R is at most `max_remaining` for every τ the data cannot rule out (a profile over τ at
+//!   about 95 %, among the τ the fitted span resolves), and a decay that was seen at all has
+//!   been watched for `span_taus` time constants;
+//! - the smoothed power fell by no more than `max_window_drop` (plus one standard error of its
+//!   noise) over the trailing window of `max(trend_window_s, τ)`: the plain trend check, which
+//!   guards the fit against a model that does not match the bed.
+//!
+//! A long temperature excursion restarts the soak clock (with twice the settling) but keeps the
+//! power history; a new target forgets everything.
 
 use serde::{Deserialize, Serialize};
 
@@ -32,7 +38,8 @@ pub struct SoakParams {
     /// headroom left: the bed is still heating, whatever the temperature. Default 0.97.
     pub saturated_power: f64,
     /// Time after the temperature first enters the band that is left out of the fit (the
-    /// controller's overshoot and settling). Default 240 s.
+    /// controller's overshoot and settling); twice this after the temperature left the band
+    /// for more than three bins. Default 180 s.
     pub settle_s: f64,
     /// Samples are averaged over bins of this length before anything else. Default 10 s.
     pub bin_s: f64,
@@ -46,7 +53,7 @@ pub struct SoakParams {
     pub span_taus: f64,
     /// The fit uses only the last `fit_taus` fitted time constants of the soak (at least
     /// `min_soak_s`): the plate's slow decay is what matters, and the controller's faster
-    /// transients at the start drop out. Default 3.0.
+    /// transients at the start drop out. Default 6.0.
     pub fit_taus: f64,
     /// Shortest trailing window of the trend check; the window is `max(this, τ)`, capped at
     /// the soak so far. Default 600 s.
@@ -71,12 +78,12 @@ impl Default for SoakParams {
             temp_band_c: 2.0,
             skip_below_c: 30.0,
             saturated_power: 0.97,
-            settle_s: 240.0,
+            settle_s: 180.0,
             bin_s: 10.0,
             min_soak_s: 300.0,
-            max_remaining: 0.004,
+            max_remaining: 0.003,
             span_taus: 2.0,
-            fit_taus: 3.0,
+            fit_taus: 6.0,
             trend_window_s: 300.0,
             max_drop_se: 0.02,
             max_window_drop: 0.008,
@@ -207,6 +214,9 @@ pub struct DecayFit {
     pub final_power: f64,
     /// The power still to fall from now to P∞ (fraction of full power, ≥ 0).
     pub remaining: f64,
+    /// The largest remaining fall among the time constants the data cannot rule out (about
+    /// 95 % confidence) and that the fitted span resolves; the decision uses this one.
+    pub remaining_upper: f64,
     /// The fitted fall from the start of the fit to P∞ (negative when the power rises).
     pub amplitude: f64,
     /// τ sits at the top of the searched range: the end of the decay is not in sight yet.
@@ -220,7 +230,7 @@ pub struct DecayFit {
 
 /// Number of time constants on the search grid (log-spaced, ~7 % apart over the defaults).
 const TAU_GRID: usize = 96;
-/// Consecutive bins out of the band that restart the soak (fewer only pause it).
+/// Consecutive bins out of the band that restart the soak clock (fewer are only skipped).
 const OUT_OF_BAND_BINS: u32 = 3;
 /// The fit sums are rebuilt when their time origin falls this far behind the fit window.
 const REBASE_S: f64 = 600.0;
@@ -281,6 +291,7 @@ pub struct SoakDetector {
     sum_y: f64,
     sum_yy: f64,
     out_of_band_bins: u32,
+    excursions: u32,
     last_saturated_s: Option<f64>,
     status: SoakStatus,
     explanation: String,
@@ -316,6 +327,7 @@ impl SoakDetector {
             sum_y: 0.0,
             sum_yy: 0.0,
             out_of_band_bins: 0,
+            excursions: 0,
             last_saturated_s: None,
             status: SoakStatus::Heating,
             explanation: "no samples yet".into(),
@@ -403,17 +415,6 @@ impl SoakDetector {
         self.status.clone()
     }
 
-    fn clear_soak(&mut self) {
-        self.band_since_s = None;
-        self.soak_t0_s = None;
-        self.fit_t0_s = None;
-        self.fit_from = 0;
-        self.points.clear();
-        self.clear_sums();
-        self.fit = None;
-        self.last_saturated_s = None;
-    }
-
     fn clear_sums(&mut self) {
         self.sums.iter_mut().for_each(|s| *s = TauSums::default());
         self.n = 0.0;
@@ -475,11 +476,17 @@ impl SoakDetector {
         let band = self.params.temp_band_c;
         if (temp_c - target).abs() > band {
             self.out_of_band_bins += 1;
-            // A short excursion (noise, a draught) pauses the soak; a longer one restarts it.
+            // A short excursion (noise, a draught) is skipped. A longer one restarts the soak
+            // clock (settling, minimum soak) but keeps the power history: the plate's decay
+            // went on meanwhile, and forgetting it would only hide how far it still has to go.
             if self.band_since_s.is_some() && self.out_of_band_bins < OUT_OF_BAND_BINS {
                 return;
             }
-            self.clear_soak();
+            if self.band_since_s.is_some() {
+                self.excursions += 1;
+            }
+            self.band_since_s = None;
+            self.soak_t0_s = None;
             self.status = SoakStatus::Heating;
             self.explanation = format!(
                 "temperature {temp_c:.1} °C is {:+.1} °C from the target {target:.1} °C \
@@ -504,14 +511,20 @@ impl SoakDetector {
             return;
         }
         let since = *self.band_since_s.get_or_insert(t_s);
-        if t_s - since < self.params.settle_s {
+        // After an excursion the controller recovers from its own overshoot: twice the settling.
+        let settle_s = if self.excursions > 0 {
+            2.0 * self.params.settle_s
+        } else {
+            self.params.settle_s
+        };
+        if t_s - since < settle_s {
             self.status = SoakStatus::Soaking {
                 progress: 0.0,
                 eta_s: None,
                 reason: format!(
                     "temperature reached; letting the controller settle ({:.0} of {:.0} s)",
                     t_s - since,
-                    self.params.settle_s
+                    settle_s
                 ),
             };
             self.explanation = status_reason(&self.status);
@@ -592,14 +605,34 @@ impl SoakDetector {
         } else {
             0.0
         };
+        let noise_inflation = ((1.0 + rho) / (1.0 - rho)).sqrt();
+        // Profile over τ: every τ the data cannot rule out (sum of squares within z² σ² of the
+        // best, z = 2) and that the data span resolves gives its own remaining fall; the
+        // largest is the bound that the decision uses.
+        let first_s = window.first().map_or(now_s, |p| p.t_s);
+        let resolvable_s = (now_s - first_s) / self.params.span_taus.max(1.0);
+        let slack = 4.0 * noise_sd * noise_sd * noise_inflation * noise_inflation;
+        let best_sse = sse[k];
+        let mut remaining_upper = remaining;
+        for (j, tau_j) in self.taus.iter().enumerate() {
+            let plausible = sse[j].is_finite() && sse[j] <= best_sse + slack;
+            if *tau_j > resolvable_s || !plausible {
+                continue;
+            }
+            if let Some((_, b_j, _)) = solve(n, &self.sums[j], self.sum_y, self.sum_yy) {
+                let r_j = b_j * (-(now_s - t0) / tau_j).exp();
+                remaining_upper = remaining_upper.max(r_j);
+            }
+        }
         Some(DecayFit {
             tau_s: tau,
             final_power: p_inf,
             remaining,
+            remaining_upper,
             amplitude: amp,
             tau_unbounded: k + 1 == self.taus.len(),
             noise_sd,
-            noise_inflation: ((1.0 + rho) / (1.0 - rho)).sqrt(),
+            noise_inflation,
         })
     }
 
@@ -683,17 +716,20 @@ impl SoakDetector {
             0.0
         };
         let span_ok = span >= need_span && fit_span >= need_fit_span;
-        let remaining_ok = fit.remaining <= p.max_remaining && !(decay_seen && fit.tau_unbounded);
+        let remaining_ok =
+            fit.remaining_upper <= p.max_remaining && !(decay_seen && fit.tau_unbounded);
         let trend_limit = p.max_window_drop + trend.drop_se;
         let saturated_recently = self
             .last_saturated_s
             .is_some_and(|t| now_s - t < want_window);
         let trend_ok = trend.drop <= trend_limit && !saturated_recently;
         let fit_words = format!(
-            "fitted decay τ {:.1} min towards {:.1} %, {:.2} % still to fall (stable at ≤ {:.2} %)",
+            "fitted decay τ {:.1} min towards {:.1} %, {:.2} % still to fall, at most {:.2} % \
+             (stable at ≤ {:.2} %)",
             fit.tau_s / 60.0,
             fit.final_power * 100.0,
             fit.remaining * 100.0,
+            fit.remaining_upper * 100.0,
             p.max_remaining * 100.0
         );
         let trend_words = format!(
@@ -748,8 +784,8 @@ impl SoakDetector {
         let eta_s = if decay_seen && fit.tau_unbounded {
             None
         } else {
-            let t_fall = if fit.remaining > p.max_remaining {
-                fit.tau_s * (fit.remaining / p.max_remaining).ln()
+            let t_fall = if fit.remaining_upper > p.max_remaining {
+                fit.tau_s * (fit.remaining_upper / p.max_remaining).ln()
             } else {
                 0.0
             };
@@ -787,4 +823,249 @@ fn solve(n: f64, s: &TauSums, sum_y: f64, sum_yy: f64) -> Option<(f64, f64, f64)
     let a = (sum_y - b * s.x) / n;
     let sse = (sum_yy - a * sum_y - b * s.xy).max(0.0);
     (a.is_finite() && b.is_finite()).then_some((a, b, sse))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const TARGET_C: f64 = 60.0;
+
+    /// A synthetic bed: full power while the temperature ramps to the target over `heat_s`,
+    /// then `P(t) = final + amp·e^(−(t−heat_s)/tau_s)` plus white noise of `noise_sd`, one
+    /// sample a second.
+    struct Synthetic {
+        heat_s: f64,
+        tau_s: f64,
+        final_power: f64,
+        amp: f64,
+        noise_sd: f64,
+        seed: u64,
+    }
+
+    impl Synthetic {
+        fn quiet(tau_s: f64) -> Self {
+            Synthetic {
+                heat_s: 300.0,
+                tau_s,
+                final_power: 0.3,
+                amp: 0.5,
+                noise_sd: 0.0,
+                seed: 1,
+            }
+        }
+
+        /// The last moment the noise-free power is more than 1 % of full power above its end.
+        fn one_percent_moment_s(&self) -> f64 {
+            self.heat_s + self.tau_s * (self.amp / 0.01).ln()
+        }
+
+        fn samples(&self, until_s: f64) -> Vec<(f64, f64, f64)> {
+            let mut rng = fastrand::Rng::with_seed(self.seed);
+            let mut gauss = move || {
+                let u = 1.0 - rng.f64();
+                let v = rng.f64();
+                (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+            };
+            (0..=until_s as usize)
+                .map(|i| {
+                    let t = i as f64;
+                    if t < self.heat_s {
+                        (t, 1.0, 25.0 + (TARGET_C - 25.0) * t / self.heat_s)
+                    } else {
+                        let clean =
+                            self.final_power + self.amp * (-(t - self.heat_s) / self.tau_s).exp();
+                        let p = (clean + self.noise_sd * gauss()).clamp(0.0, 1.0);
+                        (t, p, TARGET_C + 0.1 * gauss())
+                    }
+                })
+                .collect()
+        }
+
+        /// Feeds the detector until it declares; returns the time, or None.
+        fn stable_at(&self, until_s: f64) -> Option<f64> {
+            let mut d = SoakDetector::new(SoakParams::default());
+            self.samples(until_s).into_iter().find_map(|(t, p, temp)| {
+                match d.push(t, p, temp, TARGET_C) {
+                    SoakStatus::Stable { at_s } => Some(at_s),
+                    _ => None,
+                }
+            })
+        }
+    }
+
+    #[test]
+    fn declares_after_the_decay_is_done_and_never_before_the_one_percent_moment() {
+        let bed = Synthetic::quiet(600.0);
+        let moment = bed.one_percent_moment_s();
+        let at = bed.stable_at(4.0 * moment).expect("declared");
+        assert!(
+            at >= moment,
+            "declared at {at} s, before the 1 % moment {moment} s"
+        );
+        assert!(
+            at <= 1.5 * moment + 60.0,
+            "declared at {at} s, later than 1.5 × {moment} s + 60 s"
+        );
+    }
+
+    #[test]
+    fn pid_like_noise_does_not_cause_an_early_declaration() {
+        for (seed, tau_s) in (0..12).zip([300.0, 900.0, 1500.0].into_iter().cycle()) {
+            let bed = Synthetic {
+                noise_sd: 0.04,
+                seed,
+                ..Synthetic::quiet(tau_s)
+            };
+            let moment = bed.one_percent_moment_s();
+            let at = bed.stable_at(4.0 * moment);
+            assert!(
+                at.is_some_and(|at| at >= moment),
+                "seed {seed}, τ {tau_s} s: declared at {at:?}, the 1 % moment is {moment} s"
+            );
+        }
+    }
+
+    #[test]
+    fn an_unheated_bed_skips_the_soak() {
+        for target in [0.0, 25.0] {
+            let mut d = SoakDetector::new(SoakParams::default());
+            assert_eq!(d.push(0.0, 0.0, 22.0, target), SoakStatus::Skipped);
+            assert_eq!(d.push(1.0, 0.0, 22.0, target), SoakStatus::Skipped);
+        }
+        // and heating it later starts a soak
+        let mut d = SoakDetector::new(SoakParams::default());
+        d.push(0.0, 0.0, 22.0, 0.0);
+        assert_eq!(d.push(1.0, 1.0, 22.0, TARGET_C), SoakStatus::Heating);
+    }
+
+    #[test]
+    fn the_eta_shrinks_as_the_decay_proceeds() {
+        let bed = Synthetic {
+            noise_sd: 0.01,
+            ..Synthetic::quiet(900.0)
+        };
+        let mut d = SoakDetector::new(SoakParams::default());
+        let mut seen = Vec::new();
+        let mut stable_at = None;
+        for (t, p, temp) in bed.samples(4.0 * bed.one_percent_moment_s()) {
+            match d.push(t, p, temp, TARGET_C) {
+                SoakStatus::Soaking {
+                    eta_s: Some(eta),
+                    progress,
+                    ..
+                } if [1500.0, 2100.0, 2700.0, 3300.0].contains(&t) => seen.push((t, eta, progress)),
+                SoakStatus::Stable { at_s } => {
+                    stable_at = Some(at_s);
+                    break;
+                }
+                _ => {}
+            }
+        }
+        assert_eq!(seen.len(), 4, "an ETA at every check: {seen:?}");
+        for w in seen.windows(2) {
+            assert!(w[1].1 < w[0].1, "ETA did not shrink: {seen:?}");
+            assert!(w[1].2 > w[0].2, "progress did not grow: {seen:?}");
+        }
+        // The ETA from the middle of the decay points near the actual declaration.
+        let (t, eta, _) = seen[1];
+        let at = stable_at.expect("declared");
+        assert!(
+            ((t + eta) - at).abs() < 0.25 * at,
+            "predicted {} s, declared at {at} s",
+            t + eta
+        );
+    }
+
+    #[test]
+    fn a_bed_whose_temperature_has_not_reached_the_target_is_not_stable() {
+        // Seed 000 §3.7: the plate must be within ±2 K of the set temperature; 2.5 K below is
+        // outside, even with the power perfectly flat.
+        let mut d = SoakDetector::new(SoakParams::default());
+        for i in 0..7200 {
+            let status = d.push(f64::from(i), 0.6, TARGET_C - 2.5, TARGET_C);
+            assert_eq!(status, SoakStatus::Heating, "at {i} s");
+        }
+        assert!(
+            d.explanation().contains("from the target"),
+            "{}",
+            d.explanation()
+        );
+    }
+
+    #[test]
+    fn a_heater_at_full_power_is_still_heating() {
+        let mut d = SoakDetector::new(SoakParams::default());
+        for i in 0..3600 {
+            assert_eq!(
+                d.push(f64::from(i), 1.0, TARGET_C, TARGET_C),
+                SoakStatus::Heating
+            );
+        }
+    }
+
+    #[test]
+    fn a_flat_power_at_temperature_is_declared_after_settling_and_the_minimum_soak() {
+        let params = SoakParams::default();
+        let bed = Synthetic {
+            heat_s: 0.0,
+            amp: 0.0,
+            noise_sd: 0.02,
+            ..Synthetic::quiet(600.0)
+        };
+        let at = bed.stable_at(7200.0).expect("declared");
+        let earliest = params.settle_s + params.min_soak_s;
+        assert!(at >= earliest, "declared at {at} s, before {earliest} s");
+        assert!(at <= earliest + 600.0, "declared at {at} s");
+    }
+
+    #[test]
+    fn a_new_target_restarts_the_soak() {
+        let bed = Synthetic::quiet(300.0);
+        let mut d = SoakDetector::new(SoakParams::default());
+        let mut last_t = 0.0;
+        for (t, p, temp) in bed.samples(6000.0) {
+            d.push(t, p, temp, TARGET_C);
+            last_t = t;
+        }
+        assert!(matches!(d.status(), SoakStatus::Stable { .. }));
+        let status = d.push(last_t + 1.0, 1.0, TARGET_C, TARGET_C + 20.0);
+        assert_eq!(status, SoakStatus::Heating);
+        assert!(d.fit().is_none());
+    }
+
+    #[test]
+    fn samples_that_are_not_finite_or_go_back_in_time_are_ignored() {
+        let bed = Synthetic::quiet(300.0);
+        let mut d = SoakDetector::new(SoakParams::default());
+        let mut reference = SoakDetector::new(SoakParams::default());
+        for (t, p, temp) in bed.samples(3000.0) {
+            let expected = reference.push(t, p, temp, TARGET_C);
+            assert_eq!(d.push(f64::NAN, p, temp, TARGET_C), d.status().clone());
+            assert_eq!(d.push(t, f64::INFINITY, temp, TARGET_C), d.status().clone());
+            assert_eq!(d.push(t, p, temp, TARGET_C), expected);
+            assert_eq!(d.push(t - 5.0, 0.0, 0.0, TARGET_C), expected);
+        }
+    }
+
+    #[test]
+    fn soak_params_read_from_toml_with_defaults_for_missing_keys() {
+        let p: SoakParams = toml::from_str("max_remaining = 0.005\ntemp_band_c = 1.5\n").unwrap();
+        assert_eq!(p.max_remaining, 0.005);
+        assert_eq!(p.temp_band_c, 1.5);
+        assert_eq!(p.min_soak_s, SoakParams::default().min_soak_s);
+        assert!(toml::from_str::<SoakParams>("max_remainder = 0.005").is_err());
+    }
+
+    #[test]
+    fn out_of_range_params_name_the_key_and_what_is_expected() {
+        let p = SoakParams {
+            bin_s: 0.0,
+            ..SoakParams::default()
+        };
+        let err = p.validate().unwrap_err();
+        assert_eq!(err.key, "bin_s");
+        assert!(err.to_string().contains("soak.bin_s = 0"), "{err}");
+        assert!(SoakParams::default().validate().is_ok());
+    }
 }
