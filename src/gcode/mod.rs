@@ -151,6 +151,27 @@ pub struct Machine {
     pub square_corner_velocity_mm_s: Option<f64>,
 }
 
+impl Machine {
+    /// A square printer from 0 to `size_mm` in X and Y with a 0.4 mm nozzle and 1.75 mm
+    /// filament and no other facts known: the fixture of tests, benchmarks and previews.
+    pub fn square_bed(kinematics: Kinematics, size_mm: f64) -> Self {
+        Machine {
+            kinematics,
+            x_min_mm: 0.0,
+            x_max_mm: size_mm,
+            y_min_mm: 0.0,
+            y_max_mm: size_mm,
+            z_max_mm: None,
+            nozzle_diameter_mm: 0.4,
+            filament_diameter_mm: 1.75,
+            has_print_start: false,
+            max_velocity_mm_s: None,
+            max_accel_mm_s2: None,
+            square_corner_velocity_mm_s: None,
+        }
+    }
+}
+
 /// Everything about the job that is not a printer fact. [`Options::default`] is the paper's
 /// practical procedure (shared/seeds/README.md).
 #[derive(Debug, Clone, PartialEq)]

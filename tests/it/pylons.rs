@@ -13,18 +13,10 @@ use crate::bench::{poll, repo, Bench};
 
 fn machine(kinematics: Kinematics, size_mm: f64) -> Machine {
     Machine {
-        kinematics,
-        x_min_mm: 0.0,
-        x_max_mm: size_mm,
-        y_min_mm: 0.0,
-        y_max_mm: size_mm,
         z_max_mm: Some(size_mm.min(250.0)),
-        nozzle_diameter_mm: 0.4,
-        filament_diameter_mm: 1.75,
-        has_print_start: false,
         max_velocity_mm_s: Some(300.0),
         max_accel_mm_s2: Some(3000.0),
-        square_corner_velocity_mm_s: None,
+        ..Machine::square_bed(kinematics, size_mm)
     }
 }
 
