@@ -80,6 +80,10 @@ pub struct AbConfig {
     pub soak_max_s: f64,
     /// Readings further than this from a pair's nominal distance are refused, mm.
     pub reading_tolerance_mm: f64,
+    /// Where the in-plane shear goes: `motors` (A/B rotation distances absorb it, as the paper's
+    /// iteration does; Cartesian printers still send it to Klipper's skew correction) or
+    /// `klipper_skew` (Klipper's skew_correction takes it, saved as profile `klipcal`).
+    pub shear_to: String,
 }
 
 impl Default for AbConfig {
@@ -94,6 +98,7 @@ impl Default for AbConfig {
             max_change_pct: 3.0,
             soak_max_s: 3600.0,
             reading_tolerance_mm: 2.0,
+            shear_to: "motors".into(),
         }
     }
 }

@@ -16,7 +16,7 @@ use tracing::{info, warn};
 
 use super::printer_config::{self, ApplyReport, ValueSet};
 use super::{user, UserError};
-use crate::calib::metric::Kinematics as CalibKinematics;
+use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 use crate::calib::solve::{solve, MotionFacts, SolveOptions, StepperFacts};
 use crate::config::AbConfig;
@@ -403,6 +403,35 @@ impl Jobs {
         Ok(())
     }
 
+    /// Sets the solved skew in Klipper, saves it as profile `klipcal` with SAVE_CONFIG, loads
+    /// it, and says whether PRINT_START loads it at the next print (Klipper does not load skew
+    /// profiles at start).
+    async fn apply_skew(&self, set_skew: &str) -> anyhow::Result<String> {
+        let m = &self.inner.m;
+        m.gcode(set_skew).await?;
+        m.gcode("SKEW_PROFILE SAVE=klipcal").await?;
+        let (state, msg) =
+            printer_config::restart_with(m, "SAVE_CONFIG", Duration::from_secs(60)).await?;
+        if state != "ready" {
+            return Err(anyhow!("Klipper is {state} after SAVE_CONFIG: {msg}"));
+        }
+        m.gcode("SKEW_PROFILE LOAD=klipcal").await?;
+        let pc = printer_config::fetch(m, &self.inner.files).await?;
+        let loads = pc
+            .config
+            .get("gcode_macro PRINT_START", "gcode")
+            .is_some_and(|g| g.to_uppercase().contains("SKEW_PROFILE LOAD=KLIPCAL"));
+        Ok(if loads {
+            format!("skew saved as profile klipcal ({set_skew}); PRINT_START loads it")
+        } else {
+            format!(
+                "skew saved as profile klipcal ({set_skew}) and loaded now; Klipper does not \
+                 load skew profiles at start: add the line `SKEW_PROFILE LOAD=klipcal` to your \
+                 PRINT_START macro"
+            )
+        })
+    }
+
     /// Sets Klipper's XY skew back to what it was before the session cleared it.
     async fn restore_skew(&self, xy_before: Option<f64>) {
         if let Some(cmd) = xy_before
@@ -489,6 +518,9 @@ impl Jobs {
         }
         if !facts.has_exclude_object {
             missing.push("[exclude_object]");
+        }
+        if s.options.shear_to == "klipper_skew" && !facts.has_skew_correction {
+            missing.push("[skew_correction] (ab.shear_to = \"klipper_skew\")");
         }
         if !facts.has_heater_bed && s.options.bed_temp_c > 0.0 {
             missing.push("[heater_bed] (or start with BED=0)");
@@ -1006,7 +1038,14 @@ impl Jobs {
             stepper_x: stepper(&round.stepper_x),
             stepper_y: stepper(&round.stepper_y),
         };
-        let mut opts = SolveOptions::default();
+        let mut opts = SolveOptions {
+            shear_to: if s.options.shear_to == "klipper_skew" {
+                ShearTo::KlipperSkew
+            } else {
+                ShearTo::Motors
+            },
+            ..SolveOptions::default()
+        };
         if s.rounds.len() > 1 {
             let prev = &s.rounds[s.rounds.len() - 2];
             opts.previous = prev.solution.as_ref().and_then(|sol| {
@@ -1138,8 +1177,30 @@ impl Jobs {
                 })
                 .await?;
                 // Klipper restarted: heaters are off and the idle timeout is the configured
-                // one again. Restore the skew that was active before the session.
-                self.restore_skew(skew_before).await;
+                // one again. Then the skew: the new one, or the one from before the session.
+                let skew_note = match sol["skew"]["set_skew"].as_str() {
+                    Some(cmd) if sol["skew"]["applied"] == json!(true) => {
+                        Some(match self.apply_skew(cmd).await {
+                            Ok(note) => note,
+                            Err(e) => format!(
+                                "the rotation distances are applied, but the skew was not \
+                                 saved: {e:#}; set it by hand with {cmd}"
+                            ),
+                        })
+                    }
+                    _ => {
+                        self.restore_skew(skew_before).await;
+                        None
+                    }
+                };
+                if let Some(note) = &skew_note {
+                    self.update(s.id, |s| {
+                        s.notes.push(note.clone());
+                        Ok(())
+                    })
+                    .await?;
+                    self.console(&format!("A/B calibration: {note}")).await;
+                }
                 self.console(&format!("A/B calibration {msg}")).await;
                 Ok(json!({"state": next.name(), "applied": report, "message": msg}))
             }

@@ -104,8 +104,28 @@ async fn klipper_state(m: &Moonraker) -> Option<(String, String)> {
 /// FIRMWARE_RESTART and wait until Klipper is ready or has failed; returns its final state
 /// and message.
 async fn restart(m: &Moonraker, limit: Duration) -> anyhow::Result<(String, String)> {
+    restart_with(m, "FIRMWARE_RESTART", limit).await
+}
+
+/// Runs a G-code that restarts Klipper (`FIRMWARE_RESTART`, `SAVE_CONFIG`) and waits until
+/// Klipper is ready or has failed; returns its final state and message.
+///
+/// # Errors
+/// Moonraker failures, or Klipper not coming back within `limit`.
+pub async fn restart_with(
+    m: &Moonraker,
+    gcode: &str,
+    limit: Duration,
+) -> anyhow::Result<(String, String)> {
     let mut rx = m.events();
-    m.firmware_restart().await?;
+    if gcode == "FIRMWARE_RESTART" {
+        m.firmware_restart().await?;
+    } else if let Err(e) = m.gcode(gcode).await {
+        // SAVE_CONFIG's reply may be cut off by the restart it triggers.
+        if e.is_refusal() {
+            return Err(e.into());
+        }
+    }
     let deadline = tokio::time::Instant::now() + limit;
     // Wait for the restart to begin, then for ready (notify_klippy_ready) or a settled error.
     let mut saw_ready = false;

@@ -536,3 +536,105 @@ async fn heaters_go_off_after_the_maximum_hold() {
         .unwrap();
     assert_eq!(st["heater_bed"]["target"], json!(0.0));
 }
+
+#[tokio::test]
+async fn shear_sent_to_klipper_is_saved_as_a_skew_profile_that_cancels_it() {
+    use klipcal::calib::metric::{corrected_matrix, face_scale, machine_matrix, Kinematics};
+    let bench = Bench::start_with("cartesian", Some(PLANT));
+    // `shear_to` goes into the [ab] table, which comes before [soak].
+    let toml = settings(600.0).replacen("[soak]", "shear_to = \"klipper_skew\"\n[soak]", 1);
+    let d = Daemon::start_with(&bench, &toml);
+    let files = bench.files();
+    assert!(
+        poll(Duration::from_secs(30), || async {
+            agent_listed(&files).await.then_some(())
+        })
+        .await
+        .is_some(),
+        "{}",
+        d.log_text()
+    );
+    extension_request(
+        &files,
+        "klipcal_ab_start",
+        json!({"bed": 0, "layout": "full"}),
+    )
+    .await
+    .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    // A Cartesian machine 0.3 % long in X, 0.2 % short in Y, its frame skewed 0.3°.
+    let m = machine_matrix(Kinematics::Cartesian, [1.003, 0.998], 0.3_f64.to_radians());
+    for p in s["pairs"].as_array().unwrap() {
+        let nominal = p["nominal_mm"].as_f64().unwrap();
+        let scale = face_scale(&m, p["direction_deg"].as_f64().unwrap());
+        let values: Vec<f64> = [0.0, 0.002, -0.002, 0.001, -0.001]
+            .iter()
+            .map(|n| ((nominal * scale - 0.05 + n) * 1000.0).round() / 1000.0)
+            .collect();
+        extension_request(
+            &files,
+            "klipcal_measure",
+            json!({"pair": p["id"], "values": values}),
+        )
+        .await
+        .unwrap();
+    }
+    let sol = extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    let sol = sol["solution"].clone();
+    assert_eq!(sol["skew"]["applied"], json!(true), "{sol}");
+    let xy = sol["skew"]["xy_factor"].as_f64().unwrap();
+    let sx = sol["stepper_x"]["scale"].as_f64().unwrap();
+    let sy = sol["stepper_y"]["scale"].as_f64().unwrap();
+    // The correction leaves no shear on the simulated machine (to the readings' rounding).
+    let c = corrected_matrix(Kinematics::Cartesian, &m, [sx, sy], xy);
+    let g = c.transpose() * c;
+    let shear = g[(0, 1)] / (g[(0, 0)] * g[(1, 1)]).sqrt();
+    assert!(shear.abs() < 2e-4, "residual shear {shear}, xy {xy}");
+    let r = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        ["applied", "converged"].contains(&r["state"].as_str().unwrap()),
+        "{r}"
+    );
+    // Saved by SAVE_CONFIG, loaded now, and the user is told PRINT_START must load it.
+    let printer_cfg = std::fs::read_to_string(bench.dir.path().join("config/printer.cfg")).unwrap();
+    assert!(
+        printer_cfg.contains("#*# [skew_correction klipcal]"),
+        "{printer_cfg}"
+    );
+    let s = session(&bench).await;
+    assert!(
+        s["notes"].to_string().contains("SKEW_PROFILE LOAD=klipcal"),
+        "{s}"
+    );
+    let (mc, _c) = bench.client(json!({}));
+    mc.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = mc.events();
+    mc.gcode("GET_CURRENT_SKEW").await.unwrap();
+    let line = crate::bench::wait_event(
+        &mut rx,
+        Duration::from_secs(5),
+        |e| matches!(e, klipcal::moonraker::Event::GcodeResponse(l) if l.contains("XY Skew")),
+    )
+    .await
+    .expect("GET_CURRENT_SKEW answer");
+    let klipper_xy: f64 = match line {
+        klipcal::moonraker::Event::GcodeResponse(l) => l
+            .split("XY Skew:")
+            .nth(1)
+            .unwrap()
+            .split_whitespace()
+            .next()
+            .unwrap()
+            .parse()
+            .unwrap(),
+        _ => unreachable!(),
+    };
+    assert!(
+        (klipper_xy - xy).abs() < 1e-5,
+        "Klipper {klipper_xy} vs solved {xy}"
+    );
+}
