@@ -706,6 +706,7 @@ impl Jobs {
             self.console(&format!("A/B calibration: printing {}", round.file))
                 .await;
         }
+        let mut standby = 0;
         loop {
             tokio::time::sleep(Duration::from_millis(500)).await;
             let st = match self
@@ -753,10 +754,19 @@ impl Jobs {
                         ps["message"].as_str().unwrap_or("Klipper error")
                     ))
                 }
-                "standby" if !self.klipper_ready().await => {
-                    return Err(anyhow!("Klipper shut down during the calibration print"))
+                "standby" => {
+                    // Klipper forgot the print: it shut down or restarted mid-print. Two looks
+                    // a moment apart, so a print just being started is not mistaken for it.
+                    standby += 1;
+                    if standby >= 3 {
+                        return Err(anyhow!(if self.klipper_ready().await {
+                            "the calibration print stopped: Klipper restarted during the print"
+                        } else {
+                            "Klipper shut down during the calibration print"
+                        }));
+                    }
                 }
-                _ => {}
+                _ => standby = 0,
             }
         }
     }

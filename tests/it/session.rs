@@ -335,11 +335,6 @@ async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
     .expect("Klipper ready after the reconfiguration");
 }
 
-/// PRINT_START sleeps in real time, so the calibration print lasts.
-fn slow_print_start(text: &str) -> String {
-    text.replacen("  G92 E0\n", "  G92 E0\n  BENCH_SLEEP SECONDS=60\n", 1)
-}
-
 async fn measure_all(bench: &Bench, pairs: &[Value]) {
     for p in pairs {
         extension_request(
@@ -392,7 +387,7 @@ async fn a_daemon_killed_while_measuring_resumes_with_nothing_lost() {
 #[tokio::test]
 async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    reconfigure(&bench, slow_print_start).await;
+    reconfigure(&bench, print_start_sleeping(60)).await;
     let _d = started(&bench, 600.0).await;
     let files = bench.files();
     extension_request(&files, "klipcal_ab_start", json!({"bed": 50}))
@@ -637,4 +632,75 @@ async fn shear_sent_to_klipper_is_saved_as_a_skew_profile_that_cancels_it() {
         (klipper_xy - xy).abs() < 1e-5,
         "Klipper {klipper_xy} vs solved {xy}"
     );
+}
+
+/// PRINT_START sleeps `seconds` in real time.
+fn print_start_sleeping(seconds: u32) -> impl Fn(&str) -> String {
+    move |text: &str| {
+        text.replacen(
+            "  G92 E0\n",
+            &format!("  G92 E0\n  BENCH_SLEEP SECONDS={seconds}\n"),
+            1,
+        )
+    }
+}
+
+#[tokio::test]
+async fn moonraker_and_the_daemon_restarting_mid_print_lose_nothing() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    reconfigure(&bench, print_start_sleeping(12)).await;
+    let mut d = started(&bench, 600.0).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    wait_state(&bench, "printing", Duration::from_secs(400)).await;
+    bench.stop_one("moonraker");
+    d.child.kill().unwrap();
+    d.child.wait().unwrap();
+    bench.start_one("moonraker");
+    let d2 = started(&bench, 600.0).await;
+    // The resumed session follows the same print to its end and asks for readings.
+    let s = wait_state(&bench, "measuring", Duration::from_secs(120)).await;
+    assert_eq!(s["round"], 1, "{s}");
+    assert!(
+        d2.log_text().contains("resuming session"),
+        "{}",
+        d2.log_text()
+    );
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let st = m
+        .objects_query(json!({"print_stats": ["state", "filename"]}))
+        .await
+        .unwrap();
+    assert_eq!(
+        st["print_stats"]["state"], "complete",
+        "printed once, to the end"
+    );
+    assert_eq!(st["print_stats"]["filename"], s["file"]);
+}
+
+#[tokio::test]
+async fn klipper_restarting_mid_print_fails_the_session_with_the_reason() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    reconfigure(&bench, print_start_sleeping(60)).await;
+    let _d = started(&bench, 600.0).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 0}))
+        .await
+        .unwrap();
+    wait_state(&bench, "printing", Duration::from_secs(400)).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await
+    .expect("print running");
+    m.firmware_restart().await.unwrap();
+    let s = wait_state(&bench, "failed", Duration::from_secs(60)).await;
+    assert!(s["reason"].as_str().unwrap().contains("Klipper"), "{s}");
 }
