@@ -141,10 +141,6 @@ pub struct Daemon {
 }
 
 impl Daemon {
-    pub fn start(bench: &Bench) -> Daemon {
-        Self::start_with(bench, "")
-    }
-
     /// Starts the daemon with extra TOML appended to its settings (e.g. `[ab]`, `[soak]`).
     pub fn start_with(bench: &Bench, extra_toml: &str) -> Daemon {
         let dir = bench.dir.path();
@@ -169,6 +165,22 @@ impl Daemon {
             .spawn()
             .expect("klipcal binary");
         Daemon { child, log }
+    }
+
+    /// Starts the daemon and waits until Moonraker lists it as an agent.
+    pub async fn ready(bench: &Bench, extra_toml: &str) -> Daemon {
+        let d = Self::start_with(bench, extra_toml);
+        let files = bench.files();
+        let listed = poll(Duration::from_secs(30), || async {
+            agent_listed(&files).await.then_some(())
+        })
+        .await;
+        assert!(
+            listed.is_some(),
+            "klipcal never registered as an agent:\n{}",
+            d.log_text()
+        );
+        d
     }
 
     pub fn log_text(&self) -> String {

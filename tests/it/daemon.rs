@@ -13,15 +13,7 @@ use crate::bench::{agent_listed, extension_request, poll, wait_event, Bench, Dae
 const LONG: Duration = Duration::from_secs(30);
 
 async fn daemon_ready(bench: &Bench) -> Daemon {
-    let d = Daemon::start(bench);
-    let files = bench.files();
-    let listed = poll(LONG, || async { agent_listed(&files).await.then_some(()) }).await;
-    assert!(
-        listed.is_some(),
-        "klipcal never registered as an agent:\n{}",
-        d.log_text()
-    );
-    d
+    Daemon::ready(bench, "").await
 }
 
 /// Runs KLIPCAL_STATUS from the console and waits for the daemon's RESPOND line.

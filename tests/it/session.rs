@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use serde_json::{json, Value};
 
-use crate::bench::{agent_listed, extension_request, poll, Bench, Daemon};
+use crate::bench::{extension_request, poll, Bench, Daemon};
 
 /// A plant fast enough for a test: 20 simulated seconds per real second, a 100 s plate.
 pub const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0}}"#;
@@ -63,18 +63,7 @@ async fn wait_state(bench: &Bench, state: &str, limit: Duration) -> Value {
 }
 
 async fn started(bench: &Bench, hold_max_s: f64) -> Daemon {
-    let d = Daemon::start_with(bench, &settings(hold_max_s));
-    let files = bench.files();
-    assert!(
-        poll(Duration::from_secs(30), || async {
-            agent_listed(&files).await.then_some(())
-        })
-        .await
-        .is_some(),
-        "daemon did not connect:\n{}",
-        d.log_text()
-    );
-    d
+    Daemon::ready(bench, &settings(hold_max_s)).await
 }
 
 /// A daemon with a session started on a cold bed (no soak) and waiting for readings.
@@ -538,17 +527,8 @@ async fn shear_sent_to_klipper_is_saved_as_a_skew_profile_that_cancels_it() {
     let bench = Bench::start_with("cartesian", Some(PLANT));
     // `shear_to` goes into the [ab] table, which comes before [soak].
     let toml = settings(600.0).replacen("[soak]", "shear_to = \"klipper_skew\"\n[soak]", 1);
-    let d = Daemon::start_with(&bench, &toml);
+    let _d = Daemon::ready(&bench, &toml).await;
     let files = bench.files();
-    assert!(
-        poll(Duration::from_secs(30), || async {
-            agent_listed(&files).await.then_some(())
-        })
-        .await
-        .is_some(),
-        "{}",
-        d.log_text()
-    );
     extension_request(
         &files,
         "klipcal_ab_start",
