@@ -582,19 +582,7 @@ mod tests {
     use crate::calib::metric::machine_matrix;
     use rand::SeedableRng;
 
-    fn facts(kin: Kinematics) -> MotionFacts {
-        let s = StepperFacts {
-            rotation_distance_mm: 40.0,
-            microsteps: 64,
-            full_steps_per_rotation: 400,
-            gear_ratio: 1.0,
-        };
-        MotionFacts {
-            kinematics: kin,
-            stepper_x: s,
-            stepper_y: s,
-        }
-    }
+    use crate::calib::bench_metrology::facts;
 
     fn readings(
         kin: Kinematics,

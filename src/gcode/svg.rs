@@ -158,18 +158,8 @@ mod tests {
     #[test]
     fn the_preview_labels_every_pair_with_its_nominal_distance() {
         let m = Machine {
-            kinematics: Kinematics::CoreXy,
-            x_min_mm: 0.0,
-            x_max_mm: 300.0,
-            y_min_mm: 0.0,
-            y_max_mm: 300.0,
             z_max_mm: Some(250.0),
-            nozzle_diameter_mm: 0.4,
-            filament_diameter_mm: 1.75,
-            has_print_start: false,
-            max_velocity_mm_s: None,
-            max_accel_mm_s2: None,
-            square_corner_velocity_mm_s: None,
+            ..Machine::square_bed(Kinematics::CoreXy, 300.0)
         };
         let o = Options {
             layout: LayoutKind::Full,

@@ -66,6 +66,19 @@ async fn started(bench: &Bench, hold_max_s: f64) -> Daemon {
     Daemon::ready(bench, &settings(hold_max_s)).await
 }
 
+/// Waits until Klipper reports a print running.
+async fn wait_printing(m: &klipcal::moonraker::Moonraker) {
+    poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await
+    .expect("no print running");
+}
+
 /// A daemon with a session started on a cold bed (no soak) and waiting for readings.
 async fn measuring_session(bench: &Bench) -> (Daemon, Value) {
     let d = started(bench, 600.0).await;
@@ -390,15 +403,7 @@ async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
         .await
         .unwrap_err();
     assert!(e.contains("printing") || e.contains("apply follows"), "{e}");
-    poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()?;
-        (st["print_stats"]["state"] == "printing").then_some(())
-    })
-    .await
-    .expect("print running");
+    wait_printing(&m).await;
     m.gcode("CANCEL_PRINT").await.unwrap();
     let s = wait_state(&bench, "cancelled", Duration::from_secs(30)).await;
     assert!(s["reason"].as_str().unwrap().contains("cancelled"), "{s}");
@@ -430,15 +435,7 @@ async fn apply_is_refused_while_another_print_runs() {
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     m.print_start("other.gcode").await.unwrap();
-    poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()?;
-        (st["print_stats"]["state"] == "printing").then_some(())
-    })
-    .await
-    .expect("other print running");
+    wait_printing(&m).await;
     let before = steppers_cfg(&bench);
     let e = extension_request(&files, "klipcal_apply", json!({}))
         .await
@@ -671,15 +668,7 @@ async fn klipper_restarting_mid_print_fails_the_session_with_the_reason() {
     wait_state(&bench, "printing", Duration::from_secs(400)).await;
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()?;
-        (st["print_stats"]["state"] == "printing").then_some(())
-    })
-    .await
-    .expect("print running");
+    wait_printing(&m).await;
     m.firmware_restart().await.unwrap();
     let s = wait_state(&bench, "failed", Duration::from_secs(60)).await;
     assert!(s["reason"].as_str().unwrap().contains("Klipper"), "{s}");
