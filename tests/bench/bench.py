@@ -267,9 +267,16 @@ def spawn(name, info):
         out.write(("\n=== %s start %s\n" % (time.strftime("%H:%M:%S"),
                                            " ".join(cmd))).encode())
         out.flush()
+        # Each run its own temp folder: Moonraker names upload temp files
+        # after its event-loop time, so parallel Moonrakers sharing /tmp can
+        # move each other's uploads away.
+        env = clean_env()
+        tmp = os.path.join(info["run_dir"], "tmp")
+        os.makedirs(tmp, exist_ok=True)
+        env["TMPDIR"] = tmp
         p = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=out,
                              stderr=subprocess.STDOUT, start_new_session=True,
-                             cwd=info["run_dir"], env=clean_env())
+                             cwd=info["run_dir"], env=env)
     info["pids"][name] = p.pid
     save_info(info)
     return p
