@@ -16,6 +16,7 @@
 pub mod bench_metrology;
 pub mod budget;
 pub mod differential;
+pub mod entry;
 pub mod metric;
 pub mod readings;
 pub mod skew;
