@@ -114,10 +114,7 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     let cals = match crate::store::Store::open(&data_dir) {
         Ok(store) => Some(crate::jobs::Calibrations::new(
             crate::jobs::Core::new(m.clone(), files, store, cancel.clone()),
-            crate::jobs::ab::AbSettings {
-                defaults: config.ab.clone(),
-                soak: config.soak.clone(),
-            },
+            &config,
         )),
         Err(e) => {
             tracing::error!(error = %e, "calibration sessions disabled");

@@ -76,10 +76,16 @@ pub struct Calibrations {
 }
 
 impl Calibrations {
-    /// Every calibration klipcal has, over `core`.
+    /// Every calibration klipcal has, over `core`, each with its own sections of the settings.
     #[must_use]
-    pub fn new(core: Core, ab: super::ab::AbSettings) -> Self {
-        let list: Vec<Arc<dyn Calibration>> = vec![Arc::new(super::ab::Ab::new(core.clone(), ab))];
+    pub fn new(core: Core, config: &crate::config::Config) -> Self {
+        let list: Vec<Arc<dyn Calibration>> = vec![Arc::new(super::ab::Ab::new(
+            core.clone(),
+            super::ab::AbSettings {
+                defaults: config.ab.clone(),
+                soak: config.soak.clone(),
+            },
+        ))];
         for c in &list {
             core.register_kind(c.kind(), c.title());
         }
