@@ -9,3 +9,4 @@ mod pylons;
 mod runall;
 mod session;
 mod skew;
+mod startup;

@@ -40,7 +40,9 @@ fn run_all_also_runs_the_documentation_examples() {
         "{calls:?}"
     );
     assert!(
-        calls.iter().any(|c| c.split_whitespace().eq(["test", "--doc"])),
+        calls
+            .iter()
+            .any(|c| c.split_whitespace().eq(["test", "--doc"])),
         "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
     );
     // README names the script as the test command.
