@@ -511,6 +511,25 @@ async fn actor(
     let shared = handle.shared.clone();
     let opts = &shared.opts;
     let mut backoff = opts.reconnect_min;
+    // The reason last reported at warn level: a failing connection is reported once, and again
+    // only when the reason changes (not at every retry).
+    let mut reported: Option<String> = None;
+    let report = |reported: &mut Option<String>, why: String| {
+        if reported.as_deref() != Some(why.as_str()) {
+            let msg = format!(
+                "cannot reach Moonraker at {}: {why}; retrying every {} s at most",
+                opts.url,
+                fmt_secs(opts.reconnect_max)
+            );
+            // Only the daemon (the agent) reports at warn; `check` says it in its own words.
+            if opts.agent {
+                warn!("{msg}");
+            } else {
+                debug!("{msg}");
+            }
+            *reported = Some(why);
+        }
+    };
     loop {
         if shared.cancel.is_cancelled() {
             break;
@@ -527,6 +546,7 @@ async fn actor(
             Ok(Ok((ws, _))) => {
                 info!(url = %opts.url, "connected to Moonraker");
                 backoff = opts.reconnect_min;
+                reported = None;
                 session(&handle, ws, &mut rx, &agent_tx).await;
                 handle.set_state(ConnState::Connecting(Some("connection closed".into())));
                 handle.emit(Event::Disconnected);
@@ -537,10 +557,14 @@ async fn actor(
             }
             Ok(Err(e)) => {
                 debug!(error = %e, "connect failed");
-                handle.set_state(ConnState::Connecting(Some(e.to_string())));
+                let why = connect_failure(&e);
+                handle.set_state(ConnState::Connecting(Some(why.clone())));
+                report(&mut reported, why);
             }
             Err(_) => {
-                handle.set_state(ConnState::Connecting(Some("connect timed out".into())));
+                let why = format!("no answer within {} s", fmt_secs(opts.request_timeout));
+                handle.set_state(ConnState::Connecting(Some(why.clone())));
+                report(&mut reported, why);
             }
         }
         // Wait before the next try; requests made meanwhile fail at once.
@@ -567,6 +591,42 @@ async fn actor(
         if let Cmd::Request { tx, .. } = cmd {
             let _ = tx.send(Err(Error::Shutdown));
         }
+    }
+}
+
+/// A short reason for a failed websocket connect, in a user's words
+/// (`connection refused`, `host not found`, `HTTP 404 Not Found`).
+fn connect_failure(e: &tokio_tungstenite::tungstenite::Error) -> String {
+    use std::io::ErrorKind;
+    use tokio_tungstenite::tungstenite::Error as WsError;
+    match e {
+        WsError::Io(io) => match io.kind() {
+            ErrorKind::ConnectionRefused => "connection refused".into(),
+            ErrorKind::ConnectionReset => "connection reset".into(),
+            ErrorKind::TimedOut => "timed out".into(),
+            ErrorKind::NotFound => "host not found".into(),
+            _ => {
+                let text = io.to_string();
+                if text.contains("failed to lookup address") || text.contains("Name or service") {
+                    "host not found".into()
+                } else {
+                    text
+                }
+            }
+        },
+        WsError::Http(resp) => format!("HTTP {} (is the URL's path /websocket?)", resp.status()),
+        WsError::Url(u) => format!("bad URL: {u}"),
+        other => other.to_string(),
+    }
+}
+
+/// Seconds without a needless fraction: 1 → "1", 0.5 → "0.5".
+fn fmt_secs(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if (s - s.round()).abs() < 1e-9 {
+        format!("{s:.0}")
+    } else {
+        format!("{s:.1}")
     }
 }
 

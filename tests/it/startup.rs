@@ -85,6 +85,49 @@ fn warnings(log: &str) -> Vec<&str> {
 }
 
 #[test]
+fn unreachable_moonraker_is_warned_once_per_reason_at_the_default_level() {
+    let port = free_port();
+    let url = format!("ws://127.0.0.1:{port}/websocket");
+    let d = Lone::start(&url, 1.0);
+    let log = d.wait_lines("cannot reach Moonraker", 1, Duration::from_secs(10));
+    let w = warnings(&log);
+    assert_eq!(w.len(), 1, "one warning within 10 s:\n{log}");
+    assert!(w[0].contains("WARN"), "{log}");
+    assert!(
+        w[0].contains(&format!(
+            "cannot reach Moonraker at {url}: connection refused; retrying every 1 s at most"
+        )),
+        "{log}"
+    );
+    // Several retries later (1 s apart at most) still one warning.
+    std::thread::sleep(Duration::from_secs(4));
+    assert_eq!(warnings(&d.log_text()).len(), 1, "{}", d.log_text());
+
+    // The reason changes: something answers on the port, but not as Moonraker does.
+    let listener = TcpListener::bind(("127.0.0.1", port)).unwrap();
+    listener.set_nonblocking(true).unwrap();
+    let start = Instant::now();
+    while start.elapsed() < Duration::from_secs(6) {
+        match listener.accept() {
+            Ok((mut s, _)) => {
+                s.set_nonblocking(false).unwrap();
+                s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+                let mut buf = [0u8; 2048];
+                let _ = s.read(&mut buf);
+                let _ = s.write_all(b"HTTP/1.1 404 Not Found\r\nContent-Length: 0\r\n\r\n");
+            }
+            Err(_) => std::thread::sleep(Duration::from_millis(20)),
+        }
+    }
+    drop(listener);
+    let log = d.wait_lines("cannot reach Moonraker", 3, Duration::from_secs(10));
+    let w = warnings(&log);
+    assert_eq!(w.len(), 3, "refused, then 404, then refused again:\n{log}");
+    assert!(w[1].contains("HTTP 404"), "{log}");
+    assert!(w[2].contains("connection refused"), "{log}");
+}
+
+#[test]
 fn the_log_has_no_colour_codes_when_stderr_is_not_a_terminal() {
     let url = format!("ws://127.0.0.1:{}/websocket", free_port());
     let d = Lone::start(&url, 1.0);
