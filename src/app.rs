@@ -150,6 +150,9 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     )
     .await;
     agent.abort();
+    if let Some(why) = m.fatal_error() {
+        anyhow::bail!("{why}");
+    }
     info!("klipcal stopped");
     Ok(ExitCode::SUCCESS)
 }

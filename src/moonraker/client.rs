@@ -135,6 +135,10 @@ struct Shared {
     status: Mutex<Map<String, Value>>,
     subscriptions: Mutex<Map<String, Value>>,
     cancel: CancellationToken,
+    /// Set once this client has identified; a refusal after that is not fatal.
+    identified_once: std::sync::atomic::AtomicBool,
+    /// Why the client gave up for good (Moonraker refused to identify the agent).
+    fatal: Mutex<Option<String>>,
 }
 
 /// The cloneable handle to the Moonraker connection.
@@ -170,6 +174,8 @@ impl Moonraker {
             state,
             status: Mutex::new(Map::new()),
             cancel,
+            identified_once: std::sync::atomic::AtomicBool::new(false),
+            fatal: Mutex::new(None),
         });
         let handle = Moonraker {
             shared: shared.clone(),
@@ -196,6 +202,13 @@ impl Moonraker {
     /// A watch on the connection state.
     pub fn state_watch(&self) -> watch::Receiver<ConnState> {
         self.shared.state.subscribe()
+    }
+
+    /// Why the client stopped for good, when it did: Moonraker refused to identify this
+    /// client on its first connection (another agent with the same name, a wrong API key).
+    /// The client then cancels its token, so the daemon stops and reports this.
+    pub fn fatal_error(&self) -> Option<String> {
+        lock(&self.shared.fatal).clone()
     }
 
     /// The merged status of every subscribed object, as last reported.
@@ -438,7 +451,38 @@ impl Moonraker {
         if let Some(key) = &opts.api_key {
             ident["api_key"] = json!(key);
         }
-        let r = self.call_raw("server.connection.identify", ident).await?;
+        let r = match self.call_raw("server.connection.identify", ident).await {
+            Ok(r) => r,
+            Err(e) => {
+                use std::sync::atomic::Ordering;
+                // A refusal on the first connection will not go away by retrying (the name is
+                // taken by another running daemon, or the API key is wrong): stop, with
+                // Moonraker's reason. Later, a refusal may be our own previous connection not
+                // yet closed on Moonraker's side, so it is only logged.
+                if e.is_refusal() && !self.shared.identified_once.load(Ordering::SeqCst) {
+                    let why = match &e {
+                        Error::Rpc { message, .. } => message.clone(),
+                        other => other.to_string(),
+                    };
+                    *lock(&self.shared.fatal) = Some(format!(
+                        "Moonraker at {} refused to register klipcal as agent `{}`: {why}{}",
+                        opts.url,
+                        opts.client_name,
+                        if why.contains("already registered") {
+                            " (another klipcal is already serving this printer; stop it first, \
+                             or give this one its own Moonraker)"
+                        } else {
+                            ""
+                        }
+                    ));
+                    self.shared.cancel.cancel();
+                }
+                return Err(e);
+            }
+        };
+        self.shared
+            .identified_once
+            .store(true, std::sync::atomic::Ordering::SeqCst);
         debug!(connection_id = %r["connection_id"], "identified as agent");
         for m in &opts.remote_methods {
             if let Err(e) = self

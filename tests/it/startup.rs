@@ -138,3 +138,27 @@ fn the_log_has_no_colour_codes_when_stderr_is_not_a_terminal() {
         "ANSI escape codes in a log file:\n{log:?}"
     );
 }
+
+#[tokio::test]
+async fn a_second_daemon_on_the_same_moonraker_exits_with_moonrakers_reason() {
+    let bench = Bench::start("corexy");
+    let _first = Daemon::ready(&bench, "").await;
+    let mut second = Daemon::start_with(&bench, "");
+    let start = Instant::now();
+    let status = loop {
+        if let Some(st) = second.child.try_wait().unwrap() {
+            break Some(st);
+        }
+        if start.elapsed() > Duration::from_secs(30) {
+            break None;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let log = second.log_text();
+    let status = status.unwrap_or_else(|| panic!("the second daemon stayed up:\n{log}"));
+    assert!(!status.success(), "{log}");
+    assert!(log.contains("already registered"), "{log}");
+    assert!(log.contains("another klipcal is already serving"), "{log}");
+    // The first one keeps serving.
+    assert!(agent_listed(&bench.files()).await);
+}
