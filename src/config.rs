@@ -10,12 +10,13 @@ use serde::Deserialize;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be read.
-    #[error("cannot read config file {path}: {source}")]
+    #[error("cannot read config file {path}: {cause}")]
     Read {
         /// The path tried.
         path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
+        /// The I/O error. Shown in the message, and deliberately not the error's `source()`:
+        /// a `{:#}` chain would print it twice.
+        cause: std::io::Error,
     },
     /// The file is not valid TOML or has an unknown key or a value of the wrong type.
     #[error("config file {path}: {message}")]
@@ -193,9 +194,9 @@ impl Config {
                 p
             }
         };
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Read {
+        let text = std::fs::read_to_string(&path).map_err(|cause| Error::Read {
             path: path.clone(),
-            source,
+            cause,
         })?;
         Self::parse(&text).map_err(|e| match e {
             Error::Parse { message, .. } => Error::Parse { path, message },
@@ -393,5 +394,13 @@ mod tests {
         let err = Config::parse("[moonraker]\nrequest_timeout_s = \"ten\"\n").unwrap_err();
         let msg = err.to_string();
         assert!(msg.contains("request_timeout_s"), "{msg}");
+    }
+
+    #[test]
+    fn a_settings_file_that_cannot_be_read_names_its_cause_once() {
+        let err = Config::load(Some(Path::new("/nonexistent/klipcal.toml"))).unwrap_err();
+        let shown = format!("{:#}", anyhow::Error::new(err));
+        assert_eq!(shown.matches("No such file").count(), 1, "{shown}");
+        assert!(shown.contains("/nonexistent/klipcal.toml"), "{shown}");
     }
 }
