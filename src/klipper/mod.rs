@@ -7,6 +7,8 @@
 //!   reads them from.
 //! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
 //!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
+//! - [`start_macro`]: [`find_start_macro`], the start macro the slicer calls (configured,
+//!   `PRINT_START` or `START_PRINT`).
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
@@ -15,6 +17,7 @@ pub mod edit;
 pub mod facts;
 pub mod files;
 pub mod gcode_cmd;
+pub mod start_macro;
 
 use std::path::PathBuf;
 
@@ -25,6 +28,7 @@ pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
+pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.
 #[derive(Debug, thiserror::Error)]
