@@ -52,9 +52,12 @@ fn init_tracing(level: &str) {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| EnvFilter::new(format!("klipcal={level},warn")));
+    use std::io::IsTerminal;
+    // Colour only on a terminal: log files and journald get plain text.
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_target(false);
     // journald stamps every line itself.
     if std::env::var_os("JOURNAL_STREAM").is_some() {
@@ -140,6 +143,9 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     )
     .await;
     agent.abort();
+    if let Some(why) = m.fatal_error() {
+        anyhow::bail!("{why}");
+    }
     info!("klipcal stopped");
     Ok(ExitCode::SUCCESS)
 }
