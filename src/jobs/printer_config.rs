@@ -43,8 +43,10 @@ pub struct ApplyReport {
     pub changes: Vec<(String, String, String, String)>,
 }
 
-/// Reads every `.cfg`/`.conf` file of the config root (except klipcal's backups) through
-/// Moonraker, and parses the config Klipper runs (`printer.info` → `config_file`).
+/// Reads the config Klipper runs (`printer.info` → `config_file`) through Moonraker: exactly
+/// the files its `[include]` patterns match in Moonraker's listing of the `config` root,
+/// whatever their extension (`[include configs/*]` also reads `steppers.cfg.bak`, as Klipper
+/// does), downloading each once. A pattern matching a folder fails, as it fails Klipper.
 ///
 /// # Errors
 /// Moonraker failures, or a config Klipper's own rules reject.
@@ -62,21 +64,101 @@ pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig
         .map(PathBuf::from)
         .ok_or_else(|| anyhow!("printer.info names no config_file"))?;
     let list = files.get("/server/files/list?root=config").await?;
-    let mut mem = MemFiles::new();
-    for item in list.as_array().into_iter().flatten() {
-        let Some(rel) = item["path"].as_str() else {
-            continue;
-        };
-        let wanted = rel.ends_with(".cfg") || rel.ends_with(".conf");
-        if !wanted || rel.starts_with("klipcal_backups/") {
-            continue;
+    let listed: Vec<String> = list
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|item| item["path"].as_str().map(str::to_string))
+        .collect();
+    let mut remote = Listed::new(&root, &listed);
+    // Load; every file the loader asked for and did not have is downloaded, then load again
+    // (each round reaches one include level deeper).
+    loop {
+        let result = Config::load(&remote, &main);
+        let wanted = remote.take_wanted();
+        if wanted.is_empty() {
+            let config = result.with_context(|| format!("reading {}", main.display()))?;
+            return Ok(PrinterConfig { config, root });
         }
-        let bytes = files.download("config", rel).await?;
-        mem.insert(root.join(rel), String::from_utf8_lossy(&bytes).into_owned());
+        for path in wanted {
+            let rel = path
+                .strip_prefix(&root)
+                .map(|p| p.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let bytes = files
+                .download("config", &rel)
+                .await
+                .with_context(|| format!("downloading config/{rel}"))?;
+            remote.insert(path, bytes);
+        }
     }
-    let config =
-        Config::load(&mem, &main).with_context(|| format!("reading {}", main.display()))?;
-    Ok(PrinterConfig { config, root })
+}
+
+/// Moonraker's file listing of the config root as a [`klipper::Files`]: globs match the
+/// listing (files and the folders holding them), reads answer from what was downloaded and
+/// note what is still wanted.
+struct Listed {
+    /// Every listed file, with its name so far (empty until downloaded).
+    listing: MemFiles,
+    listed: std::collections::BTreeSet<PathBuf>,
+    texts: std::collections::BTreeMap<PathBuf, Result<String, String>>,
+    wanted: std::cell::RefCell<std::collections::BTreeSet<PathBuf>>,
+}
+
+impl Listed {
+    fn new(root: &Path, rel_paths: &[String]) -> Listed {
+        let mut listing = MemFiles::new();
+        let mut listed = std::collections::BTreeSet::new();
+        for rel in rel_paths {
+            let p = klipper::files::normalize_path(&root.join(rel));
+            listing.insert(&p, "");
+            listed.insert(p);
+        }
+        Listed {
+            listing,
+            listed,
+            texts: Default::default(),
+            wanted: Default::default(),
+        }
+    }
+
+    fn take_wanted(&mut self) -> Vec<PathBuf> {
+        std::mem::take(&mut *self.wanted.borrow_mut())
+            .into_iter()
+            .collect()
+    }
+
+    fn insert(&mut self, path: PathBuf, bytes: Vec<u8>) {
+        let text = String::from_utf8(bytes).map_err(|_| {
+            "it is not UTF-8 text (Klipper cannot read it either); save it as UTF-8".to_string()
+        });
+        self.texts.insert(path, text);
+    }
+}
+
+impl klipper::Files for Listed {
+    fn read(&self, path: &Path) -> std::io::Result<String> {
+        let key = klipper::files::normalize_path(path);
+        match self.texts.get(&key) {
+            Some(Ok(text)) => Ok(text.clone()),
+            Some(Err(why)) => Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                why.clone(),
+            )),
+            None if self.listed.contains(&key) => {
+                self.wanted.borrow_mut().insert(key);
+                Err(std::io::Error::new(
+                    std::io::ErrorKind::WouldBlock,
+                    "not downloaded yet",
+                ))
+            }
+            None => self.listing.read(&key),
+        }
+    }
+
+    fn glob(&self, pattern: &Path) -> std::io::Result<Vec<PathBuf>> {
+        self.listing.glob(pattern)
+    }
 }
 
 impl PrinterConfig {
