@@ -92,8 +92,7 @@ impl MemFiles {
 /// The error for reading a folder as a config file (what `open()` gives Klipper, which then
 /// stops with "Unable to open config file …").
 pub fn folder_error() -> io::Error {
-    io::Error::new(
-        io::ErrorKind::Other,
+    io::Error::other(
         "it is a folder, not a file (an [include] pattern matched it; Klipper stops on it too \
          with \"Unable to open config file\"); make the pattern match files only, e.g. *.cfg",
     )
