@@ -1163,7 +1163,7 @@ impl Jobs {
                 };
                 let skew_before = s.skew_before;
                 let msg = format!(
-                    "applied: {}; backups in config/{}. {}",
+                    "applied: {}; backups in config/{}. {}{}",
                     report
                         .changes
                         .iter()
@@ -1171,6 +1171,11 @@ impl Jobs {
                         .collect::<Vec<_>>()
                         .join(", "),
                     report.backup_dir,
+                    report
+                        .notes
+                        .iter()
+                        .map(|n| format!("{n}. "))
+                        .collect::<String>(),
                     if converged {
                         "Converged: the calibration is done."
                     } else {
