@@ -1119,7 +1119,7 @@ impl Ab {
                 };
                 let skew_before = s.skew_before;
                 let msg = format!(
-                    "applied: {}; backups in config/{}. {}",
+                    "applied: {}; backups in config/{}. {}{}",
                     report
                         .changes
                         .iter()
@@ -1127,6 +1127,11 @@ impl Ab {
                         .collect::<Vec<_>>()
                         .join(", "),
                     report.backup_dir,
+                    report
+                        .notes
+                        .iter()
+                        .map(|n| format!("{n}. "))
+                        .collect::<String>(),
                     if converged {
                         "Converged: the calibration is done."
                     } else {

@@ -19,6 +19,9 @@ pub struct PrinterConfig {
     pub config: Config,
     /// Absolute folder of Moonraker's `config` root.
     pub root: PathBuf,
+    /// Files of the config klipcal must not write (a symlink leading out of the config root,
+    /// another project's git checkout), with the reason.
+    pub protected: Vec<klipper::Protected>,
 }
 
 /// One value to write: `[section] key = value`.
@@ -39,12 +42,18 @@ pub struct ApplyReport {
     pub files: Vec<String>,
     /// Where the backups went, relative to the config root.
     pub backup_dir: String,
-    /// `(section, key, old, new)` for each value.
+    /// `(section, key, old, new)` for each value (AWD companions included).
     pub changes: Vec<(String, String, String, String)>,
+    /// What the user should know: companions scaled with the axis, values written to
+    /// `klipcal_overrides.cfg` instead of a protected file, and why.
+    #[serde(default)]
+    pub notes: Vec<String>,
 }
 
-/// Reads every `.cfg`/`.conf` file of the config root (except klipcal's backups) through
-/// Moonraker, and parses the config Klipper runs (`printer.info` → `config_file`).
+/// Reads the config Klipper runs (`printer.info` → `config_file`) through Moonraker: exactly
+/// the files its `[include]` patterns match in Moonraker's listing of the `config` root,
+/// whatever their extension (`[include configs/*]` also reads `steppers.cfg.bak`, as Klipper
+/// does), downloading each once. A pattern matching a folder fails, as it fails Klipper.
 ///
 /// # Errors
 /// Moonraker failures, or a config Klipper's own rules reject.
@@ -62,21 +71,171 @@ pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig
         .map(PathBuf::from)
         .ok_or_else(|| anyhow!("printer.info names no config_file"))?;
     let list = files.get("/server/files/list?root=config").await?;
-    let mut mem = MemFiles::new();
-    for item in list.as_array().into_iter().flatten() {
-        let Some(rel) = item["path"].as_str() else {
-            continue;
-        };
-        let wanted = rel.ends_with(".cfg") || rel.ends_with(".conf");
-        if !wanted || rel.starts_with("klipcal_backups/") {
-            continue;
+    let listed: Vec<String> = list
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|item| item["path"].as_str().map(str::to_string))
+        .collect();
+    let mut remote = Listed::new(&root, &listed);
+    // Load; every file the loader asked for and did not have is downloaded, then load again
+    // (each round reaches one include level deeper).
+    loop {
+        let result = Config::load(&remote, &main);
+        let wanted = remote.take_wanted();
+        if wanted.is_empty() {
+            let config = result.with_context(|| format!("reading {}", main.display()))?;
+            let protected = protected_files(&root, &listed, &config);
+            return Ok(PrinterConfig {
+                config,
+                root,
+                protected,
+            });
         }
-        let bytes = files.download("config", rel).await?;
-        mem.insert(root.join(rel), String::from_utf8_lossy(&bytes).into_owned());
+        for path in wanted {
+            let rel = path
+                .strip_prefix(&root)
+                .map(|p| p.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let bytes = files
+                .download("config", &rel)
+                .await
+                .with_context(|| format!("downloading config/{rel}"))?;
+            remote.insert(path, bytes);
+        }
     }
-    let config =
-        Config::load(&mem, &main).with_context(|| format!("reading {}", main.display()))?;
-    Ok(PrinterConfig { config, root })
+}
+
+/// The config's files klipcal must not write, and why: reached through a symlink that leaves
+/// the config root, or inside another project's git checkout (a folder below the root with its
+/// own `.git`; the root itself being a git repository is the user's own backup and fine).
+/// Looked at on the local file system when the root is there (klipcal runs beside Moonraker),
+/// and in Moonraker's listing (which shows `.git` folders) in any case.
+fn protected_files(root: &Path, listed: &[String], config: &Config) -> Vec<klipper::Protected> {
+    let mut out: Vec<klipper::Protected> = Vec::new();
+    let real_root = std::fs::canonicalize(root).ok();
+    let git_dirs: Vec<PathBuf> = listed
+        .iter()
+        .filter_map(|rel| {
+            let p = Path::new(rel);
+            let mut dir = PathBuf::new();
+            for c in p.components() {
+                if c.as_os_str() == ".git" {
+                    return (!dir.as_os_str().is_empty()).then(|| root.join(&dir));
+                }
+                dir.push(c);
+            }
+            None
+        })
+        .collect();
+    for f in config.files() {
+        let mut reason = None;
+        if let (Some(real_root), Ok(real)) = (&real_root, std::fs::canonicalize(&f.path)) {
+            if !real.starts_with(real_root) {
+                reason = Some(format!(
+                    "it is reached through a symlink that leads out of the config folder {} \
+                     (to {})",
+                    root.display(),
+                    real.display()
+                ));
+            } else {
+                reason = real
+                    .ancestors()
+                    .skip(1)
+                    .take_while(|a| *a != real_root.as_path())
+                    .find(|a| a.join(".git").exists())
+                    .map(git_reason);
+            }
+        }
+        if reason.is_none() {
+            reason = git_dirs
+                .iter()
+                .find(|d| f.path.starts_with(d))
+                .map(|d| git_reason(d));
+        }
+        if let Some(reason) = reason {
+            out.push(klipper::Protected {
+                path: f.path.clone(),
+                reason,
+            });
+        }
+    }
+    out
+}
+
+fn git_reason(dir: &Path) -> String {
+    format!(
+        "it lies in {}, another project's git checkout (its own .git), whose updates would \
+         undo or clash with the change",
+        dir.display()
+    )
+}
+
+/// Moonraker's file listing of the config root as a [`klipper::Files`]: globs match the
+/// listing (files and the folders holding them), reads answer from what was downloaded and
+/// note what is still wanted.
+struct Listed {
+    /// Every listed file, with its name so far (empty until downloaded).
+    listing: MemFiles,
+    listed: std::collections::BTreeSet<PathBuf>,
+    texts: std::collections::BTreeMap<PathBuf, Result<String, String>>,
+    wanted: std::cell::RefCell<std::collections::BTreeSet<PathBuf>>,
+}
+
+impl Listed {
+    fn new(root: &Path, rel_paths: &[String]) -> Listed {
+        let mut listing = MemFiles::new();
+        let mut listed = std::collections::BTreeSet::new();
+        for rel in rel_paths {
+            let p = klipper::files::normalize_path(&root.join(rel));
+            listing.insert(&p, "");
+            listed.insert(p);
+        }
+        Listed {
+            listing,
+            listed,
+            texts: Default::default(),
+            wanted: Default::default(),
+        }
+    }
+
+    fn take_wanted(&mut self) -> Vec<PathBuf> {
+        std::mem::take(&mut *self.wanted.borrow_mut())
+            .into_iter()
+            .collect()
+    }
+
+    fn insert(&mut self, path: PathBuf, bytes: Vec<u8>) {
+        let text = String::from_utf8(bytes).map_err(|_| {
+            "it is not UTF-8 text (Klipper cannot read it either); save it as UTF-8".to_string()
+        });
+        self.texts.insert(path, text);
+    }
+}
+
+impl klipper::Files for Listed {
+    fn read(&self, path: &Path) -> std::io::Result<String> {
+        let key = klipper::files::normalize_path(path);
+        match self.texts.get(&key) {
+            Some(Ok(text)) => Ok(text.clone()),
+            Some(Err(why)) => Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                why.clone(),
+            )),
+            None if self.listed.contains(&key) => {
+                self.wanted.borrow_mut().insert(key);
+                Err(std::io::Error::new(
+                    std::io::ErrorKind::WouldBlock,
+                    "not downloaded yet",
+                ))
+            }
+            None => self.listing.read(&key),
+        }
+    }
+
+    fn glob(&self, pattern: &Path) -> std::io::Result<Vec<PathBuf>> {
+        self.listing.glob(pattern)
+    }
 }
 
 impl PrinterConfig {
@@ -156,9 +315,12 @@ pub async fn restart_with(
         .unwrap_or(("ready".into(), String::new())))
 }
 
-/// Writes the values where Klipper reads them, restarts Klipper, and confirms them through
-/// `configfile.settings`; on failure restores every touched file from its backup, restarts
-/// again and returns Klipper's message.
+/// Writes the values where Klipper reads them ([`klipper::plan_values`]: every stepper of an
+/// axis together, AWD included; a value defined in a protected file goes to
+/// `klipcal_overrides.cfg`, included last), restarts Klipper, and confirms every value through
+/// `configfile.settings`; on failure restores every touched file from its backup (removing a
+/// file it created), restarts again and returns Klipper's message. The report's `notes` say
+/// what was done beyond the values asked for, and why.
 ///
 /// # Errors
 /// A value that cannot be edited, a Moonraker failure, or Klipper failing on the new config
@@ -170,46 +332,62 @@ pub async fn apply(
     values: &[ValueSet],
     stamp: &str,
 ) -> anyhow::Result<ApplyReport> {
-    let triples: Vec<(&str, &str, &str)> = values
+    let triples: Vec<(String, String, String)> = values
         .iter()
-        .map(|v| (v.section.as_str(), v.key.as_str(), v.value.as_str()))
+        .map(|v| (v.section.clone(), v.key.clone(), v.value.clone()))
         .collect();
-    let edits = klipper::set_values(&pc.config, &triples)?;
+    let plan = klipper::plan_values(&pc.config, &triples, &pc.protected)?;
     let backup_dir = format!("klipcal_backups/{stamp}");
     let mut report = ApplyReport {
         files: Vec::new(),
         backup_dir: backup_dir.clone(),
-        changes: Vec::new(),
+        changes: plan
+            .changes
+            .iter()
+            .map(|c| {
+                (
+                    c.section.clone(),
+                    c.key.clone(),
+                    c.old_value.clone(),
+                    c.new_value.clone(),
+                )
+            })
+            .collect(),
+        notes: plan.notes.clone(),
     };
-    let mut originals = Vec::new();
-    for e in &edits {
-        let rel = pc.rel(&e.path)?;
-        let old = pc.config.files()[e.file].text.clone();
-        files
-            .upload(
-                "config",
-                &format!("{backup_dir}/{rel}"),
-                old.clone().into_bytes(),
-            )
-            .await
-            .with_context(|| format!("backing up {rel}"))?;
-        originals.push((rel.clone(), old));
-        for c in &e.changes {
-            report.changes.push((
-                c.section.clone(),
-                c.key.clone(),
-                c.old_value.clone(),
-                c.new_value.clone(),
-            ));
+    // (relative path, text before; None for a file the plan creates)
+    let mut originals: Vec<(String, Option<String>)> = Vec::new();
+    for f in &plan.files {
+        let rel = pc.rel(&f.path)?;
+        if let Some(old) = &f.old_text {
+            files
+                .upload(
+                    "config",
+                    &format!("{backup_dir}/{rel}"),
+                    old.clone().into_bytes(),
+                )
+                .await
+                .with_context(|| format!("backing up {rel}"))?;
         }
+        originals.push((rel.clone(), f.old_text.clone()));
         report.files.push(rel);
     }
-    for (e, (rel, _)) in edits.iter().zip(&originals) {
+    for (f, (rel, _)) in plan.files.iter().zip(&originals) {
         files
-            .upload("config", rel, e.new_text.clone().into_bytes())
+            .upload("config", rel, f.new_text.clone().into_bytes())
             .await
             .with_context(|| format!("writing {rel}"))?;
     }
+    let values: Vec<ValueSet> = plan
+        .values
+        .iter()
+        .map(|(section, key, value)| ValueSet {
+            section: section.clone(),
+            key: key.clone(),
+            value: value.clone(),
+        })
+        .collect();
+    let values = values.as_slice();
     let (state, msg) = restart(m, Duration::from_secs(60)).await?;
     let verified = if state == "ready" {
         verify(m, values).await
@@ -218,10 +396,18 @@ pub async fn apply(
     };
     if let Err(why) = verified {
         for (rel, old) in &originals {
-            files
-                .upload("config", rel, old.clone().into_bytes())
-                .await
-                .with_context(|| format!("restoring {rel} from {backup_dir}"))?;
+            match old {
+                Some(old) => files
+                    .upload("config", rel, old.clone().into_bytes())
+                    .await
+                    .map(|_| ())
+                    .with_context(|| format!("restoring {rel} from {backup_dir}"))?,
+                None => files
+                    .delete("config", rel)
+                    .await
+                    .map(|_| ())
+                    .with_context(|| format!("removing {rel}, which klipcal created"))?,
+            }
         }
         let (state2, msg2) = restart(m, Duration::from_secs(60)).await?;
         bail!(

@@ -1063,6 +1063,31 @@ gcode:
     }
 
     #[test]
+    fn includes_read_every_matched_file_whatever_its_extension_and_fail_on_a_folder() {
+        // Klipper's glob.glob("configs/*") also returns steppers.cfg.bak and reads it.
+        let files = MemFiles::new()
+            .with("/c/printer.cfg", "[include configs/*]\n")
+            .with(
+                "/c/configs/steppers.cfg",
+                "[stepper_x]\nrotation_distance: 40\n",
+            )
+            .with(
+                "/c/configs/steppers.cfg.bak",
+                "[stepper_x]\nrotation_distance: 39\n",
+            );
+        let cfg = Config::load(&files, Path::new("/c/printer.cfg")).unwrap();
+        assert_eq!(cfg.get("stepper_x", "rotation_distance"), Some("39"));
+        assert_eq!(cfg.files().len(), 3);
+        // a folder matched by the pattern stops the load, as open() on it stops Klipper
+        let files = files.with("/c/configs/old/x.cfg", "[a]\n");
+        let err = Config::load(&files, Path::new("/c/printer.cfg")).unwrap_err();
+        let msg = err.to_string();
+        assert!(matches!(err, Error::Read { .. }), "{msg}");
+        assert!(msg.contains("/c/configs/old"), "{msg}");
+        assert!(msg.contains("it is a folder"), "{msg}");
+    }
+
+    #[test]
     fn a_blank_line_inside_the_save_config_block_makes_klipper_ignore_the_block() {
         let text = "[a]\nx: 1\n\n#*# <---------------------- SAVE_CONFIG ---------------------->\n\
                     #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n#*#\n\

@@ -332,7 +332,7 @@ fn step_distance_error(src: &dyn Source, section: &str, sd_text: &str) -> Result
 }
 
 /// `getlists('gear_ratio', seps=(':', ','), count=2, parser=float)`, multiplied out.
-fn parse_gear_ratio(section: &str, text: &str) -> Result<f64, Error> {
+pub(crate) fn parse_gear_ratio(section: &str, text: &str) -> Result<f64, Error> {
     const EXPECT: &str = "pairs like '80:20, 2:1' (each 'driven:driving', numbers above 0)";
     let mut result = 1.0;
     for pair in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -398,7 +398,7 @@ fn parse_uint(section: &str, key: &str, text: &str, expected: &str) -> Result<u3
 
 /// Python `float(text)` for finite values (underscores between digits allowed, surrounding
 /// whitespace ignored); None for anything else, including inf and nan.
-fn py_float(text: &str) -> Option<f64> {
+pub(crate) fn py_float(text: &str) -> Option<f64> {
     let t = remove_digit_underscores(text.trim())?;
     t.parse::<f64>().ok().filter(|v| v.is_finite())
 }

@@ -28,7 +28,8 @@ pub trait Files {
 
 /// Files held in memory, keyed by their lexically normalised path (`a/./b/../c` → `a/c`).
 /// Folders exist only through the files in them, so `missing/../x.cfg` finds `x.cfg` here where
-/// a real file system (and Klipper) would not.
+/// a real file system (and Klipper) would not. As Python's `glob`, a pattern also matches those
+/// folders (`configs/*` matches `configs/sub`); reading a folder fails, as Klipper's `open()`.
 #[derive(Debug, Clone, Default)]
 pub struct MemFiles {
     files: BTreeMap<PathBuf, String>,
@@ -56,21 +57,45 @@ impl MemFiles {
 
 impl Files for MemFiles {
     fn read(&self, path: &Path) -> io::Result<String> {
-        self.files
-            .get(&normalize_path(path))
-            .cloned()
-            .ok_or_else(|| io::Error::new(io::ErrorKind::NotFound, "no such file"))
+        let path = normalize_path(path);
+        if let Some(text) = self.files.get(&path) {
+            return Ok(text.clone());
+        }
+        if self.is_dir(&path) {
+            return Err(folder_error());
+        }
+        Err(io::Error::new(io::ErrorKind::NotFound, "no such file"))
     }
 
     fn glob(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
         let pattern = normalize_path(pattern);
-        Ok(self
+        let mut found: Vec<PathBuf> = self
             .files
             .keys()
-            .filter(|p| path_matches(&pattern, p))
-            .cloned()
-            .collect())
+            .flat_map(|p| p.ancestors().skip(1).chain(std::iter::once(p.as_path())))
+            .filter(|p| p.parent().is_some() && path_matches(&pattern, p))
+            .map(Path::to_path_buf)
+            .collect();
+        found.sort();
+        found.dedup();
+        Ok(found)
     }
+}
+
+impl MemFiles {
+    /// True when some file lies under `path` (normalised).
+    fn is_dir(&self, path: &Path) -> bool {
+        self.files.keys().any(|p| p != path && p.starts_with(path))
+    }
+}
+
+/// The error for reading a folder as a config file (what `open()` gives Klipper, which then
+/// stops with "Unable to open config file …").
+pub fn folder_error() -> io::Error {
+    io::Error::other(
+        "it is a folder, not a file (an [include] pattern matched it; Klipper stops on it too \
+         with \"Unable to open config file\"); make the pattern match files only, e.g. *.cfg",
+    )
 }
 
 /// Lexical normalisation like Python's `os.path.normpath`: drops `.` components and resolves
@@ -265,6 +290,30 @@ mod tests {
             .with("/cfg/macros/sub/b.cfg", "");
         let found = files.glob(Path::new("/cfg/./macros/*.cfg")).unwrap();
         assert_eq!(found, vec![PathBuf::from("/cfg/macros/a.cfg")]);
+    }
+
+    #[test]
+    fn a_pattern_matches_folders_too_and_reading_one_fails() {
+        let files = MemFiles::new()
+            .with("/cfg/configs/a.cfg", "")
+            .with("/cfg/configs/a.cfg.bak", "")
+            .with("/cfg/configs/sub/b.cfg", "");
+        let found = files.glob(Path::new("/cfg/configs/*")).unwrap();
+        assert_eq!(
+            found,
+            [
+                "/cfg/configs/a.cfg",
+                "/cfg/configs/a.cfg.bak",
+                "/cfg/configs/sub"
+            ]
+            .map(PathBuf::from)
+        );
+        let err = files.read(Path::new("/cfg/configs/sub")).unwrap_err();
+        assert!(err.to_string().contains("it is a folder"), "{err}");
+        assert_eq!(
+            files.read(Path::new("/cfg/nothing")).unwrap_err().kind(),
+            io::ErrorKind::NotFound
+        );
     }
 
     #[test]

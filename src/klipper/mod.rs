@@ -5,6 +5,8 @@
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
 //!   reads them from.
+//! - [`plan`]: [`plan_values`]: AWD companions scaled together, and values that live in files
+//!   klipcal must not touch written to `klipcal_overrides.cfg` instead.
 //! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
 //!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
 //! - [`start_macro`]: [`find_start_macro`], the start macro the slicer calls (configured,
@@ -17,6 +19,7 @@ pub mod edit;
 pub mod facts;
 pub mod files;
 pub mod gcode_cmd;
+pub mod plan;
 pub mod start_macro;
 
 use std::path::PathBuf;
@@ -28,6 +31,7 @@ pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
+pub use plan::{plan_values, PlannedFile, Protected, WritePlan};
 pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.
@@ -191,6 +195,12 @@ pub enum Error {
         /// The worked conversion, e.g. `200 × 16 × 0.0125 = 40 → rotation_distance: 40`.
         conversion: String,
     },
+    /// Steppers of one axis that cannot be changed together.
+    #[error("{0}")]
+    Companion(String),
+    /// A value cannot be written where it would win without touching a protected file.
+    #[error("{0}")]
+    Protected(String),
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),

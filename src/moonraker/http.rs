@@ -99,6 +99,20 @@ impl Files {
         Ok(body.to_vec())
     }
 
+    /// Deletes a file of a root (`DELETE /server/files/{root}/{path}`).
+    ///
+    /// # Errors
+    /// HTTP failure, or Moonraker's refusal (404 when the file does not exist).
+    pub async fn delete(&self, root: &str, path: &str) -> Result<Value, Error> {
+        let url = format!("{}/server/files/{root}/{path}", self.base);
+        let resp = self
+            .req(self.client.delete(&url))
+            .send()
+            .await
+            .map_err(|e| http_err("DELETE", &url, e))?;
+        json_body("DELETE", &url, resp).await
+    }
+
     /// GET an API path (e.g. `/server/info`) and return the `result` field.
     ///
     /// # Errors

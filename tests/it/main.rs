@@ -6,6 +6,7 @@ mod bench;
 mod daemon;
 mod fake;
 mod pylons;
+mod realcfg;
 mod runall;
 mod session;
 mod skew;
