@@ -45,6 +45,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
         Command::Bench(BenchCommand::Soak(a)) => crate::soak_cmd::bench(&a),
         Command::SoakDetect(a) => crate::soak_cmd::detect(&a, &config.soak),
+        Command::Bench(BenchCommand::Mesh(a)) => crate::mesh_cmd::bench(&a),
+        Command::Mesh(crate::cli::MeshCommand::Fit(a)) => crate::mesh_cmd::fit_cmd(&a),
+        Command::Mesh(crate::cli::MeshCommand::Profiles(a)) => crate::mesh_cmd::profiles_cmd(&a),
     }
 }
 

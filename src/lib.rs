@@ -23,6 +23,7 @@
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
 //! - [`solve_cmd`]: `klipcal solve` — reads layout, readings and printer config, prints the
 //!   pure solver's result.
+//! - [`mesh_cmd`]: `mesh fit`, `mesh profiles` (offline thermal bed-mesh) and `bench mesh`.
 //! - [`soak_cmd`]: the thermal soak commands: `soak-detect` (replay a bed trace through
 //!   [`calib::soak`]) and `bench soak` (simulated beds).
 
@@ -37,6 +38,7 @@ pub mod gcode;
 pub mod jobs;
 pub mod klipper;
 pub mod layout;
+pub mod mesh_cmd;
 pub mod moonraker;
 pub mod printer;
 pub mod pylons_cmd;
