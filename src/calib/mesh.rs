@@ -516,12 +516,12 @@ pub fn nearest(temps_c: &[f64], t: f64) -> usize {
 /// # Errors
 /// A tolerance that is not positive, or an empty range.
 pub fn plan_profiles(fit: &Fit, lo: f64, hi: f64, tolerance_um: f64) -> Result<ProfilePlan, Error> {
-    if !(tolerance_um > 0.0) {
+    if tolerance_um.is_nan() || tolerance_um <= 0.0 {
         return Err(Error::Fit(format!(
             "tolerance {tolerance_um} µm; expected a positive number of µm (default 5)"
         )));
     }
-    if !(hi > lo) {
+    if hi.is_nan() || lo.is_nan() || hi <= lo {
         return Err(Error::Fit(format!(
             "temperature range {lo}..{hi} °C; expected from < to"
         )));

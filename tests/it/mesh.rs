@@ -6,8 +6,9 @@
 use std::path::Path;
 use std::time::Duration;
 
+use klipcal::fsio::FsFiles;
 use klipcal::klipper::bed_mesh::{profiles, replace_klipcal_profiles, MeshProfile};
-use klipcal::klipper::{Config, MemFiles};
+use klipcal::klipper::Config;
 use serde_json::json;
 
 use crate::bench::Bench;
@@ -17,8 +18,7 @@ async fn profiles_klipcal_writes_load_in_klipper_with_the_points_written() {
     let bench = Bench::start("corexy");
     let cfg_path = Path::new(&bench.run_dir()).join("config/printer.cfg");
     let text = std::fs::read_to_string(&cfg_path).unwrap();
-    let files = MemFiles::new().with("/c/printer.cfg", text.clone());
-    let cfg = Config::load(&files, Path::new("/c/printer.cfg")).unwrap();
+    let cfg = Config::load(&FsFiles, &cfg_path).unwrap();
     let base = profiles(&cfg).unwrap().remove(0);
     let mk = |name: &str, dz: f64| MeshProfile {
         name: name.into(),
