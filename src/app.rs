@@ -45,6 +45,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Metrology(args)) => crate::cmd::bench::metrology(&args),
         Command::Bench(BenchCommand::Soak(a)) => crate::cmd::soak::bench(&a),
         Command::SoakDetect(a) => crate::cmd::soak::detect(&a, &config.soak),
+        Command::Bench(BenchCommand::Mesh(a)) => crate::cmd::mesh::bench(&a),
+        Command::Mesh(crate::cli::MeshCommand::Fit(a)) => crate::cmd::mesh::fit_cmd(&a),
+        Command::Mesh(crate::cli::MeshCommand::Profiles(a)) => crate::cmd::mesh::profiles_cmd(&a),
     }
 }
 

@@ -36,6 +36,72 @@ pub enum Command {
     /// Offline: replay a recorded bed trace through the thermal soak detector and print when
     /// it declares equilibrium, and why.
     SoakDetect(SoakDetectArgs),
+    /// Offline thermal bed-mesh compensation: fit VGB/klipcal meshes, write profiles.
+    #[command(subcommand)]
+    Mesh(MeshCommand),
+}
+
+/// `klipcal mesh …`
+#[derive(Debug, Subcommand)]
+pub enum MeshCommand {
+    /// Fit z(T) per mesh point from the COLD/HOT (and capture) profiles; judge TEST profiles.
+    Fit(MeshFitArgs),
+    /// Write the fewest `[bed_mesh klipcal_<T>]` profiles within a tolerance.
+    Profiles(MeshProfilesArgs),
+}
+
+/// `klipcal mesh fit`
+#[derive(Debug, Args)]
+pub struct MeshFitArgs {
+    /// Klipper printer.cfg (its [include]s are followed).
+    #[arg(long, value_name = "PATH")]
+    pub printer_cfg: PathBuf,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal mesh profiles`
+#[derive(Debug, Args)]
+pub struct MeshProfilesArgs {
+    /// Klipper printer.cfg (its [include]s are followed).
+    #[arg(long, value_name = "PATH")]
+    pub printer_cfg: PathBuf,
+    /// Largest error of the nearest profile anywhere in the range, µm.
+    #[arg(long, default_value_t = 5.0, value_name = "UM")]
+    pub tolerance_um: f64,
+    /// Lowest frame temperature, °C (default: the coldest mesh).
+    #[arg(long, value_name = "C")]
+    pub from: Option<f64>,
+    /// Highest frame temperature, °C (default: the hottest mesh).
+    #[arg(long, value_name = "C")]
+    pub to: Option<f64>,
+    /// Where to write the SAVE_CONFIG profile block to paste.
+    #[arg(long, value_name = "PATH")]
+    pub out: PathBuf,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal bench mesh`
+#[derive(Debug, Args)]
+pub struct BenchMeshArgs {
+    /// Seed of the probe and sensor noise.
+    #[arg(long, default_value_t = 2)]
+    pub seed: u64,
+    /// Probe noise, one σ, µm.
+    #[arg(long, default_value_t = 1.0)]
+    pub noise_um: f64,
+    /// Hours of heating (then as many of cooling).
+    #[arg(long, default_value_t = 2.0)]
+    pub hours: f64,
+    /// A mesh each time the frame moved by this, °C.
+    #[arg(long, default_value_t = 1.0)]
+    pub step_c: f64,
+    /// Profile tolerance, µm.
+    #[arg(long, default_value_t = 5.0)]
+    pub tolerance_um: f64,
 }
 
 /// `klipcal check`
@@ -55,6 +121,8 @@ pub enum BenchCommand {
     Metrology(MetrologyArgs),
     /// The thermal soak detector on simulated beds, against the 1 % moment and a fixed preheat.
     Soak(BenchSoakArgs),
+    /// Thermal bed-mesh compensation on simulated gantries, against VGB's two-mesh method.
+    Mesh(BenchMeshArgs),
 }
 
 /// `klipcal solve`

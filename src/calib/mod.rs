@@ -11,12 +11,18 @@
 //!   position it commands), the classic AC/BD/AD method and the Prusa-style point fit.
 //! - [`solve`]: layout + readings + printer facts → one [`solve::Solution`].
 //! - [`soak`]: thermal equilibrium of the bed from its heater power (paper §3.1), with an ETA.
+//! - [`mesh`]: thermal bed-mesh model (seed 002): per-point z(T), LOMO cross-validation, VGB's
+//!   two-mesh method beside it, the fewest profiles within a tolerance.
+//! - [`mesh_follow`]: when to load which profile while printing (tolerance, hysteresis, interval,
+//!   jump limit, stale sensor).
 //! - [`bench_metrology`]: the closed-loop simulated benchmark behind `klipcal bench metrology`.
 
 pub mod bench_metrology;
 pub mod budget;
 pub mod differential;
 pub mod entry;
+pub mod mesh;
+pub mod mesh_follow;
 pub mod metric;
 pub mod readings;
 pub mod skew;

@@ -2,6 +2,7 @@
 //! modules, print. No calibration logic and no Moonraker session here.
 
 pub mod bench;
+pub mod mesh;
 pub mod pylons;
 pub mod soak;
 pub mod solve;

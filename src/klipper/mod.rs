@@ -1,6 +1,7 @@
 //! PURE: Klipper config files (parse, follow includes, edit one value in place, the SAVE_CONFIG
 //! block) and G-code command text built from typed values. No I/O beyond what callers pass in.
 //!
+//! - [`bed_mesh`]: bed-mesh profiles read and written as Klipper does; VGB profile names.
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
@@ -14,6 +15,7 @@
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
+pub mod bed_mesh;
 pub mod config;
 pub mod edit;
 pub mod facts;

@@ -7,7 +7,12 @@ never kills a process it did not start (pids are checked against their
 command line before any signal).
 
   bench.py start --run-dir DIR [--kinematics corexy|cartesian] [--size MM]
-                 [--plant-json JSON|FILE]
+                 [--plant-json JSON|FILE] [--variant mesh]
+                 [--surface-json JSON|FILE]
+                 (--variant mesh adds the simulated probe [klipcal_bench
+                 probe], the frame thermistor [temperature_sensor frame] and
+                 finer Z microsteps; the surface parameters go to
+                 comms/surface.json, each probe's truth to comms/probe_log.jsonl)
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
@@ -140,8 +145,33 @@ def pid_gains(plant_params):
     return gains
 
 
+MESH_VARIANT = """
+# --- mesh variant (bench.py --variant mesh): simulated probe + frame sensor
+[klipcal_bench probe]
+pin: PB5
+z_offset: 1.0
+speed: 5
+lift_speed: 10
+x_offset: 0
+y_offset: 0
+surface_file: @@COMMS_DIR@@/surface.json
+gantry_file: @@COMMS_DIR@@/gantry_temp
+frame_file: @@COMMS_DIR@@/frame_temp
+probe_log: @@COMMS_DIR@@/probe_log.jsonl
+
+[temperature_sensor frame]
+sensor_type: klipcal_file
+sensor_file: @@COMMS_DIR@@/frame_temp
+ambient_temp: 25
+min_temp: 0
+max_temp: 100
+
+"""
+VARIANTS = ("plain", "mesh")
+
+
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
-                   plant_params):
+                   plant_params, variant="plain"):
     """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
     PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
@@ -157,9 +187,18 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
         "MESH_MAX": size_mm - 20,
         "COMMS_DIR": comms_dir,
         "GCODES_DIR": gcodes_dir,
+        # 0.3125 um per step on the mesh bench: probe results must not be
+        # quantised to 2.5 um when the fit is judged in microns.
+        "Z_MICROSTEPS": 128 if variant == "mesh" else 16,
     })
-    write(os.path.join(config_dir, "printer.cfg"),
-          render("printer.cfg", values))
+    text = render("printer.cfg", values)
+    if variant == "mesh":
+        block = MESH_VARIANT.replace("@@COMMS_DIR@@", comms_dir)
+        anchor = "[include klipcal.cfg]"
+        if anchor not in text:
+            raise BenchError("printer.cfg template lacks %s" % anchor)
+        text = text.replace(anchor, block + anchor, 1)
+    write(os.path.join(config_dir, "printer.cfg"), text)
     write(os.path.join(config_dir, "steppers.cfg"),
           render("steppers.cfg", values))
     shutil.copyfile(klipcal_cfg_source(),
@@ -419,14 +458,14 @@ def load_info(run_dir):
 PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
                "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
                "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
-               "comms_dir", "plant_state", "watchdog_pid")
+               "comms_dir", "plant_state", "watchdog_pid", "variant")
 
 
 def public(info):
     return {k: info[k] for k in PUBLIC_KEYS if k in info}
 
 
-def load_plant_params(arg):
+def load_plant_params(arg, flag="--plant-json"):
     if not arg:
         return {}
     text = arg
@@ -435,14 +474,14 @@ def load_plant_params(arg):
             with open(arg) as f:
                 text = f.read()
         except OSError as e:
-            raise BenchError("--plant-json: neither JSON nor a readable file: "
-                             "%s" % e)
+            raise BenchError("%s: neither JSON nor a readable file: "
+                             "%s" % (flag, e))
     try:
         params = json.loads(text)
     except ValueError as e:
-        raise BenchError("--plant-json is not valid JSON: %s" % e)
+        raise BenchError("%s is not valid JSON: %s" % (flag, e))
     if not isinstance(params, dict):
-        raise BenchError("--plant-json must be a JSON object")
+        raise BenchError("%s must be a JSON object" % flag)
     return params
 
 
@@ -472,9 +511,22 @@ def cmd_start(args):
         raise BenchError("plant accel must be a number")
     if not accel > 0:
         raise BenchError("plant accel must be > 0")
+    if args.variant not in VARIANTS:
+        raise BenchError("--variant %s: expected one of %s"
+                         % (args.variant, ", ".join(VARIANTS)))
+    if args.variant == "mesh":
+        surface = load_plant_params(args.surface_json, "--surface-json")
+        write(os.path.join(dirs["comms"], "surface.json"),
+              json.dumps(surface, indent=1))
+        log = os.path.join(dirs["comms"], "probe_log.jsonl")
+        if os.path.exists(log):
+            os.remove(log)
+    elif args.surface_json:
+        raise BenchError("--surface-json needs --variant mesh")
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
-                   plant_params)
+                   plant_params, args.variant)
     info = {
+        "variant": args.variant,
         "run_dir": rd,
         "kinematics": kin,
         "size_mm": size,
@@ -744,6 +796,11 @@ def main():
                    help="plant parameters: inline JSON object or a file")
     p.add_argument("--owner-pid", type=int, default=None,
                    help="stop this run when that process exits")
+    p.add_argument("--variant", choices=VARIANTS, default="plain",
+                   help="mesh: simulated probe + frame thermistor")
+    p.add_argument("--surface-json", default=None,
+                   help="simulated surface parameters (mesh variant): inline"
+                   " JSON object or a file")
     p = sub.add_parser("watchdog")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--owner-pid", type=int, required=True)

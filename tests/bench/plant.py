@@ -20,11 +20,23 @@ with power P in 0..1. Parameters per heater (JSON):
                 constant temperature: C_p * R_hp*R_pa/(R_hp+R_pa). At constant
                 sensor temperature the power decays with this time constant
                 from (T-T_a)/(split*gain_c) to (T-T_a)/gain_c.
+The frame (for thermal bed-mesh compensation) is two more first-order nodes:
+a gantry warmed by the bed plate and a frame thermistor that lags the gantry,
+
+    dT_g/dt = (T_a + gain * (T_plate_bed - T_a) - T_g) / tau_s
+    dT_f/dt = (T_g - T_f) / lag_s
+
+so at the same frame reading the gantry is warmer while heating than while
+cooling (a slight hysteresis of the bow). Parameters under "frame": gain
+(0..1), tau_s, lag_s, noise_c. The bench's simulated probe reads the gantry
+temperature (comms/gantry_temp, hidden from klippy), the frame thermistor
+`[temperature_sensor frame]` reads comms/frame_temp.
 Global: accel (simulated seconds per real second), ambient_c, noise_c
 (gaussian sd added to each written reading), seed, period_s (real seconds
 between updates), initial_c (start temperature, default ambient).
 
-Files written in --run-dir/comms: bed_temp, nozzle_temp (one number each,
+Files written in --run-dir/comms: bed_temp, nozzle_temp, frame_temp,
+gantry_temp (one number each,
 replaced atomically) and plant_state.json (sim time, temperatures, powers).
 """
 import argparse
@@ -48,7 +60,32 @@ DEFAULTS = {
             "tau_plate_s": 240.0, "sensor_tau_s": 2.0},
     "nozzle": {"gain_c": 300.0, "split": 0.3, "tau_heater_s": 6.0,
                "tau_plate_s": 20.0, "sensor_tau_s": 1.0},
+    "frame": {"gain": 0.15, "tau_s": 3600.0, "lag_s": 120.0, "noise_c": 0.0},
 }
+
+
+class Frame:
+    """Gantry + frame thermistor, warmed by the bed plate (see top)."""
+
+    def __init__(self, p, ambient_c, initial_c):
+        self.gain = float(p["gain"])
+        self.tau_s = float(p["tau_s"])
+        self.lag_s = float(p["lag_s"])
+        if not (0 <= self.gain <= 1 and self.tau_s > 0 and self.lag_s > 0):
+            raise ValueError("bad frame parameters %r: need 0<=gain<=1, "
+                             "tau_s>0, lag_s>0" % (p,))
+        self.noise_c = float(p.get("noise_c", 0.0))
+        self.ambient_c = ambient_c
+        self.t_gantry = self.t_frame = initial_c
+        self.max_dt = min(self.tau_s, self.lag_s) / 20.0
+
+    def step(self, dt_s, plate_c):
+        n = max(1, int(math.ceil(dt_s / self.max_dt)))
+        h = dt_s / n
+        goal = self.ambient_c + self.gain * (plate_c - self.ambient_c)
+        for _ in range(n):
+            self.t_gantry += h * (goal - self.t_gantry) / self.tau_s
+            self.t_frame += h * (self.t_gantry - self.t_frame) / self.lag_s
 HEATERS = {"bed": "heater_bed", "nozzle": "extruder"}
 
 
@@ -194,6 +231,7 @@ def main():
         ambient = float(params["ambient_c"])
         initial = float(params.get("initial_c", ambient))
         masses = {k: Mass2(params[k], ambient, initial) for k in HEATERS}
+        frame = Frame(params["frame"], ambient, initial)
     except (OSError, ValueError, KeyError, TypeError) as e:
         sys.stderr.write("plant: bad parameters: %s\n" % e)
         sys.exit(2)
@@ -228,12 +266,18 @@ def main():
         sim_t += dt_sim
         for k, m in masses.items():
             m.step(dt_sim, max(0.0, min(1.0, power[k])))
+        frame.step(dt_sim, masses["bed"].t_plate)
         readings = {k: m.t_sensor + (rng.gauss(0.0, noise) if noise else 0.0)
                     for k, m in masses.items()}
         write_atomic(os.path.join(comms, "bed_temp"), "%.3f\n"
                      % readings["bed"])
         write_atomic(os.path.join(comms, "nozzle_temp"), "%.3f\n"
                      % readings["nozzle"])
+        frame_c = frame.t_frame + (rng.gauss(0.0, frame.noise_c)
+                                   if frame.noise_c else 0.0)
+        write_atomic(os.path.join(comms, "frame_temp"), "%.4f\n" % frame_c)
+        write_atomic(os.path.join(comms, "gantry_temp"), "%.4f\n"
+                     % frame.t_gantry)
         n += 1
         if n % 5 == 0 or not running[0]:
             state = {"sim_t_s": round(sim_t, 3), "connected": connected,
@@ -244,6 +288,9 @@ def main():
                             "plate_c": round(m.t_plate, 3),
                             "reading_c": round(readings[k], 3),
                             "power": power[k]}
+            state["frame"] = {"gantry_c": round(frame.t_gantry, 4),
+                              "frame_c": round(frame.t_frame, 4),
+                              "reading_c": round(frame_c, 4)}
             write_atomic(os.path.join(comms, "plant_state.json"),
                          json.dumps(state))
         if next_step < time.monotonic() - 1.0:

@@ -5,6 +5,7 @@
 mod bench;
 mod daemon;
 mod fake;
+mod mesh;
 mod pylons;
 mod realcfg;
 mod runall;

@@ -23,8 +23,20 @@
 #   sensor_file: /abs/path/bed_temp     # one number, degrees C
 #   ambient_temp: 25                    # used until the file exists
 #
+# The mesh variant (bench.py --variant mesh) adds a simulated probe: a
+# [klipcal_bench probe] section registers Klipper's own PrinterProbe (PROBE,
+# PROBE_ACCURACY, BED_MESH_CALIBRATE use it unmodified) around a probe endstop
+# whose trigger time is the moment the real z stepper history reaches the
+# simulated surface (see SimProbeEndstop). Surface = fixed bed shape + a gantry
+# bow that grows with the plant's hidden gantry temperature + probe noise.
+#
 # This file may be distributed under the terms of the GNU GPLv3 license.
+import json
 import logging
+import math
+import random
+
+from . import probe
 
 REPORT_TIME_S = 0.25
 
@@ -171,5 +183,151 @@ class KlipcalBench:
                 mutex.lock()
 
 
+# ------------------------------------------------------- simulated surface
+#
+# Surface parameters (JSON file named by `surface_file`), all optional:
+#   shape          "bowl" (sagging centre) or "taco" (bow along X, a twist)
+#   depth          "poly" (lin_um_per_c*d + quad_um_per_c2*d^2) or
+#                  "sat"  (max_um * (1 - exp(-d / sat_c)))
+#   ref_c          gantry temperature with no bow; d = max(0, T - ref_c)
+#   bed_min/bed_max  [x, y] extent the shape is normalised over (u, v in -1..1)
+#   tilt_x_um, tilt_y_um, bump_um   the fixed bed shape
+#   noise_um       gaussian sd of each probe reading; seed
+# The same formula is klipcal's calib::mesh_sim::Surface (Rust); the bench
+# tests check one against the other through probe_log.
+SURFACE_DEFAULTS = {
+    "shape": "bowl", "depth": "poly", "ref_c": 25.0,
+    "lin_um_per_c": 4.0, "quad_um_per_c2": 0.08, "max_um": 120.0,
+    "sat_c": 12.0, "bed_min": [20.0, 20.0], "bed_max": [280.0, 280.0],
+    "tilt_x_um": 30.0, "tilt_y_um": -20.0, "bump_um": 15.0,
+    "noise_um": 1.0, "seed": 1,
+}
+
+
+def surface_um(p, x, y, gantry_c):
+    """True height (um) of the bed under the probe at (x, y) for a gantry
+    at gantry_c, relative to the probe's trigger height."""
+    u = 2.0 * (x - p["bed_min"][0]) / (p["bed_max"][0] - p["bed_min"][0]) - 1
+    v = 2.0 * (y - p["bed_min"][1]) / (p["bed_max"][1] - p["bed_min"][1]) - 1
+    bed = (p["tilt_x_um"] * u + p["tilt_y_um"] * v
+           + p["bump_um"] * math.sin(1.3 * u + 0.4) * math.cos(1.1 * v - 0.3))
+    d = max(0.0, gantry_c - p["ref_c"])
+    if p["depth"] == "sat":
+        amp = p["max_um"] * (1.0 - math.exp(-d / p["sat_c"]))
+    else:
+        amp = p["lin_um_per_c"] * d + p["quad_um_per_c2"] * d * d
+    if p["shape"] == "taco":
+        bow = -amp * (1.0 - u * u) + 0.1 * amp * u * v
+    else:
+        bow = -amp * (1.0 - 0.5 * (u * u + v * v))
+    return bed + bow
+
+
+def _read_number(path, default):
+    try:
+        with open(path) as f:
+            return float(f.read().strip())
+    except (OSError, ValueError):
+        return default
+
+
+class SimProbeEndstop(probe.ProbeEndstopWrapper):
+    """Klipper's probe endstop on a real (file-output) MCU pin, except that
+    the trigger time is computed: the first moment the z stepper's own step
+    history reaches z_offset + surface. Homing then derives the probed
+    position from the step history exactly as it does on hardware."""
+
+    def __init__(self, config):
+        probe.ProbeEndstopWrapper.__init__(self, config)
+        self.surface_path = config.get('surface_file')
+        self.gantry_path = config.get('gantry_file')
+        self.frame_path = config.get('frame_file')
+        self.log_path = config.get('probe_log')
+        self.params = None
+        self.rng = None
+        self.start = None
+        self.home_start = self._home_start
+        self.home_wait = self._home_wait
+
+    def _surface(self):
+        if self.params is None:
+            p = dict(SURFACE_DEFAULTS)
+            try:
+                with open(self.surface_path) as f:
+                    p.update(json.load(f))
+            except (OSError, ValueError) as e:
+                raise self.printer.command_error(
+                    "klipcal_bench probe: surface_file %s unreadable: %s"
+                    % (self.surface_path, e))
+            self.params = p
+            self.rng = random.Random(p["seed"])
+        return self.params
+
+    def _home_start(self, print_time, sample_time, sample_count, rest_time,
+                    triggered=True):
+        toolhead = self.printer.lookup_object('toolhead')
+        self.start = (print_time, toolhead.get_position()[:3])
+        return self.mcu_endstop.home_start(print_time, sample_time,
+                                           sample_count, rest_time, triggered)
+
+    def _home_wait(self, home_end_time):
+        t_end = self.mcu_endstop.home_wait(home_end_time)
+        if t_end <= 0. or self.start is None:
+            return t_end
+        p = self._surface()
+        t0, (x, y, start_z) = self.start
+        gantry_c = _read_number(self.gantry_path, p["ref_c"])
+        frame_c = _read_number(self.frame_path, p["ref_c"])
+        true_um = surface_um(p, x, y, gantry_c)
+        noise_um = self.rng.gauss(0.0, p["noise_um"]) if p["noise_um"] else 0.
+        target_z = self.position_endstop + (true_um + noise_um) / 1000.0
+        toolhead = self.printer.lookup_object('toolhead')
+        toolhead.flush_step_generation()
+        zs = [s for s in toolhead.get_kinematics().get_steppers()
+              if s.is_active_axis('z')][0]
+
+        def z_at(t):
+            return zs.mcu_to_commanded_position(zs.get_past_mcu_position(t))
+        if z_at(t_end) > target_z:
+            return 0.  # surface below the travel: "No trigger" like hardware
+        lo, hi = t0, t_end
+        if start_z <= target_z:
+            # Already pressed at the start: Klipper reports "Probe triggered
+            # prior to movement", as it does on hardware.
+            return t0
+        for _ in range(60):
+            if hi - lo < 1e-7:
+                break
+            mid = 0.5 * (lo + hi)
+            if z_at(mid) <= target_z:
+                hi = mid
+            else:
+                lo = mid
+        entry = {"x": round(x, 3), "y": round(y, 3),
+                 "gantry_c": round(gantry_c, 4), "frame_c": round(frame_c, 4),
+                 "true_um": round(true_um, 4), "noise_um": round(noise_um, 4),
+                 "z_mm": round(z_at(hi), 7),
+                 "t_s": round(self.printer.get_reactor().monotonic(), 3)}
+        try:
+            with open(self.log_path, 'a') as f:
+                f.write(json.dumps(entry) + "\n")
+        except OSError:
+            logging.exception("klipcal_bench probe: cannot append to %s",
+                              self.log_path)
+        return hi
+
+
 def load_config(config):
     return KlipcalBench(config)
+
+
+def load_config_prefix(config):
+    """[klipcal_bench probe]: Klipper's PrinterProbe around SimProbeEndstop,
+    registered as the printer's 'probe' (options as in [probe])."""
+    if config.get_name().split()[-1] != 'probe':
+        raise config.error("klipcal_bench: unknown section [%s]; expected"
+                           " [klipcal_bench probe]" % config.get_name())
+    printer = config.get_printer()
+    p = probe.PrinterProbe(config, SimProbeEndstop(config))
+    printer.add_object('probe', p)
+    return p

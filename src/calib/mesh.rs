@@ -1,0 +1,669 @@
+//! PURE: thermal bed-mesh compensation (seed 002, VGB) — per mesh point, z as a function of
+//! the frame temperature fitted from every capture; leave-one-mesh-out (LOMO) cross-validation
+//! choosing between a linear (VGB) and a higher-order or piecewise model; VGB's two-mesh
+//! method on the same data; the fewest profiles within a tolerance (adaptive spacing).
+//! No I/O, no clock: captures come in as numbers.
+
+use nalgebra::{DMatrix, DVector};
+
+use super::Error;
+
+/// Whether the frame was warming or cooling while a mesh was taken (VGB's appendix: the
+/// bow differs between the two, so they are fitted apart when they differ).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Phase {
+    /// Frame temperature rising.
+    Heating,
+    /// Frame temperature falling.
+    Cooling,
+}
+
+/// One mesh: z of every point (row-major, same order in every capture) and the frame
+/// temperature at the moment each point was probed (VGB has one temperature per mesh: the
+/// same value repeated).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Capture {
+    /// Name (`COLD27.3`, `capture_3`).
+    pub name: String,
+    /// Frame temperature per point, °C.
+    pub temps_c: Vec<f64>,
+    /// z per point, mm.
+    pub points_mm: Vec<f64>,
+    /// Heating or cooling.
+    pub phase: Phase,
+}
+
+impl Capture {
+    /// A mesh with one temperature for all points (VGB's profiles).
+    #[must_use]
+    pub fn uniform(name: &str, temp_c: f64, points_mm: Vec<f64>, phase: Phase) -> Self {
+        Self {
+            name: name.into(),
+            temps_c: vec![temp_c; points_mm.len()],
+            points_mm,
+            phase,
+        }
+    }
+
+    /// Mean frame temperature of the mesh, °C.
+    #[must_use]
+    pub fn mean_temp_c(&self) -> f64 {
+        self.temps_c.iter().sum::<f64>() / self.temps_c.len().max(1) as f64
+    }
+
+    fn span_c(&self) -> (f64, f64) {
+        let lo = self.temps_c.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = self
+            .temps_c
+            .iter()
+            .copied()
+            .fold(f64::NEG_INFINITY, f64::max);
+        (lo, hi)
+    }
+}
+
+/// The per-point model family.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelKind {
+    /// z = a + b·T (VGB's assumption).
+    Linear,
+    /// z = a + b·T + c·T².
+    Quadratic,
+    /// Linear interpolation between the samples, sorted by temperature.
+    Piecewise,
+}
+
+impl ModelKind {
+    /// All kinds, linear first (the default when nothing predicts better).
+    pub const ALL: [ModelKind; 3] = [
+        ModelKind::Linear,
+        ModelKind::Quadratic,
+        ModelKind::Piecewise,
+    ];
+
+    /// Lowercase name.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::Linear => "linear",
+            ModelKind::Quadratic => "quadratic",
+            ModelKind::Piecewise => "piecewise",
+        }
+    }
+
+    fn min_captures(self) -> usize {
+        match self {
+            ModelKind::Linear | ModelKind::Piecewise => 2,
+            ModelKind::Quadratic => 4,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+enum PointFit {
+    /// Polynomial coefficients in (T − centre_c), lowest order first.
+    Poly(Vec<f64>),
+    /// (T, z) knots sorted by T.
+    Knots(Vec<(f64, f64)>),
+}
+
+/// A fitted model: z(T) for every point, valid over `range_c` (clamped outside).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Fit {
+    /// Model family.
+    pub kind: ModelKind,
+    /// Captured temperature range, °C.
+    pub range_c: (f64, f64),
+    centre_c: f64,
+    points: Vec<PointFit>,
+}
+
+/// A predicted mesh; `clamped` says the temperature was outside the captured range and the
+/// edge of the range was used instead (never a silent extrapolation).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Prediction {
+    /// z per point, mm.
+    pub points_mm: Vec<f64>,
+    /// The temperature actually used, °C.
+    pub used_temp_c: f64,
+    /// True when `used_temp_c` differs from the one asked for.
+    pub clamped: bool,
+}
+
+impl Fit {
+    /// Number of mesh points.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.points.len()
+    }
+
+    /// True when the model has no points.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.points.is_empty()
+    }
+
+    fn eval(&self, i: usize, t: f64) -> f64 {
+        match &self.points[i] {
+            PointFit::Poly(c) => {
+                let x = t - self.centre_c;
+                c.iter().rev().fold(0.0, |acc, k| acc * x + k)
+            }
+            PointFit::Knots(k) => interp(k, t),
+        }
+    }
+
+    /// z of every point at `temp_c`, clamped to the captured range.
+    #[must_use]
+    pub fn predict(&self, temp_c: f64) -> Prediction {
+        let used = temp_c.clamp(self.range_c.0, self.range_c.1);
+        Prediction {
+            points_mm: (0..self.len()).map(|i| self.eval(i, used)).collect(),
+            used_temp_c: used,
+            clamped: used != temp_c,
+        }
+    }
+
+    /// z of point `i` at that point's own temperature (clamped).
+    #[must_use]
+    pub fn predict_point(&self, i: usize, temp_c: f64) -> f64 {
+        self.eval(i, temp_c.clamp(self.range_c.0, self.range_c.1))
+    }
+
+    /// Largest |z(a) − z(b)| over the points, µm.
+    #[must_use]
+    pub fn deviation_um(&self, a_c: f64, b_c: f64) -> f64 {
+        let (pa, pb) = (self.predict(a_c), self.predict(b_c));
+        max_abs_diff_um(&pa.points_mm, &pb.points_mm)
+    }
+}
+
+/// Largest |a − b|, µm, of two meshes in mm.
+#[must_use]
+pub fn max_abs_diff_um(a: &[f64], b: &[f64]) -> f64 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() * 1000.0)
+        .fold(0.0, f64::max)
+}
+
+fn interp(k: &[(f64, f64)], t: f64) -> f64 {
+    if t <= k[0].0 {
+        return k[0].1;
+    }
+    for w in k.windows(2) {
+        if t <= w[1].0 {
+            let span = w[1].0 - w[0].0;
+            if span <= 0.0 {
+                return w[1].1;
+            }
+            return w[0].1 + (w[1].1 - w[0].1) * (t - w[0].0) / span;
+        }
+    }
+    k[k.len() - 1].1
+}
+
+fn check(caps: &[&Capture]) -> Result<usize, Error> {
+    let Some(first) = caps.first() else {
+        return Err(Error::Fit(
+            "no meshes; expected at least two captures".into(),
+        ));
+    };
+    let n = first.points_mm.len();
+    for c in caps {
+        if c.points_mm.len() != n || c.temps_c.len() != n || n == 0 {
+            return Err(Error::Fit(format!(
+                "mesh {} has {} points and {} temperatures; expected {n} of each like {}",
+                c.name,
+                c.points_mm.len(),
+                c.temps_c.len(),
+                first.name
+            )));
+        }
+        if c.points_mm.iter().chain(&c.temps_c).any(|v| !v.is_finite()) {
+            return Err(Error::Fit(format!(
+                "mesh {} holds a value that is not a finite number",
+                c.name
+            )));
+        }
+    }
+    Ok(n)
+}
+
+/// Fits `kind` to the captures, per point.
+///
+/// # Errors
+/// Fewer captures than the model needs, meshes of different sizes, or all at one temperature.
+pub fn fit(caps: &[&Capture], kind: ModelKind) -> Result<Fit, Error> {
+    let n = check(caps)?;
+    if caps.len() < kind.min_captures() {
+        return Err(Error::Fit(format!(
+            "the {} model needs at least {} meshes; {} given",
+            kind.name(),
+            kind.min_captures(),
+            caps.len()
+        )));
+    }
+    let lo = caps
+        .iter()
+        .map(|c| c.span_c().0)
+        .fold(f64::INFINITY, f64::min);
+    let hi = caps
+        .iter()
+        .map(|c| c.span_c().1)
+        .fold(f64::NEG_INFINITY, f64::max);
+    if hi - lo < 0.5 {
+        return Err(Error::Fit(format!(
+            "the meshes span {lo:.2}..{hi:.2} °C; expected at least 0.5 °C between the coldest and the hottest"
+        )));
+    }
+    let centre = 0.5 * (lo + hi);
+    let mut points = Vec::with_capacity(n);
+    for i in 0..n {
+        let samples: Vec<(f64, f64)> = caps
+            .iter()
+            .map(|c| (c.temps_c[i], c.points_mm[i]))
+            .collect();
+        points.push(match kind {
+            ModelKind::Linear => PointFit::Poly(polyfit(&samples, centre, 1)?),
+            ModelKind::Quadratic => PointFit::Poly(polyfit(&samples, centre, 2)?),
+            ModelKind::Piecewise => {
+                let mut k = samples;
+                k.sort_by(|a, b| a.0.total_cmp(&b.0));
+                PointFit::Knots(k)
+            }
+        });
+    }
+    Ok(Fit {
+        kind,
+        range_c: (lo, hi),
+        centre_c: centre,
+        points,
+    })
+}
+
+fn polyfit(samples: &[(f64, f64)], centre: f64, order: usize) -> Result<Vec<f64>, Error> {
+    let a = DMatrix::from_fn(samples.len(), order + 1, |r, c| {
+        (samples[r].0 - centre).powi(c as i32)
+    });
+    let b = DVector::from_iterator(samples.len(), samples.iter().map(|s| s.1));
+    let x = a
+        .svd(true, true)
+        .solve(&b, 1e-12)
+        .map_err(|e| Error::Fit(format!("least squares failed: {e}")))?;
+    Ok(x.iter().copied().collect())
+}
+
+/// Prediction error statistics, µm.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct ErrorStats {
+    /// Largest absolute error.
+    pub max_um: f64,
+    /// Mean absolute error.
+    pub mean_um: f64,
+    /// Root mean square error.
+    pub rms_um: f64,
+    /// Mean square error, mm² (VGB's figure).
+    pub mse_mm2: f64,
+    /// Number of predicted points.
+    pub n: usize,
+}
+
+impl ErrorStats {
+    fn of(errors_mm: &[f64]) -> Self {
+        let n = errors_mm.len().max(1) as f64;
+        let sq = errors_mm.iter().map(|e| e * e).sum::<f64>() / n;
+        Self {
+            max_um: errors_mm
+                .iter()
+                .map(|e| e.abs() * 1000.0)
+                .fold(0.0, f64::max),
+            mean_um: errors_mm.iter().map(|e| e.abs()).sum::<f64>() / n * 1000.0,
+            rms_um: sq.sqrt() * 1000.0,
+            mse_mm2: sq,
+            n: errors_mm.len(),
+        }
+    }
+}
+
+/// Errors of `fit` against a measured mesh (each point at its own temperature).
+#[must_use]
+pub fn judge(fit: &Fit, c: &Capture) -> ErrorStats {
+    let e: Vec<f64> = (0..fit.len().min(c.points_mm.len()))
+        .map(|i| fit.predict_point(i, c.temps_c[i]) - c.points_mm[i])
+        .collect();
+    ErrorStats::of(&e)
+}
+
+/// Leave-one-mesh-out cross-validation of `kind`: each capture whose temperatures lie inside
+/// the others' range is predicted by a model fitted to the others (captures at either end are
+/// not predicted: that would be extrapolation). `None` when no capture can be held out.
+#[must_use]
+pub fn lomo(caps: &[&Capture], kind: ModelKind) -> Option<ErrorStats> {
+    let mut errors = Vec::new();
+    for (k, held) in caps.iter().enumerate() {
+        let rest: Vec<&Capture> = caps
+            .iter()
+            .enumerate()
+            .filter(|(j, _)| *j != k)
+            .map(|(_, c)| *c)
+            .collect();
+        let Ok(f) = fit(&rest, kind) else { continue };
+        let (lo, hi) = held.span_c();
+        if lo < f.range_c.0 || hi > f.range_c.1 {
+            continue;
+        }
+        errors
+            .extend((0..f.len()).map(|i| f.predict_point(i, held.temps_c[i]) - held.points_mm[i]));
+    }
+    (!errors.is_empty()).then(|| ErrorStats::of(&errors))
+}
+
+/// VGB's method: a line per point through the coldest and the hottest mesh, each at its one
+/// (mean) temperature.
+///
+/// # Errors
+/// Fewer than two meshes, or meshes of different sizes.
+pub fn vgb_two_mesh(caps: &[&Capture]) -> Result<Fit, Error> {
+    check(caps)?;
+    let cold = caps
+        .iter()
+        .min_by(|a, b| a.mean_temp_c().total_cmp(&b.mean_temp_c()))
+        .ok_or_else(|| Error::Fit("no meshes".into()))?;
+    let hot = caps
+        .iter()
+        .max_by(|a, b| a.mean_temp_c().total_cmp(&b.mean_temp_c()))
+        .ok_or_else(|| Error::Fit("no meshes".into()))?;
+    let two = [
+        Capture::uniform(
+            &cold.name,
+            cold.mean_temp_c(),
+            cold.points_mm.clone(),
+            cold.phase,
+        ),
+        Capture::uniform(
+            &hot.name,
+            hot.mean_temp_c(),
+            hot.points_mm.clone(),
+            hot.phase,
+        ),
+    ];
+    fit(&[&two[0], &two[1]], ModelKind::Linear)
+}
+
+/// VGB's two-mesh method, judged leave-one-out on the captures between its COLD and HOT
+/// (its own two meshes excluded), each mesh at its one mean temperature.
+#[must_use]
+pub fn vgb_lomo(caps: &[&Capture]) -> Option<ErrorStats> {
+    let f = vgb_two_mesh(caps).ok()?;
+    let mut errors = Vec::new();
+    for c in caps {
+        let t = c.mean_temp_c();
+        if t <= f.range_c.0 || t >= f.range_c.1 {
+            continue;
+        }
+        errors.extend((0..f.len()).map(|i| f.predict_point(i, t) - c.points_mm[i]));
+    }
+    (!errors.is_empty()).then(|| ErrorStats::of(&errors))
+}
+
+/// The models tried, their LOMO errors, and the one chosen.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Selection {
+    /// (kind, LOMO errors) for every model that could be cross-validated.
+    pub models: Vec<(ModelKind, ErrorStats)>,
+    /// The chosen model fitted to all captures.
+    pub fit: Fit,
+}
+
+/// Fits every model, cross-validates each, and keeps linear unless another predicts better:
+/// RMS lower by at least 10 % and 0.5 µm, and max not worse.
+///
+/// # Errors
+/// As [`fit`] for the linear model.
+pub fn select(caps: &[&Capture]) -> Result<Selection, Error> {
+    let linear = fit(caps, ModelKind::Linear)?;
+    let mut models = Vec::new();
+    for kind in ModelKind::ALL {
+        if caps.len() >= kind.min_captures() {
+            if let Some(s) = lomo(caps, kind) {
+                models.push((kind, s));
+            }
+        }
+    }
+    let base = models
+        .iter()
+        .find(|m| m.0 == ModelKind::Linear)
+        .map(|m| m.1);
+    let mut best = (ModelKind::Linear, base);
+    if let Some(b) = base {
+        for (k, s) in &models {
+            let cur = best.1.unwrap_or(b);
+            if *k != ModelKind::Linear
+                && s.rms_um < 0.9 * cur.rms_um
+                && s.rms_um < cur.rms_um - 0.5
+                && s.max_um <= cur.max_um
+            {
+                best = (*k, Some(*s));
+            }
+        }
+    }
+    let fit = if best.0 == ModelKind::Linear {
+        linear
+    } else {
+        fit(caps, best.0)?
+    };
+    Ok(Selection { models, fit })
+}
+
+/// True when the cooling meshes differ from the heating model by more than `tolerance_um`
+/// on average (VGB's appendix: a hysteresis), so they must be fitted apart.
+#[must_use]
+pub fn phases_differ(heating: &Fit, cooling: &[&Capture], tolerance_um: f64) -> bool {
+    let e: Vec<f64> = cooling.iter().map(|c| judge(heating, c).mean_um).collect();
+    !e.is_empty() && e.iter().sum::<f64>() / e.len() as f64 > tolerance_um
+}
+
+/// A profile set: temperatures and the worst error of using the nearest profile.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct ProfilePlan {
+    /// Profile temperatures, °C, ascending.
+    pub temps_c: Vec<f64>,
+    /// Largest |model(T) − model(nearest profile)| over the range, µm.
+    pub max_quantisation_um: f64,
+}
+
+const GRID_C: f64 = 0.01;
+
+fn grid(lo: f64, hi: f64) -> Vec<f64> {
+    let n = ((hi - lo) / GRID_C).ceil().max(1.0) as usize;
+    (0..=n)
+        .map(|k| lo + (hi - lo) * k as f64 / n as f64)
+        .collect()
+}
+
+/// Worst error of using the nearest of `temps_c` anywhere in `[lo, hi]`, µm.
+#[must_use]
+pub fn quantisation_um(fit: &Fit, temps_c: &[f64], lo: f64, hi: f64) -> f64 {
+    let meshes: Vec<Vec<f64>> = temps_c.iter().map(|&t| fit.predict(t).points_mm).collect();
+    grid(lo, hi)
+        .into_iter()
+        .map(|t| {
+            let k = nearest(temps_c, t);
+            max_abs_diff_um(&fit.predict(t).points_mm, &meshes[k])
+        })
+        .fold(0.0, f64::max)
+}
+
+/// Index of the temperature nearest `t` (the lower one on a tie).
+#[must_use]
+pub fn nearest(temps_c: &[f64], t: f64) -> usize {
+    let mut best = 0;
+    for (k, &x) in temps_c.iter().enumerate() {
+        if (x - t).abs() < (temps_c[best] - t).abs() {
+            best = k;
+        }
+    }
+    best
+}
+
+/// The fewest profile temperatures over `[lo, hi]` such that the nearest profile is within
+/// `tolerance_um` of the model everywhere (greedy: each profile placed as far up as the
+/// stretch below it allows, checked on a 0.01 °C grid).
+///
+/// # Errors
+/// A tolerance that is not positive, or an empty range.
+pub fn plan_profiles(fit: &Fit, lo: f64, hi: f64, tolerance_um: f64) -> Result<ProfilePlan, Error> {
+    if tolerance_um.is_nan() || tolerance_um <= 0.0 {
+        return Err(Error::Fit(format!(
+            "tolerance {tolerance_um} µm; expected a positive number of µm (default 5)"
+        )));
+    }
+    if hi.is_nan() || lo.is_nan() || hi <= lo {
+        return Err(Error::Fit(format!(
+            "temperature range {lo}..{hi} °C; expected from < to"
+        )));
+    }
+    // ok(a, b, p): every T in [a, b] within tolerance of the profile at p.
+    let ok = |a: f64, b: f64, p: f64| {
+        let mp = fit.predict(p).points_mm;
+        grid(a, b)
+            .into_iter()
+            .all(|t| max_abs_diff_um(&fit.predict(t).points_mm, &mp) <= tolerance_um)
+    };
+    // Largest x in [a, hi] with pred(x) true (pred monotone: true then false).
+    let search = |a: f64, pred: &dyn Fn(f64) -> bool| {
+        let (mut good, mut bad) = (a, hi);
+        if pred(hi) {
+            return hi;
+        }
+        while bad - good > GRID_C / 2.0 {
+            let m = 0.5 * (good + bad);
+            if pred(m) {
+                good = m;
+            } else {
+                bad = m;
+            }
+        }
+        good
+    };
+    let floor = |t: f64| ((t * 100.0 + 1e-6).floor() / 100.0).max(lo);
+    let mut temps = vec![floor(search(lo, &|p| ok(lo, p, p)))];
+    loop {
+        let last = *temps.last().unwrap_or(&lo);
+        if ok(last, hi, last) {
+            break;
+        }
+        // Next profile p: below the midpoint `last` is nearest, above it p is.
+        let pred = |p: f64| {
+            let mid = 0.5 * (last + p);
+            ok(last, mid, last) && ok(mid, p, p)
+        };
+        let p = floor(search(last, &pred)).max(last + GRID_C);
+        temps.push(p.min(hi));
+        if temps.len() > 100_000 {
+            return Err(Error::Fit("profile plan does not converge".into()));
+        }
+    }
+    let q = quantisation_um(fit, &temps, lo, hi);
+    Ok(ProfilePlan {
+        temps_c: temps,
+        max_quantisation_um: q,
+    })
+}
+
+/// VGB's fixed grid: one profile per `step_c` from `lo` to `hi` inclusive.
+#[must_use]
+pub fn vgb_grid(lo: f64, hi: f64, step_c: f64) -> Vec<f64> {
+    let n = ((hi - lo) / step_c + 1e-9).floor() as usize;
+    (0..=n).map(|k| lo + k as f64 * step_c).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 3-point mesh bowing as z = base + a·ΔT + q·ΔT².
+    fn synth(t: f64, q: f64) -> Capture {
+        let d = t - 25.0;
+        let pts = vec![0.01 - 0.004 * d - q * d * d, 0.0, -0.02 + 0.002 * d];
+        Capture::uniform(&format!("m{t}"), t, pts, Phase::Heating)
+    }
+
+    #[test]
+    fn two_linear_meshes_give_vgbs_coefficients_and_clamp_outside() {
+        let (a, b) = (synth(25.0, 0.0), synth(35.0, 0.0));
+        let f = fit(&[&a, &b], ModelKind::Linear).unwrap();
+        let p = f.predict(30.0);
+        assert!((p.points_mm[0] - (0.01 - 0.02)).abs() < 1e-12);
+        let out = f.predict(40.0);
+        assert!(out.clamped && out.used_temp_c == 35.0);
+        assert!((out.points_mm[0] - b.points_mm[0]).abs() < 1e-12);
+    }
+
+    #[test]
+    fn lomo_prefers_the_quadratic_model_on_a_curved_bow_and_linear_on_a_straight_one() {
+        let curved: Vec<Capture> = (0..8)
+            .map(|k| synth(25.0 + 2.0 * f64::from(k), 0.0004))
+            .collect();
+        let refs: Vec<&Capture> = curved.iter().collect();
+        let s = select(&refs).unwrap();
+        assert_eq!(s.fit.kind, ModelKind::Quadratic);
+        let vgb = vgb_lomo(&refs).unwrap();
+        let chosen = s.models.iter().find(|m| m.0 == s.fit.kind).unwrap().1;
+        assert!(
+            chosen.max_um < 0.01 && vgb.max_um > 10.0,
+            "{chosen:?} vs {vgb:?}"
+        );
+        let straight: Vec<Capture> = (0..8)
+            .map(|k| synth(25.0 + 2.0 * f64::from(k), 0.0))
+            .collect();
+        let refs: Vec<&Capture> = straight.iter().collect();
+        assert_eq!(select(&refs).unwrap().fit.kind, ModelKind::Linear);
+    }
+
+    #[test]
+    fn adaptive_profiles_stay_within_tolerance_with_fewer_than_a_fixed_grid() {
+        let caps: Vec<Capture> = (0..6)
+            .map(|k| synth(25.0 + 3.0 * f64::from(k), 0.0002))
+            .collect();
+        let refs: Vec<&Capture> = caps.iter().collect();
+        let f = fit(&refs, ModelKind::Quadratic).unwrap();
+        let plan = plan_profiles(&f, 25.0, 40.0, 5.0).unwrap();
+        assert!(plan.max_quantisation_um <= 5.0 + 1e-6, "{plan:?}");
+        // Slope ≤ 10 µm/°C: one profile covers ≥ 1 °C, so at most ~16 over 15 °C.
+        assert!(
+            plan.temps_c.len() <= 16 && plan.temps_c.len() >= 4,
+            "{plan:?}"
+        );
+        assert_eq!(vgb_grid(25.0, 40.0, 0.1).len(), 151);
+        assert!(plan_profiles(&f, 25.0, 40.0, 0.0).is_err());
+    }
+
+    #[test]
+    fn cooling_meshes_that_differ_are_detected() {
+        let heat: Vec<Capture> = (0..4)
+            .map(|k| synth(25.0 + 3.0 * f64::from(k), 0.0))
+            .collect();
+        let refs: Vec<&Capture> = heat.iter().collect();
+        let f = fit(&refs, ModelKind::Linear).unwrap();
+        let mut cool = synth(30.0, 0.0);
+        cool.phase = Phase::Cooling;
+        assert!(!phases_differ(&f, &[&cool], 5.0));
+        cool.points_mm[0] -= 0.03;
+        assert!(phases_differ(&f, &[&cool], 5.0));
+    }
+
+    #[test]
+    fn mismatched_meshes_are_refused_by_name() {
+        let a = synth(25.0, 0.0);
+        let mut b = synth(30.0, 0.0);
+        b.points_mm.pop();
+        let e = fit(&[&a, &b], ModelKind::Linear).unwrap_err().to_string();
+        assert!(e.contains("m30") && e.contains("expected 3"), "{e}");
+        let e = fit(&[&a, &a], ModelKind::Linear).unwrap_err().to_string();
+        assert!(e.contains("0.5 °C"), "{e}");
+    }
+}
