@@ -393,7 +393,7 @@ impl Ab {
     /// Sets the solved skew in Klipper, saves it as profile `klipcal` with SAVE_CONFIG, loads
     /// it, and says whether PRINT_START loads it at the next print (Klipper does not load skew
     /// profiles at start).
-    async fn apply_skew(&self, set_skew: &str) -> anyhow::Result<String> {
+    async fn apply_skew(&self, set_skew: &str, start_macro: &str) -> anyhow::Result<String> {
         let m = self.core.m();
         m.gcode(set_skew).await?;
         m.gcode("SKEW_PROFILE SAVE=klipcal").await?;
@@ -404,18 +404,32 @@ impl Ab {
         }
         m.gcode("SKEW_PROFILE LOAD=klipcal").await?;
         let pc = printer_config::fetch(m, self.core.files()).await?;
-        let loads = pc
-            .config
-            .get("gcode_macro PRINT_START", "gcode")
-            .is_some_and(|g| g.to_uppercase().contains("SKEW_PROFILE LOAD=KLIPCAL"));
-        Ok(if loads {
-            format!("skew saved as profile klipcal ({set_skew}); PRINT_START loads it")
-        } else {
-            format!(
-                "skew saved as profile klipcal ({set_skew}) and loaded now; Klipper does not \
-                 load skew profiles at start: add the line `SKEW_PROFILE LOAD=klipcal` to your \
-                 PRINT_START macro"
-            )
+        let configured = (!start_macro.is_empty()).then_some(start_macro);
+        let saved = format!("skew saved as profile klipcal ({set_skew}) and loaded now");
+        let add = "Klipper does not load skew profiles at start: add the line \
+                   `SKEW_PROFILE LOAD=klipcal`";
+        Ok(match klipper::find_start_macro(&pc.config, configured) {
+            Ok(klipper::StartMacro::Found {
+                command, section, ..
+            }) => {
+                let loads = pc
+                    .config
+                    .get(&section, "gcode")
+                    .is_some_and(|g| g.to_uppercase().contains("SKEW_PROFILE LOAD=KLIPCAL"));
+                if loads {
+                    format!("skew saved as profile klipcal ({set_skew}); {command} loads it")
+                } else {
+                    format!("{saved}; {add} to your {command} macro")
+                }
+            }
+            Ok(klipper::StartMacro::Ambiguous(names)) => format!(
+                "{saved}; {add} to the start macro your slicer calls ({}; set ab.start_macro \
+                 to name it)",
+                names.join(" or ")
+            ),
+            Ok(klipper::StartMacro::NotFound) | Err(_) => {
+                format!("{saved}; {add} to the start macro your slicer calls")
+            }
         })
     }
 
@@ -1150,13 +1164,15 @@ impl Ab {
                 // Klipper restarted: heaters are off and the idle timeout is the configured
                 // one again. Then the skew: the new one, or the one from before the session.
                 let skew_note = match sol.skew.set_skew.as_deref() {
-                    Some(cmd) if sol.skew.applied => Some(match self.apply_skew(cmd).await {
-                        Ok(note) => note,
-                        Err(e) => format!(
-                            "the rotation distances are applied, but the skew was not \
+                    Some(cmd) if sol.skew.applied => {
+                        Some(match self.apply_skew(cmd, &s.options.start_macro).await {
+                            Ok(note) => note,
+                            Err(e) => format!(
+                                "the rotation distances are applied, but the skew was not \
                              saved: {e:#}; set it by hand with {cmd}"
-                        ),
-                    }),
+                            ),
+                        })
+                    }
                     _ => {
                         self.restore_skew(skew_before).await;
                         None

@@ -50,6 +50,24 @@ pub struct ApplyReport {
     pub notes: Vec<String>,
 }
 
+/// `printer.info`, waiting up to 15 s while Moonraker is still reconnecting to Klipper (it
+/// answers "Klippy Host not connected" for a moment after a restart reports ready).
+async fn printer_info_settled(m: &Moonraker) -> anyhow::Result<serde_json::Value> {
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(15);
+    loop {
+        match m.printer_info().await {
+            Ok(v) => return Ok(v),
+            Err(e)
+                if tokio::time::Instant::now() < deadline
+                    && e.to_string().contains("Klippy Host not connected") =>
+            {
+                tokio::time::sleep(Duration::from_millis(250)).await;
+            }
+            Err(e) => return Err(e.into()),
+        }
+    }
+}
+
 /// Reads the config Klipper runs (`printer.info` → `config_file`) through Moonraker: exactly
 /// the files its `[include]` patterns match in Moonraker's listing of the `config` root,
 /// whatever their extension (`[include configs/*]` also reads `steppers.cfg.bak`, as Klipper
@@ -65,7 +83,7 @@ pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig
         .and_then(|r| r["path"].as_str())
         .map(PathBuf::from)
         .ok_or_else(|| anyhow!("Moonraker has no `config` root"))?;
-    let info = m.printer_info().await?;
+    let info = printer_info_settled(m).await?;
     let main = info["config_file"]
         .as_str()
         .map(PathBuf::from)
