@@ -7,7 +7,8 @@ never kills a process it did not start (pids are checked against their
 command line before any signal).
 
   bench.py start --run-dir DIR [--kinematics corexy|cartesian] [--size MM]
-                 [--plant-json JSON|FILE]
+                 [--plant-json JSON|FILE] [--backlash-module none|seed|pr7157]
+                 [--play '{"x": 0.08, "y": 0.05}']
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
@@ -38,7 +39,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
 TEMPLATES = os.path.join(HERE, "templates")
 DICT_PATH = os.path.join(HERE, "mcu_dict.json")
-EXTRAS_SRC = os.path.join(HERE, "klippy_extras", "klipcal_bench.py")
+EXTRAS_DIR = os.path.join(HERE, "klippy_extras")
+BACKLASH_MODULES = ("none", "seed", "pr7157")
 NAMES = ("plant", "klippy", "moonraker")
 DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
 READY_TIMEOUT_S = 60.0
@@ -63,21 +65,58 @@ def venv_python(name):
 
 
 def check_installed():
-    """Fails when setup.sh has not been run since klipcal_bench.py changed."""
+    """Fails when setup.sh has not been run since a klippy_extras/*.py changed."""
     py = venv_python("klippy")
     venv_python("moonraker")
     lib = os.path.join(os.path.dirname(os.path.dirname(py)), "lib")
+    extras = None
     for pyver in sorted(os.listdir(lib)):
-        dst = os.path.join(lib, pyver, "site-packages", "klippy", "extras",
-                           "klipcal_bench.py")
-        if os.path.exists(dst):
-            with open(dst, "rb") as a, open(EXTRAS_SRC, "rb") as b:
-                if a.read() == b.read():
-                    return
-            raise BenchError("installed %s differs from %s: run "
-                             "tests/bench/setup.sh" % (dst, EXTRAS_SRC))
-    raise BenchError("klipcal_bench.py not installed into klippy: run "
-                     "tests/bench/setup.sh")
+        d = os.path.join(lib, pyver, "site-packages", "klippy", "extras")
+        if os.path.isdir(d):
+            extras = d
+    if extras is None:
+        raise BenchError("klippy not installed: run tests/bench/setup.sh")
+    for name in sorted(os.listdir(EXTRAS_DIR)):
+        if not name.endswith(".py"):
+            continue
+        src, dst = os.path.join(EXTRAS_DIR, name), os.path.join(extras, name)
+        if not os.path.exists(dst):
+            raise BenchError("%s not installed into klippy: run "
+                             "tests/bench/setup.sh" % name)
+        with open(dst, "rb") as a, open(src, "rb") as b:
+            if a.read() != b.read():
+                raise BenchError("installed %s differs from %s: run "
+                                 "tests/bench/setup.sh" % (dst, src))
+
+
+def backlash_sections(kinematics, module, play, comms_dir):
+    """printer.cfg text for the backlash variant: `module` is none, seed
+    (PR 7259's [backlash_compensation]) or pr7157 ([backlash]); `play` maps
+    joints (cartesian x/y/z, corexy a/b/z) to simulated play in mm."""
+    if module not in BACKLASH_MODULES:
+        raise BenchError("--backlash-module %r: expected one of %s"
+                         % (module, ", ".join(BACKLASH_MODULES)))
+    joints = ("a", "b", "z") if kinematics == "corexy" else ("x", "y", "z")
+    for k, v in play.items():
+        if k not in joints or not isinstance(v, (int, float)) or v < 0:
+            raise BenchError("--play %s=%r: expected joints %s with mm >= 0 "
+                             "on %s" % (k, v, "/".join(joints), kinematics))
+    text = ""
+    if play or module != "none":
+        text += ("# Simulated mechanical play (tests read the true nozzle\n"
+                 "# position from state_file).\n[klipcal_backlash_sim]\n"
+                 "state_file: %s\n" % os.path.join(comms_dir,
+                                                   "nozzle_true.json"))
+        text += "".join("%s: %s\n" % (k, play[k]) for k in joints
+                        if k in play)
+        text += "\n"
+    if module == "seed":
+        text += ("[backlash_compensation]\nsmooth_time: 0.005\n"
+                 "x_backlash: 0.0\ny_backlash: 0.0\n\n")
+    elif module == "pr7157":
+        text += "[backlash]\nkinematics: %s\n" % kinematics
+        text += "".join("%s: 0.0\n" % k for k in joints[:2]) + "\n"
+    return text
 
 
 def clean_env():
@@ -141,7 +180,7 @@ def pid_gains(plant_params):
 
 
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
-                   plant_params):
+                   plant_params, backlash_module="none", play=None):
     """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
     PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
@@ -157,6 +196,8 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
         "MESH_MAX": size_mm - 20,
         "COMMS_DIR": comms_dir,
         "GCODES_DIR": gcodes_dir,
+        "BACKLASH": backlash_sections(kinematics, backlash_module, play or {},
+                                      comms_dir),
     })
     write(os.path.join(config_dir, "printer.cfg"),
           render("printer.cfg", values))
@@ -426,7 +467,7 @@ def public(info):
     return {k: info[k] for k in PUBLIC_KEYS if k in info}
 
 
-def load_plant_params(arg):
+def load_plant_params(arg, flag="--plant-json"):
     if not arg:
         return {}
     text = arg
@@ -435,14 +476,14 @@ def load_plant_params(arg):
             with open(arg) as f:
                 text = f.read()
         except OSError as e:
-            raise BenchError("--plant-json: neither JSON nor a readable file: "
-                             "%s" % e)
+            raise BenchError("%s: neither JSON nor a readable file: %s"
+                             % (flag, e))
     try:
         params = json.loads(text)
     except ValueError as e:
-        raise BenchError("--plant-json is not valid JSON: %s" % e)
+        raise BenchError("%s is not valid JSON: %s" % (flag, e))
     if not isinstance(params, dict):
-        raise BenchError("--plant-json must be a JSON object")
+        raise BenchError("%s must be a JSON object" % flag)
     return params
 
 
@@ -472,8 +513,9 @@ def cmd_start(args):
         raise BenchError("plant accel must be a number")
     if not accel > 0:
         raise BenchError("plant accel must be > 0")
+    play = load_plant_params(args.play, "--play") if args.play else {}
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
-                   plant_params)
+                   plant_params, args.backlash_module, play)
     info = {
         "run_dir": rd,
         "kinematics": kin,
@@ -744,6 +786,13 @@ def main():
                    help="plant parameters: inline JSON object or a file")
     p.add_argument("--owner-pid", type=int, default=None,
                    help="stop this run when that process exits")
+    p.add_argument("--backlash-module", choices=BACKLASH_MODULES,
+                   default="none", help="backlash compensation module: "
+                   "seed = PR 7259 [backlash_compensation], pr7157 = "
+                   "[backlash], none")
+    p.add_argument("--play", default=None,
+                   help="simulated play per joint, JSON (cartesian x/y/z, "
+                   "corexy a/b/z), e.g. '{\"x\": 0.08}'")
     p = sub.add_parser("watchdog")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--owner-pid", type=int, required=True)
