@@ -441,8 +441,8 @@ mod tests {
         assert_eq!(back, g);
         let s = back.resume();
         assert_eq!(s.phase, Phase::Minus);
-        // In the − approach at 0.89: restart from 1 mm further in +.
-        assert!((s.moves_mm[0] - 1.89).abs() < 1e-12);
+        // In the − approach at 0.09: restart from 1 mm further in +.
+        assert!((s.moves_mm[0] - 1.09).abs() < 1e-12);
         assert!((back.pending_x1_mm.unwrap() - 299.1).abs() < 1e-9);
     }
 
