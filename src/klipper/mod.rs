@@ -1,6 +1,8 @@
 //! PURE: Klipper config files (parse, follow includes, edit one value in place, the SAVE_CONFIG
 //! block) and G-code command text built from typed values. No I/O beyond what callers pass in.
 //!
+//! - [`backlash`]: backlash compensation branches (PR 7259's `[backlash_compensation]`, PR 7157's
+//!   `[backlash]`): detection, `SET_BACKLASH_COMPENSATION` and its reply, config values.
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
@@ -10,6 +12,7 @@
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
+pub mod backlash;
 pub mod config;
 pub mod edit;
 pub mod facts;
@@ -162,6 +165,9 @@ pub enum Error {
         /// Why.
         reason: String,
     },
+    /// A backlash compensation value or reply klipcal cannot use.
+    #[error("backlash compensation: {0}")]
+    Backlash(String),
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),
