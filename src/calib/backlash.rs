@@ -28,6 +28,10 @@ pub struct Cycle {
     pub x1_mm: f64,
     /// Centred after approaching moving only in − (the seed's X2).
     pub x2_mm: f64,
+    /// The fine jog used in this cycle, when known. Cycles with two jog sizes let the
+    /// estimator remove a bias proportional to the jog (a person who stops a jog late).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fine_mm: Option<f64>,
 }
 
 impl Cycle {
@@ -206,6 +210,41 @@ fn median(v: &[f64]) -> f64 {
     }
 }
 
+/// With inlier cycles at two or more fine-jog sizes: the backlash extrapolated to a zero jog
+/// (a line through each size's median, weighted by its count), and the factor that turns the
+/// per-cycle sd into the standard error of that intercept. A stopping bias proportional to the
+/// jog (k jogs late in each approach adds 2·k·q to X1 − X2) cancels.
+fn jog_extrapolation(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64)> {
+    let mut groups: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+    for (i, c) in cycles.iter().enumerate() {
+        if outliers.contains(&(i + 1)) {
+            continue;
+        }
+        let q = c.fine_mm.filter(|q| q.is_finite() && *q > 0.0)?;
+        groups
+            .entry((q * 1e6).round() as u64)
+            .or_default()
+            .push(c.backlash_mm());
+    }
+    if groups.len() < 2 {
+        return None;
+    }
+    let pts: Vec<(f64, f64, f64)> = groups
+        .iter()
+        .map(|(q, d)| (*q as f64 * 1e-6, median(d), d.len() as f64))
+        .collect();
+    let w: f64 = pts.iter().map(|p| p.2).sum();
+    let qm = pts.iter().map(|p| p.0 * p.2).sum::<f64>() / w;
+    let dm = pts.iter().map(|p| p.1 * p.2).sum::<f64>() / w;
+    let sqq: f64 = pts.iter().map(|p| p.2 * (p.0 - qm).powi(2)).sum();
+    let sqd: f64 = pts.iter().map(|p| p.2 * (p.0 - qm) * (p.1 - dm)).sum();
+    let slope = sqd / sqq;
+    let b0 = dm - slope * qm;
+    // Var(intercept) = σ²·(1/W + q̄²/Sqq) for per-cycle variance σ².
+    let gain = (1.0 / w + qm * qm / sqq).sqrt();
+    Some((b0, gain))
+}
+
 /// Statistics of one axis's cycles.
 ///
 /// # Errors
@@ -255,9 +294,14 @@ pub fn analyse(
         .map(|(_, x)| *x)
         .collect();
     let m = inliers.len() as f64;
-    let med = median(&inliers);
     // Standard error of a median: √(π/2)·sd/√n.
-    let uncertainty = (std::f64::consts::FRAC_PI_2).sqrt() * sd / m.sqrt();
+    let (med, uncertainty) = match jog_extrapolation(cycles, &outliers) {
+        Some((b0, gain)) => (b0, (std::f64::consts::FRAC_PI_2).sqrt() * sd * gain),
+        None => (
+            median(&inliers),
+            (std::f64::consts::FRAC_PI_2).sqrt() * sd / m.sqrt(),
+        ),
+    };
     let backlash = med.max(0.0);
     let spread = d.iter().copied().fold(f64::NEG_INFINITY, f64::max)
         - d.iter().copied().fold(f64::INFINITY, f64::min);
@@ -318,17 +362,26 @@ pub fn parse_readings(text: &str) -> Result<BTreeMap<String, Vec<Cycle>>, Error>
         }
         let mut cycles = Vec::with_capacity(arr.len());
         for (i, c) in arr.iter().enumerate() {
-            let pair = c.as_array().filter(|p| p.len() == 2).and_then(|p| {
-                Some(Cycle {
-                    x1_mm: p[0].as_f64()?,
-                    x2_mm: p[1].as_f64()?,
-                })
-            });
+            let pair = c
+                .as_array()
+                .filter(|p| p.len() == 2 || p.len() == 3)
+                .and_then(|p| {
+                    let fine_mm = match p.get(2) {
+                        None => None,
+                        Some(q) => Some(q.as_f64().filter(|q| *q > 0.0)?),
+                    };
+                    Some(Cycle {
+                        x1_mm: p[0].as_f64()?,
+                        x2_mm: p[1].as_f64()?,
+                        fine_mm,
+                    })
+                });
             match pair {
                 Some(c) => cycles.push(c),
                 None => {
                     return Err(Error::BacklashReadings(format!(
-                        "axis {axis} cycle {} is {c}; expected [x1_mm, x2_mm] (two numbers)",
+                        "axis {axis} cycle {} is {c}; expected [x1_mm, x2_mm] or [x1_mm, x2_mm, \
+                         fine_jog_mm] (numbers; the jog > 0)",
                         i + 1
                     )))
                 }
@@ -384,6 +437,7 @@ mod tests {
             .map(|b| Cycle {
                 x1_mm: 150.0 + b / 2.0,
                 x2_mm: 150.0 - b / 2.0,
+                fine_mm: None,
             })
             .collect()
     }
@@ -465,6 +519,27 @@ mod tests {
         let r3 = analyse("x", &cycles(&[0.04, 0.06, 0.05]), None, &p).unwrap();
         assert!(r10.uncertainty_mm < r3.uncertainty_mm);
         assert!(r10.jog_share < 1.0);
+    }
+
+    #[test]
+    fn two_jog_sizes_remove_a_person_stopping_one_jog_late() {
+        // True backlash 0.06; the person always stops one fine jog past centre, which adds
+        // 2·q to X1 − X2: 0.08 with q = 0.01, 0.065 with q = 0.0025.
+        let c = |d: f64, q: f64| Cycle {
+            x1_mm: 100.0 + d / 2.0,
+            x2_mm: 100.0 - d / 2.0,
+            fine_mm: Some(q),
+        };
+        let cycles = [c(0.08, 0.01), c(0.065, 0.0025), c(0.08, 0.01), c(0.065, 0.0025), c(0.08, 0.01)];
+        let r = analyse("x", &cycles, None, &BacklashParams::default()).unwrap();
+        assert!((r.backlash_mm - 0.06).abs() < 1e-9, "{r:?}");
+        // Without the jog sizes the bias stays.
+        let plain: Vec<Cycle> = cycles.iter().map(|c| Cycle { fine_mm: None, ..*c }).collect();
+        let r = analyse("x", &plain, None, &BacklashParams::default()).unwrap();
+        assert!((r.backlash_mm - 0.08).abs() < 1e-9);
+        let parsed = parse_readings(r#"{"x": [[100.04, 99.96, 0.01], [100.0325, 99.9675, 0.0025]]}"#).unwrap();
+        assert_eq!(parsed["x"][1].fine_mm, Some(0.0025));
+        assert!(parse_readings(r#"{"x": [[1, 0.9, -0.01]]}"#).is_err());
     }
 
     #[test]

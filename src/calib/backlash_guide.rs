@@ -95,8 +95,11 @@ pub struct GuideParams {
     pub approach_mm: f64,
     /// Coarse jog.
     pub coarse_mm: f64,
-    /// Fine jog (the reading resolution).
+    /// Fine jog (the reading resolution) of odd cycles.
     pub fine_mm: f64,
+    /// Fine jog of even cycles (0: always `fine_mm`). Two sizes let the statistics remove a
+    /// stopping bias proportional to the jog.
+    pub small_fine_mm: f64,
     /// Furthest a jog may take the nozzle from the camera point.
     pub max_travel_mm: f64,
 }
@@ -108,6 +111,7 @@ impl Default for GuideParams {
             approach_mm: 1.0,
             coarse_mm: 0.1,
             fine_mm: 0.01,
+            small_fine_mm: 0.0025,
             max_travel_mm: 3.0,
         }
     }
@@ -126,6 +130,12 @@ impl GuideParams {
         let ok = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
         if !ok(self.fine_mm, 0.001, 0.1) {
             return bad(format!("fine jog {} mm; expected 0.001..0.1 mm", self.fine_mm));
+        }
+        if self.small_fine_mm != 0.0 && !ok(self.small_fine_mm, 0.0005, self.fine_mm) {
+            return bad(format!(
+                "small fine jog {} mm; expected 0 (off) or 0.0005 mm .. the fine jog ({})",
+                self.small_fine_mm, self.fine_mm
+            ));
         }
         if !ok(self.coarse_mm, self.fine_mm, 1.0) {
             return bad(format!(
@@ -268,6 +278,15 @@ impl Guide {
         }
     }
 
+    /// The fine jog of the cycle in progress.
+    pub fn fine_mm(&self) -> f64 {
+        if self.params.small_fine_mm > 0.0 && self.cycles.len() % 2 == 1 {
+            self.params.small_fine_mm
+        } else {
+            self.params.fine_mm
+        }
+    }
+
     /// The absolute axis coordinate of the current position.
     pub fn position_mm(&self) -> f64 {
         self.origin_mm + self.pos_mm
@@ -290,7 +309,7 @@ impl Guide {
                 let jog = if press == Press::Coarse {
                     self.params.coarse_mm
                 } else {
-                    self.params.fine_mm
+                    self.fine_mm()
                 };
                 let next = self.pos_mm + self.dir() * jog;
                 if next.abs() > self.params.max_travel_mm + 1e-9 {
@@ -321,9 +340,11 @@ impl Guide {
                     let x1 = self.pending_x1_mm.take().ok_or_else(|| {
                         Error::BacklashGuide("internal: no X1 for this cycle".into())
                     })?;
+                    let fine_mm = Some(self.fine_mm());
                     self.cycles.push(Cycle {
                         x1_mm: x1,
                         x2_mm: reading,
+                        fine_mm,
                     });
                     if self.cycles.len() >= self.params.cycles {
                         self.phase = Phase::Done;
@@ -375,7 +396,7 @@ mod tests {
                 return;
             }
             let dir = if step.phase == Phase::Plus { 1.0 } else { -1.0 };
-            let press = if dir * nozzle >= -0.004 {
+            let press = if dir * nozzle >= -g.fine_mm() / 2.0 {
                 Press::Centred
             } else if dir * nozzle < -0.15 {
                 Press::Coarse
@@ -392,9 +413,11 @@ mod tests {
         assert_eq!(first.moves_mm, vec![-1.0]);
         run(&mut g, first, 0.04);
         assert_eq!(g.cycles.len(), 5);
+        assert_eq!(g.cycles[1].fine_mm, Some(0.0025));
+        assert_eq!(g.cycles[2].fine_mm, Some(0.01));
         for c in &g.cycles {
-            // Centred to the fine-jog resolution: X1 − X2 is 0.08 ± 0.01.
-            assert!((c.backlash_mm() - 0.08).abs() <= 0.0100001, "{c:?}");
+            // Centred to the fine-jog resolution: X1 − X2 is 0.08 ± one jog.
+            assert!((c.backlash_mm() - 0.08).abs() <= c.fine_mm.unwrap() + 1e-9, "{c:?}");
         }
         assert_eq!(g.phase, Phase::Done);
         assert!(g.press(Press::Fine).is_err());
