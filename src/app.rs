@@ -45,6 +45,10 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
         Command::Bench(BenchCommand::Soak(a)) => crate::soak_cmd::bench(&a),
         Command::SoakDetect(a) => crate::soak_cmd::detect(&a, &config.soak),
+        Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
+            crate::backlash_cmd::solve(&a, &config.backlash)
+        }
+        Command::Bench(BenchCommand::Backlash(a)) => crate::backlash_cmd::bench(&a, &config.backlash),
     }
 }
 

@@ -23,11 +23,14 @@
 //! - [`bench`]: benchmarks reported by `klipcal bench …` (figures beside their targets).
 //! - [`solve_cmd`]: `klipcal solve` — reads layout, readings and printer config, prints the
 //!   pure solver's result.
+//! - [`backlash_cmd`]: `backlash solve` (camera readings → per-axis backlash) and
+//!   `bench backlash` (the guided procedure on simulated axes and people).
 //! - [`soak_cmd`]: the thermal soak commands: `soak-detect` (replay a bed trace through
 //!   [`calib::soak`]) and `bench soak` (simulated beds).
 
 pub mod agent;
 pub mod app;
+pub mod backlash_cmd;
 pub mod bench;
 pub mod calib;
 pub mod cli;

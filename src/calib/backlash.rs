@@ -210,11 +210,11 @@ fn median(v: &[f64]) -> f64 {
     }
 }
 
-/// With inlier cycles at two or more fine-jog sizes: the backlash extrapolated to a zero jog
-/// (a line through each size's median, weighted by its count), and the factor that turns the
-/// per-cycle sd into the standard error of that intercept. A stopping bias proportional to the
-/// jog (k jogs late in each approach adds 2·k·q to X1 − X2) cancels.
-fn jog_extrapolation(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64)> {
+/// With inlier cycles at two or more fine-jog sizes: the slope of cycle backlash over the jog
+/// (a line through each size's median, weighted by its count), the count-weighted mean jog and
+/// Σw(q − q̄)². A stopping bias proportional to the jog (k jogs late in each approach adds
+/// 2·k·q to X1 − X2) is this slope; subtracting slope·q from each cycle removes it.
+fn jog_slope(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64, f64)> {
     let mut groups: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
     for (i, c) in cycles.iter().enumerate() {
         if outliers.contains(&(i + 1)) {
@@ -238,11 +238,7 @@ fn jog_extrapolation(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64)>
     let dm = pts.iter().map(|p| p.1 * p.2).sum::<f64>() / w;
     let sqq: f64 = pts.iter().map(|p| p.2 * (p.0 - qm).powi(2)).sum();
     let sqd: f64 = pts.iter().map(|p| p.2 * (p.0 - qm) * (p.1 - dm)).sum();
-    let slope = sqd / sqq;
-    let b0 = dm - slope * qm;
-    // Var(intercept) = σ²·(1/W + q̄²/Sqq) for per-cycle variance σ².
-    let gain = (1.0 / w + qm * qm / sqq).sqrt();
-    Some((b0, gain))
+    Some((sqd / sqq, qm, sqq))
 }
 
 /// Statistics of one axis's cycles.
@@ -270,16 +266,25 @@ pub fn analyse(
     }
     let d: Vec<f64> = cycles.iter().map(Cycle::backlash_mm).collect();
     let n = d.len();
+    // Each cycle corrected to a zero jog where two jog sizes allow it.
+    let corrected = |slope: f64| -> Vec<f64> {
+        cycles
+            .iter()
+            .map(|c| c.backlash_mm() - slope * c.fine_mm.unwrap_or(0.0))
+            .collect()
+    };
+    let slope0 = jog_slope(cycles, &[]).map_or(0.0, |s| s.0);
+    let e = corrected(slope0);
     let q_sd = params.jog_resolution_mm / 6f64.sqrt();
-    let med_all = median(&d);
-    let mad = median(&d.iter().map(|x| (x - med_all).abs()).collect::<Vec<_>>());
+    let med_all = median(&e);
+    let mad = median(&e.iter().map(|x| (x - med_all).abs()).collect::<Vec<_>>());
     let robust_sd = 1.4826 * mad;
     let sd_floor = q_sd.max(if n < 3 { params.prior_cycle_sd_mm } else { 0.0 });
     let sd = robust_sd.max(sd_floor);
     // Outliers: far from the median in robust sd, and by more than two jog steps.
     let limit = (params.outlier_sigmas * sd).max(2.0 * params.jog_resolution_mm);
     let outliers: Vec<usize> = if n >= 3 {
-        d.iter()
+        e.iter()
             .enumerate()
             .filter(|(_, x)| (**x - med_all).abs() > limit)
             .map(|(i, _)| i + 1)
@@ -287,21 +292,29 @@ pub fn analyse(
     } else {
         Vec::new()
     };
-    let inliers: Vec<f64> = d
+    let fit = jog_slope(cycles, &outliers);
+    let e = corrected(fit.map_or(0.0, |s| s.0));
+    let inliers: Vec<f64> = e
         .iter()
         .enumerate()
         .filter(|(i, _)| !outliers.contains(&(i + 1)))
         .map(|(_, x)| *x)
         .collect();
     let m = inliers.len() as f64;
-    // Standard error of a median: √(π/2)·sd/√n.
-    let (med, uncertainty) = match jog_extrapolation(cycles, &outliers) {
-        Some((b0, gain)) => (b0, (std::f64::consts::FRAC_PI_2).sqrt() * sd * gain),
-        None => (
-            median(&inliers),
-            (std::f64::consts::FRAC_PI_2).sqrt() * sd / m.sqrt(),
-        ),
-    };
+    // Standard error of a median: √(π/2)·sd/√n; plus the slope's share at the mean jog.
+    let var_med = std::f64::consts::FRAC_PI_2 * sd * sd / m;
+    let var_slope = fit.map_or(0.0, |(_, qm, sqq)| {
+        qm * qm * std::f64::consts::FRAC_PI_2 * sd * sd / sqq
+    });
+    let med = median(&inliers);
+    let uncertainty = (var_med + var_slope).sqrt();
+    if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
+        return Err(Error::BacklashReadings(format!(
+            "axis {axis}: X1 − X2 is {med:.4} mm, below zero beyond the noise; expected X1 \
+             (approached moving +) above X2 (approached moving −) — are the two readings of \
+             each cycle swapped?"
+        )));
+    }
     let backlash = med.max(0.0);
     let spread = d.iter().copied().fold(f64::NEG_INFINITY, f64::max)
         - d.iter().copied().fold(f64::INFINITY, f64::min);
@@ -540,6 +553,9 @@ mod tests {
         let parsed = parse_readings(r#"{"x": [[100.04, 99.96, 0.01], [100.0325, 99.9675, 0.0025]]}"#).unwrap();
         assert_eq!(parsed["x"][1].fine_mm, Some(0.0025));
         assert!(parse_readings(r#"{"x": [[1, 0.9, -0.01]]}"#).is_err());
+        let swapped = [c(-0.06, 0.01), c(-0.06, 0.01), c(-0.06, 0.01)];
+        let e = analyse("y", &swapped, None, &BacklashParams::default()).unwrap_err();
+        assert!(e.to_string().contains("swapped"), "{e}");
     }
 
     #[test]

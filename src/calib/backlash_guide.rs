@@ -102,6 +102,10 @@ pub struct GuideParams {
     pub small_fine_mm: f64,
     /// Furthest a jog may take the nozzle from the camera point.
     pub max_travel_mm: f64,
+    /// "Centred" is refused while the commanded position is more than this short of the
+    /// camera point in the approach direction (the person was centred there when it was
+    /// saved, so only the backlash and drift separate them).
+    pub plausible_mm: f64,
 }
 
 impl Default for GuideParams {
@@ -113,6 +117,7 @@ impl Default for GuideParams {
             fine_mm: 0.01,
             small_fine_mm: 0.0025,
             max_travel_mm: 3.0,
+            plausible_mm: 0.3,
         }
     }
 }
@@ -153,6 +158,12 @@ impl GuideParams {
             return bad(format!(
                 "max travel {} mm; expected 2 × approach .. 20 mm",
                 self.max_travel_mm
+            ));
+        }
+        if !ok(self.plausible_mm, 0.05, self.approach_mm) {
+            return bad(format!(
+                "plausible centring distance {} mm; expected 0.05 mm .. the approach ({})",
+                self.plausible_mm, self.approach_mm
             ));
         }
         Ok(())
@@ -329,6 +340,13 @@ impl Guide {
                 Ok(self.step(vec![self.pos_mm], None))
             }
             Press::Centred => {
+                if self.dir() * self.pos_mm < -self.params.plausible_mm {
+                    return Err(Error::BacklashGuide(format!(
+                        "the nozzle is still {:.3} mm short of the camera point; keep jogging \
+                         (or press overshot to start the approach over)",
+                        -self.dir() * self.pos_mm
+                    )));
+                }
                 let reading = self.position_mm();
                 if self.phase == Phase::Plus {
                     self.pending_x1_mm = Some(reading);
@@ -439,6 +457,15 @@ mod tests {
         assert!((s.moves_mm[0] - -0.91).abs() < 1e-12);
         let s = g.press(Press::Overshot).unwrap();
         assert!((s.moves_mm[0] - 0.09).abs() < 1e-12);
+    }
+
+    #[test]
+    fn centred_far_short_of_the_camera_point_is_refused() {
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default()).unwrap();
+        let before = g.clone();
+        let e = g.press(Press::Centred).unwrap_err().to_string();
+        assert!(e.contains("1.000 mm short"), "{e}");
+        assert_eq!(g, before);
     }
 
     #[test]
