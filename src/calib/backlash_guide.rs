@@ -449,14 +449,20 @@ mod tests {
         let s = g.press(Press::Overshot).unwrap();
         assert!((s.moves_mm[0] - -1.9).abs() < 1e-12);
         assert_eq!(g.overshoots, 1);
+        let mut last = -1.9;
+        for _ in 0..18 {
+            let s = g.press(Press::Coarse).unwrap();
+            assert!(s.moves_mm[0] > last, "a jog moved back");
+            last = s.moves_mm[0];
+        }
         let s = g.press(Press::Centred).unwrap();
-        assert_eq!(s.recorded, Some(10.0 - 1.9));
+        assert!((s.recorded.unwrap() - 9.9).abs() < 1e-9);
         // Seed step 5: 1 mm further in +, then jogs go −.
-        assert!((s.moves_mm[0] - -0.9).abs() < 1e-12);
+        assert!((s.moves_mm[0] - 0.9).abs() < 1e-9);
         let s = g.press(Press::Fine).unwrap();
-        assert!((s.moves_mm[0] - -0.91).abs() < 1e-12);
+        assert!((s.moves_mm[0] - 0.89).abs() < 1e-9);
         let s = g.press(Press::Overshot).unwrap();
-        assert!((s.moves_mm[0] - 0.09).abs() < 1e-12);
+        assert!((s.moves_mm[0] - 1.89).abs() < 1e-9);
     }
 
     #[test]
@@ -482,7 +488,11 @@ mod tests {
 
     #[test]
     fn the_state_survives_serde_and_resume_restarts_the_approach_from_1_mm_back() {
-        let (mut g, _) = Guide::start(GuideAxis::A, 300.0, GuideParams::default()).unwrap();
+        let p = GuideParams {
+            plausible_mm: 1.0,
+            ..GuideParams::default()
+        };
+        let (mut g, _) = Guide::start(GuideAxis::A, 300.0, p).unwrap();
         g.press(Press::Coarse).unwrap();
         g.press(Press::Centred).unwrap();
         g.press(Press::Fine).unwrap();
