@@ -48,7 +48,9 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
             crate::backlash_cmd::solve(&a, &config.backlash)
         }
-        Command::Bench(BenchCommand::Backlash(a)) => crate::backlash_cmd::bench(&a, &config.backlash),
+        Command::Bench(BenchCommand::Backlash(a)) => {
+            crate::backlash_cmd::bench(&a, &config.backlash)
+        }
     }
 }
 

@@ -190,9 +190,8 @@ fn run_procedure(
                 extra_done = false;
                 Press::Centred
             }
-        } else if seen < -(coarse_mm + 0.02) {
-            Press::Coarse
-        } else if rng.f64() < model.misclick {
+        } else if seen < -(coarse_mm + 0.02) || rng.f64() < model.misclick {
+            // Far away, or a fine jog clicked as coarse.
             Press::Coarse
         } else {
             Press::Fine
@@ -317,9 +316,17 @@ pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Res
             println!(
                 "    {label:<28} p95 |error| {e95:.4} mm{}  {}   mean error {bias:+.4} mm   \
                  wrong verdicts {wrong_pct:4.1} %{}  {}   unfinished {}",
-                if target { " (target ≤ 0.015)" } else { "                  " },
+                if target {
+                    " (target ≤ 0.015)"
+                } else {
+                    "                  "
+                },
                 mark(e_ok),
-                if target { " (target ≤ 5 %)" } else { "               " },
+                if target {
+                    " (target ≤ 5 %)"
+                } else {
+                    "               "
+                },
                 mark(w_ok),
                 t.unfinished
             );

@@ -524,7 +524,9 @@ mod tests {
         assert!((r.jog_share - 1.0).abs() < 1e-12);
         let r10 = analyse(
             "x",
-            &cycles(&[0.04, 0.06, 0.05, 0.045, 0.055, 0.04, 0.06, 0.05, 0.045, 0.055]),
+            &cycles(&[
+                0.04, 0.06, 0.05, 0.045, 0.055, 0.04, 0.06, 0.05, 0.045, 0.055,
+            ]),
             None,
             &p,
         )
@@ -543,14 +545,28 @@ mod tests {
             x2_mm: 100.0 - d / 2.0,
             fine_mm: Some(q),
         };
-        let cycles = [c(0.08, 0.01), c(0.065, 0.0025), c(0.08, 0.01), c(0.065, 0.0025), c(0.08, 0.01)];
+        let cycles = [
+            c(0.08, 0.01),
+            c(0.065, 0.0025),
+            c(0.08, 0.01),
+            c(0.065, 0.0025),
+            c(0.08, 0.01),
+        ];
         let r = analyse("x", &cycles, None, &BacklashParams::default()).unwrap();
         assert!((r.backlash_mm - 0.06).abs() < 1e-9, "{r:?}");
         // Without the jog sizes the bias stays.
-        let plain: Vec<Cycle> = cycles.iter().map(|c| Cycle { fine_mm: None, ..*c }).collect();
+        let plain: Vec<Cycle> = cycles
+            .iter()
+            .map(|c| Cycle {
+                fine_mm: None,
+                ..*c
+            })
+            .collect();
         let r = analyse("x", &plain, None, &BacklashParams::default()).unwrap();
         assert!((r.backlash_mm - 0.08).abs() < 1e-9);
-        let parsed = parse_readings(r#"{"x": [[100.04, 99.96, 0.01], [100.0325, 99.9675, 0.0025]]}"#).unwrap();
+        let parsed =
+            parse_readings(r#"{"x": [[100.04, 99.96, 0.01], [100.0325, 99.9675, 0.0025]]}"#)
+                .unwrap();
         assert_eq!(parsed["x"][1].fine_mm, Some(0.0025));
         assert!(parse_readings(r#"{"x": [[1, 0.9, -0.01]]}"#).is_err());
         let swapped = [c(-0.06, 0.01), c(-0.06, 0.01), c(-0.06, 0.01)];
@@ -560,8 +576,9 @@ mod tests {
 
     #[test]
     fn a_readings_file_is_taken_whole_or_refused_with_the_reason() {
-        let ok = parse_readings(r#"{"x": [[100.05, 100.0], [100.06, 100.01]], "y": [[50, 49.95]]}"#)
-            .unwrap();
+        let ok =
+            parse_readings(r#"{"x": [[100.05, 100.0], [100.06, 100.01]], "y": [[50, 49.95]]}"#)
+                .unwrap();
         assert_eq!(ok["x"].len(), 2);
         for (text, needle) in [
             ("[1,2]", "not a JSON object"),
@@ -596,8 +613,13 @@ mod tests {
 
     #[test]
     fn the_json_per_axis_has_exactly_the_documented_keys() {
-        let r = analyse("x", &cycles(&[0.05, 0.05, 0.05]), None, &BacklashParams::default())
-            .unwrap();
+        let r = analyse(
+            "x",
+            &cycles(&[0.05, 0.05, 0.05]),
+            None,
+            &BacklashParams::default(),
+        )
+        .unwrap();
         let v = serde_json::to_value(&r).unwrap();
         let mut keys: Vec<&str> = v.as_object().unwrap().keys().map(|k| k.as_str()).collect();
         keys.sort_unstable();

@@ -134,7 +134,10 @@ impl GuideParams {
         }
         let ok = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
         if !ok(self.fine_mm, 0.001, 0.1) {
-            return bad(format!("fine jog {} mm; expected 0.001..0.1 mm", self.fine_mm));
+            return bad(format!(
+                "fine jog {} mm; expected 0.001..0.1 mm",
+                self.fine_mm
+            ));
         }
         if self.small_fine_mm != 0.0 && !ok(self.small_fine_mm, 0.0005, self.fine_mm) {
             return bad(format!(
@@ -252,10 +255,16 @@ impl Guide {
     ///
     /// # Errors
     /// Parameters out of range ([`GuideParams::validate`]), or a non-finite origin.
-    pub fn start(axis: GuideAxis, origin_mm: f64, params: GuideParams) -> Result<(Guide, Step), Error> {
+    pub fn start(
+        axis: GuideAxis,
+        origin_mm: f64,
+        params: GuideParams,
+    ) -> Result<(Guide, Step), Error> {
         params.validate()?;
         if !origin_mm.is_finite() {
-            return Err(Error::BacklashGuide("camera point is not a finite position".into()));
+            return Err(Error::BacklashGuide(
+                "camera point is not a finite position".into(),
+            ));
         }
         let mut g = Guide {
             axis,
@@ -435,7 +444,10 @@ mod tests {
         assert_eq!(g.cycles[2].fine_mm, Some(0.01));
         for c in &g.cycles {
             // Centred to the fine-jog resolution: X1 − X2 is 0.08 ± one jog.
-            assert!((c.backlash_mm() - 0.08).abs() <= c.fine_mm.unwrap() + 1e-9, "{c:?}");
+            assert!(
+                (c.backlash_mm() - 0.08).abs() <= c.fine_mm.unwrap() + 1e-9,
+                "{c:?}"
+            );
         }
         assert_eq!(g.phase, Phase::Done);
         assert!(g.press(Press::Fine).is_err());
@@ -508,11 +520,23 @@ mod tests {
 
     #[test]
     fn motor_directions_move_diagonally_and_bad_arguments_are_named() {
-        assert_eq!(GuideAxis::A.point_at([100.0, 50.0, 5.0], 2.0), [101.0, 51.0, 5.0]);
-        assert_eq!(GuideAxis::B.point_at([100.0, 50.0, 5.0], 2.0), [101.0, 49.0, 5.0]);
+        assert_eq!(
+            GuideAxis::A.point_at([100.0, 50.0, 5.0], 2.0),
+            [101.0, 51.0, 5.0]
+        );
+        assert_eq!(
+            GuideAxis::B.point_at([100.0, 50.0, 5.0], 2.0),
+            [101.0, 49.0, 5.0]
+        );
         assert_eq!(GuideAxis::B.coord([101.0, 49.0, 5.0]), 52.0);
-        assert!(GuideAxis::parse("w").unwrap_err().to_string().contains("AXIS=\"w\""));
-        assert!(Press::parse("back").unwrap_err().to_string().contains("PRESS=\"back\""));
+        assert!(GuideAxis::parse("w")
+            .unwrap_err()
+            .to_string()
+            .contains("AXIS=\"w\""));
+        assert!(Press::parse("back")
+            .unwrap_err()
+            .to_string()
+            .contains("PRESS=\"back\""));
         let p = GuideParams {
             cycles: 0,
             ..GuideParams::default()

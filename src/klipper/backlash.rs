@@ -65,12 +65,12 @@ impl Detection {
 /// # Errors
 /// [`Error::Settings`] when either answer is not a JSON object.
 pub fn detect(help: &Value, config: &Value) -> Result<Detection, Error> {
-    let help = help
-        .as_object()
-        .ok_or_else(|| Error::Settings("printer.gcode.help: expected an object of commands".into()))?;
-    let cfg = config
-        .as_object()
-        .ok_or_else(|| Error::Settings("expected a JSON object mapping section names to options".into()))?;
+    let help = help.as_object().ok_or_else(|| {
+        Error::Settings("printer.gcode.help: expected an object of commands".into())
+    })?;
+    let cfg = config.as_object().ok_or_else(|| {
+        Error::Settings("expected a JSON object mapping section names to options".into())
+    })?;
     let cfg = match cfg.get("config") {
         Some(Value::Object(inner)) => inner,
         _ => cfg,
@@ -148,7 +148,11 @@ fn check_range(name: &str, v: f64, lo: f64, hi: f64) -> Result<(), Error> {
 pub fn set_backlash_command(v: &SetBacklash) -> Result<String, Error> {
     let mut cmd = GcodeCmd::new(SET_CMD);
     let mut any = false;
-    for (key, val) in [("X_BACKLASH", v.x_mm), ("Y_BACKLASH", v.y_mm), ("Z_BACKLASH", v.z_mm)] {
+    for (key, val) in [
+        ("X_BACKLASH", v.x_mm),
+        ("Y_BACKLASH", v.y_mm),
+        ("Z_BACKLASH", v.z_mm),
+    ] {
         if let Some(mm) = val {
             check_range(key, mm, 0.0, 10.0)?;
             cmd = cmd.num(key, mm);
@@ -301,7 +305,11 @@ pub fn config_values(
             )));
         }
         check_range(axis, *mm, 0.0, 10.0)?;
-        out.push((section.to_string(), format!("{axis}{suffix}"), format_num(*mm, 4)?));
+        out.push((
+            section.to_string(),
+            format!("{axis}{suffix}"),
+            format_num(*mm, 4)?,
+        ));
     }
     if let Some(t) = smooth_time_s {
         if branch != Branch::Seed {
@@ -326,8 +334,13 @@ mod tests {
 
     #[test]
     fn detection_tells_the_seed_branch_pr_7157_and_neither_apart() {
-        let help = json!({"G28": "", "SET_BACKLASH_COMPENSATION": "Set backlash compensation parameters"});
-        let d = detect(&help, &json!({"backlash_compensation": {"x_backlash": "0"}})).unwrap();
+        let help =
+            json!({"G28": "", "SET_BACKLASH_COMPENSATION": "Set backlash compensation parameters"});
+        let d = detect(
+            &help,
+            &json!({"backlash_compensation": {"x_backlash": "0"}}),
+        )
+        .unwrap();
         assert_eq!(d.branch, Branch::Seed);
         let cfg = json!({"config": {"backlash": {"kinematics": "corexy", "a": "0.0"}}});
         let d = detect(&json!({"G28": ""}), &cfg).unwrap();
@@ -337,7 +350,11 @@ mod tests {
         let d = detect(&json!({"G28": ""}), &json!({"dual_carriage": {}})).unwrap();
         assert_eq!(d.branch, Branch::Neither);
         assert!(d.dual_carriage && !d.can_apply());
-        assert!(d.why.contains("PR 7259") && d.why.contains("PR 7157"), "{}", d.why);
+        assert!(
+            d.why.contains("PR 7259") && d.why.contains("PR 7157"),
+            "{}",
+            d.why
+        );
         assert!(detect(&json!([]), &json!({})).is_err());
     }
 
@@ -355,9 +372,27 @@ mod tests {
             "SET_BACKLASH_COMPENSATION X_BACKLASH=0.02 Y_BACKLASH=0.03 SMOOTH_TIME=0.005"
         );
         for (bad, needle) in [
-            (SetBacklash { x_mm: Some(-0.01), ..v }, "X_BACKLASH=-0.01"),
-            (SetBacklash { smooth_time_s: Some(0.2), ..v }, "SMOOTH_TIME=0.2"),
-            (SetBacklash { y_mm: Some(f64::NAN), ..v }, "Y_BACKLASH=NaN"),
+            (
+                SetBacklash {
+                    x_mm: Some(-0.01),
+                    ..v
+                },
+                "X_BACKLASH=-0.01",
+            ),
+            (
+                SetBacklash {
+                    smooth_time_s: Some(0.2),
+                    ..v
+                },
+                "SMOOTH_TIME=0.2",
+            ),
+            (
+                SetBacklash {
+                    y_mm: Some(f64::NAN),
+                    ..v
+                },
+                "Y_BACKLASH=NaN",
+            ),
             (SetBacklash::default(), "no value to set"),
         ] {
             let e = set_backlash_command(&bad).unwrap_err().to_string();
@@ -428,9 +463,21 @@ mod tests {
         assert_eq!(
             seed,
             [
-                ("backlash_compensation".into(), "x_backlash".into(), "0.08".into()),
-                ("backlash_compensation".into(), "y_backlash".into(), "0.05".into()),
-                ("backlash_compensation".into(), "smooth_time".into(), "0.005".into()),
+                (
+                    "backlash_compensation".into(),
+                    "x_backlash".into(),
+                    "0.08".into()
+                ),
+                (
+                    "backlash_compensation".into(),
+                    "y_backlash".into(),
+                    "0.05".into()
+                ),
+                (
+                    "backlash_compensation".into(),
+                    "smooth_time".into(),
+                    "0.005".into()
+                ),
             ]
         );
         let e = config_values(Branch::Pr7157 { corexy: true }, &v, None).unwrap_err();

@@ -110,7 +110,12 @@ async fn last_reply(m: &Moonraker) -> String {
 async fn x_and_y_measured_at_the_camera_then_compensated_by_set_backlash_compensation() {
     let bench = Bench::start_args(
         "cartesian",
-        &["--backlash-module", "seed", "--play", r#"{"x": 0.08, "y": 0.05}"#],
+        &[
+            "--backlash-module",
+            "seed",
+            "--play",
+            r#"{"x": 0.08, "y": 0.05}"#,
+        ],
     );
     let (m, _c) = connect(&bench).await;
     assert_eq!(detection(&m).await.branch, Branch::Seed);
@@ -158,7 +163,12 @@ async fn x_and_y_measured_at_the_camera_then_compensated_by_set_backlash_compens
 async fn pr_7157_a_and_b_on_corexy_are_measured_and_removed_by_the_config() {
     let bench = Bench::start_args(
         "corexy",
-        &["--backlash-module", "pr7157", "--play", r#"{"a": 0.1, "b": 0.04}"#],
+        &[
+            "--backlash-module",
+            "pr7157",
+            "--play",
+            r#"{"a": 0.1, "b": 0.04}"#,
+        ],
     );
     let (m, _c) = connect(&bench).await;
     assert_eq!(detection(&m).await.branch, Branch::Pr7157 { corexy: true });
@@ -179,12 +189,9 @@ async fn pr_7157_a_and_b_on_corexy_are_measured_and_removed_by_the_config() {
     // PR 7157 has no command: the values go into [backlash] and Klipper restarts.
     let cfg_path = bench.dir.path().join("config/printer.cfg");
     let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &cfg_path).unwrap();
-    let values = klipcal::klipper::backlash::config_values(
-        Branch::Pr7157 { corexy: true },
-        &found,
-        None,
-    )
-    .unwrap();
+    let values =
+        klipcal::klipper::backlash::config_values(Branch::Pr7157 { corexy: true }, &found, None)
+            .unwrap();
     let triples: Vec<(&str, &str, &str)> = values
         .iter()
         .map(|(s, k, v)| (s.as_str(), k.as_str(), v.as_str()))
@@ -218,7 +225,9 @@ async fn a_printer_with_neither_branch_is_detected_with_what_klipper_lacks() {
     assert!(d.why.contains("SET_BACKLASH_COMPENSATION"), "{}", d.why);
     assert!(!d.can_apply());
     // Klipper itself does not know the command.
-    m.gcode("SET_BACKLASH_COMPENSATION X_BACKLASH=0.03").await.ok();
+    m.gcode("SET_BACKLASH_COMPENSATION X_BACKLASH=0.03")
+        .await
+        .ok();
     assert!(last_reply(&m).await.contains("Unknown command"));
     // Measuring still works and says whether backlash matters.
     let point = [100.0, 100.0, 0.0];
@@ -226,5 +235,8 @@ async fn a_printer_with_neither_branch_is_detected_with_what_klipper_lacks() {
     let mut rng = fastrand::Rng::with_seed(3);
     let cycles = measure(&bench, &m, GuideAxis::X, point, mark, &mut rng).await;
     let r = analyse("x", &cycles, None, &BacklashParams::default()).unwrap();
-    assert!((r.backlash_mm - 0.03).abs() <= 3.0 * r.uncertainty_mm + 0.002, "{r:?}");
+    assert!(
+        (r.backlash_mm - 0.03).abs() <= 3.0 * r.uncertainty_mm + 0.002,
+        "{r:?}"
+    );
 }
