@@ -5,32 +5,21 @@
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
-use crate::jobs::ab::is_user_error;
-use crate::jobs::Jobs;
-use crate::klipper::gcode_cmd::{self, GcodeCmd};
+use crate::jobs::console::answer_script;
+use crate::jobs::{is_user_error, Calibrations};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
-
-/// Every remote method the daemon registers.
-pub const METHODS: &[&str] = &[
-    "klipcal_status",
-    "klipcal_ab_start",
-    "klipcal_measure",
-    "klipcal_solve",
-    "klipcal_apply",
-    "klipcal_cancel",
-];
 
 /// Answers agent calls until the channel closes.
 pub async fn serve(
     m: Moonraker,
-    jobs: Option<Jobs>,
+    cals: Option<Calibrations>,
     mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>,
 ) {
     while let Some(call) = calls.recv().await {
         let m = m.clone();
-        let jobs = jobs.clone();
-        tokio::spawn(async move { handle(&m, jobs.as_ref(), call).await });
+        let cals = cals.clone();
+        tokio::spawn(async move { handle(&m, cals.as_ref(), call).await });
     }
 }
 
@@ -41,35 +30,42 @@ fn rpc_error(e: &anyhow::Error) -> RpcError {
     }
 }
 
-async fn job_call(jobs: Option<&Jobs>, method: &str, args: &Value) -> Result<Value, RpcError> {
-    let Some(jobs) = jobs else {
+/// The one entry point for every operation, behind the remote methods and the HTTP API alike:
+/// the same requests, checks and messages.
+///
+/// # Errors
+/// Unknown method (-32601), no session database (503), a user's mistake (400, the message
+/// says what was wrong and what is expected), or the daemon's failure (500).
+pub async fn dispatch(
+    m: &Moonraker,
+    cals: Option<&Calibrations>,
+    method: &str,
+    args: &Value,
+) -> Result<Value, RpcError> {
+    if method == "klipcal_status" {
+        return status(m, cals).await;
+    }
+    let Some(cals) = cals else {
         return Err(RpcError {
             code: 503,
             message: "calibration sessions are not available (no session database)".into(),
         });
     };
-    let r = match method {
-        "klipcal_ab_start" => jobs.start(args).await,
-        "klipcal_measure" => jobs.measure(args).await,
-        "klipcal_solve" => jobs.solve().await,
-        "klipcal_apply" => jobs.apply(args).await,
-        "klipcal_cancel" => jobs.cancel(args).await,
-        _ => unreachable!("only job methods are routed here"),
-    };
-    r.map_err(|e| rpc_error(&e))
+    if !cals.knows(method) {
+        return Err(RpcError {
+            code: -32601,
+            message: format!(
+                "unknown method `{method}`; known: {}",
+                crate::jobs::registry::all_methods().join(", ")
+            ),
+        });
+    }
+    cals.call(method, args).await.map_err(|e| rpc_error(&e))
 }
 
-async fn handle(m: &Moonraker, jobs: Option<&Jobs>, call: AgentCall) {
+async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
-    let outcome = match call.method.as_str() {
-        "klipcal_status" => status(m, jobs).await,
-        "klipcal_ab_start" | "klipcal_measure" | "klipcal_solve" | "klipcal_apply"
-        | "klipcal_cancel" => job_call(jobs, &call.method, &call.params).await,
-        other => Err(RpcError {
-            code: -32601,
-            message: format!("unknown method `{other}`; known: {}", METHODS.join(", ")),
-        }),
-    };
+    let outcome = dispatch(m, cals, &call.method, &call.params).await;
     match call.responder {
         // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
         // klipcal RPC error"), so failures travel as a JSON result the caller can read.
@@ -82,21 +78,20 @@ async fn handle(m: &Moonraker, jobs: Option<&Jobs>, call: AgentCall) {
             Err(e) => json!({"ok": false, "error": {"code": e.code, "message": e.message}}),
         })),
         None => {
-            let text = match &outcome {
-                Ok(v) => console_text(&call.method, v),
-                Err(e) => format!("error: {}", e.message),
+            let script = match &outcome {
+                Ok(v) => answer_script(&console_text(&call.method, v), false),
+                Err(e) => answer_script(&e.message, true),
             };
-            for line in text.lines() {
-                if let Err(e) = m.gcode(&respond_line(line)).await {
+            if !script.is_empty() {
+                if let Err(e) = m.gcode(&script).await {
                     warn!(error = %e, "could not answer on the console");
-                    break;
                 }
             }
         }
     }
 }
 
-async fn status(m: &Moonraker, jobs: Option<&Jobs>) -> Result<Value, RpcError> {
+async fn status(m: &Moonraker, cals: Option<&Calibrations>) -> Result<Value, RpcError> {
     let summary = printer::gather(m).await.map_err(|e| RpcError {
         code: 503,
         message: e.to_string(),
@@ -108,14 +103,16 @@ async fn status(m: &Moonraker, jobs: Option<&Jobs>) -> Result<Value, RpcError> {
         ConnState::Connecting(why) => json!({"moonraker": "connecting", "last_error": why}),
         ConnState::Stopped => json!({"moonraker": "stopped"}),
     };
+    let sessions = match cals {
+        Some(c) => c.status().map_err(|e| rpc_error(&e))?,
+        None => json!({"session": null, "last": {}}),
+    };
     Ok(json!({
         "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
         "connection": connection,
         "printer": summary,
-        "session": match jobs {
-            Some(j) => j.status().map_err(|e| rpc_error(&e))?,
-            None => Value::Null,
-        },
+        "session": sessions["session"],
+        "last": sessions["last"],
     }))
 }
 
@@ -159,33 +156,9 @@ fn console_text(method: &str, v: &Value) -> String {
     }
 }
 
-/// `RESPOND PREFIX=klipcal MSG="…"`, the message made safe for Klipper's parser (characters
-/// that would end or break the command are replaced).
-fn respond_line(msg: &str) -> String {
-    GcodeCmd::new("RESPOND")
-        .word("PREFIX", gcode_cmd::RESPOND_PREFIX)
-        .text_lossy("MSG", msg)
-        .build()
-        .unwrap_or_else(|_| "RESPOND PREFIX=klipcal MSG=\"(unprintable answer)\"".to_string())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn console_answers_cannot_break_out_of_the_respond_command() {
-        let line = respond_line("a \"quoted\" # not a comment; 5*2 \\ end\nnext");
-        assert!(line.starts_with("RESPOND PREFIX=klipcal MSG=\""), "{line}");
-        assert_eq!(line.matches('"').count(), 2, "{line}");
-        for bad in ['#', ';', '*', '\\', '\n'] {
-            assert!(!line.contains(bad), "{line}");
-        }
-        assert!(
-            line.contains("not a comment") && line.contains("next"),
-            "{line}"
-        );
-    }
 
     #[test]
     fn the_status_answer_on_the_console_names_state_and_rotation_distances() {

@@ -36,20 +36,20 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     match cli.command {
         Command::Serve => rt.block_on(serve(config)),
         Command::Check(args) => rt.block_on(check(config, args.json)),
-        Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::bench::footprint(&a)),
+        Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::cmd::bench::footprint(&a)),
         Command::Pylons(args) => {
-            crate::pylons_cmd::run(&args)?;
+            crate::cmd::pylons::run(&args)?;
             Ok(ExitCode::SUCCESS)
         }
-        Command::Solve(args) => crate::solve_cmd::run(&args),
-        Command::Bench(BenchCommand::Metrology(args)) => crate::bench::metrology(&args),
-        Command::Bench(BenchCommand::Soak(a)) => crate::soak_cmd::bench(&a),
-        Command::SoakDetect(a) => crate::soak_cmd::detect(&a, &config.soak),
+        Command::Solve(args) => crate::cmd::solve::run(&args),
+        Command::Bench(BenchCommand::Metrology(args)) => crate::cmd::bench::metrology(&args),
+        Command::Bench(BenchCommand::Soak(a)) => crate::cmd::soak::bench(&a),
+        Command::SoakDetect(a) => crate::cmd::soak::detect(&a, &config.soak),
         Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
-            crate::backlash_cmd::solve(&a, &config.backlash)
+            crate::cmd::backlash::solve(&a, &config.backlash)
         }
         Command::Bench(BenchCommand::Backlash(a)) => {
-            crate::backlash_cmd::bench(&a, &config.backlash)
+            crate::cmd::backlash::bench(&a, &config.backlash)
         }
     }
 }
@@ -58,9 +58,12 @@ fn init_tracing(level: &str) {
     use tracing_subscriber::EnvFilter;
     let filter = EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| EnvFilter::new(format!("klipcal={level},warn")));
+    use std::io::IsTerminal;
+    // Colour only on a terminal: log files and journald get plain text.
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
         .with_target(false);
     // journald stamps every line itself.
     if std::env::var_os("JOURNAL_STREAM").is_some() {
@@ -85,10 +88,7 @@ pub fn client_options(config: &Config) -> ClientOptions {
         request_timeout: Duration::from_secs_f64(m.request_timeout_s),
         reconnect_min: Duration::from_secs_f64(m.reconnect_min_s),
         reconnect_max: Duration::from_secs_f64(m.reconnect_max_s),
-        remote_methods: crate::agent::METHODS
-            .iter()
-            .map(|s| s.to_string())
-            .collect(),
+        remote_methods: crate::jobs::registry::all_methods(),
         subscriptions,
     }
 }
@@ -120,30 +120,26 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
         Duration::from_secs_f64(config.moonraker.request_timeout_s.max(60.0)),
     )?;
     let data_dir = crate::config::expand_home(&config.daemon.data_dir);
-    let jobs = match crate::store::Store::open(&data_dir) {
-        Ok(store) => Some(crate::jobs::Jobs::new(
-            m.clone(),
-            files,
-            store,
-            config.ab.clone(),
-            config.soak.clone(),
-            cancel.clone(),
+    let cals = match crate::store::Store::open(&data_dir) {
+        Ok(store) => Some(crate::jobs::Calibrations::new(
+            crate::jobs::Core::new(m.clone(), files, store, cancel.clone()),
+            &config,
         )),
         Err(e) => {
             tracing::error!(error = %e, "calibration sessions disabled");
             None
         }
     };
-    if let Some(j) = jobs.clone() {
-        tokio::spawn(j.clone().hold_watchdog());
+    if let Some(c) = cals.clone() {
+        tokio::spawn(c.clone().hold_watchdog());
         let m2 = m.clone();
         tokio::spawn(async move {
             if m2.wait_connected(Duration::from_secs(86_400)).await.is_ok() {
-                j.resume().await;
+                c.resume().await;
             }
         });
     }
-    let agent = tokio::spawn(crate::agent::serve(m.clone(), jobs, calls));
+    let agent = tokio::spawn(crate::agent::serve(m.clone(), cals, calls));
     cancel.cancelled().await;
     // Every task selects on the token; give them a moment to close the socket cleanly.
     let mut state = m.state_watch();
@@ -153,6 +149,9 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     )
     .await;
     agent.abort();
+    if let Some(why) = m.fatal_error() {
+        anyhow::bail!("{why}");
+    }
     info!("klipcal stopped");
     Ok(ExitCode::SUCCESS)
 }

@@ -10,12 +10,13 @@ use serde::Deserialize;
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// The file could not be read.
-    #[error("cannot read config file {path}: {source}")]
+    #[error("cannot read config file {path}: {cause}")]
     Read {
         /// The path tried.
         path: PathBuf,
-        /// The I/O error.
-        source: std::io::Error,
+        /// The I/O error. Shown in the message, and deliberately not the error's `source()`:
+        /// a `{:#}` chain would print it twice.
+        cause: std::io::Error,
     },
     /// The file is not valid TOML or has an unknown key or a value of the wrong type.
     #[error("config file {path}: {message}")]
@@ -171,6 +172,9 @@ pub struct AbConfig {
     /// iteration does; Cartesian printers still send it to Klipper's skew correction) or
     /// `klipper_skew` (Klipper's skew_correction takes it, saved as profile `klipcal`).
     pub shear_to: String,
+    /// The start macro the slicer calls (e.g. `START_PRINT`); empty: klipcal looks for
+    /// `PRINT_START` and `START_PRINT` ([`crate::klipper::find_start_macro`]).
+    pub start_macro: String,
 }
 
 impl Default for AbConfig {
@@ -186,6 +190,7 @@ impl Default for AbConfig {
             soak_max_s: 3600.0,
             reading_tolerance_mm: 2.0,
             shear_to: "motors".into(),
+            start_macro: String::new(),
         }
     }
 }
@@ -280,9 +285,9 @@ impl Config {
                 p
             }
         };
-        let text = std::fs::read_to_string(&path).map_err(|source| Error::Read {
+        let text = std::fs::read_to_string(&path).map_err(|cause| Error::Read {
             path: path.clone(),
-            source,
+            cause,
         })?;
         Self::parse(&text).map_err(|e| match e {
             Error::Parse { message, .. } => Error::Parse { path, message },
@@ -338,6 +343,18 @@ impl Config {
             });
         }
         let ab = &self.ab;
+        if !ab
+            .start_macro
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '_')
+        {
+            return Err(Error::Invalid {
+                key: "ab.start_macro",
+                value: format!("{:?}", ab.start_macro),
+                expected: "a Klipper macro name (letters, digits and '_'), or \"\" to find \
+                           PRINT_START or START_PRINT",
+            });
+        }
         if !["paper", "full"].contains(&ab.layout.as_str()) {
             return Err(Error::Invalid {
                 key: "ab.layout",
@@ -485,5 +502,22 @@ mod tests {
         let err = Config::parse("[moonraker]\nrequest_timeout_s = \"ten\"\n").unwrap_err();
         let msg = err.to_string();
         assert!(msg.contains("request_timeout_s"), "{msg}");
+    }
+
+    #[test]
+    fn a_settings_file_that_cannot_be_read_names_its_cause_once() {
+        let err = Config::load(Some(Path::new("/nonexistent/klipcal.toml"))).unwrap_err();
+        let shown = format!("{:#}", anyhow::Error::new(err));
+        assert_eq!(shown.matches("No such file").count(), 1, "{shown}");
+        assert!(shown.contains("/nonexistent/klipcal.toml"), "{shown}");
+    }
+
+    #[test]
+    fn ab_start_macro_is_a_macro_name_or_empty() {
+        let c = Config::parse("[ab]\nstart_macro = \"START_PRINT\"\n").unwrap();
+        assert_eq!(c.ab.start_macro, "START_PRINT");
+        assert_eq!(Config::default().ab.start_macro, "");
+        let err = Config::parse("[ab]\nstart_macro = \"START PRINT; G28\"\n").unwrap_err();
+        assert!(err.to_string().contains("ab.start_macro"), "{err}");
     }
 }

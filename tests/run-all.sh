@@ -3,7 +3,8 @@
 #   1. installs what the tests need (Debian's libusb-dev when missing, the bench's Python venvs
 #      with Moonraker and Klipper's host from PyPI, cached under .bench/),
 #   2. builds the crate and runs `cargo test` for everything: unit tests, the integration tests
-#      that start the bench (a real Moonraker + a real klippy on loopback) and the daemon.
+#      that start the bench (a real Moonraker + a real klippy on loopback) and the daemon,
+#   3. runs the documentation examples (`cargo test --doc`; `--all-targets` skips them).
 # A bench that cannot start fails the tests; nothing is skipped silently.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -19,3 +20,6 @@ bash tests/bench/setup.sh
 echo "== cargo test"
 # Each integration test starts its own bench on free ports; four at a time fit two cores.
 cargo test --all-targets -- --test-threads="${KLIPCAL_TEST_THREADS:-4}"
+
+echo "== cargo test --doc"
+cargo test --doc

@@ -4,7 +4,7 @@
 use serde::Serialize;
 
 /// What the budget is computed from. Defaults are the paper's §3.7 conditions.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct BudgetInputs {
     /// Build plate coefficient of thermal expansion, 1/K (paper: 1.2e-5, spring steel).
     pub plate_cte_per_k: f64,
@@ -67,7 +67,7 @@ impl Default for BudgetInputs {
 }
 
 /// The budget: each term is a bound on one reading's error, mm.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct ErrorBudget {
     /// Plate thermal drift: CTE × temperature band × length.
     pub bed_mm: f64,

@@ -10,7 +10,7 @@ use serde::Serialize;
 use super::Error;
 
 /// Motion system.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Kinematics {
     /// stepper_x moves A = x + y (direction +45°), stepper_y moves B = x − y (−45°).
@@ -85,7 +85,7 @@ pub struct DirectionScale {
 }
 
 /// A value with its standard uncertainty.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct Estimate {
     /// The value.
     pub value: f64,
@@ -94,7 +94,7 @@ pub struct Estimate {
 }
 
 /// A group's agreement with the fitted metric.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct GroupResidual {
     /// Group id.
     pub group: String,
@@ -248,7 +248,7 @@ pub fn metric_xy(kin: Kinematics, h_motor: &Vector3<f64>) -> Matrix2<f64> {
 }
 
 /// Where the shear goes on a CoreXY.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ShearTo {
     /// A and B rotation distances remove common scale and all shear (the paper's fixed point).
@@ -258,7 +258,7 @@ pub enum ShearTo {
 }
 
 /// The corrections derived from a metric.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct Corrections {
     /// Scale factor (new/old rotation_distance) for stepper_x and stepper_y.
     pub stepper_scale: [Estimate; 2],

@@ -21,6 +21,7 @@ pub mod backlash_guide;
 pub mod bench_metrology;
 pub mod budget;
 pub mod differential;
+pub mod entry;
 pub mod metric;
 pub mod readings;
 pub mod skew;

@@ -66,7 +66,7 @@ pub fn classic_skew_factor(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<f64, Er
 }
 
 /// Prusa firmware's skew classes (seed 001; its thresholds 0.12° and 0.25°).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SkewClass {
     /// |skew| ≤ 0.12°.
@@ -88,7 +88,7 @@ pub fn classify_skew(angle_deg: f64) -> SkewClass {
 }
 
 /// The Prusa-style fit: measured = shift + x·(cos a_x, sin a_x) + y·(−sin a_y, cos a_y).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct PointFit {
     /// Bed shift, mm.
     pub shift_mm: [f64; 2],

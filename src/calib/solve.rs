@@ -13,7 +13,7 @@ use super::Error;
 use crate::layout::Layout;
 
 /// What the solver needs to know about one XY stepper.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct StepperFacts {
     /// Klipper `rotation_distance`, mm.
     pub rotation_distance_mm: f64,
@@ -26,7 +26,7 @@ pub struct StepperFacts {
 }
 
 /// The printer facts the solver needs (a subset of the Klipper config).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct MotionFacts {
     /// Motion system.
     pub kinematics: Kinematics,
@@ -65,7 +65,7 @@ impl Default for SolveOptions {
 }
 
 /// One stepper's correction.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct StepperResult {
     /// Direction the stepper drives (`A`, `B`, `X`, `Y`).
     pub direction: String,
@@ -84,7 +84,7 @@ pub struct StepperResult {
 }
 
 /// Skew result.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct SkewResult {
     /// Whether the print observed the shear (needs a group off the motor directions).
     pub observed: bool,
@@ -110,7 +110,7 @@ pub struct SkewResult {
 }
 
 /// X/Y anisotropy (what A/B rotation distances cannot fix on a CoreXY).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct AnisotropyResult {
     /// Observed (needs a full layout).
     pub observed: bool,
@@ -125,7 +125,7 @@ pub struct AnisotropyResult {
 }
 
 /// One pair's reduced readings.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct PairResult {
     /// Pair id.
     pub pair: String,
@@ -142,7 +142,7 @@ pub struct PairResult {
 }
 
 /// One group's result.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct GroupResult {
     /// Group id.
     pub group: String,
@@ -167,7 +167,7 @@ pub struct GroupResult {
 }
 
 /// Fit summary.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct FitSummary {
     /// All three metric entries observed.
     pub full: bool,
@@ -178,7 +178,7 @@ pub struct FitSummary {
 }
 
 /// Everything `klipcal solve` reports.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct Solution {
     /// Motion system.
     pub kinematics: Kinematics,

@@ -40,6 +40,9 @@ pub enum Error {
         /// The largest whole-mm D2 that fits, when one does.
         suggested_d2_mm: Option<f64>,
     },
+    /// The printer's Klipper config lacks a fact the job needs, or has a bad value.
+    #[error("{0}")]
+    Config(String),
     /// A start or end template has a character or placeholder that is not allowed.
     #[error("{which} template {template:?}: {reason}")]
     Template {
@@ -152,6 +155,67 @@ pub struct Machine {
 }
 
 impl Machine {
+    /// The generator's printer facts from a loaded Klipper config, with optional overrides of
+    /// the kinematics and the nozzle and filament diameters (the daemon passes none).
+    ///
+    /// # Errors
+    /// [`Error::Config`]: a config without the facts the job needs, or kinematics other than
+    /// corexy and cartesian without an override.
+    pub fn from_config(
+        config: &crate::klipper::Config,
+        kinematics: Option<Kinematics>,
+        nozzle_diameter_mm: Option<f64>,
+        filament_diameter_mm: Option<f64>,
+    ) -> Result<Machine, Error> {
+        use crate::klipper;
+        let number = |section: &str, key: &str| -> Result<Option<f64>, Error> {
+            match config.get(section, key) {
+                None => Ok(None),
+                Some(raw) => raw.trim().parse::<f64>().map(Some).map_err(|_| {
+                    Error::Config(format!("[{section}] {key} = '{raw}' is not a number"))
+                }),
+            }
+        };
+        let facts = klipper::PrinterFacts::from_config(config)
+            .map_err(|e| Error::Config(format!("reading the printer facts: {e}")))?;
+        let kinematics = match (kinematics, &facts.kinematics) {
+            (Some(k), _) => k,
+            (None, klipper::Kinematics::CoreXy) => Kinematics::CoreXy,
+            (None, klipper::Kinematics::Cartesian) => Kinematics::Cartesian,
+            (None, klipper::Kinematics::Other(k)) => {
+                return Err(Error::Config(format!(
+                    "[printer] kinematics = {k}: the pylon job supports corexy and cartesian; \
+                     pass --kinematics to override"
+                )))
+            }
+        };
+        let nozzle_diameter_mm =
+            nozzle_diameter_mm
+                .or(facts.nozzle_diameter_mm)
+                .ok_or_else(|| {
+                    Error::Config("no [extruder] nozzle_diameter; pass --nozzle-diameter".into())
+                })?;
+        let filament_diameter_mm = filament_diameter_mm
+            .or(facts.filament_diameter_mm)
+            .ok_or_else(|| {
+                Error::Config("no [extruder] filament_diameter; pass --filament-diameter".into())
+            })?;
+        Ok(Machine {
+            kinematics,
+            x_min_mm: facts.stepper_x.position_min_mm,
+            x_max_mm: facts.stepper_x.position_max_mm,
+            y_min_mm: facts.stepper_y.position_min_mm,
+            y_max_mm: facts.stepper_y.position_max_mm,
+            z_max_mm: number("stepper_z", "position_max")?,
+            nozzle_diameter_mm,
+            filament_diameter_mm,
+            has_print_start: facts.has_print_start,
+            max_velocity_mm_s: number("printer", "max_velocity")?,
+            max_accel_mm_s2: number("printer", "max_accel")?,
+            square_corner_velocity_mm_s: number("printer", "square_corner_velocity")?,
+        })
+    }
+
     /// A square printer from 0 to `size_mm` in X and Y with a 0.4 mm nozzle and 1.75 mm
     /// filament and no other facts known: the fixture of tests, benchmarks and previews.
     pub fn square_bed(kinematics: Kinematics, size_mm: f64) -> Self {

@@ -4,7 +4,9 @@
 //!
 //! The rules reproduced (Klipper `configfile.py` + Python 3.11 `RawConfigParser(strict=False,
 //! inline_comment_prefixes=(';', '#'))`):
-//! - `\r\n` becomes `\n`. On every line Klipper first cuts everything from the first `#`, wherever
+//! - Python's universal newlines: `\r\n` and a lone `\r` become `\n`. A UTF-8 byte order mark
+//!   is not removed (Python's `utf-8` codec keeps it), so Klipper refuses such a file ("File
+//!   contains no section headers"); so does this reader, saying why. On every line Klipper first cuts everything from the first `#`, wherever
 //!   it is (also inside G-code macros). A line that was only a `#` comment thus becomes blank,
 //!   and a blank line inside a multi-line value adds an empty line to that value.
 //! - `;` starts a comment at the start of a line or after whitespace only (`M117 a;b` keeps `;b`).
@@ -259,26 +261,41 @@ struct Line {
 }
 
 fn split_lines(file: usize, text: &str) -> Vec<Line> {
-    let pieces: Vec<&str> = text.split('\n').collect();
-    let last = pieces.len() - 1;
-    let mut offset = 0;
-    let mut out = Vec::with_capacity(pieces.len());
-    for (i, piece) in pieces.iter().enumerate() {
-        // Klipper replaces "\r\n" with "\n"; a lone '\r' at the very end stays.
-        let logical = if i < last {
-            piece.strip_suffix('\r').unwrap_or(piece)
-        } else {
-            piece
-        };
+    // Klipper opens the file in Python's text mode: universal newlines turn "\r\n" and a lone
+    // "\r" into "\n". Offsets keep pointing into the original bytes.
+    let bytes = text.as_bytes();
+    let mut out = Vec::new();
+    let mut start = 0;
+    let mut i = 0;
+    let push = |out: &mut Vec<Line>, start: usize, end: usize| {
         out.push(Line {
             file,
-            lineno: i + 1,
-            text: logical.to_string(),
-            offset,
+            lineno: out.len() + 1,
+            text: text[start..end].to_string(),
+            offset: start,
             in_save_config: false,
         });
-        offset += piece.len() + 1;
+    };
+    while i < bytes.len() {
+        match bytes[i] {
+            b'\n' => {
+                push(&mut out, start, i);
+                i += 1;
+                start = i;
+            }
+            b'\r' => {
+                push(&mut out, start, i);
+                i += if bytes.get(i + 1) == Some(&b'\n') {
+                    2
+                } else {
+                    1
+                };
+                start = i;
+            }
+            _ => i += 1,
+        }
     }
+    push(&mut out, start, bytes.len());
     out
 }
 
@@ -416,8 +433,18 @@ impl Loader<'_> {
         }
         let text = self.files.read(path).map_err(|e| Error::Read {
             path: path.to_path_buf(),
-            source: e,
+            cause: e,
         })?;
+        if text.starts_with('\u{feff}') {
+            return Err(Error::Syntax {
+                path: path.to_path_buf(),
+                line: 1,
+                message: "the file starts with a UTF-8 byte order mark (BOM, bytes EF BB BF); \
+                          Klipper reads it as text and refuses the file (\"File contains no \
+                          section headers\"); save it as UTF-8 without BOM"
+                    .into(),
+            });
+        }
         let i = self.sources.len();
         self.sources.push(SourceFile {
             path: key.clone(),
@@ -481,7 +508,7 @@ impl Loader<'_> {
         // system `missing/../x.cfg` does not exist); identity uses the normalised path.
         let mut found = self.files.glob(&pattern).map_err(|e| Error::Read {
             path: pattern.clone(),
-            source: e,
+            cause: e,
         })?;
         if found.is_empty() && !has_magic(&pattern.to_string_lossy()) {
             return Err(Error::IncludeNotFound {
@@ -980,6 +1007,59 @@ gcode:
         let o = cfg.option("stepper_x", "rotation_distance").unwrap();
         assert_eq!(o.value, "40");
         assert_eq!(&text[o.origin.value_span.clone()], "40");
+    }
+
+    #[test]
+    fn lone_cr_line_endings_are_lines_as_in_pythons_universal_newlines() {
+        // Klipper opens config files in text mode: "\r" alone ends a line (old Mac editors).
+        let text = "[printer]\rkinematics: corexy\r[stepper_x]\rrotation_distance: 40\r\
+                    microsteps: 16\r\n[stepper_y]\nrotation_distance: 39.5\r";
+        let files = MemFiles::new().with("/p.cfg", text);
+        let cfg = Config::load(&files, Path::new("/p.cfg")).unwrap();
+        assert_eq!(cfg.get("printer", "kinematics"), Some("corexy"));
+        assert_eq!(cfg.get("stepper_x", "microsteps"), Some("16"));
+        let o = cfg.option("stepper_x", "rotation_distance").unwrap();
+        assert_eq!(o.value, "40");
+        assert_eq!(o.origin.first_line, 4);
+        assert_eq!(&text[o.origin.value_span.clone()], "40");
+        let y = cfg.option("stepper_y", "rotation_distance").unwrap();
+        assert_eq!((y.value.as_str(), y.origin.first_line), ("39.5", 7));
+        // and an edit keeps the lone CRs
+        let edit = super::super::set_value(&cfg, "stepper_x", "rotation_distance", "40.2").unwrap();
+        assert_eq!(edit.new_text, text.replacen(": 40\r", ": 40.2\r", 1));
+    }
+
+    #[test]
+    fn a_file_starting_with_a_byte_order_mark_is_refused_as_klipper_refuses_it() {
+        // Python's utf-8 codec keeps U+FEFF, so configparser sees "\u{feff}[printer]" and
+        // stops with "File contains no section headers" (checked with the bench's Python).
+        for text in [
+            "\u{feff}[printer]\nkinematics: corexy\n",
+            "\u{feff}# c\n[a]\nx: 1\n",
+        ] {
+            let files = MemFiles::new()
+                .with("/c/printer.cfg", "[include inc.cfg]\n")
+                .with("/c/inc.cfg", text);
+            let err = Config::load(&files, Path::new("/c/printer.cfg")).unwrap_err();
+            let msg = err.to_string();
+            assert!(matches!(err, Error::Syntax { line: 1, .. }), "{msg}");
+            assert!(
+                msg.starts_with("/c/inc.cfg line 1: the file starts with a UTF-8 byte order mark"),
+                "{msg}"
+            );
+            assert!(msg.contains("save it as UTF-8 without BOM"), "{msg}");
+        }
+    }
+
+    #[test]
+    fn a_read_error_names_its_cause_once() {
+        let err = Config::load(&MemFiles::new(), Path::new("/c/printer.cfg")).unwrap_err();
+        let shown = format!("{:#}", anyhow::Error::new(err));
+        assert_eq!(shown.matches("no such file").count(), 1, "{shown}");
+        assert!(
+            shown.starts_with("cannot read Klipper config file /c/printer.cfg"),
+            "{shown}"
+        );
     }
 
     #[test]

@@ -169,7 +169,23 @@ fn facts_from(src: &dyn Source) -> Result<PrinterFacts, Error> {
         "kinematics",
         "a kinematics name such as corexy",
     )?;
-    let kinematics = match kin.trim() {
+    let kin_name = kin.trim();
+    // Kinematics whose motion has no [stepper_x]/[stepper_y] (klippy/kinematics/*.py).
+    if [
+        "delta",
+        "rotary_delta",
+        "deltesian",
+        "polar",
+        "winch",
+        "none",
+    ]
+    .contains(&kin_name)
+    {
+        return Err(Error::UnsupportedKinematics {
+            kinematics: kin_name.to_string(),
+        });
+    }
+    let kinematics = match kin_name {
         "corexy" => Kinematics::CoreXy,
         "cartesian" => Kinematics::Cartesian,
         other => Kinematics::Other(other.to_string()),
@@ -217,6 +233,11 @@ fn stepper(src: &dyn Source, section: &str) -> Result<Stepper, Error> {
             section: section.into(),
             expected: "klipcal calibrates the X and Y steppers and needs their settings".into(),
         });
+    }
+    if src.get(section, "rotation_distance")?.is_none() {
+        if let Some(sd) = src.get(section, "step_distance")? {
+            return Err(step_distance_error(src, section, &sd)?);
+        }
     }
     let rd_text = required(src, section, "rotation_distance", "a number of mm above 0")?;
     let rotation_distance_mm = parse_float(
@@ -275,6 +296,38 @@ fn stepper(src: &dyn Source, section: &str) -> Result<Stepper, Error> {
         gear_ratio,
         position_min_mm,
         position_max_mm,
+    })
+}
+
+/// The refusal for an old `step_distance` config, with Klipper's conversion worked out when
+/// the numbers are there (`rotation_distance = full_steps × microsteps × step_distance`).
+fn step_distance_error(src: &dyn Source, section: &str, sd_text: &str) -> Result<Error, Error> {
+    let full = src
+        .get(section, "full_steps_per_rotation")?
+        .and_then(|t| py_int(&t))
+        .unwrap_or(200);
+    let microsteps = src.get(section, "microsteps")?.and_then(|t| py_int(&t));
+    let sd = py_float(sd_text);
+    let conversion = match (microsteps, sd) {
+        (Some(ms), Some(sd)) => {
+            let rd = full as f64 * ms as f64 * sd;
+            let rd = format!("{:.6}", rd);
+            let rd = rd.trim_end_matches('0').trim_end_matches('.');
+            format!(
+                "{full} × {ms} × {} = {rd} → rotation_distance: {rd}",
+                sd_text.trim()
+            )
+        }
+        _ => format!(
+            "{full} × microsteps × {} (add `microsteps:` too: the driver's microstep setting, \
+             e.g. 16)",
+            sd_text.trim()
+        ),
+    };
+    Ok(Error::StepDistance {
+        section: section.to_string(),
+        step_distance: sd_text.trim().to_string(),
+        conversion,
     })
 }
 
@@ -519,6 +572,57 @@ mod tests {
         assert_eq!(py_float(" 1e1 "), Some(10.0));
         assert_eq!(py_float("inf"), None);
         assert_eq!(py_int("+16"), Some(16));
+    }
+
+    #[test]
+    fn kinematics_without_x_and_y_steppers_are_refused_by_name() {
+        for kin in ["delta", "polar", "winch", "rotary_delta", "deltesian"] {
+            let cfg = load(&format!(
+                "[printer]\nkinematics: {kin}\n[stepper_a]\nrotation_distance: 40\n"
+            ));
+            let err = PrinterFacts::from_config(&cfg).unwrap_err();
+            assert_eq!(
+                err.to_string().split(':').next(),
+                Some(format!("kinematics {kin} is not supported").as_str()),
+                "{err}"
+            );
+            let json = json!({"printer": {"kinematics": kin}, "stepper_a": {}});
+            let err = PrinterFacts::from_settings(&json).unwrap_err();
+            assert!(matches!(err, Error::UnsupportedKinematics { .. }), "{err}");
+        }
+        // variants that do have [stepper_x]/[stepper_y] are read as before
+        let hybrid = MINIMAL.replacen("corexy", "hybrid_corexy", 1);
+        let f = PrinterFacts::from_config(&load(&hybrid)).unwrap();
+        assert_eq!(f.kinematics, Kinematics::Other("hybrid_corexy".into()));
+    }
+
+    #[test]
+    fn an_old_step_distance_config_is_told_klippers_conversion() {
+        // rotation_distance = full_steps × microsteps × step_distance = 200 × 16 × 0.0125 = 40
+        let text = MINIMAL.replacen("rotation_distance: 40", "step_distance: 0.0125", 1);
+        let err = PrinterFacts::from_config(&load(&text)).unwrap_err();
+        let msg = err.to_string();
+        assert!(matches!(err, Error::StepDistance { .. }), "{msg}");
+        assert!(
+            msg.starts_with("[stepper_x] uses step_distance: 0.0125"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains("full_steps_per_rotation × microsteps × step_distance"),
+            "{msg}"
+        );
+        assert!(
+            msg.contains("200 × 16 × 0.0125 = 40 → rotation_distance: 40"),
+            "{msg}"
+        );
+        // 400-step motor, no microsteps line (old configs set them in the driver)
+        let text = "[printer]\nkinematics: corexy\n[stepper_x]\nstep_distance: 0.00625\n\
+                    full_steps_per_rotation: 400\nposition_max: 250\n";
+        let msg = PrinterFacts::from_config(&load(text))
+            .unwrap_err()
+            .to_string();
+        assert!(msg.contains("400 × microsteps × 0.00625"), "{msg}");
+        assert!(msg.contains("add `microsteps:`"), "{msg}");
     }
 
     #[test]

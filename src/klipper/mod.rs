@@ -9,6 +9,8 @@
 //!   reads them from.
 //! - [`gcode_cmd`]: [`GcodeCmd`] and helpers (`SET_SKEW`, `RESPOND`, …): G-code lines from
 //!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
+//! - [`start_macro`]: [`find_start_macro`], the start macro the slicer calls (configured,
+//!   `PRINT_START` or `START_PRINT`).
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
@@ -18,6 +20,7 @@ pub mod edit;
 pub mod facts;
 pub mod files;
 pub mod gcode_cmd;
+pub mod start_macro;
 
 use std::path::PathBuf;
 
@@ -28,18 +31,19 @@ pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
+pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {
     /// A file could not be read (or a folder listed while globbing).
-    #[error("cannot read Klipper config file {path}: {source}")]
+    #[error("cannot read Klipper config file {path}: {cause}")]
     Read {
         /// The file or glob pattern.
         path: PathBuf,
-        /// The I/O error.
-        #[source]
-        source: std::io::Error,
+        /// The I/O error. In the message, and deliberately not the error's `source()`: a `{:#}`
+        /// chain would print it twice.
+        cause: std::io::Error,
     },
     /// `[include x]` without wildcards naming a file that does not exist.
     #[error(
@@ -168,6 +172,31 @@ pub enum Error {
     /// A backlash compensation value or reply klipcal cannot use.
     #[error("backlash compensation: {0}")]
     Backlash(String),
+    /// The printer's kinematics has no `[stepper_x]`/`[stepper_y]` pair to calibrate.
+    #[error(
+        "kinematics {kinematics} is not supported: klipcal calibrates printers whose X and Y \
+         are driven by [stepper_x] and [stepper_y] (cartesian, corexy and their hybrid, \
+         limited and corexz variants)"
+    )]
+    UnsupportedKinematics {
+        /// `[printer] kinematics` as written.
+        kinematics: String,
+    },
+    /// A stepper still configured with the `step_distance` Klipper no longer reads.
+    #[error(
+        "[{section}] uses step_distance: {step_distance}, which Klipper no longer reads (it \
+         needs rotation_distance since January 2021). Klipper converts it as rotation_distance \
+         = full_steps_per_rotation × microsteps × step_distance = {conversion}; replace the \
+         step_distance line with that"
+    )]
+    StepDistance {
+        /// Section name.
+        section: String,
+        /// The old value, as written.
+        step_distance: String,
+        /// The worked conversion, e.g. `200 × 16 × 0.0125 = 40 → rotation_distance: 40`.
+        conversion: String,
+    },
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),

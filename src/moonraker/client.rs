@@ -135,6 +135,10 @@ struct Shared {
     status: Mutex<Map<String, Value>>,
     subscriptions: Mutex<Map<String, Value>>,
     cancel: CancellationToken,
+    /// Set once this client has identified; a refusal after that is not fatal.
+    identified_once: std::sync::atomic::AtomicBool,
+    /// Why the client gave up for good (Moonraker refused to identify the agent).
+    fatal: Mutex<Option<String>>,
 }
 
 /// The cloneable handle to the Moonraker connection.
@@ -170,6 +174,8 @@ impl Moonraker {
             state,
             status: Mutex::new(Map::new()),
             cancel,
+            identified_once: std::sync::atomic::AtomicBool::new(false),
+            fatal: Mutex::new(None),
         });
         let handle = Moonraker {
             shared: shared.clone(),
@@ -196,6 +202,13 @@ impl Moonraker {
     /// A watch on the connection state.
     pub fn state_watch(&self) -> watch::Receiver<ConnState> {
         self.shared.state.subscribe()
+    }
+
+    /// Why the client stopped for good, when it did: Moonraker refused to identify this
+    /// client on its first connection (another agent with the same name, a wrong API key).
+    /// The client then cancels its token, so the daemon stops and reports this.
+    pub fn fatal_error(&self) -> Option<String> {
+        lock(&self.shared.fatal).clone()
     }
 
     /// The merged status of every subscribed object, as last reported.
@@ -438,7 +451,38 @@ impl Moonraker {
         if let Some(key) = &opts.api_key {
             ident["api_key"] = json!(key);
         }
-        let r = self.call_raw("server.connection.identify", ident).await?;
+        let r = match self.call_raw("server.connection.identify", ident).await {
+            Ok(r) => r,
+            Err(e) => {
+                use std::sync::atomic::Ordering;
+                // A refusal on the first connection will not go away by retrying (the name is
+                // taken by another running daemon, or the API key is wrong): stop, with
+                // Moonraker's reason. Later, a refusal may be our own previous connection not
+                // yet closed on Moonraker's side, so it is only logged.
+                if e.is_refusal() && !self.shared.identified_once.load(Ordering::SeqCst) {
+                    let why = match &e {
+                        Error::Rpc { message, .. } => message.clone(),
+                        other => other.to_string(),
+                    };
+                    *lock(&self.shared.fatal) = Some(format!(
+                        "Moonraker at {} refused to register klipcal as agent `{}`: {why}{}",
+                        opts.url,
+                        opts.client_name,
+                        if why.contains("already registered") {
+                            " (another klipcal is already serving this printer; stop it first, \
+                             or give this one its own Moonraker)"
+                        } else {
+                            ""
+                        }
+                    ));
+                    self.shared.cancel.cancel();
+                }
+                return Err(e);
+            }
+        };
+        self.shared
+            .identified_once
+            .store(true, std::sync::atomic::Ordering::SeqCst);
         debug!(connection_id = %r["connection_id"], "identified as agent");
         for m in &opts.remote_methods {
             if let Err(e) = self
@@ -511,6 +555,25 @@ async fn actor(
     let shared = handle.shared.clone();
     let opts = &shared.opts;
     let mut backoff = opts.reconnect_min;
+    // The reason last reported at warn level: a failing connection is reported once, and again
+    // only when the reason changes (not at every retry).
+    let mut reported: Option<String> = None;
+    let report = |reported: &mut Option<String>, why: String| {
+        if reported.as_deref() != Some(why.as_str()) {
+            let msg = format!(
+                "cannot reach Moonraker at {}: {why}; retrying every {} s at most",
+                opts.url,
+                fmt_secs(opts.reconnect_max)
+            );
+            // Only the daemon (the agent) reports at warn; `check` says it in its own words.
+            if opts.agent {
+                warn!("{msg}");
+            } else {
+                debug!("{msg}");
+            }
+            *reported = Some(why);
+        }
+    };
     loop {
         if shared.cancel.is_cancelled() {
             break;
@@ -527,6 +590,7 @@ async fn actor(
             Ok(Ok((ws, _))) => {
                 info!(url = %opts.url, "connected to Moonraker");
                 backoff = opts.reconnect_min;
+                reported = None;
                 session(&handle, ws, &mut rx, &agent_tx).await;
                 handle.set_state(ConnState::Connecting(Some("connection closed".into())));
                 handle.emit(Event::Disconnected);
@@ -537,10 +601,14 @@ async fn actor(
             }
             Ok(Err(e)) => {
                 debug!(error = %e, "connect failed");
-                handle.set_state(ConnState::Connecting(Some(e.to_string())));
+                let why = connect_failure(&e);
+                handle.set_state(ConnState::Connecting(Some(why.clone())));
+                report(&mut reported, why);
             }
             Err(_) => {
-                handle.set_state(ConnState::Connecting(Some("connect timed out".into())));
+                let why = format!("no answer within {} s", fmt_secs(opts.request_timeout));
+                handle.set_state(ConnState::Connecting(Some(why.clone())));
+                report(&mut reported, why);
             }
         }
         // Wait before the next try; requests made meanwhile fail at once.
@@ -567,6 +635,42 @@ async fn actor(
         if let Cmd::Request { tx, .. } = cmd {
             let _ = tx.send(Err(Error::Shutdown));
         }
+    }
+}
+
+/// A short reason for a failed websocket connect, in a user's words
+/// (`connection refused`, `host not found`, `HTTP 404 Not Found`).
+fn connect_failure(e: &tokio_tungstenite::tungstenite::Error) -> String {
+    use std::io::ErrorKind;
+    use tokio_tungstenite::tungstenite::Error as WsError;
+    match e {
+        WsError::Io(io) => match io.kind() {
+            ErrorKind::ConnectionRefused => "connection refused".into(),
+            ErrorKind::ConnectionReset => "connection reset".into(),
+            ErrorKind::TimedOut => "timed out".into(),
+            ErrorKind::NotFound => "host not found".into(),
+            _ => {
+                let text = io.to_string();
+                if text.contains("failed to lookup address") || text.contains("Name or service") {
+                    "host not found".into()
+                } else {
+                    text
+                }
+            }
+        },
+        WsError::Http(resp) => format!("HTTP {} (is the URL's path /websocket?)", resp.status()),
+        WsError::Url(u) => format!("bad URL: {u}"),
+        other => other.to_string(),
+    }
+}
+
+/// Seconds without a needless fraction: 1 → "1", 0.5 → "0.5".
+fn fmt_secs(d: Duration) -> String {
+    let s = d.as_secs_f64();
+    if (s - s.round()).abs() < 1e-9 {
+        format!("{s:.0}")
+    } else {
+        format!("{s:.1}")
     }
 }
 

@@ -218,6 +218,22 @@ impl Store {
         r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
     }
 
+    /// The newest session of one kind, in any state.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged document.
+    pub fn latest_session_of(&self, kind: &str) -> Result<Option<SessionRow>, Error> {
+        let r = self
+            .conn()
+            .query_row(
+                "SELECT id, kind, state, doc FROM sessions WHERE kind = ?1 ORDER BY id DESC LIMIT 1",
+                params![kind],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+            )
+            .optional()?;
+        r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
     /// Saves one reading; returns its row id.
     ///
     /// # Errors
@@ -235,6 +251,29 @@ impl Store {
             params![session, round, pair, value_mm],
         )?;
         Ok(c.last_insert_rowid())
+    }
+
+    /// Saves one entry's readings in one transaction: all of them or none.
+    ///
+    /// # Errors
+    /// SQLite failure (then nothing of the entry is saved).
+    pub fn add_readings(
+        &self,
+        session: i64,
+        round: i64,
+        pair: &str,
+        values_mm: &[f64],
+    ) -> Result<(), Error> {
+        let mut c = self.conn();
+        let tx = c.transaction()?;
+        for v in values_mm {
+            tx.execute(
+                "INSERT INTO readings (session_id, round, pair, value_mm) VALUES (?1, ?2, ?3, ?4)",
+                params![session, round, pair, v],
+            )?;
+        }
+        tx.commit()?;
+        Ok(())
     }
 
     /// Removes a pair's readings of one round (to enter them again); returns how many.

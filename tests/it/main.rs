@@ -7,5 +7,7 @@ mod bench;
 mod daemon;
 mod fake;
 mod pylons;
+mod runall;
 mod session;
 mod skew;
+mod startup;

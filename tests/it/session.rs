@@ -192,58 +192,93 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     );
 }
 
+/// Issue 9, items 1–3: an entry is taken whole or refused whole (a comma decimal is named), a
+/// pair's readings can be seen and cleared (logged), and a change after solving drops the
+/// solution so apply never writes one computed from other readings.
 #[tokio::test]
-async fn bad_readings_are_refused_one_by_one_and_nothing_entered_is_lost() {
+async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
     let bench = Bench::start_with("corexy", Some(PLANT));
     let (d, s) = measuring_session(&bench).await;
     let files = bench.files();
+    let measure = |args: Value| extension_request(&files, "klipcal_measure", args);
     let pair = s["pairs"][0].clone();
     let id = pair["id"].as_str().unwrap().to_string();
     let good = simulated_readings(&pair);
-    extension_request(
-        &files,
-        "klipcal_measure",
-        json!({"pair": id, "values": [good[0], good[1]]}),
-    )
-    .await
-    .unwrap();
+    measure(json!({"pair": id, "values": [good[0], good[1]]}))
+        .await
+        .unwrap();
     // Unknown pair.
-    let e = extension_request(
-        &files,
-        "klipcal_measure",
-        json!({"pair": "Z-D9", "values": [10.0]}),
-    )
-    .await
-    .unwrap_err();
+    let e = measure(json!({"pair": "Z-D9", "values": [10.0]}))
+        .await
+        .unwrap_err();
     assert!(e.contains("unknown pair") && e.contains(&id), "{e}");
     // Not a number, zero, negative, far from nominal: each refused, naming the pair.
     for bad in ["abc", "0", "-10.0", "99.5"] {
-        let e = extension_request(
-            &files,
-            "klipcal_measure",
-            json!({"pair": id, "values": bad}),
-        )
+        let e = measure(json!({"pair": id, "values": bad}))
+            .await
+            .unwrap_err();
+        assert!(e.contains(&id) && e.contains("nothing saved"), "{bad}: {e}");
+    }
+    // A mixed entry is refused whole: its good value is not saved either.
+    let e = measure(json!({"pair": id, "values": format!("{},oops", good[2])}))
         .await
         .unwrap_err();
-        assert!(e.contains(&id) && e.contains("refused"), "{bad}: {e}");
-    }
-    // A mixed entry keeps the good value and refuses the bad one.
-    let r = extension_request(
-        &files,
-        "klipcal_measure",
-        json!({"pair": id, "values": format!("{},oops", good[2])}),
-    )
-    .await
-    .unwrap();
-    assert_eq!(r["count"], 3, "{r}");
-    assert_eq!(r["refused"].as_array().unwrap().len(), 1, "{r}");
+    assert!(e.contains("item 2 \"oops\""), "{e}");
+    // The reported case: a comma decimal on the far pair stored 150.000 before.
+    let far = s["pairs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["nominal_mm"].as_f64().unwrap() > 100.0)
+        .unwrap()
+        .clone();
+    let far_id = far["id"].as_str().unwrap().to_string();
+    let e = measure(json!({"pair": far_id, "values": "150,69"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("use a dot: 150.69"), "{e}");
+    let st = session(&bench).await;
+    assert_eq!(st["readings"][&id].as_array().unwrap().len(), 2, "{st}");
+    assert!(st["readings"][&far_id].is_null(), "{st}");
     // Solving too early names what is missing.
     let e = extension_request(&files, "klipcal_solve", json!({}))
         .await
         .unwrap_err();
     assert!(e.contains("pair") || e.contains("reading"), "{e}");
-    let s = session(&bench).await;
-    assert_eq!(s["readings"][&id].as_array().unwrap().len(), 3, "{s}");
+    // CLEAR=1 removes the pair's readings and logs them with their values.
+    let r = measure(json!({"pair": id, "clear": "1"})).await.unwrap();
+    assert!(r["message"].as_str().unwrap().contains("removed"), "{r}");
+    let st = session(&bench).await;
+    assert!(st["readings"][&id].is_null(), "{st}");
+    let notes = st["notes"].to_string();
+    assert!(
+        notes.contains("removed by CLEAR=1") && notes.contains(&format!("{}", good[0])),
+        "{notes}"
+    );
+    // Every pair measured, solved; then one more reading returns the session to measuring.
+    for p in s["pairs"].as_array().unwrap() {
+        measure(json!({"pair": p["id"], "values": simulated_readings(p)}))
+            .await
+            .unwrap();
+    }
+    extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    assert_eq!(session(&bench).await["state"], "solved");
+    measure(json!({"pair": id, "value": good[2]}))
+        .await
+        .unwrap();
+    let st = session(&bench).await;
+    assert_eq!(st["state"], "measuring", "{st}");
+    assert!(st["rounds"][0]["scale"].is_null(), "{st}");
+    assert!(
+        st["notes"].to_string().contains("solution was dropped"),
+        "{st}"
+    );
+    let e = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("apply follows KLIPCAL_AB_SOLVE"), "{e}");
     drop(d);
 }
 

@@ -4,24 +4,12 @@
 
 use std::path::Path;
 
-use anyhow::{anyhow, bail, Context};
+use anyhow::{bail, Context};
 
 use crate::cli::PylonsArgs;
 use crate::fsio::FsFiles;
 use crate::gcode::{self, Kinematics, LayoutKind, Machine, Options};
-use crate::klipper::{self, Config, PrinterFacts};
-
-/// Reads an optional number `[section] key`.
-fn number(config: &Config, section: &str, key: &str) -> anyhow::Result<Option<f64>> {
-    match config.get(section, key) {
-        None => Ok(None),
-        Some(raw) => raw
-            .trim()
-            .parse::<f64>()
-            .map(Some)
-            .map_err(|_| anyhow!("[{section}] {key} = '{raw}' is not a number")),
-    }
-}
+use crate::klipper::Config;
 
 /// The generator's printer facts from a loaded config and the overriding flags.
 ///
@@ -29,55 +17,17 @@ fn number(config: &Config, section: &str, key: &str) -> anyhow::Result<Option<f6
 /// Missing or bad config values the flags do not override; kinematics other than corexy and
 /// cartesian.
 pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machine> {
-    machine_with(
+    let kinematics = args
+        .kinematics
+        .as_deref()
+        .map(Kinematics::parse)
+        .transpose()?;
+    Ok(Machine::from_config(
         config,
-        args.kinematics.as_deref(),
+        kinematics,
         args.nozzle_diameter,
         args.filament_diameter,
-    )
-}
-
-/// The generator's printer facts from a loaded Klipper config, with optional overrides of the
-/// kinematics and the nozzle and filament diameters (the daemon passes none).
-///
-/// # Errors
-/// A config without the facts the job needs, or kinematics other than corexy/cartesian.
-pub fn machine_with(
-    config: &Config,
-    kinematics: Option<&str>,
-    nozzle_diameter: Option<f64>,
-    filament_diameter: Option<f64>,
-) -> anyhow::Result<Machine> {
-    let facts = PrinterFacts::from_config(config).context("reading the printer facts")?;
-    let kinematics = match (kinematics, &facts.kinematics) {
-        (Some(k), _) => Kinematics::parse(k)?,
-        (None, klipper::Kinematics::CoreXy) => Kinematics::CoreXy,
-        (None, klipper::Kinematics::Cartesian) => Kinematics::Cartesian,
-        (None, klipper::Kinematics::Other(k)) => bail!(
-            "[printer] kinematics = {k}: the pylon job supports corexy and cartesian; \
-             pass --kinematics to override"
-        ),
-    };
-    let nozzle_diameter_mm = nozzle_diameter
-        .or(facts.nozzle_diameter_mm)
-        .ok_or_else(|| anyhow!("no [extruder] nozzle_diameter; pass --nozzle-diameter"))?;
-    let filament_diameter_mm = filament_diameter
-        .or(facts.filament_diameter_mm)
-        .ok_or_else(|| anyhow!("no [extruder] filament_diameter; pass --filament-diameter"))?;
-    Ok(Machine {
-        kinematics,
-        x_min_mm: facts.stepper_x.position_min_mm,
-        x_max_mm: facts.stepper_x.position_max_mm,
-        y_min_mm: facts.stepper_y.position_min_mm,
-        y_max_mm: facts.stepper_y.position_max_mm,
-        z_max_mm: number(config, "stepper_z", "position_max")?,
-        nozzle_diameter_mm,
-        filament_diameter_mm,
-        has_print_start: facts.has_print_start,
-        max_velocity_mm_s: number(config, "printer", "max_velocity")?,
-        max_accel_mm_s2: number(config, "printer", "max_accel")?,
-        square_corner_velocity_mm_s: number(config, "printer", "square_corner_velocity")?,
-    })
+    )?)
 }
 
 /// Parses `X,Y`.

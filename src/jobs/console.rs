@@ -1,0 +1,182 @@
+//! What a user reads on Klipper's console: klipcal's answers (`RESPOND PREFIX=klipcal`), its
+//! errors (`RESPOND TYPE=error`, which Mainsail and Fluidd colour), and the Mainsail/Fluidd
+//! prompt dialogs (`action:prompt_*`). The only builder of RESPOND lines; every text is made
+//! safe for Klipper's parser, never pasted raw.
+
+use tracing::warn;
+
+use crate::klipper::gcode_cmd::{self, GcodeCmd};
+use crate::moonraker::Moonraker;
+
+/// `RESPOND PREFIX=klipcal MSG="…"` for one line of text.
+#[must_use]
+pub fn respond_line(msg: &str) -> String {
+    GcodeCmd::new("RESPOND")
+        .word("PREFIX", gcode_cmd::RESPOND_PREFIX)
+        .text_lossy("MSG", msg)
+        .build()
+        .unwrap_or_else(|_| "RESPOND PREFIX=klipcal MSG=\"(unprintable answer)\"".to_string())
+}
+
+/// `RESPOND TYPE=error MSG="klipcal: …"` for one line of an error.
+#[must_use]
+pub fn error_line(msg: &str) -> String {
+    GcodeCmd::new("RESPOND")
+        .word("TYPE", "error")
+        .text_lossy("MSG", &format!("klipcal: {msg}"))
+        .build()
+        .unwrap_or_else(|_| "RESPOND TYPE=error MSG=\"klipcal: (unprintable error)\"".to_string())
+}
+
+/// The console script for a message: one RESPOND per line (Klipper's RESPOND is one line).
+#[must_use]
+pub fn answer_script(msg: &str, is_error: bool) -> String {
+    msg.lines()
+        .filter(|l| !l.trim().is_empty())
+        .map(|l| {
+            if is_error {
+                error_line(l)
+            } else {
+                respond_line(l)
+            }
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+/// The prompt action that closes any open dialog.
+pub const PROMPT_END: &str = "RESPOND TYPE=command MSG=action:prompt_end";
+
+/// A prompt button: label, the G-code it runs, its colour (`primary`, `secondary`, `info`,
+/// `warning`, `error`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Button {
+    /// Label.
+    pub label: String,
+    /// The macro it runs (klipcal's own macro names only).
+    pub gcode: String,
+    /// Colour.
+    pub style: String,
+}
+
+impl Button {
+    /// A button.
+    #[must_use]
+    pub fn new(label: &str, gcode: &str, style: &str) -> Self {
+        Self {
+            label: label.into(),
+            gcode: gcode.into(),
+            style: style.into(),
+        }
+    }
+}
+
+/// A Mainsail/Fluidd prompt dialog.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Prompt {
+    /// Title.
+    pub title: String,
+    /// Text lines.
+    pub lines: Vec<String>,
+    /// Buttons in the body.
+    pub buttons: Vec<Button>,
+    /// Buttons in the footer (kept apart from the body's, e.g. Close or Cancel).
+    pub footer: Vec<Button>,
+}
+
+impl Prompt {
+    /// The G-code script that shows the dialog (closing any dialog open before).
+    #[must_use]
+    pub fn script(&self) -> String {
+        let mut actions = vec![format!("prompt_begin {}", self.title)];
+        actions.extend(self.lines.iter().map(|l| format!("prompt_text {l}")));
+        for b in &self.buttons {
+            actions.push(format!("prompt_button {}|{}|{}", b.label, b.gcode, b.style));
+        }
+        for b in &self.footer {
+            actions.push(format!(
+                "prompt_footer_button {}|{}|{}",
+                b.label, b.gcode, b.style
+            ));
+        }
+        actions.push("prompt_show".into());
+        actions
+            .iter()
+            .filter_map(|a| gcode_cmd::respond_action(&gcode_cmd::sanitize_text(a)).ok())
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+}
+
+/// Says `msg` on the console.
+pub async fn say(m: &Moonraker, msg: &str) {
+    send(m, &answer_script(msg, false), "console message not shown").await;
+}
+
+/// Says `msg` on the console as an error.
+pub async fn error(m: &Moonraker, msg: &str) {
+    send(m, &answer_script(msg, true), "console error not shown").await;
+}
+
+/// Shows a prompt dialog.
+pub async fn show(m: &Moonraker, p: &Prompt) {
+    send(m, &p.script(), "prompt not shown").await;
+}
+
+/// Closes any prompt dialog.
+pub async fn end(m: &Moonraker) {
+    send(m, PROMPT_END, "prompt not closed").await;
+}
+
+async fn send(m: &Moonraker, script: &str, what: &str) {
+    if script.is_empty() {
+        return;
+    }
+    if let Err(e) = m.gcode(script).await {
+        warn!(error = %e, "{what}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn console_answers_cannot_break_out_of_the_respond_command() {
+        let line = respond_line("a \"quoted\" # not a comment; 5*2 \\ end\nnext");
+        assert!(line.starts_with("RESPOND PREFIX=klipcal MSG=\""), "{line}");
+        assert_eq!(line.matches('"').count(), 2, "{line}");
+        for bad in ['#', ';', '*', '\\', '\n'] {
+            assert!(!line.contains(bad), "{line}");
+        }
+        assert!(
+            line.contains("not a comment") && line.contains("next"),
+            "{line}"
+        );
+    }
+
+    #[test]
+    fn errors_go_out_as_klipper_errors_one_line_each() {
+        let s = answer_script("first problem\nsecond; with a semicolon", true);
+        let lines: Vec<&str> = s.lines().collect();
+        assert_eq!(lines.len(), 2, "{s}");
+        assert!(lines[0].starts_with("RESPOND TYPE=error MSG=\"klipcal: first problem\""));
+        assert!(!lines[1].contains(';'), "{s}");
+    }
+
+    #[test]
+    fn a_prompt_keeps_footer_buttons_apart_and_ends_with_show() {
+        let p = Prompt {
+            title: "klipcal: new rotation distances".into(),
+            lines: vec!["stepper_x: 40 → 40.08".into()],
+            buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
+            footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+        };
+        let s = p.script();
+        let lines: Vec<&str> = s.lines().collect();
+        assert!(lines[0].contains("action:prompt_begin klipcal"), "{s}");
+        assert!(lines[2].contains("prompt_button Apply|KLIPCAL_AB_APPLY|primary"));
+        assert!(lines[3].contains("prompt_footer_button Close|KLIPCAL_PROMPT_CLOSE|secondary"));
+        assert!(lines[4].contains("action:prompt_show"));
+    }
+}

@@ -1,0 +1,432 @@
+//! The session core every calibration shares: stored session documents of any kind, one active
+//! session at a time across kinds, the runner that drives a session's automatic states, and the
+//! printer guards (idle, ready, heaters off, hold limit). Nothing of any one calibration lives
+//! here: a calibration keeps its own document type and its own steps (`jobs/ab.rs`, …).
+
+use std::collections::BTreeMap;
+use std::future::Future;
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use anyhow::{anyhow, Context};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use serde_json::json;
+use tokio_util::sync::CancellationToken;
+
+use super::console::{self, Prompt};
+use super::user;
+use crate::klipper::gcode_cmd;
+use crate::moonraker::{Files, Moonraker};
+use crate::store::{SessionRow, Store};
+
+/// A calibration's stored session document.
+pub trait Doc: Serialize + DeserializeOwned + Send {
+    /// The state's name as stored (the store's `state` column; final states end the session).
+    fn state_name(&self) -> String;
+}
+
+/// Unix time now, in seconds.
+#[must_use]
+pub fn now_unix() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map_or(0.0, |d| d.as_secs_f64())
+}
+
+/// Whether the hold limit has passed: `hold_max_s` after `since_unix` (the print's end, the
+/// capture's start, …).
+#[must_use]
+pub fn hold_expired(since_unix: Option<f64>, hold_max_s: f64, now_unix: f64) -> bool {
+    since_unix.is_some_and(|t| now_unix >= t + hold_max_s)
+}
+
+/// The shared core: Moonraker, the files API, the store, and one runner at a time.
+#[derive(Clone)]
+pub struct Core {
+    inner: Arc<Inner>,
+}
+
+struct Inner {
+    m: Moonraker,
+    files: Files,
+    store: Store,
+    shutdown: CancellationToken,
+    /// Serialises every change of a session document, of any kind.
+    lock: tokio::sync::Mutex<()>,
+    runner: std::sync::Mutex<Option<CancellationToken>>,
+    /// Kind → how a user calls it ("an A/B calibration"), for refusals.
+    titles: std::sync::RwLock<BTreeMap<String, String>>,
+}
+
+impl Core {
+    /// Builds the core; calibrations are registered on top of it by [`super::Calibrations`].
+    pub fn new(m: Moonraker, files: Files, store: Store, shutdown: CancellationToken) -> Self {
+        Self {
+            inner: Arc::new(Inner {
+                m,
+                files,
+                store,
+                shutdown,
+                lock: tokio::sync::Mutex::new(()),
+                runner: std::sync::Mutex::new(None),
+                titles: std::sync::RwLock::new(BTreeMap::new()),
+            }),
+        }
+    }
+
+    /// Moonraker.
+    pub fn m(&self) -> &Moonraker {
+        &self.inner.m
+    }
+
+    /// Moonraker's file API.
+    pub fn files(&self) -> &Files {
+        &self.inner.files
+    }
+
+    /// The database.
+    pub fn store(&self) -> &Store {
+        &self.inner.store
+    }
+
+    /// The daemon's shutdown token.
+    pub fn shutdown(&self) -> &CancellationToken {
+        &self.inner.shutdown
+    }
+
+    /// Names a kind for refusals ("an A/B calibration").
+    pub fn register_kind(&self, kind: &str, title: &str) {
+        if let Ok(mut t) = self.inner.titles.write() {
+            t.insert(kind.to_string(), title.to_string());
+        }
+    }
+
+    fn title(&self, kind: &str) -> String {
+        self.inner
+            .titles
+            .read()
+            .ok()
+            .and_then(|t| t.get(kind).cloned())
+            .unwrap_or_else(|| format!("a {kind} session"))
+    }
+
+    /// Takes the document lock (for a read-check-write that spans several calls).
+    pub async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
+        self.inner.lock.lock().await
+    }
+
+    /// Reads a stored document.
+    ///
+    /// # Errors
+    /// No such session, or a document that does not read as `D`.
+    pub fn load<D: Doc>(&self, id: i64) -> anyhow::Result<D> {
+        let row = self
+            .inner
+            .store
+            .session(id)?
+            .ok_or_else(|| anyhow!("session {id} is not in the database"))?;
+        read_doc(row)
+    }
+
+    /// Saves a document (its state column from [`Doc::state_name`]).
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn save<D: Doc>(&self, id: i64, doc: &D) -> anyhow::Result<()> {
+        self.inner
+            .store
+            .save_session(id, &doc.state_name(), &serde_json::to_value(doc)?)?;
+        Ok(())
+    }
+
+    /// Changes a document under the lock, saving it before returning.
+    ///
+    /// # Errors
+    /// What `f` returns, or a store failure.
+    pub async fn update<D: Doc, T>(
+        &self,
+        id: i64,
+        f: impl FnOnce(&mut D) -> anyhow::Result<T>,
+    ) -> anyhow::Result<T> {
+        let _g = self.lock().await;
+        let mut d: D = self.load(id)?;
+        let out = f(&mut d)?;
+        self.save(id, &d)?;
+        Ok(out)
+    }
+
+    /// The active session of any kind.
+    ///
+    /// # Errors
+    /// A damaged database.
+    pub fn active(&self) -> anyhow::Result<Option<SessionRow>> {
+        Ok(self.inner.store.active_session()?)
+    }
+
+    /// The active session when it is of `kind`, read as `D`.
+    ///
+    /// # Errors
+    /// A damaged database or document.
+    pub fn active_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
+        match self.active()? {
+            Some(row) if row.kind == kind => Ok(Some((row.id, read_doc(row)?))),
+            _ => Ok(None),
+        }
+    }
+
+    /// The newest session of `kind`, active or not.
+    ///
+    /// # Errors
+    /// A damaged database or document.
+    pub fn latest_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
+        match self.inner.store.latest_session_of(kind)? {
+            Some(row) => Ok(Some((row.id, read_doc(row)?))),
+            None => Ok(None),
+        }
+    }
+
+    /// Refuses when a session of another kind is active, naming it.
+    ///
+    /// # Errors
+    /// A user error naming the running session.
+    pub fn refuse_other_kind(&self, kind: &str) -> anyhow::Result<()> {
+        match self.active()? {
+            Some(row) if row.kind != kind => Err(user(format!(
+                "{} (session {}) is {}; finish it or KLIPCAL_CANCEL first",
+                self.title(&row.kind),
+                row.id,
+                row.state.replace('_', " ")
+            ))),
+            _ => Ok(()),
+        }
+    }
+
+    /// Stores a new session of `kind` under the lock, refusing while any session is active;
+    /// `set_id` writes the new id into the document, which is saved again with it.
+    ///
+    /// # Errors
+    /// Another session active (named), or a store failure.
+    pub async fn create<D: Doc>(
+        &self,
+        kind: &str,
+        doc: &mut D,
+        set_id: impl FnOnce(&mut D, i64),
+    ) -> anyhow::Result<i64> {
+        let _g = self.lock().await;
+        if let Some(row) = self.active()? {
+            return Err(user(format!(
+                "{} (session {}) is {}; finish it or KLIPCAL_CANCEL first",
+                self.title(&row.kind),
+                row.id,
+                row.state.replace('_', " ")
+            )));
+        }
+        let id = self.inner.store.create_session(
+            kind,
+            &doc.state_name(),
+            &serde_json::to_value(&*doc)?,
+        )?;
+        set_id(doc, id);
+        self.save(id, doc)?;
+        Ok(id)
+    }
+
+    /// Runs a session's automatic steps in the background, replacing (cancelling) any runner
+    /// still going; it stops at [`Core::stop_runner`] or shutdown.
+    pub fn spawn_runner<F>(&self, fut: F)
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        let token = self.inner.shutdown.child_token();
+        if let Ok(mut r) = self.inner.runner.lock() {
+            if let Some(old) = r.replace(token.clone()) {
+                old.cancel();
+            }
+        }
+        tokio::spawn(async move {
+            tokio::select! {
+                () = token.cancelled() => {}
+                () = fut => {}
+            }
+        });
+    }
+
+    /// Stops the running session's automatic steps.
+    pub fn stop_runner(&self) {
+        if let Ok(mut r) = self.inner.runner.lock() {
+            if let Some(t) = r.take() {
+                t.cancel();
+            }
+        }
+    }
+
+    /// Refuses unless Klipper is ready and no print is printing or paused.
+    ///
+    /// # Errors
+    /// A user error saying what the printer is doing; Moonraker failures.
+    pub async fn printer_idle(&self) -> anyhow::Result<()> {
+        let info = self.inner.m.printer_info().await?;
+        if info["state"] != "ready" {
+            return Err(user(format!(
+                "Klipper is not ready ({}): {}",
+                info["state"].as_str().unwrap_or("?"),
+                info["state_message"].as_str().unwrap_or("").trim()
+            )));
+        }
+        let st = self
+            .inner
+            .m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await?;
+        let ps = st["print_stats"]["state"].as_str().unwrap_or("");
+        if ps == "printing" || ps == "paused" {
+            return Err(user(format!(
+                "a print is {ps}; klipcal does not move, heat, restart or edit while a print runs"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Whether Klipper answers ready.
+    pub async fn klipper_ready(&self) -> bool {
+        matches!(self.inner.m.printer_info().await, Ok(i) if i["state"] == "ready")
+    }
+
+    /// Heaters off, and Klipper's idle timeout back to its configured value (a session may
+    /// have stretched it over a hold window).
+    ///
+    /// # Errors
+    /// Moonraker failures.
+    pub async fn heaters_off(&self) -> anyhow::Result<()> {
+        self.inner.m.gcode("TURN_OFF_HEATERS").await?;
+        let cf = self.inner.m.configfile().await?;
+        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
+            self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
+        }
+        Ok(())
+    }
+
+    /// Lets Klipper itself turn the heaters off after `hold_s` of idling, even if klipcal stops.
+    ///
+    /// # Errors
+    /// Moonraker failures.
+    pub async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
+        self.inner
+            .m
+            .gcode(&gcode_cmd::set_idle_timeout(hold_s.max(1.0))?)
+            .await
+            .context("setting Klipper's idle timeout to the hold limit")?;
+        Ok(())
+    }
+
+    /// A console message.
+    pub async fn console(&self, msg: &str) {
+        console::say(&self.inner.m, msg).await;
+    }
+
+    /// A console error (`RESPOND TYPE=error`, coloured by Mainsail and Fluidd).
+    pub async fn console_error(&self, msg: &str) {
+        console::error(&self.inner.m, msg).await;
+    }
+
+    /// Opens (or replaces) the prompt dialog.
+    pub async fn prompt(&self, p: &Prompt) {
+        console::show(&self.inner.m, p).await;
+    }
+
+    /// Closes any prompt dialog (the flow moved on).
+    pub async fn prompt_end(&self) {
+        console::end(&self.inner.m).await;
+    }
+}
+
+fn read_doc<D: DeserializeOwned>(row: SessionRow) -> anyhow::Result<D> {
+    let kind = row.kind.clone();
+    serde_json::from_value(row.doc)
+        .with_context(|| format!("reading stored session {} ({kind})", row.id))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// A core whose Moonraker is never reached (nothing listens on port 9).
+    pub(crate) fn offline_core() -> Core {
+        let cancel = CancellationToken::new();
+        let cfg = crate::config::Config::default();
+        let mut opts = crate::app::client_options(&cfg);
+        opts.url = "ws://127.0.0.1:9/websocket".into();
+        let (m, _calls) = Moonraker::spawn(opts, cancel.clone());
+        let files = Files::new("http://127.0.0.1:9", None, Duration::from_secs(1)).unwrap();
+        Core::new(m, files, Store::in_memory().unwrap(), cancel)
+    }
+
+    #[derive(serde::Serialize, serde::Deserialize)]
+    struct TestDoc {
+        id: i64,
+        state: String,
+    }
+
+    impl Doc for TestDoc {
+        fn state_name(&self) -> String {
+            self.state.clone()
+        }
+    }
+
+    #[tokio::test]
+    async fn a_second_calibration_of_another_kind_is_refused_naming_the_running_one() {
+        let core = offline_core();
+        core.register_kind("ab", "an A/B calibration");
+        core.register_kind("mesh", "a thermal mesh calibration");
+        let mut doc = TestDoc {
+            id: 0,
+            state: "measuring".into(),
+        };
+        let id = core
+            .create("ab", &mut doc, |d, id| d.id = id)
+            .await
+            .unwrap();
+        assert_eq!(core.load::<TestDoc>(id).unwrap().id, id);
+        let e = core.refuse_other_kind("mesh").unwrap_err();
+        assert_eq!(
+            e.to_string(),
+            format!(
+                "an A/B calibration (session {id}) is measuring; finish it or KLIPCAL_CANCEL first"
+            )
+        );
+        assert!(super::super::is_user_error(&e));
+        core.refuse_other_kind("ab").unwrap();
+        let mut other = TestDoc {
+            id: 0,
+            state: "capturing".into(),
+        };
+        let e = core
+            .create("mesh", &mut other, |d, id| d.id = id)
+            .await
+            .unwrap_err();
+        assert!(e.to_string().starts_with("an A/B calibration"), "{e}");
+        // Once the first ends, the other kind may start, and status finds each kind's last.
+        core.update::<TestDoc, ()>(id, |d| {
+            d.state = "cancelled".into();
+            Ok(())
+        })
+        .await
+        .unwrap();
+        let mid = core
+            .create("mesh", &mut other, |d, id| d.id = id)
+            .await
+            .unwrap();
+        assert_eq!(core.active_of::<TestDoc>("mesh").unwrap().unwrap().0, mid);
+        assert!(core.active_of::<TestDoc>("ab").unwrap().is_none());
+        assert_eq!(core.latest_of::<TestDoc>("ab").unwrap().unwrap().0, id);
+    }
+
+    #[test]
+    fn the_hold_limit_counts_from_its_start() {
+        assert!(!hold_expired(None, 10.0, 1e9));
+        assert!(!hold_expired(Some(100.0), 10.0, 109.0));
+        assert!(hold_expired(Some(100.0), 10.0, 110.0));
+    }
+}

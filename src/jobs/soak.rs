@@ -1,0 +1,153 @@
+//! The shared heat-and-soak step: the bed is watched through Moonraker and the pure detector
+//! ([`crate::calib::soak`]) says when its power has stopped falling (paper 000 §3.1). Any
+//! calibration that needs a soaked bed (A/B, thermal mesh) polls one [`BedSoak`]; the step
+//! also writes the console's progress lines: one when soaking starts, one a minute with a
+//! percentage that never goes backwards, and "bed stable after N min" at the end.
+
+use std::time::Instant;
+
+use serde_json::json;
+
+use super::session::Core;
+use super::user;
+use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
+use crate::klipper::gcode_cmd;
+
+/// What one poll saw.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SoakUpdate {
+    /// The bed is still heating towards its target.
+    Heating,
+    /// Heated; waiting for the power to settle. `text` is the progress in words.
+    Soaking {
+        /// Fraction done, 0..1, never lower than an earlier poll's.
+        progress: f64,
+        /// Seconds left, when the fit can tell.
+        eta_s: Option<f64>,
+        /// Progress in words.
+        text: String,
+    },
+    /// Stable (or skipped: unheated bed); `why` is the detector's explanation.
+    Stable {
+        /// The detector's explanation.
+        why: String,
+    },
+}
+
+/// One bed soak in progress.
+pub struct BedSoak {
+    detector: SoakDetector,
+    start: Instant,
+    target_c: f64,
+    max_s: f64,
+    max_setting: &'static str,
+    best_progress: f64,
+    soaking_since_s: Option<f64>,
+    last_console_s: f64,
+}
+
+/// How often the console hears of the soak.
+const CONSOLE_EVERY_S: f64 = 60.0;
+
+impl BedSoak {
+    /// Starts watching a bed heated to `target_c`; fails after `max_s` (named as the setting
+    /// `max_setting` in the error).
+    #[must_use]
+    pub fn new(params: SoakParams, target_c: f64, max_s: f64, max_setting: &'static str) -> Self {
+        Self {
+            detector: SoakDetector::new(params),
+            start: Instant::now(),
+            target_c,
+            max_s,
+            max_setting,
+            best_progress: 0.0,
+            soaking_since_s: None,
+            last_console_s: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Sets the bed's target through Klipper.
+    ///
+    /// # Errors
+    /// Moonraker failures.
+    pub async fn heat(core: &Core, target_c: f64) -> anyhow::Result<()> {
+        core.m()
+            .gcode(&gcode_cmd::set_heater_temperature("heater_bed", target_c)?)
+            .await?;
+        Ok(())
+    }
+
+    /// Reads the bed once and feeds the detector; says progress on the console when due.
+    ///
+    /// # Errors
+    /// The soak took longer than allowed (a user error naming the setting), or Moonraker failed.
+    pub async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
+        let t_s = self.start.elapsed().as_secs_f64();
+        if t_s > self.max_s {
+            return Err(user(format!(
+                "the bed did not reach thermal equilibrium within {:.0} s ({})",
+                self.max_s, self.max_setting
+            )));
+        }
+        let st = core
+            .m()
+            .objects_query(json!({"heater_bed": ["temperature", "power", "target"]}))
+            .await?;
+        let hb = &st["heater_bed"];
+        let status = self.detector.push(
+            t_s,
+            hb["power"].as_f64().unwrap_or(0.0),
+            hb["temperature"].as_f64().unwrap_or(0.0),
+            hb["target"].as_f64().unwrap_or(self.target_c),
+        );
+        Ok(match status {
+            SoakStatus::Stable { .. } | SoakStatus::Skipped => {
+                let why = self.detector.explanation().to_string();
+                if let Some(since) = self.soaking_since_s {
+                    core.console(&format!(
+                        "{title}: bed stable after {:.0} min of soaking",
+                        (t_s - since) / 60.0
+                    ))
+                    .await;
+                }
+                SoakUpdate::Stable { why }
+            }
+            SoakStatus::Heating => SoakUpdate::Heating,
+            SoakStatus::Soaking {
+                eta_s, progress, ..
+            } => {
+                if self.soaking_since_s.is_none() {
+                    self.soaking_since_s = Some(t_s);
+                    core.console(&format!(
+                        "{title}: the bed is at {:.0} °C; waiting for its power to stop falling \
+                         (thermal equilibrium) before printing",
+                        self.target_c
+                    ))
+                    .await;
+                    self.last_console_s = t_s;
+                }
+                self.best_progress = self.best_progress.max(progress.clamp(0.0, 1.0));
+                let text = match eta_s {
+                    Some(eta) => format!(
+                        "bed soaking: {:.0} % done, about {:.0} min left",
+                        self.best_progress * 100.0,
+                        (eta / 60.0).ceil()
+                    ),
+                    None => format!(
+                        "bed soaking: {:.0} % done, waiting for the bed power to settle",
+                        self.best_progress * 100.0
+                    ),
+                };
+                if t_s - self.last_console_s >= CONSOLE_EVERY_S {
+                    self.last_console_s = t_s;
+                    core.console(&format!("{title}: {text}")).await;
+                }
+                SoakUpdate::Soaking {
+                    progress: self.best_progress,
+                    eta_s,
+                    text,
+                }
+            }
+        })
+    }
+}

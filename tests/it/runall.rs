@@ -1,0 +1,51 @@
+//! tests/run-all.sh, the one test command README names, runs every kind of test: checked by
+//! running the script with a recording stand-in for `cargo` first on PATH.
+
+use std::os::unix::fs::PermissionsExt;
+use std::process::Command;
+
+use crate::bench::repo;
+
+#[test]
+fn run_all_also_runs_the_documentation_examples() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("cargo.log");
+    let fake = dir.path().join("cargo");
+    std::fs::write(
+        &fake,
+        format!("#!/bin/sh\necho \"$*\" >> '{}'\n", log.display()),
+    )
+    .unwrap();
+    std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let path = format!(
+        "{}:{}",
+        dir.path().display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let out = Command::new("bash")
+        .arg(repo().join("tests/run-all.sh"))
+        .env("PATH", path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let calls = std::fs::read_to_string(&log).unwrap();
+    let calls: Vec<&str> = calls.lines().collect();
+    assert!(
+        calls.iter().any(|c| c.starts_with("test --all-targets")),
+        "{calls:?}"
+    );
+    assert!(
+        calls
+            .iter()
+            .any(|c| c.split_whitespace().eq(["test", "--doc"])),
+        "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
+    );
+    // README names the script as the test command.
+    let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
+    assert!(readme.contains("./tests/run-all.sh"));
+}
