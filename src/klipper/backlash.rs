@@ -10,7 +10,7 @@
 
 use std::collections::BTreeMap;
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::gcode_cmd::{format_num, GcodeCmd};
@@ -26,7 +26,7 @@ pub const PR7157_SECTION: &str = "backlash";
 pub const MAX_SMOOTH_TIME_S: f64 = 0.1;
 
 /// Which backlash compensation the printer's Klipper has.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "branch")]
 pub enum Branch {
     /// PR 7259: `[backlash_compensation]` + `SET_BACKLASH_COMPENSATION`.
@@ -41,7 +41,7 @@ pub enum Branch {
 }
 
 /// What detection found, with the words a user reads.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Detection {
     /// The branch.
     #[serde(flatten)]
