@@ -48,6 +48,12 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Mesh(a)) => crate::cmd::mesh::bench(&a),
         Command::Mesh(crate::cli::MeshCommand::Fit(a)) => crate::cmd::mesh::fit_cmd(&a),
         Command::Mesh(crate::cli::MeshCommand::Profiles(a)) => crate::cmd::mesh::profiles_cmd(&a),
+        Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
+            crate::cmd::backlash::solve(&a, &config.backlash)
+        }
+        Command::Bench(BenchCommand::Backlash(a)) => {
+            crate::cmd::backlash::bench(&a, &config.backlash)
+        }
     }
 }
 

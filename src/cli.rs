@@ -39,6 +39,9 @@ pub enum Command {
     /// Offline thermal bed-mesh compensation: fit VGB/klipcal meshes, write profiles.
     #[command(subcommand)]
     Mesh(MeshCommand),
+    /// Offline backlash commands (seed 004).
+    #[command(subcommand)]
+    Backlash(BacklashCommand),
 }
 
 /// `klipcal mesh …`
@@ -123,6 +126,42 @@ pub enum BenchCommand {
     Soak(BenchSoakArgs),
     /// Thermal bed-mesh compensation on simulated gantries, against VGB's two-mesh method.
     Mesh(BenchMeshArgs),
+    /// The guided backlash procedure on simulated axes and people, beside the seed's single pass.
+    Backlash(BenchBacklashArgs),
+}
+
+/// `klipcal backlash …`
+#[derive(Debug, Subcommand)]
+pub enum BacklashCommand {
+    /// Backlash per axis from camera readings: median, spread, uncertainty, outliers, verdict,
+    /// smooth_time.
+    Solve(BacklashSolveArgs),
+}
+
+/// `klipcal backlash solve`
+#[derive(Debug, Args)]
+pub struct BacklashSolveArgs {
+    /// JSON `{"x": [[x1_mm, x2_mm], …], "y": …, "z": …}` (X1 approached moving +, X2 moving −;
+    /// an optional third number per cycle is its fine jog, mm).
+    #[arg(long, value_name = "FILE")]
+    pub readings: PathBuf,
+    /// [printer] max_accel, mm/s²: smooth_time is raised until 2·b/t² fits the budget.
+    #[arg(long, value_name = "MM_S2")]
+    pub max_accel: Option<f64>,
+    /// Print one JSON object per axis instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `klipcal bench backlash`
+#[derive(Debug, Args)]
+pub struct BenchBacklashArgs {
+    /// Simulated axes per model.
+    #[arg(long, default_value_t = 2000)]
+    pub axes: usize,
+    /// RNG seed.
+    #[arg(long, default_value_t = 4)]
+    pub seed: u64,
 }
 
 /// `klipcal solve`

@@ -25,8 +25,8 @@
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
-//!   `mesh fit` / `mesh profiles`, and the benchmarks of `klipcal bench …` (figures beside
-//!   their targets).
+//!   `mesh fit` / `mesh profiles`, `backlash solve`, and the benchmarks of `klipcal bench …`
+//!   (figures beside their targets).
 
 pub mod agent;
 pub mod app;

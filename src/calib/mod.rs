@@ -15,8 +15,13 @@
 //!   two-mesh method beside it, the fewest profiles within a tolerance.
 //! - [`mesh_follow`]: when to load which profile while printing (tolerance, hysteresis, interval,
 //!   jump limit, stale sensor).
+//! - [`backlash`]: backlash per axis from the seed's camera cycles (seed 004): median, spread,
+//!   uncertainty, outliers, verdict, smooth_time from an acceleration budget.
+//! - [`backlash_guide`]: the guided camera procedure as a resumable state machine.
 //! - [`bench_metrology`]: the closed-loop simulated benchmark behind `klipcal bench metrology`.
 
+pub mod backlash;
+pub mod backlash_guide;
 pub mod bench_metrology;
 pub mod budget;
 pub mod differential;
@@ -127,4 +132,13 @@ pub enum Error {
     /// A fit that has too few or degenerate inputs.
     #[error("fit: {0}")]
     Fit(String),
+    /// Backlash readings that are not the expected shape or values.
+    #[error("backlash readings: {0}")]
+    BacklashReadings(String),
+    /// Backlash settings out of range.
+    #[error("backlash settings: {0}")]
+    BacklashParams(String),
+    /// A guided backlash measurement step that cannot be taken.
+    #[error("backlash guide: {0}")]
+    BacklashGuide(String),
 }

@@ -1,6 +1,7 @@
 //! The offline commands, each the thin shell of one CLI command: read files, call the pure
 //! modules, print. No calibration logic and no Moonraker session here.
 
+pub mod backlash;
 pub mod bench;
 pub mod mesh;
 pub mod pylons;

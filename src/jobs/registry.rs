@@ -64,6 +64,7 @@ pub fn all_methods() -> Vec<String> {
     COMMON_METHODS
         .iter()
         .chain(super::ab::METHODS)
+        .chain(super::backlash::METHODS)
         .map(|s| (*s).to_string())
         .collect()
 }
@@ -79,13 +80,19 @@ impl Calibrations {
     /// Every calibration klipcal has, over `core`, each with its own sections of the settings.
     #[must_use]
     pub fn new(core: Core, config: &crate::config::Config) -> Self {
-        let list: Vec<Arc<dyn Calibration>> = vec![Arc::new(super::ab::Ab::new(
-            core.clone(),
-            super::ab::AbSettings {
-                defaults: config.ab.clone(),
-                soak: config.soak.clone(),
-            },
-        ))];
+        let list: Vec<Arc<dyn Calibration>> = vec![
+            Arc::new(super::ab::Ab::new(
+                core.clone(),
+                super::ab::AbSettings {
+                    defaults: config.ab.clone(),
+                    soak: config.soak.clone(),
+                },
+            )),
+            Arc::new(super::backlash::Backlash::new(
+                core.clone(),
+                config.backlash.clone(),
+            )),
+        ];
         for c in &list {
             core.register_kind(c.kind(), c.title());
         }

@@ -1,6 +1,8 @@
 //! PURE: Klipper config files (parse, follow includes, edit one value in place, the SAVE_CONFIG
 //! block) and G-code command text built from typed values. No I/O beyond what callers pass in.
 //!
+//! - [`backlash`]: backlash compensation branches (PR 7259's `[backlash_compensation]`, PR 7157's
+//!   `[backlash]`): detection, `SET_BACKLASH_COMPENSATION` and its reply, config values.
 //! - [`bed_mesh`]: bed-mesh profiles read and written as Klipper does; VGB profile names.
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
@@ -15,6 +17,7 @@
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
+pub mod backlash;
 pub mod bed_mesh;
 pub mod config;
 pub mod edit;
@@ -172,6 +175,9 @@ pub enum Error {
         /// Why.
         reason: String,
     },
+    /// A backlash compensation value or reply klipcal cannot use.
+    #[error("backlash compensation: {0}")]
+    Backlash(String),
     /// The printer's kinematics has no `[stepper_x]`/`[stepper_y]` pair to calibrate.
     #[error(
         "kinematics {kinematics} is not supported: klipcal calibrates printers whose X and Y \

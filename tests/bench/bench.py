@@ -13,6 +13,8 @@ command line before any signal).
                  probe], the frame thermistor [temperature_sensor frame] and
                  finer Z microsteps; the surface parameters go to
                  comms/surface.json, each probe's truth to comms/probe_log.jsonl)
+                 [--backlash-module none|seed|pr7157]
+                 [--play '{"x": 0.08, "y": 0.05}']
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
@@ -43,7 +45,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 REPO = os.path.dirname(os.path.dirname(HERE))
 TEMPLATES = os.path.join(HERE, "templates")
 DICT_PATH = os.path.join(HERE, "mcu_dict.json")
-EXTRAS_SRC = os.path.join(HERE, "klippy_extras", "klipcal_bench.py")
+EXTRAS_DIR = os.path.join(HERE, "klippy_extras")
+BACKLASH_MODULES = ("none", "seed", "pr7157")
 NAMES = ("plant", "klippy", "moonraker")
 DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
 READY_TIMEOUT_S = 60.0
@@ -68,21 +71,58 @@ def venv_python(name):
 
 
 def check_installed():
-    """Fails when setup.sh has not been run since klipcal_bench.py changed."""
+    """Fails when setup.sh has not been run since a klippy_extras/*.py changed."""
     py = venv_python("klippy")
     venv_python("moonraker")
     lib = os.path.join(os.path.dirname(os.path.dirname(py)), "lib")
+    extras = None
     for pyver in sorted(os.listdir(lib)):
-        dst = os.path.join(lib, pyver, "site-packages", "klippy", "extras",
-                           "klipcal_bench.py")
-        if os.path.exists(dst):
-            with open(dst, "rb") as a, open(EXTRAS_SRC, "rb") as b:
-                if a.read() == b.read():
-                    return
-            raise BenchError("installed %s differs from %s: run "
-                             "tests/bench/setup.sh" % (dst, EXTRAS_SRC))
-    raise BenchError("klipcal_bench.py not installed into klippy: run "
-                     "tests/bench/setup.sh")
+        d = os.path.join(lib, pyver, "site-packages", "klippy", "extras")
+        if os.path.isdir(d):
+            extras = d
+    if extras is None:
+        raise BenchError("klippy not installed: run tests/bench/setup.sh")
+    for name in sorted(os.listdir(EXTRAS_DIR)):
+        if not name.endswith(".py"):
+            continue
+        src, dst = os.path.join(EXTRAS_DIR, name), os.path.join(extras, name)
+        if not os.path.exists(dst):
+            raise BenchError("%s not installed into klippy: run "
+                             "tests/bench/setup.sh" % name)
+        with open(dst, "rb") as a, open(src, "rb") as b:
+            if a.read() != b.read():
+                raise BenchError("installed %s differs from %s: run "
+                                 "tests/bench/setup.sh" % (dst, src))
+
+
+def backlash_sections(kinematics, module, play, comms_dir):
+    """printer.cfg text for the backlash variant: `module` is none, seed
+    (PR 7259's [backlash_compensation]) or pr7157 ([backlash]); `play` maps
+    joints (cartesian x/y/z, corexy a/b/z) to simulated play in mm."""
+    if module not in BACKLASH_MODULES:
+        raise BenchError("--backlash-module %r: expected one of %s"
+                         % (module, ", ".join(BACKLASH_MODULES)))
+    joints = ("a", "b", "z") if kinematics == "corexy" else ("x", "y", "z")
+    for k, v in play.items():
+        if k not in joints or not isinstance(v, (int, float)) or v < 0:
+            raise BenchError("--play %s=%r: expected joints %s with mm >= 0 "
+                             "on %s" % (k, v, "/".join(joints), kinematics))
+    text = ""
+    if play or module != "none":
+        text += ("# Simulated mechanical play (tests read the true nozzle\n"
+                 "# position from state_file).\n[klipcal_backlash_sim]\n"
+                 "state_file: %s\n" % os.path.join(comms_dir,
+                                                   "nozzle_true.json"))
+        text += "".join("%s: %s\n" % (k, play[k]) for k in joints
+                        if k in play)
+        text += "\n"
+    if module == "seed":
+        text += ("[backlash_compensation]\nsmooth_time: 0.005\n"
+                 "x_backlash: 0.0\ny_backlash: 0.0\n\n")
+    elif module == "pr7157":
+        text += "[backlash]\nkinematics: %s\n" % kinematics
+        text += "".join("%s: 0.0\n" % k for k in joints[:2]) + "\n"
+    return text
 
 
 def clean_env():
@@ -171,7 +211,8 @@ VARIANTS = ("plain", "mesh")
 
 
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
-                   plant_params, variant="plain"):
+                   plant_params, variant="plain", backlash_module="none",
+                   play=None):
     """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
     PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
@@ -190,6 +231,8 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
         # 0.3125 um per step on the mesh bench: probe results must not be
         # quantised to 2.5 um when the fit is judged in microns.
         "Z_MICROSTEPS": 128 if variant == "mesh" else 16,
+        "BACKLASH": backlash_sections(kinematics, backlash_module, play or {},
+                                      comms_dir),
     })
     text = render("printer.cfg", values)
     if variant == "mesh":
@@ -523,8 +566,9 @@ def cmd_start(args):
             os.remove(log)
     elif args.surface_json:
         raise BenchError("--surface-json needs --variant mesh")
+    play = load_plant_params(args.play, "--play") if args.play else {}
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
-                   plant_params, args.variant)
+                   plant_params, args.variant, args.backlash_module, play)
     info = {
         "variant": args.variant,
         "run_dir": rd,
@@ -801,6 +845,13 @@ def main():
     p.add_argument("--surface-json", default=None,
                    help="simulated surface parameters (mesh variant): inline"
                    " JSON object or a file")
+    p.add_argument("--backlash-module", choices=BACKLASH_MODULES,
+                   default="none", help="backlash compensation module: "
+                   "seed = PR 7259 [backlash_compensation], pr7157 = "
+                   "[backlash], none")
+    p.add_argument("--play", default=None,
+                   help="simulated play per joint, JSON (cartesian x/y/z, "
+                   "corexy a/b/z), e.g. '{\"x\": 0.08}'")
     p = sub.add_parser("watchdog")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--owner-pid", type=int, required=True)

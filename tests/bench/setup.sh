@@ -77,15 +77,17 @@ patch_line() { # file old new
 patch_line kinematics/cartesian.py "from . import stepper" "from .. import stepper"
 patch_line kinematics/idex_modes.py "import chelper" "from .. import chelper"
 
-# 4. Our extras module (file-backed temperature sensor, BENCH_SLEEP).
-src="$here/klippy_extras/klipcal_bench.py"
-dst="$kpkg/extras/klipcal_bench.py"
-if cmp -s "$src" "$dst"; then
-    say "extras/klipcal_bench.py up to date"
-else
-    cp "$src" "$dst" || die "cannot copy $src to $dst"
-    say "installed extras/klipcal_bench.py"
-fi
+# 4. Our extras modules (file-backed temperature sensor, BENCH_SLEEP; the
+#    backlash stand-ins and the simulated mechanics), every klippy_extras/*.py.
+for src in "$here"/klippy_extras/*.py; do
+    dst="$kpkg/extras/$(basename "$src")"
+    if cmp -s "$src" "$dst"; then
+        say "extras/$(basename "$src") up to date"
+    else
+        cp "$src" "$dst" || die "cannot copy $src to $dst"
+        say "installed extras/$(basename "$src")"
+    fi
+done
 
 # 5. The C helper is compiled when the wheel is built; make sure it is there so
 #    no test start pays for a compile.
@@ -100,7 +102,7 @@ say "klippy chelper loads"
 # 7. The checked-in MCU dictionary is what gen_mcu_dict.py writes, and klippy
 #    accepts it with both printer variants (a batch run over a tiny job).
 smoke_key="$(cat "$here/mcu_dict.json" "$here/gen_mcu_dict.py" "$here/bench.py" \
-    "$here"/templates/* "$src" "$kvenv/.klipcal-installed" | sha1sum | cut -d' ' -f1)"
+    "$here"/templates/* "$here"/klippy_extras/*.py "$kvenv/.klipcal-installed" | sha1sum | cut -d' ' -f1)"
 if [[ "$(cat "$home/.smoke-ok" 2>/dev/null)" == "$smoke_key" ]]; then
     say "klippy already checked with these bench files"
 else

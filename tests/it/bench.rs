@@ -44,6 +44,15 @@ impl Bench {
     }
 
     pub fn start_with(kinematics: &str, plant_json: Option<&str>) -> Bench {
+        let extra: Vec<&str> = match plant_json {
+            Some(p) => vec!["--plant-json", p],
+            None => vec![],
+        };
+        Self::start_args(kinematics, &extra)
+    }
+
+    /// Starts a bench with extra `bench.py start` arguments (e.g. `--backlash-module seed`).
+    pub fn start_args(kinematics: &str, extra: &[&str]) -> Bench {
         let dir = tempfile::Builder::new()
             .prefix("kc-")
             .tempdir_in(std::env::temp_dir())
@@ -59,10 +68,7 @@ impl Bench {
             "--owner-pid",
             &owner,
         ];
-        if let Some(p) = plant_json {
-            args.push("--plant-json");
-            args.push(p);
-        }
+        args.extend_from_slice(extra);
         let out = bench_py(&args).unwrap_or_else(|e| panic!("bench did not start: {e}"));
         let line = out.lines().rev().find(|l| l.starts_with('{')).unwrap_or("");
         let info: Value =

@@ -2,6 +2,7 @@
 //! klippy on loopback, see tests/bench/) and, where needed, the `klipcal` daemon, on free
 //! ports in its own folder, and stops them when done.
 
+mod backlash;
 mod bench;
 mod daemon;
 mod fake;

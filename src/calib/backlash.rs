@@ -1,0 +1,640 @@
+//! PURE: backlash statistics from the seed's camera procedure (shared/seeds/004): per cycle
+//! the nozzle is centred once approached moving only in + (X1) and once moving only in −
+//! (X2); the cycle's backlash is X1 − X2 (the seed's |X2 − X1|, signed so noise around zero
+//! does not bias it upward). Per axis: the median, spread, an uncertainty with the jog
+//! resolution's share, outlier cycles, the verdict and the smooth_time from an acceleration
+//! budget. No I/O: readings arrive parsed or as text.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+use super::Error;
+
+/// The seed's default smooth_time, s ("0.005 is a good choice for backlash up to 0.1 mm").
+pub const SEED_SMOOTH_TIME_S: f64 = 0.005;
+/// The largest smooth_time PR 7259's module accepts, s.
+pub const MAX_SMOOTH_TIME_S: f64 = 0.1;
+
+/// Extra acceleration of the compensation, mm/s²: the seed's rule of thumb 2·b/t².
+pub fn extra_accel_mm_s2(backlash_mm: f64, smooth_time_s: f64) -> f64 {
+    2.0 * backlash_mm / (smooth_time_s * smooth_time_s)
+}
+
+/// One cycle of the procedure: commanded axis positions when centred, mm.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Cycle {
+    /// Centred after approaching moving only in + (the seed's X1).
+    pub x1_mm: f64,
+    /// Centred after approaching moving only in − (the seed's X2).
+    pub x2_mm: f64,
+    /// The fine jog used in this cycle, when known. Cycles with two jog sizes let the
+    /// estimator remove a bias proportional to the jog (a person who stops a jog late).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fine_mm: Option<f64>,
+}
+
+impl Cycle {
+    /// This cycle's backlash, X1 − X2 (mm; may be slightly negative from noise).
+    pub fn backlash_mm(&self) -> f64 {
+        self.x1_mm - self.x2_mm
+    }
+}
+
+/// Thresholds and budgets of the verdict and smooth_time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct BacklashParams {
+    /// At or below this the seed says no compensation is needed (0.01–0.02 mm).
+    pub none_needed_max_mm: f64,
+    /// From this the seed says compensation is needed ("~0.05 mm certainly does").
+    pub needed_from_mm: f64,
+    /// The verdict's cut between the two (default: their midpoint).
+    pub compensate_from_mm: f64,
+    /// The fine jog step (the reading resolution), mm.
+    pub jog_resolution_mm: f64,
+    /// Per-cycle sd assumed when there are too few cycles to estimate it, mm.
+    pub prior_cycle_sd_mm: f64,
+    /// The compensation's extra acceleration may use at most this fraction of max_accel.
+    pub accel_budget_fraction: f64,
+    /// A cycle further than this many robust sd from the median is an outlier.
+    pub outlier_sigmas: f64,
+}
+
+impl Default for BacklashParams {
+    fn default() -> Self {
+        BacklashParams {
+            none_needed_max_mm: 0.02,
+            needed_from_mm: 0.05,
+            compensate_from_mm: 0.035,
+            jog_resolution_mm: 0.01,
+            prior_cycle_sd_mm: 0.005,
+            accel_budget_fraction: 1.0,
+            outlier_sigmas: 4.0,
+        }
+    }
+}
+
+impl BacklashParams {
+    /// Checks the thresholds are ordered and the budgets positive.
+    ///
+    /// # Errors
+    /// Names the setting that is out of range and what is expected.
+    pub fn validate(&self) -> Result<(), Error> {
+        let bad = |m: String| Err(Error::BacklashParams(m));
+        let fin = [
+            self.none_needed_max_mm,
+            self.needed_from_mm,
+            self.compensate_from_mm,
+            self.jog_resolution_mm,
+            self.prior_cycle_sd_mm,
+            self.accel_budget_fraction,
+            self.outlier_sigmas,
+        ];
+        if fin.iter().any(|v| !v.is_finite() || *v < 0.0) {
+            return bad("every setting must be a finite number ≥ 0".into());
+        }
+        if !(self.none_needed_max_mm <= self.compensate_from_mm
+            && self.compensate_from_mm <= self.needed_from_mm)
+        {
+            return bad(format!(
+                "expected none_needed_max_mm ({}) ≤ compensate_from_mm ({}) ≤ needed_from_mm ({})",
+                self.none_needed_max_mm, self.compensate_from_mm, self.needed_from_mm
+            ));
+        }
+        if self.accel_budget_fraction <= 0.0 || self.outlier_sigmas <= 0.0 {
+            return bad("accel_budget_fraction and outlier_sigmas must be > 0".into());
+        }
+        Ok(())
+    }
+}
+
+/// The seed's guidance as a verdict.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Verdict {
+    /// At or below `none_needed_max_mm`.
+    NotNeeded,
+    /// Between the two thresholds: compensate when at or above `compensate_from_mm`.
+    Borderline,
+    /// At or above `needed_from_mm`.
+    Needed,
+}
+
+/// smooth_time chosen from the acceleration budget.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct SmoothTime {
+    /// The smooth_time, s: the seed's 0.005 or longer.
+    pub smooth_time_s: f64,
+    /// 2·b/t² at that smooth_time, mm/s².
+    pub extra_accel_mm_s2: f64,
+    /// Whether it was raised above the seed's default to fit the budget.
+    pub raised: bool,
+    /// The budget cannot be met within PR 7259's 0.1 s limit.
+    pub over_budget: bool,
+}
+
+/// smooth_time for `backlash_mm`: the seed's 0.005 s, raised (to a multiple of 0.1 ms) where
+/// 2·b/t² would exceed `budget_fraction · max_accel`; capped at 0.1 s. Without a max_accel the
+/// default stays.
+pub fn smooth_time_for(
+    backlash_mm: f64,
+    max_accel_mm_s2: Option<f64>,
+    budget_fraction: f64,
+) -> SmoothTime {
+    let b = backlash_mm.max(0.0);
+    let mut t = SEED_SMOOTH_TIME_S;
+    let mut raised = false;
+    let mut over = false;
+    if let Some(a) = max_accel_mm_s2.filter(|a| *a > 0.0) {
+        let budget = budget_fraction * a;
+        if extra_accel_mm_s2(b, t) > budget {
+            let need = (2.0 * b / budget).sqrt();
+            t = (need * 1e4 - 1e-6).ceil() / 1e4;
+            raised = true;
+            if t > MAX_SMOOTH_TIME_S {
+                t = MAX_SMOOTH_TIME_S;
+                over = true;
+            }
+        }
+    }
+    SmoothTime {
+        smooth_time_s: t,
+        extra_accel_mm_s2: extra_accel_mm_s2(b, t),
+        raised,
+        over_budget: over,
+    }
+}
+
+/// One axis's result (the `klipcal backlash solve --json` object per axis).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct AxisResult {
+    /// Median backlash of the inlier cycles, clamped at 0, mm.
+    pub backlash_mm: f64,
+    /// Largest minus smallest cycle backlash (all cycles), mm.
+    pub spread_mm: f64,
+    /// Standard uncertainty of `backlash_mm`, mm.
+    pub uncertainty_mm: f64,
+    /// Number of cycles.
+    pub cycles: usize,
+    /// 1-based numbers of the outlier cycles (left out of the median).
+    pub outliers: Vec<usize>,
+    /// The verdict: compensate or not.
+    pub compensate: bool,
+    /// smooth_time for this axis, s.
+    pub smooth_time_s: f64,
+    /// The compensation's extra acceleration at that smooth_time, mm/s².
+    pub extra_accel_mm_s2: f64,
+    /// The seed's band the backlash falls in.
+    #[serde(skip)]
+    pub verdict: Verdict,
+    /// Share (0..1) of the per-cycle variance the jog resolution explains.
+    #[serde(skip)]
+    pub jog_share: f64,
+    /// Whether smooth_time was raised above 0.005 s.
+    #[serde(skip)]
+    pub smooth_time_raised: bool,
+}
+
+fn median(v: &[f64]) -> f64 {
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let n = s.len();
+    if n == 0 {
+        return f64::NAN;
+    }
+    if n % 2 == 1 {
+        s[n / 2]
+    } else {
+        0.5 * (s[n / 2 - 1] + s[n / 2])
+    }
+}
+
+/// With inlier cycles at two or more fine-jog sizes: the slope of cycle backlash over the jog
+/// (a line through each size's median, weighted by its count), the count-weighted mean jog and
+/// Σw(q − q̄)². A stopping bias proportional to the jog (k jogs late in each approach adds
+/// 2·k·q to X1 − X2) is this slope; subtracting slope·q from each cycle removes it.
+fn jog_slope(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64, f64)> {
+    let mut groups: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+    for (i, c) in cycles.iter().enumerate() {
+        if outliers.contains(&(i + 1)) {
+            continue;
+        }
+        let q = c.fine_mm.filter(|q| q.is_finite() && *q > 0.0)?;
+        groups
+            .entry((q * 1e6).round() as u64)
+            .or_default()
+            .push(c.backlash_mm());
+    }
+    if groups.len() < 2 {
+        return None;
+    }
+    let pts: Vec<(f64, f64, f64)> = groups
+        .iter()
+        .map(|(q, d)| (*q as f64 * 1e-6, median(d), d.len() as f64))
+        .collect();
+    let w: f64 = pts.iter().map(|p| p.2).sum();
+    let qm = pts.iter().map(|p| p.0 * p.2).sum::<f64>() / w;
+    let dm = pts.iter().map(|p| p.1 * p.2).sum::<f64>() / w;
+    let sqq: f64 = pts.iter().map(|p| p.2 * (p.0 - qm).powi(2)).sum();
+    let sqd: f64 = pts.iter().map(|p| p.2 * (p.0 - qm) * (p.1 - dm)).sum();
+    Some((sqd / sqq, qm, sqq))
+}
+
+/// Statistics of one axis's cycles.
+///
+/// # Errors
+/// No cycles, or a reading that is not a finite number.
+pub fn analyse(
+    axis: &str,
+    cycles: &[Cycle],
+    max_accel_mm_s2: Option<f64>,
+    params: &BacklashParams,
+) -> Result<AxisResult, Error> {
+    if cycles.is_empty() {
+        return Err(Error::BacklashReadings(format!(
+            "axis {axis} has no cycles; expected at least one [x1_mm, x2_mm] pair"
+        )));
+    }
+    for (i, c) in cycles.iter().enumerate() {
+        if !c.x1_mm.is_finite() || !c.x2_mm.is_finite() {
+            return Err(Error::BacklashReadings(format!(
+                "axis {axis} cycle {}: readings must be finite numbers of mm",
+                i + 1
+            )));
+        }
+    }
+    let d: Vec<f64> = cycles.iter().map(Cycle::backlash_mm).collect();
+    let n = d.len();
+    // Each cycle corrected to a zero jog where two jog sizes allow it.
+    let corrected = |slope: f64| -> Vec<f64> {
+        cycles
+            .iter()
+            .map(|c| c.backlash_mm() - slope * c.fine_mm.unwrap_or(0.0))
+            .collect()
+    };
+    let slope0 = jog_slope(cycles, &[]).map_or(0.0, |s| s.0);
+    let e = corrected(slope0);
+    let q_sd = params.jog_resolution_mm / 6f64.sqrt();
+    let med_all = median(&e);
+    let mad = median(&e.iter().map(|x| (x - med_all).abs()).collect::<Vec<_>>());
+    let robust_sd = 1.4826 * mad;
+    let sd_floor = q_sd.max(if n < 3 { params.prior_cycle_sd_mm } else { 0.0 });
+    let sd = robust_sd.max(sd_floor);
+    // Outliers: far from the median in robust sd, and by more than two jog steps.
+    let limit = (params.outlier_sigmas * sd).max(2.0 * params.jog_resolution_mm);
+    let outliers: Vec<usize> = if n >= 3 {
+        e.iter()
+            .enumerate()
+            .filter(|(_, x)| (**x - med_all).abs() > limit)
+            .map(|(i, _)| i + 1)
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let fit = jog_slope(cycles, &outliers);
+    let e = corrected(fit.map_or(0.0, |s| s.0));
+    let inliers: Vec<f64> = e
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !outliers.contains(&(i + 1)))
+        .map(|(_, x)| *x)
+        .collect();
+    let m = inliers.len() as f64;
+    // Standard error of a median: √(π/2)·sd/√n; plus the slope's share at the mean jog.
+    let var_med = std::f64::consts::FRAC_PI_2 * sd * sd / m;
+    let var_slope = fit.map_or(0.0, |(_, qm, sqq)| {
+        qm * qm * std::f64::consts::FRAC_PI_2 * sd * sd / sqq
+    });
+    let med = median(&inliers);
+    let uncertainty = (var_med + var_slope).sqrt();
+    if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
+        return Err(Error::BacklashReadings(format!(
+            "axis {axis}: X1 − X2 is {med:.4} mm, below zero beyond the noise; expected X1 \
+             (approached moving +) above X2 (approached moving −) — are the two readings of \
+             each cycle swapped?"
+        )));
+    }
+    let backlash = med.max(0.0);
+    let spread = d.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+        - d.iter().copied().fold(f64::INFINITY, f64::min);
+    let verdict = if backlash <= params.none_needed_max_mm {
+        Verdict::NotNeeded
+    } else if backlash >= params.needed_from_mm {
+        Verdict::Needed
+    } else {
+        Verdict::Borderline
+    };
+    let compensate = backlash >= params.compensate_from_mm;
+    let st = smooth_time_for(backlash, max_accel_mm_s2, params.accel_budget_fraction);
+    Ok(AxisResult {
+        backlash_mm: backlash,
+        spread_mm: spread,
+        uncertainty_mm: uncertainty,
+        cycles: n,
+        outliers,
+        compensate,
+        smooth_time_s: st.smooth_time_s,
+        extra_accel_mm_s2: st.extra_accel_mm_s2,
+        verdict,
+        jog_share: ((q_sd * q_sd) / (sd * sd)).min(1.0),
+        smooth_time_raised: st.raised,
+    })
+}
+
+/// The readings file: `{"x": [[x1_mm, x2_mm], …], "y": …, "z": …}` (on CoreXY also "a", "b").
+///
+/// # Errors
+/// Text that is not that shape: names the axis and cycle and says what is expected.
+pub fn parse_readings(text: &str) -> Result<BTreeMap<String, Vec<Cycle>>, Error> {
+    const EXPECTED: &str = "expected a JSON object {\"x\": [[x1_mm, x2_mm], …], \"y\": …} with \
+                            axes x, y, z, a or b";
+    let v: serde_json::Value = serde_json::from_str(text)
+        .map_err(|e| Error::BacklashReadings(format!("not JSON ({e}); {EXPECTED}")))?;
+    let obj = v
+        .as_object()
+        .ok_or_else(|| Error::BacklashReadings(format!("not a JSON object; {EXPECTED}")))?;
+    if obj.is_empty() {
+        return Err(Error::BacklashReadings(format!("no axes; {EXPECTED}")));
+    }
+    let mut out = BTreeMap::new();
+    for (axis, list) in obj {
+        let key = axis.to_ascii_lowercase();
+        if !["x", "y", "z", "a", "b"].contains(&key.as_str()) || key != *axis {
+            return Err(Error::BacklashReadings(format!(
+                "unknown axis \"{axis}\"; {EXPECTED}"
+            )));
+        }
+        let arr = list.as_array().ok_or_else(|| {
+            Error::BacklashReadings(format!("axis {axis} is not an array of cycles; {EXPECTED}"))
+        })?;
+        if arr.is_empty() {
+            return Err(Error::BacklashReadings(format!(
+                "axis {axis} has no cycles; {EXPECTED}"
+            )));
+        }
+        let mut cycles = Vec::with_capacity(arr.len());
+        for (i, c) in arr.iter().enumerate() {
+            let pair = c
+                .as_array()
+                .filter(|p| p.len() == 2 || p.len() == 3)
+                .and_then(|p| {
+                    let fine_mm = match p.get(2) {
+                        None => None,
+                        Some(q) => Some(q.as_f64().filter(|q| *q > 0.0)?),
+                    };
+                    Some(Cycle {
+                        x1_mm: p[0].as_f64()?,
+                        x2_mm: p[1].as_f64()?,
+                        fine_mm,
+                    })
+                });
+            match pair {
+                Some(c) => cycles.push(c),
+                None => {
+                    return Err(Error::BacklashReadings(format!(
+                        "axis {axis} cycle {} is {c}; expected [x1_mm, x2_mm] or [x1_mm, x2_mm, \
+                         fine_jog_mm] (numbers; the jog > 0)",
+                        i + 1
+                    )))
+                }
+            }
+        }
+        out.insert(key, cycles);
+    }
+    Ok(out)
+}
+
+/// Every axis of a readings file analysed.
+///
+/// # Errors
+/// As [`parse_readings`] and [`analyse`].
+pub fn solve(
+    text: &str,
+    max_accel_mm_s2: Option<f64>,
+    params: &BacklashParams,
+) -> Result<BTreeMap<String, AxisResult>, Error> {
+    params.validate()?;
+    if let Some(a) = max_accel_mm_s2 {
+        if !(a.is_finite() && a > 0.0) {
+            return Err(Error::BacklashParams(format!(
+                "max_accel {a} mm/s²; expected a positive number"
+            )));
+        }
+    }
+    parse_readings(text)?
+        .into_iter()
+        .map(|(axis, cycles)| {
+            let r = analyse(&axis, &cycles, max_accel_mm_s2, params)?;
+            Ok((axis, r))
+        })
+        .collect()
+}
+
+/// The common smooth_time for the module (one value for every axis): the longest any
+/// compensated axis needs, or the seed's default when none is compensated.
+pub fn common_smooth_time_s<'a>(results: impl IntoIterator<Item = &'a AxisResult>) -> f64 {
+    results
+        .into_iter()
+        .filter(|r| r.compensate)
+        .map(|r| r.smooth_time_s)
+        .fold(SEED_SMOOTH_TIME_S, f64::max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cycles(d: &[f64]) -> Vec<Cycle> {
+        d.iter()
+            .map(|b| Cycle {
+                x1_mm: 150.0 + b / 2.0,
+                x2_mm: 150.0 - b / 2.0,
+                fine_mm: None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn seed_extra_acceleration_of_0_1_mm_at_0_005_s_is_8000() {
+        // Seed 004, "A note on the choice of smooth_time": 2·backlash/smooth_time².
+        assert!((extra_accel_mm_s2(0.1, 0.005) - 8000.0).abs() < 1e-9);
+        // The seed's test print: Y_BACKLASH=0.05 SMOOTH_TIME=0.0025 → 16000 mm/s².
+        assert!((extra_accel_mm_s2(0.05, 0.0025) - 16000.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn smooth_time_stays_at_the_seed_default_within_budget_and_rises_beyond() {
+        // 0.1 mm at 0.005 s needs 8000 mm/s²: fits a max_accel of 8000 at fraction 1.
+        let st = smooth_time_for(0.1, Some(8000.0), 1.0);
+        assert_eq!(st.smooth_time_s, 0.005);
+        assert!(!st.raised);
+        // At max_accel 3000: t = √(2·0.1/3000) = 8.165 ms → 8.2 ms, extra 2974 mm/s².
+        let st = smooth_time_for(0.1, Some(3000.0), 1.0);
+        assert!((st.smooth_time_s - 0.0082).abs() < 1e-12, "{st:?}");
+        assert!(st.raised && st.extra_accel_mm_s2 <= 3000.0);
+        // Without max_accel: the seed's default, with its extra acceleration reported.
+        let st = smooth_time_for(0.15, None, 1.0);
+        assert_eq!(st.smooth_time_s, 0.005);
+        assert!((st.extra_accel_mm_s2 - 12000.0).abs() < 1e-9);
+        // Beyond PR 7259's 0.1 s limit: capped and flagged.
+        let st = smooth_time_for(5.0, Some(10.0), 0.5);
+        assert_eq!(st.smooth_time_s, 0.1);
+        assert!(st.over_budget);
+    }
+
+    #[test]
+    fn seed_verdicts_0_015_needs_none_and_0_055_needs_compensation() {
+        // Seed 004: "0.01-0.02mm does not require compensation, but around 0.05mm - certainly does";
+        // the author's IDEX: X 0.01–0.02, Y ~0.05–0.06.
+        let p = BacklashParams::default();
+        let x = analyse("x", &cycles(&[0.01, 0.02, 0.015, 0.015, 0.02]), None, &p).unwrap();
+        assert_eq!(x.verdict, Verdict::NotNeeded);
+        assert!(!x.compensate);
+        let y = analyse("y", &cycles(&[0.05, 0.06, 0.055, 0.05, 0.06]), None, &p).unwrap();
+        assert_eq!(y.verdict, Verdict::Needed);
+        assert!(y.compensate);
+        assert!((y.backlash_mm - 0.055).abs() < 1e-12);
+    }
+
+    #[test]
+    fn an_outlier_cycle_is_named_and_left_out_of_the_median() {
+        let p = BacklashParams::default();
+        let r = analyse(
+            "x",
+            &cycles(&[0.05, 0.051, 0.049, 0.15, 0.05]),
+            Some(3000.0),
+            &p,
+        )
+        .unwrap();
+        assert_eq!(r.outliers, vec![4]);
+        assert!((r.backlash_mm - 0.05).abs() < 1e-12);
+        assert!((r.spread_mm - 0.101).abs() < 1e-12);
+        assert_eq!(r.cycles, 5);
+    }
+
+    #[test]
+    fn uncertainty_shrinks_with_cycles_and_jog_resolution_sets_its_floor() {
+        let p = BacklashParams::default();
+        // Identical readings: the spread is 0, the jog resolution alone sets the uncertainty.
+        let r = analyse("x", &cycles(&[0.05; 5]), None, &p).unwrap();
+        let q_sd = 0.01 / 6f64.sqrt();
+        let want = std::f64::consts::FRAC_PI_2.sqrt() * q_sd / 5f64.sqrt();
+        assert!((r.uncertainty_mm - want).abs() < 1e-12);
+        assert!((r.jog_share - 1.0).abs() < 1e-12);
+        let r10 = analyse(
+            "x",
+            &cycles(&[
+                0.04, 0.06, 0.05, 0.045, 0.055, 0.04, 0.06, 0.05, 0.045, 0.055,
+            ]),
+            None,
+            &p,
+        )
+        .unwrap();
+        let r3 = analyse("x", &cycles(&[0.04, 0.06, 0.05]), None, &p).unwrap();
+        assert!(r10.uncertainty_mm < r3.uncertainty_mm);
+        assert!(r10.jog_share < 1.0);
+    }
+
+    #[test]
+    fn two_jog_sizes_remove_a_person_stopping_one_jog_late() {
+        // True backlash 0.06; the person always stops one fine jog past centre, which adds
+        // 2·q to X1 − X2: 0.08 with q = 0.01, 0.065 with q = 0.0025.
+        let c = |d: f64, q: f64| Cycle {
+            x1_mm: 100.0 + d / 2.0,
+            x2_mm: 100.0 - d / 2.0,
+            fine_mm: Some(q),
+        };
+        let cycles = [
+            c(0.08, 0.01),
+            c(0.065, 0.0025),
+            c(0.08, 0.01),
+            c(0.065, 0.0025),
+            c(0.08, 0.01),
+        ];
+        let r = analyse("x", &cycles, None, &BacklashParams::default()).unwrap();
+        assert!((r.backlash_mm - 0.06).abs() < 1e-9, "{r:?}");
+        // Without the jog sizes the bias stays.
+        let plain: Vec<Cycle> = cycles
+            .iter()
+            .map(|c| Cycle {
+                fine_mm: None,
+                ..*c
+            })
+            .collect();
+        let r = analyse("x", &plain, None, &BacklashParams::default()).unwrap();
+        assert!((r.backlash_mm - 0.08).abs() < 1e-9);
+        let parsed =
+            parse_readings(r#"{"x": [[100.04, 99.96, 0.01], [100.0325, 99.9675, 0.0025]]}"#)
+                .unwrap();
+        assert_eq!(parsed["x"][1].fine_mm, Some(0.0025));
+        assert!(parse_readings(r#"{"x": [[1, 0.9, -0.01]]}"#).is_err());
+        let swapped = [c(-0.06, 0.01), c(-0.06, 0.01), c(-0.06, 0.01)];
+        let e = analyse("y", &swapped, None, &BacklashParams::default()).unwrap_err();
+        assert!(e.to_string().contains("swapped"), "{e}");
+    }
+
+    #[test]
+    fn a_readings_file_is_taken_whole_or_refused_with_the_reason() {
+        let ok =
+            parse_readings(r#"{"x": [[100.05, 100.0], [100.06, 100.01]], "y": [[50, 49.95]]}"#)
+                .unwrap();
+        assert_eq!(ok["x"].len(), 2);
+        for (text, needle) in [
+            ("[1,2]", "not a JSON object"),
+            ("{}", "no axes"),
+            ("nope", "not JSON"),
+            (r#"{"q": [[1,2]]}"#, "unknown axis \"q\""),
+            (r#"{"X": [[1,2]]}"#, "unknown axis \"X\""),
+            (r#"{"x": []}"#, "axis x has no cycles"),
+            (r#"{"x": [[1,2],[1]]}"#, "axis x cycle 2 is [1]"),
+            (r#"{"x": [[1,"a"]]}"#, "expected [x1_mm, x2_mm]"),
+            (r#"{"x": 3}"#, "not an array"),
+        ] {
+            let e = parse_readings(text).unwrap_err().to_string();
+            assert!(e.contains(needle), "{text}: {e}");
+        }
+    }
+
+    #[test]
+    fn solve_refuses_bad_settings_and_picks_one_common_smooth_time() {
+        let mut p = BacklashParams::default();
+        let text = r#"{"x": [[0.1, 0]], "y": [[0.02, 0]]}"#;
+        let r = solve(text, Some(3000.0), &p).unwrap();
+        assert!(r["x"].compensate && !r["y"].compensate);
+        assert!((common_smooth_time_s(r.values()) - 0.0082).abs() < 1e-12);
+        assert!(solve(text, Some(-1.0), &p).is_err());
+        p.compensate_from_mm = 0.01;
+        assert!(solve(text, None, &p)
+            .unwrap_err()
+            .to_string()
+            .contains("compensate_from_mm"));
+    }
+
+    #[test]
+    fn the_json_per_axis_has_exactly_the_documented_keys() {
+        let r = analyse(
+            "x",
+            &cycles(&[0.05, 0.05, 0.05]),
+            None,
+            &BacklashParams::default(),
+        )
+        .unwrap();
+        let v = serde_json::to_value(&r).unwrap();
+        let mut keys: Vec<&str> = v.as_object().unwrap().keys().map(|k| k.as_str()).collect();
+        keys.sort_unstable();
+        assert_eq!(
+            keys,
+            [
+                "backlash_mm",
+                "compensate",
+                "cycles",
+                "extra_accel_mm_s2",
+                "outliers",
+                "smooth_time_s",
+                "spread_mm",
+                "uncertainty_mm"
+            ]
+        );
+    }
+}

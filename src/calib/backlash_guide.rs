@@ -1,0 +1,549 @@
+//! PURE: the seed's camera procedure (shared/seeds/004, steps 1–8) as a resumable state
+//! machine. Per cycle: from 1 mm before the camera point the person jogs only in + (coarse or
+//! fine) until centred (X1); the machine moves 1 mm further in +; the person jogs only in −
+//! until centred (X2). "Overshot — start over" re-approaches from 1 mm back, because moving
+//! back would defeat the measurement. Positions are along-axis offsets from the camera point;
+//! A and B are the CoreXY motor directions (A = X + Y, B = X − Y). The state serialises, so a
+//! runner saves it before every move and resumes after a crash. No I/O, no clock.
+
+use serde::{Deserialize, Serialize};
+
+use super::backlash::Cycle;
+use super::Error;
+
+/// A direction the procedure measures along.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum GuideAxis {
+    /// Toolhead X.
+    X,
+    /// Toolhead Y.
+    Y,
+    /// Toolhead Z.
+    Z,
+    /// CoreXY motor A (X + Y): moves along (½, ½).
+    A,
+    /// CoreXY motor B (X − Y): moves along (½, −½).
+    B,
+}
+
+impl GuideAxis {
+    /// Parses `X|Y|Z|A|B` (any case).
+    ///
+    /// # Errors
+    /// Anything else, with the accepted values.
+    pub fn parse(text: &str) -> Result<GuideAxis, Error> {
+        match text.trim().to_ascii_uppercase().as_str() {
+            "X" => Ok(GuideAxis::X),
+            "Y" => Ok(GuideAxis::Y),
+            "Z" => Ok(GuideAxis::Z),
+            "A" => Ok(GuideAxis::A),
+            "B" => Ok(GuideAxis::B),
+            _ => Err(Error::BacklashGuide(format!(
+                "AXIS={text:?}; expected X, Y, Z, or A or B (CoreXY motors)"
+            ))),
+        }
+    }
+
+    /// The lower-case name used in readings files.
+    pub fn name(self) -> &'static str {
+        match self {
+            GuideAxis::X => "x",
+            GuideAxis::Y => "y",
+            GuideAxis::Z => "z",
+            GuideAxis::A => "a",
+            GuideAxis::B => "b",
+        }
+    }
+
+    /// Whether this is a CoreXY motor direction.
+    pub fn is_motor(self) -> bool {
+        matches!(self, GuideAxis::A | GuideAxis::B)
+    }
+
+    /// The axis coordinate of a toolhead point (A: x + y, B: x − y).
+    pub fn coord(self, xyz: [f64; 3]) -> f64 {
+        match self {
+            GuideAxis::X => xyz[0],
+            GuideAxis::Y => xyz[1],
+            GuideAxis::Z => xyz[2],
+            GuideAxis::A => xyz[0] + xyz[1],
+            GuideAxis::B => xyz[0] - xyz[1],
+        }
+    }
+
+    /// The toolhead point `along_mm` from `point` in this axis's coordinate.
+    pub fn point_at(self, point: [f64; 3], along_mm: f64) -> [f64; 3] {
+        let [x, y, z] = point;
+        let h = along_mm / 2.0;
+        match self {
+            GuideAxis::X => [x + along_mm, y, z],
+            GuideAxis::Y => [x, y + along_mm, z],
+            GuideAxis::Z => [x, y, z + along_mm],
+            GuideAxis::A => [x + h, y + h, z],
+            GuideAxis::B => [x + h, y - h, z],
+        }
+    }
+}
+
+/// Step sizes and limits of the procedure.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GuideParams {
+    /// Cycles per axis.
+    pub cycles: usize,
+    /// Approach distance (the seed's 1 mm).
+    pub approach_mm: f64,
+    /// Coarse jog.
+    pub coarse_mm: f64,
+    /// Fine jog (the reading resolution) of odd cycles.
+    pub fine_mm: f64,
+    /// Fine jog of even cycles (0: always `fine_mm`). Two sizes let the statistics remove a
+    /// stopping bias proportional to the jog.
+    pub small_fine_mm: f64,
+    /// Furthest a jog may take the nozzle from the camera point.
+    pub max_travel_mm: f64,
+    /// "Centred" is refused while the commanded position is more than this short of the
+    /// camera point in the approach direction (the person was centred there when it was
+    /// saved, so only the backlash and drift separate them).
+    pub plausible_mm: f64,
+}
+
+impl Default for GuideParams {
+    fn default() -> Self {
+        GuideParams {
+            cycles: 5,
+            approach_mm: 1.0,
+            coarse_mm: 0.1,
+            fine_mm: 0.01,
+            small_fine_mm: 0.0025,
+            max_travel_mm: 3.0,
+            plausible_mm: 0.3,
+        }
+    }
+}
+
+impl GuideParams {
+    /// Checks the sizes.
+    ///
+    /// # Errors
+    /// Names the value out of range and what is expected.
+    pub fn validate(&self) -> Result<(), Error> {
+        let bad = |m: String| Err(Error::BacklashGuide(m));
+        if !(1..=50).contains(&self.cycles) {
+            return bad(format!("CYCLES={}; expected 1..50", self.cycles));
+        }
+        let ok = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
+        if !ok(self.fine_mm, 0.001, 0.1) {
+            return bad(format!(
+                "fine jog {} mm; expected 0.001..0.1 mm",
+                self.fine_mm
+            ));
+        }
+        if self.small_fine_mm != 0.0 && !ok(self.small_fine_mm, 0.0005, self.fine_mm) {
+            return bad(format!(
+                "small fine jog {} mm; expected 0 (off) or 0.0005 mm .. the fine jog ({})",
+                self.small_fine_mm, self.fine_mm
+            ));
+        }
+        if !ok(self.coarse_mm, self.fine_mm, 1.0) {
+            return bad(format!(
+                "coarse jog {} mm; expected fine jog ({}) .. 1 mm",
+                self.coarse_mm, self.fine_mm
+            ));
+        }
+        if !ok(self.approach_mm, 0.3, 5.0) {
+            return bad(format!(
+                "approach {} mm; expected 0.3..5 mm (the seed uses 1 mm)",
+                self.approach_mm
+            ));
+        }
+        if !ok(self.max_travel_mm, 2.0 * self.approach_mm, 20.0) {
+            return bad(format!(
+                "max travel {} mm; expected 2 × approach .. 20 mm",
+                self.max_travel_mm
+            ));
+        }
+        if !ok(self.plausible_mm, 0.05, self.approach_mm) {
+            return bad(format!(
+                "plausible centring distance {} mm; expected 0.05 mm .. the approach ({})",
+                self.plausible_mm, self.approach_mm
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// Which approach a cycle is in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Phase {
+    /// Jogging only in + toward the centre (ends with X1).
+    Plus,
+    /// Jogging only in − toward the centre (ends with X2).
+    Minus,
+    /// Every cycle recorded.
+    Done,
+}
+
+/// A button on the prompt.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Press {
+    /// One coarse jog in the approach direction.
+    Coarse,
+    /// One fine jog in the approach direction.
+    Fine,
+    /// The nozzle is centred: record this position.
+    Centred,
+    /// Went past the centre: re-approach from 1 mm back.
+    Overshot,
+}
+
+impl Press {
+    /// Parses `coarse|fine|centred|overshot` (any case; `centered` accepted).
+    ///
+    /// # Errors
+    /// Anything else, with the accepted values.
+    pub fn parse(text: &str) -> Result<Press, Error> {
+        match text.trim().to_ascii_lowercase().as_str() {
+            "coarse" => Ok(Press::Coarse),
+            "fine" => Ok(Press::Fine),
+            "centred" | "centered" => Ok(Press::Centred),
+            "overshot" => Ok(Press::Overshot),
+            _ => Err(Error::BacklashGuide(format!(
+                "PRESS={text:?}; expected coarse, fine, centred or overshot"
+            ))),
+        }
+    }
+}
+
+/// What the runner does next: move (in order) to these along-axis offsets, then show the
+/// prompt for `phase` (or finish when `Done`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Step {
+    /// Along-axis offsets from the camera point, in order.
+    pub moves_mm: Vec<f64>,
+    /// The phase the prompt is for.
+    pub phase: Phase,
+    /// 1-based cycle the prompt is for (the last one when done).
+    pub cycle: usize,
+    /// A reading recorded by this step (saved before the machine moves).
+    pub recorded: Option<f64>,
+}
+
+/// The guided procedure's whole state (serialisable; resumable).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Guide {
+    /// The measured direction.
+    pub axis: GuideAxis,
+    /// Sizes and cycle count.
+    pub params: GuideParams,
+    /// The camera point's axis coordinate.
+    pub origin_mm: f64,
+    /// Current commanded offset from the camera point.
+    pub pos_mm: f64,
+    /// Current phase.
+    pub phase: Phase,
+    /// X1 of the cycle in progress.
+    pub pending_x1_mm: Option<f64>,
+    /// Finished cycles.
+    pub cycles: Vec<Cycle>,
+    /// Overshoots pressed so far (reported).
+    pub overshoots: usize,
+}
+
+impl Guide {
+    /// Starts at cycle 1: the first move goes 1 mm before the camera point.
+    ///
+    /// # Errors
+    /// Parameters out of range ([`GuideParams::validate`]), or a non-finite origin.
+    pub fn start(
+        axis: GuideAxis,
+        origin_mm: f64,
+        params: GuideParams,
+    ) -> Result<(Guide, Step), Error> {
+        params.validate()?;
+        if !origin_mm.is_finite() {
+            return Err(Error::BacklashGuide(
+                "camera point is not a finite position".into(),
+            ));
+        }
+        let mut g = Guide {
+            axis,
+            origin_mm,
+            pos_mm: 0.0,
+            phase: Phase::Plus,
+            pending_x1_mm: None,
+            cycles: Vec::new(),
+            overshoots: 0,
+            params,
+        };
+        g.pos_mm = -g.params.approach_mm;
+        let step = g.step(vec![g.pos_mm], None);
+        Ok((g, step))
+    }
+
+    fn dir(&self) -> f64 {
+        if self.phase == Phase::Minus {
+            -1.0
+        } else {
+            1.0
+        }
+    }
+
+    fn step(&self, moves_mm: Vec<f64>, recorded: Option<f64>) -> Step {
+        Step {
+            moves_mm,
+            phase: self.phase,
+            cycle: (self.cycles.len() + 1).min(self.params.cycles),
+            recorded,
+        }
+    }
+
+    /// The fine jog of the cycle in progress.
+    pub fn fine_mm(&self) -> f64 {
+        if self.params.small_fine_mm > 0.0 && self.cycles.len() % 2 == 1 {
+            self.params.small_fine_mm
+        } else {
+            self.params.fine_mm
+        }
+    }
+
+    /// The absolute axis coordinate of the current position.
+    pub fn position_mm(&self) -> f64 {
+        self.origin_mm + self.pos_mm
+    }
+
+    /// Applies one button press.
+    ///
+    /// # Errors
+    /// A press after the last cycle, or a jog that would take the nozzle beyond
+    /// `max_travel_mm` from the camera point (the state is unchanged).
+    pub fn press(&mut self, press: Press) -> Result<Step, Error> {
+        if self.phase == Phase::Done {
+            return Err(Error::BacklashGuide(
+                "every cycle is recorded; start a new measurement".into(),
+            ));
+        }
+        let a = self.params.approach_mm;
+        match press {
+            Press::Coarse | Press::Fine => {
+                let jog = if press == Press::Coarse {
+                    self.params.coarse_mm
+                } else {
+                    self.fine_mm()
+                };
+                let next = self.pos_mm + self.dir() * jog;
+                if next.abs() > self.params.max_travel_mm + 1e-9 {
+                    return Err(Error::BacklashGuide(format!(
+                        "this jog would take the nozzle {:.3} mm from the camera point \
+                         (limit {} mm); press overshot to start the approach over",
+                        next.abs(),
+                        self.params.max_travel_mm
+                    )));
+                }
+                self.pos_mm = next;
+                Ok(self.step(vec![next], None))
+            }
+            Press::Overshot => {
+                self.overshoots += 1;
+                self.pos_mm -= self.dir() * a;
+                Ok(self.step(vec![self.pos_mm], None))
+            }
+            Press::Centred => {
+                if self.dir() * self.pos_mm < -self.params.plausible_mm {
+                    return Err(Error::BacklashGuide(format!(
+                        "the nozzle is still {:.3} mm short of the camera point; keep jogging \
+                         (or press overshot to start the approach over)",
+                        -self.dir() * self.pos_mm
+                    )));
+                }
+                let reading = self.position_mm();
+                if self.phase == Phase::Plus {
+                    self.pending_x1_mm = Some(reading);
+                    self.phase = Phase::Minus;
+                    // Seed step 5: 1 mm further in +.
+                    self.pos_mm += a;
+                    Ok(self.step(vec![self.pos_mm], Some(reading)))
+                } else {
+                    let x1 = self.pending_x1_mm.take().ok_or_else(|| {
+                        Error::BacklashGuide("internal: no X1 for this cycle".into())
+                    })?;
+                    let fine_mm = Some(self.fine_mm());
+                    self.cycles.push(Cycle {
+                        x1_mm: x1,
+                        x2_mm: reading,
+                        fine_mm,
+                    });
+                    if self.cycles.len() >= self.params.cycles {
+                        self.phase = Phase::Done;
+                        return Ok(self.step(Vec::new(), Some(reading)));
+                    }
+                    self.phase = Phase::Plus;
+                    self.pos_mm = -a;
+                    Ok(self.step(vec![self.pos_mm], Some(reading)))
+                }
+            }
+        }
+    }
+
+    /// After a crash or restart: the machine's position and last direction are unknown, so
+    /// the approach in progress starts over from 1 mm back (recorded readings are kept).
+    pub fn resume(&mut self) -> Step {
+        if self.phase == Phase::Done {
+            return self.step(Vec::new(), None);
+        }
+        let a = self.params.approach_mm;
+        // Back to 1 mm before the centre on the approach side, but never further than the
+        // current position is from it already.
+        let back = if self.phase == Phase::Plus {
+            self.pos_mm.min(0.0) - a
+        } else {
+            self.pos_mm.max(0.0) + a
+        };
+        let back = back.clamp(-self.params.max_travel_mm, self.params.max_travel_mm);
+        self.pos_mm = back;
+        self.step(vec![back], None)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A person who presses fine until the true nozzle (play h on each side) is past
+    /// `centre − tol`; returns the guide's cycles. The nozzle model: after + travel it sits
+    /// h behind the motor, after − travel h ahead.
+    fn run(g: &mut Guide, first: Step, h: f64) {
+        let mut step = first;
+        let mut nozzle = 0.0f64;
+        loop {
+            for m in &step.moves_mm {
+                nozzle = nozzle.clamp(m - h, m + h);
+            }
+            if step.phase == Phase::Done {
+                return;
+            }
+            let dir = if step.phase == Phase::Plus { 1.0 } else { -1.0 };
+            let press = if dir * nozzle >= -g.fine_mm() / 2.0 {
+                Press::Centred
+            } else if dir * nozzle < -0.15 {
+                Press::Coarse
+            } else {
+                Press::Fine
+            };
+            step = g.press(press).unwrap();
+        }
+    }
+
+    #[test]
+    fn the_procedure_approaches_from_minus_then_plus_and_measures_the_play() {
+        let (mut g, first) = Guide::start(GuideAxis::X, 150.0, GuideParams::default()).unwrap();
+        assert_eq!(first.moves_mm, vec![-1.0]);
+        run(&mut g, first, 0.04);
+        assert_eq!(g.cycles.len(), 5);
+        assert_eq!(g.cycles[1].fine_mm, Some(0.0025));
+        assert_eq!(g.cycles[2].fine_mm, Some(0.01));
+        for c in &g.cycles {
+            // Centred to the fine-jog resolution: X1 − X2 is 0.08 ± one jog.
+            assert!(
+                (c.backlash_mm() - 0.08).abs() <= c.fine_mm.unwrap() + 1e-9,
+                "{c:?}"
+            );
+        }
+        assert_eq!(g.phase, Phase::Done);
+        assert!(g.press(Press::Fine).is_err());
+    }
+
+    #[test]
+    fn jogs_move_only_in_the_approach_direction_and_overshot_backs_off_1_mm() {
+        let (mut g, _) = Guide::start(GuideAxis::Y, 10.0, GuideParams::default()).unwrap();
+        let s = g.press(Press::Coarse).unwrap();
+        assert!((s.moves_mm[0] - -0.9).abs() < 1e-12);
+        let s = g.press(Press::Overshot).unwrap();
+        assert!((s.moves_mm[0] - -1.9).abs() < 1e-12);
+        assert_eq!(g.overshoots, 1);
+        let mut last = -1.9;
+        for _ in 0..18 {
+            let s = g.press(Press::Coarse).unwrap();
+            assert!(s.moves_mm[0] > last, "a jog moved back");
+            last = s.moves_mm[0];
+        }
+        let s = g.press(Press::Centred).unwrap();
+        assert!((s.recorded.unwrap() - 9.9).abs() < 1e-9);
+        // Seed step 5: 1 mm further in +, then jogs go −.
+        assert!((s.moves_mm[0] - 0.9).abs() < 1e-9);
+        let s = g.press(Press::Fine).unwrap();
+        assert!((s.moves_mm[0] - 0.89).abs() < 1e-9);
+        let s = g.press(Press::Overshot).unwrap();
+        assert!((s.moves_mm[0] - 1.89).abs() < 1e-9);
+    }
+
+    #[test]
+    fn centred_far_short_of_the_camera_point_is_refused() {
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default()).unwrap();
+        let before = g.clone();
+        let e = g.press(Press::Centred).unwrap_err().to_string();
+        assert!(e.contains("1.000 mm short"), "{e}");
+        assert_eq!(g, before);
+    }
+
+    #[test]
+    fn a_jog_beyond_the_travel_limit_is_refused_and_changes_nothing() {
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default()).unwrap();
+        for _ in 0..40 {
+            let _ = g.press(Press::Coarse);
+        }
+        let before = g.clone();
+        let e = g.press(Press::Coarse).unwrap_err().to_string();
+        assert!(e.contains("press overshot"), "{e}");
+        assert_eq!(g, before);
+    }
+
+    #[test]
+    fn the_state_survives_serde_and_resume_restarts_the_approach_from_1_mm_back() {
+        let p = GuideParams {
+            plausible_mm: 1.0,
+            ..GuideParams::default()
+        };
+        let (mut g, _) = Guide::start(GuideAxis::A, 300.0, p).unwrap();
+        g.press(Press::Coarse).unwrap();
+        g.press(Press::Centred).unwrap();
+        g.press(Press::Fine).unwrap();
+        let text = serde_json::to_string(&g).unwrap();
+        let mut back: Guide = serde_json::from_str(&text).unwrap();
+        assert_eq!(back, g);
+        let s = back.resume();
+        assert_eq!(s.phase, Phase::Minus);
+        // In the − approach at 0.09: restart from 1 mm further in +.
+        assert!((s.moves_mm[0] - 1.09).abs() < 1e-12);
+        assert!((back.pending_x1_mm.unwrap() - 299.1).abs() < 1e-9);
+    }
+
+    #[test]
+    fn motor_directions_move_diagonally_and_bad_arguments_are_named() {
+        assert_eq!(
+            GuideAxis::A.point_at([100.0, 50.0, 5.0], 2.0),
+            [101.0, 51.0, 5.0]
+        );
+        assert_eq!(
+            GuideAxis::B.point_at([100.0, 50.0, 5.0], 2.0),
+            [101.0, 49.0, 5.0]
+        );
+        assert_eq!(GuideAxis::B.coord([101.0, 49.0, 5.0]), 52.0);
+        assert!(GuideAxis::parse("w")
+            .unwrap_err()
+            .to_string()
+            .contains("AXIS=\"w\""));
+        assert!(Press::parse("back")
+            .unwrap_err()
+            .to_string()
+            .contains("PRESS=\"back\""));
+        let p = GuideParams {
+            cycles: 0,
+            ..GuideParams::default()
+        };
+        assert!(Guide::start(GuideAxis::X, 0.0, p)
+            .unwrap_err()
+            .to_string()
+            .contains("CYCLES=0"));
+    }
+}

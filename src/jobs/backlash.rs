@@ -1,0 +1,770 @@
+//! The guided backlash measurement (seed 004) through a nozzle camera: measuring → measured →
+//! applying → done (and failed / cancelled, with the reason). KLIPCAL_BACKLASH_SET_POINT saves
+//! the camera point once; KLIPCAL_BACKLASH_START AXIS=X|Y|Z|A|B [CYCLES=] runs
+//! `calib::backlash_guide` with a prompt whose jog buttons (KLIPCAL_BACKLASH_JOG PRESS=…) move
+//! only in the approach direction, each step saved before the machine moves;
+//! KLIPCAL_BACKLASH_APPLY sets the values (SET_BACKLASH_COMPENSATION with its reply checked on
+//! PR 7259; PR 7157's `[backlash]` by config) and persists them through the shared config
+//! transaction. Session store, runner, guards, console and config transaction are the core's.
+
+use std::collections::BTreeMap;
+
+use anyhow::{anyhow, Context};
+use futures_util::future::BoxFuture;
+use futures_util::FutureExt;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::args::Args;
+use super::console::{Button, Prompt};
+use super::printer_config::{self, ValueSet};
+use super::registry::{Calibration, Hold};
+use super::session::{now_unix, Core, Doc};
+use super::user;
+use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult};
+use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
+use crate::config::BacklashConfig;
+use crate::klipper::backlash::{self as kb, Branch, Detection, SetBacklash};
+use crate::klipper::GcodeCmd;
+use crate::store::SessionRow;
+
+/// The remote methods of the backlash measurement.
+pub const METHODS: &[&str] = &[
+    "klipcal_backlash_set_point",
+    "klipcal_backlash_start",
+    "klipcal_backlash_jog",
+    "klipcal_backlash_apply",
+];
+
+/// The store's kind.
+pub const KIND: &str = "backlash";
+/// The store's kind of the saved camera point (a finished document, one per SET_POINT).
+pub const POINT_KIND: &str = "backlash_point";
+const TITLE: &str = "backlash measurement";
+/// Jog and approach feed rate, mm/min.
+const JOG_F: f64 = 1200.0;
+
+/// A session's state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum State {
+    /// The guided procedure runs for `axis`.
+    Measuring,
+    /// Every cycle of the last axis is in; another axis may start, or apply.
+    Measured,
+    /// Setting and writing the values.
+    Applying,
+    /// Applied (or nothing to apply).
+    Done,
+    /// Failed, with the reason.
+    Failed,
+    /// Cancelled, with the reason.
+    Cancelled,
+}
+
+impl State {
+    fn name(self) -> &'static str {
+        match self {
+            State::Measuring => "measuring",
+            State::Measured => "measured",
+            State::Applying => "applying",
+            State::Done => "done",
+            State::Failed => "failed",
+            State::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// The stored session.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Session {
+    /// Session id.
+    pub id: i64,
+    /// State.
+    pub state: State,
+    /// Why it failed or was cancelled.
+    pub reason: Option<String>,
+    /// The current step in words.
+    pub progress: String,
+    /// The camera point (toolhead X, Y, Z).
+    pub point: [f64; 3],
+    /// What the printer's Klipper has.
+    pub detection: Detection,
+    /// The compensation active while measuring, per axis (measurements are residuals).
+    pub active_mm: BTreeMap<String, f64>,
+    /// The procedure in progress (its readings included).
+    pub guide: Option<Guide>,
+    /// Finished axes: their cycles.
+    pub cycles: BTreeMap<String, Vec<crate::calib::backlash::Cycle>>,
+    /// [printer] max_accel, mm/s².
+    pub max_accel_mm_s2: Option<f64>,
+    /// Things the user should know.
+    pub notes: Vec<String>,
+}
+
+impl Doc for Session {
+    fn state_name(&self) -> String {
+        self.state.name().to_string()
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct PointDoc {
+    point: [f64; 3],
+    state: String,
+}
+
+impl Doc for PointDoc {
+    fn state_name(&self) -> String {
+        self.state.clone()
+    }
+}
+
+/// The backlash calibration.
+pub struct Backlash {
+    core: Core,
+    settings: BacklashConfig,
+}
+
+impl Backlash {
+    /// Over the shared core, with `[backlash]`.
+    pub fn new(core: Core, settings: BacklashConfig) -> Self {
+        Self { core, settings }
+    }
+
+    fn active(&self) -> anyhow::Result<Option<Session>> {
+        Ok(self.core.active_of::<Session>(KIND)?.map(|(_, s)| s))
+    }
+
+    async fn detect(&self) -> anyhow::Result<(Detection, Value)> {
+        let help = self.core.m().call("printer.gcode.help", json!({})).await?;
+        let cf = self.core.m().configfile().await?;
+        Ok((kb::detect(&help, &cf["config"])?, cf))
+    }
+
+    /// The G-code console lines since the last call, newest last (for command replies).
+    async fn console_tail(&self) -> anyhow::Result<String> {
+        let store = self
+            .core
+            .m()
+            .call("server.gcode_store", json!({"count": 30}))
+            .await?;
+        Ok(store["gcode_store"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|e| e["message"].as_str())
+            .collect::<Vec<_>>()
+            .join("\n"))
+    }
+
+    /// PR 7259's values now: the bare command's reply.
+    async fn seed_values(&self) -> anyhow::Result<kb::BacklashReply> {
+        self.core.m().gcode(kb::SET_CMD).await?;
+        Ok(kb::parse_reply(&self.console_tail().await?)?)
+    }
+
+    async fn homed(&self, axis: GuideAxis) -> anyhow::Result<()> {
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"toolhead": ["homed_axes"]}))
+            .await?;
+        let homed = st["toolhead"]["homed_axes"].as_str().unwrap_or("");
+        let need = match axis {
+            GuideAxis::Z => "xyz",
+            _ => "xy",
+        };
+        if need.chars().all(|c| homed.contains(c)) {
+            Ok(())
+        } else {
+            Err(user(format!(
+                "the printer is not homed ({need} needed, homed: '{homed}'); run G28 first"
+            )))
+        }
+    }
+
+    async fn move_along(&self, s: &Session, step: &Step) -> anyhow::Result<()> {
+        let Some(g) = &s.guide else { return Ok(()) };
+        for &along in &step.moves_mm {
+            let p = g.axis.point_at(s.point, along);
+            let line = GcodeCmd::new("G1")
+                .axis('X', p[0])
+                .axis('Y', p[1])
+                .axis('Z', p[2])
+                .axis('F', JOG_F)
+                .build()?;
+            self.core.m().gcode(&format!("G90\n{line}")).await?;
+        }
+        Ok(())
+    }
+
+    fn prompt_for(s: &Session, step: &Step) -> Prompt {
+        let Some(g) = &s.guide else {
+            return Prompt::default();
+        };
+        let (sign, dir) = if step.phase == Phase::Minus {
+            ("-", "−")
+        } else {
+            ("+", "+")
+        };
+        let axis = g.axis.name().to_uppercase();
+        Prompt {
+            title: format!(
+                "klipcal: backlash {axis} — cycle {}/{}, moving only {dir}",
+                step.cycle, g.params.cycles
+            ),
+            lines: vec![
+                format!(
+                    "Jog {axis}{sign} until the nozzle is centred on the camera mark; never back."
+                ),
+                format!(
+                    "Coarse {} mm, fine {} mm. Past the centre? Press Overshot: it starts the approach over from {} mm back.",
+                    g.params.coarse_mm,
+                    g.fine_mm(),
+                    g.params.approach_mm
+                ),
+            ],
+            buttons: vec![
+                Button::new(
+                    &format!("Coarse {axis}{sign}"),
+                    "KLIPCAL_BACKLASH_JOG PRESS=coarse",
+                    "secondary",
+                ),
+                Button::new(
+                    &format!("Fine {axis}{sign}"),
+                    "KLIPCAL_BACKLASH_JOG PRESS=fine",
+                    "secondary",
+                ),
+                Button::new("Centred", "KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
+                Button::new(
+                    "Overshot - start over",
+                    "KLIPCAL_BACKLASH_JOG PRESS=overshot",
+                    "warning",
+                ),
+            ],
+            footer: vec![Button::new("Cancel", "KLIPCAL_CANCEL", "error")],
+        }
+    }
+
+    fn results(&self, s: &Session) -> anyhow::Result<BTreeMap<String, AxisResult>> {
+        let params = self.settings.params();
+        s.cycles
+            .iter()
+            .map(|(axis, c)| Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &params)?)))
+            .collect()
+    }
+
+    fn result_lines(&self, s: &Session) -> anyhow::Result<Vec<String>> {
+        let mut out = Vec::new();
+        for (axis, r) in self.results(s)? {
+            let active = s.active_mm.get(&axis).copied().unwrap_or(0.0);
+            out.push(format!(
+                "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
+                axis.to_uppercase(),
+                r.backlash_mm,
+                r.uncertainty_mm,
+                r.cycles,
+                if r.outliers.is_empty() {
+                    String::new()
+                } else {
+                    format!(" (outlier cycles {:?})", r.outliers)
+                },
+                if active > 0.0 {
+                    format!(" left with {active} mm compensation active")
+                } else {
+                    String::new()
+                },
+                if r.compensate {
+                    format!(
+                        "compensate; smooth_time {:.4} s adds {:.0} mm/s²",
+                        r.smooth_time_s, r.extra_accel_mm_s2
+                    )
+                } else {
+                    "no compensation needed".to_string()
+                }
+            ));
+        }
+        Ok(out)
+    }
+
+    /// `klipcal_backlash_set_point`: the current toolhead position becomes the camera point.
+    ///
+    /// # Errors
+    /// A printer that is printing or not homed.
+    pub async fn set_point(&self) -> anyhow::Result<Value> {
+        self.core.printer_idle().await?;
+        self.homed(GuideAxis::X).await?;
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"gcode_move": ["position"]}))
+            .await?;
+        let pos = &st["gcode_move"]["position"];
+        let p = [0, 1, 2].map(|i| pos[i].as_f64().unwrap_or(f64::NAN));
+        if p.iter().any(|v| !v.is_finite()) {
+            return Err(anyhow!("Klipper reports no toolhead position: {pos}"));
+        }
+        let doc = PointDoc {
+            point: p,
+            state: "done".into(),
+        };
+        self.core
+            .store()
+            .create_session(POINT_KIND, "done", &serde_json::to_value(&doc)?)?;
+        let msg = format!(
+            "camera point saved: X{:.3} Y{:.3} Z{:.3}; KLIPCAL_BACKLASH_START AXIS=X begins",
+            p[0], p[1], p[2]
+        );
+        self.core.console(&msg).await;
+        Ok(json!({"point": p, "message": msg}))
+    }
+
+    /// `klipcal_backlash_start`: measures one axis (a new session, or the next axis of a
+    /// measured one).
+    ///
+    /// # Errors
+    /// Bad arguments, no camera point, another calibration running, a printing or unhomed
+    /// printer, or A/B on a printer that is not CoreXY.
+    pub async fn start(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_BACKLASH_START", &["axis", "cycles"])?;
+        let axis_text = a.text("axis").ok_or_else(|| {
+            user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
+        })?;
+        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+        let mut params = self.settings.guide();
+        if let Some(c) = a.int("cycles", "5")? {
+            params.cycles = usize::try_from(c).unwrap_or(0);
+        }
+        params.validate().map_err(|e| user(e.to_string()))?;
+        self.core.refuse_other_kind(KIND)?;
+        self.core.printer_idle().await?;
+        self.homed(axis).await?;
+        let point = self
+            .core
+            .latest_of::<PointDoc>(POINT_KIND)?
+            .map(|(_, d)| d.point)
+            .ok_or_else(|| {
+                user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
+            })?;
+        let (detection, cf) = self.detect().await?;
+        let kin = cf["settings"]["printer"]["kinematics"]
+            .as_str()
+            .unwrap_or("");
+        if axis.is_motor() && kin != "corexy" {
+            return Err(user(format!(
+                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
+                axis_text.to_uppercase()
+            )));
+        }
+        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let mut active_mm = BTreeMap::new();
+        match detection.branch {
+            Branch::Seed => {
+                let r = self.seed_values().await?;
+                active_mm.insert("x".into(), r.x_mm);
+                active_mm.insert("y".into(), r.y_mm);
+                active_mm.insert("z".into(), r.z_mm);
+            }
+            Branch::Pr7157 { .. } => {
+                if let Some(o) = cf["settings"]["backlash"].as_object() {
+                    for (k, v) in o {
+                        if let Some(f) = v.as_f64() {
+                            active_mm.insert(k.clone(), f);
+                        }
+                    }
+                }
+            }
+            Branch::Neither => {}
+        }
+        let (guide, step) =
+            Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
+        let existing = {
+            let _g = self.core.lock().await;
+            match self.active()? {
+                Some(mut s) if s.state == State::Measured => {
+                    s.state = State::Measuring;
+                    s.progress = format!("measuring {}", axis.name());
+                    s.guide = Some(guide.clone());
+                    s.point = point;
+                    s.detection = detection.clone();
+                    s.active_mm = active_mm.clone();
+                    self.core.save(s.id, &s)?;
+                    Some(s)
+                }
+                Some(s) => {
+                    return Err(user(format!(
+                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
+                        s.id,
+                        s.state.name()
+                    )))
+                }
+                None => None,
+            }
+        };
+        let s = match existing {
+            Some(s) => s,
+            None => {
+                let mut s = Session {
+                    id: 0,
+                    state: State::Measuring,
+                    reason: None,
+                    progress: format!("measuring {}", axis.name()),
+                    point,
+                    detection,
+                    active_mm,
+                    guide: Some(guide),
+                    cycles: BTreeMap::new(),
+                    max_accel_mm_s2: max_accel,
+                    notes: Vec::new(),
+                };
+                s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
+                s
+            }
+        };
+        self.move_along(&s, &step).await?;
+        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        let msg = format!(
+            "{TITLE} session {}: {} from {} mm in −, jog only in + until centred",
+            s.id,
+            axis.name().to_uppercase(),
+            s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
+        );
+        self.core.console(&msg).await;
+        Ok(json!({"session": s.id, "state": "measuring", "axis": axis.name(), "message": msg}))
+    }
+
+    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|overshot`.
+    ///
+    /// # Errors
+    /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
+    pub async fn jog(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_BACKLASH_JOG", &["press"])?;
+        let press =
+            Press::parse(&a.text("press").unwrap_or_default()).map_err(|e| user(e.to_string()))?;
+        // The press and its reading are saved before the machine moves.
+        let (s, step) = {
+            let _g = self.core.lock().await;
+            let mut s =
+                match self.active()? {
+                    Some(s) if s.state == State::Measuring => s,
+                    _ => return Err(user(
+                        "no backlash axis is being measured; KLIPCAL_BACKLASH_START AXIS=X first",
+                    )),
+                };
+            let g = s
+                .guide
+                .as_mut()
+                .ok_or_else(|| anyhow!("measuring without a guide"))?;
+            let step = g.press(press).map_err(|e| user(e.to_string()))?;
+            if step.phase == Phase::Done {
+                let axis = g.axis.name().to_string();
+                let cycles = g.cycles.clone();
+                s.cycles.insert(axis.clone(), cycles);
+                s.guide = None;
+                s.state = State::Measured;
+                s.progress =
+                    format!("{axis} measured; start another axis or KLIPCAL_BACKLASH_APPLY");
+            }
+            self.core.save(s.id, &s)?;
+            (s, step)
+        };
+        if step.phase == Phase::Done {
+            self.core.prompt_end().await;
+            let lines = self.result_lines(&s)?;
+            let text = format!(
+                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_START AXIS=… for another axis, or KLIPCAL_BACKLASH_APPLY",
+                lines.join("\n")
+            );
+            self.core.console(&text).await;
+            return Ok(
+                json!({"session": s.id, "state": "measured", "results": self.results(&s)?, "message": text}),
+            );
+        }
+        self.move_along(&s, &step).await?;
+        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        Ok(
+            json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
+                  "phase": format!("{:?}", step.phase), "cycle": step.cycle}),
+        )
+    }
+
+    /// `klipcal_backlash_apply`: sets and persists the measured values.
+    ///
+    /// # Errors
+    /// Nothing measured, a printer printing, neither branch (with the reason), a reply that
+    /// disagrees, or a config Klipper rejects (rolled back).
+    pub async fn apply(&self, args: &Value) -> anyhow::Result<Value> {
+        Args::parse(args, "KLIPCAL_BACKLASH_APPLY", &[])?;
+        let s = match self.active()? {
+            Some(s) if s.state == State::Measured => s,
+            _ => {
+                return Err(user(
+                    "nothing measured to apply; measure an axis first (KLIPCAL_BACKLASH_START)",
+                ))
+            }
+        };
+        self.core.printer_idle().await?;
+        let (detection, _) = self.detect().await?;
+        if !detection.can_apply() {
+            return Err(user(format!("cannot apply: {}", detection.why)));
+        }
+        if detection.dual_carriage && detection.branch == Branch::Seed {
+            return Err(user(
+                "dual_carriage: PR 7259 refuses non-zero values in [backlash_compensation]; the \
+                 per-carriage [delayed_gcode] include is not written automatically yet",
+            ));
+        }
+        let results = self.results(&s)?;
+        let mut values: BTreeMap<String, f64> = BTreeMap::new();
+        for (axis, r) in &results {
+            let active = s.active_mm.get(axis).copied().unwrap_or(0.0);
+            if r.compensate || active > 0.0 {
+                values.insert(axis.clone(), round_um(active + r.backlash_mm));
+            }
+        }
+        if values.is_empty() {
+            self.finish(
+                s.id,
+                State::Done,
+                "nothing to apply: no axis needs compensation",
+            )
+            .await?;
+            return Ok(
+                json!({"session": s.id, "state": "done", "message": "no axis needs compensation; nothing written"}),
+            );
+        }
+        let smooth =
+            (detection.branch == Branch::Seed).then(|| common_smooth_time_s(results.values()));
+        let triples = kb::config_values(detection.branch, &values, smooth)
+            .map_err(|e| user(e.to_string()))?;
+        self.set_state(s.id, State::Applying, "applying").await?;
+        let outcome = self
+            .apply_values(&detection, &values, smooth, &triples)
+            .await;
+        match outcome {
+            Ok(msg) => {
+                self.finish(s.id, State::Done, &msg).await?;
+                self.core.console(&format!("{TITLE}: {msg}")).await;
+                Ok(
+                    json!({"session": s.id, "state": "done", "values": values, "smooth_time_s": smooth, "message": msg}),
+                )
+            }
+            Err(e) => {
+                let why = format!("{e:#}");
+                self.set_state(s.id, State::Measured, &format!("apply failed: {why}"))
+                    .await?;
+                self.core
+                    .console_error(&format!("{TITLE}: apply failed: {why}"))
+                    .await;
+                Err(e)
+            }
+        }
+    }
+
+    async fn apply_values(
+        &self,
+        detection: &Detection,
+        values: &BTreeMap<String, f64>,
+        smooth: Option<f64>,
+        triples: &[(String, String, String)],
+    ) -> anyhow::Result<String> {
+        let get = |k: &str| values.get(k).copied();
+        let want = SetBacklash {
+            x_mm: get("x"),
+            y_mm: get("y"),
+            z_mm: get("z"),
+            smooth_time_s: smooth,
+        };
+        if detection.branch == Branch::Seed {
+            let cmd = kb::set_backlash_command(&want)?;
+            self.core
+                .m()
+                .gcode(&cmd)
+                .await
+                .context("SET_BACKLASH_COMPENSATION")?;
+            let reply = kb::parse_reply(&self.console_tail().await?)?;
+            if !reply.agrees_with(&want) {
+                return Err(anyhow!("Klipper answered {reply:?} to {cmd}"));
+            }
+        }
+        let pc = printer_config::fetch(self.core.m(), self.core.files()).await?;
+        let sets: Vec<ValueSet> = triples
+            .iter()
+            .map(|(section, key, value)| ValueSet {
+                section: section.clone(),
+                key: key.clone(),
+                value: value.clone(),
+            })
+            .collect();
+        let stamp = printer_config::stamp(now_unix() as u64);
+        let report =
+            printer_config::apply(self.core.m(), self.core.files(), &pc, &sets, &stamp).await?;
+        if detection.branch == Branch::Seed {
+            let after = self.seed_values().await?;
+            if !after.agrees_with(&want) {
+                return Err(anyhow!(
+                    "after the restart SET_BACKLASH_COMPENSATION reports {after:?}, not the values written"
+                ));
+            }
+        }
+        Ok(format!(
+            "written {} (backup in {})",
+            report
+                .changes
+                .iter()
+                .map(|(s, k, o, n)| format!("[{s}] {k}: {o} → {n}"))
+                .collect::<Vec<_>>()
+                .join(", "),
+            report.backup_dir
+        ))
+    }
+
+    async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
+        self.core
+            .update::<Session, ()>(id, |s| {
+                s.state = state;
+                s.progress = progress.to_string();
+                Ok(())
+            })
+            .await
+    }
+
+    async fn finish(&self, id: i64, state: State, why: &str) -> anyhow::Result<()> {
+        self.core
+            .update::<Session, ()>(id, |s| {
+                s.state = state;
+                s.progress = why.to_string();
+                if state != State::Done {
+                    s.reason = Some(why.to_string());
+                }
+                Ok(())
+            })
+            .await
+    }
+
+    async fn resume_session(&self, id: i64) {
+        let Ok(s) = self.core.load::<Session>(id) else {
+            return;
+        };
+        match s.state {
+            State::Measuring => {
+                // Position and last direction are unknown after a restart: start the approach
+                // over from 1 mm back (the readings taken so far are kept).
+                let mut s2 = s.clone();
+                let Some(g) = s2.guide.as_mut() else { return };
+                let step = g.resume();
+                let axis = g.axis;
+                if self.core.save(id, &s2).is_err() {
+                    return;
+                }
+                if self.homed(axis).await.is_err() {
+                    self.core
+                        .console(&format!(
+                            "{TITLE} session {id}: home (G28), then KLIPCAL_BACKLASH_JOG PRESS=overshot to continue"
+                        ))
+                        .await;
+                    return;
+                }
+                if self.move_along(&s2, &step).await.is_ok() {
+                    self.core.prompt(&Self::prompt_for(&s2, &step)).await;
+                }
+            }
+            State::Applying => {
+                let _ = self
+                    .finish(
+                        id,
+                        State::Measured,
+                        "apply interrupted; KLIPCAL_BACKLASH_APPLY again",
+                    )
+                    .await;
+            }
+            _ => {}
+        }
+    }
+
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+        self.finish(id, State::Cancelled, reason).await?;
+        self.core.prompt_end().await;
+        Ok(json!({"session": id, "state": "cancelled",
+                  "message": format!("backlash session {id} cancelled ({reason})")}))
+    }
+}
+
+fn round_um(mm: f64) -> f64 {
+    (mm * 1e4).round() / 1e4
+}
+
+impl Calibration for Backlash {
+    fn kind(&self) -> &'static str {
+        KIND
+    }
+
+    fn title(&self) -> &'static str {
+        "a backlash measurement"
+    }
+
+    fn methods(&self) -> &'static [&'static str] {
+        METHODS
+    }
+
+    fn call<'a>(
+        &'a self,
+        method: &'a str,
+        args: &'a Value,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        async move {
+            match method {
+                "klipcal_backlash_set_point" => {
+                    Args::parse(args, "KLIPCAL_BACKLASH_SET_POINT", &[])?;
+                    self.set_point().await
+                }
+                "klipcal_backlash_start" => self.start(args).await,
+                "klipcal_backlash_jog" => self.jog(args).await,
+                "klipcal_backlash_apply" => self.apply(args).await,
+                other => Err(anyhow!("{other} is not a backlash method")),
+            }
+        }
+        .boxed()
+    }
+
+    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        self.resume_session(row.id).boxed()
+    }
+
+    fn cancel<'a>(
+        &'a self,
+        row: &'a SessionRow,
+        reason: &'a str,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        self.cancel_session(row.id, reason).boxed()
+    }
+
+    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+        let s: Session = serde_json::from_value(row.doc.clone())
+            .with_context(|| format!("reading stored session {}", row.id))?;
+        let results = self.results(&s).unwrap_or_default();
+        Ok(json!({
+            "id": s.id,
+            "state": s.state.name(),
+            "progress": s.progress,
+            "reason": s.reason,
+            "point": s.point,
+            "branch": s.detection,
+            "axis": s.guide.as_ref().map(|g| g.axis.name()),
+            "cycle": s.guide.as_ref().map(|g| g.cycles.len() + 1),
+            "cycles": s.cycles,
+            "results": results,
+            "active_mm": s.active_mm,
+            "notes": s.notes,
+        }))
+    }
+
+    fn held(&self, _row: &SessionRow) -> Option<Hold> {
+        None
+    }
+
+    fn heaters_turned_off<'a>(&'a self, _row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        async {}.boxed()
+    }
+}
