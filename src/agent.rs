@@ -63,20 +63,27 @@ pub async fn dispatch(
     cals.call(method, args).await.map_err(|e| rpc_error(&e))
 }
 
+/// An outcome as JSON for an HTTP caller: the result with `"ok": true`, or
+/// `{"ok": false, "error": {"code", "message"}}` (the console's message).
+#[must_use]
+pub fn result_json(outcome: Result<Value, RpcError>) -> Value {
+    match outcome {
+        Ok(Value::Object(mut o)) => {
+            o.insert("ok".into(), json!(true));
+            Value::Object(o)
+        }
+        Ok(other) => json!({"ok": true, "result": other}),
+        Err(e) => json!({"ok": false, "error": {"code": e.code, "message": e.message}}),
+    }
+}
+
 async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
     let outcome = dispatch(m, cals, &call.method, &call.params).await;
     match call.responder {
         // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
         // klipcal RPC error"), so failures travel as a JSON result the caller can read.
-        Some(r) => r.send(Ok(match outcome {
-            Ok(Value::Object(mut o)) => {
-                o.insert("ok".into(), json!(true));
-                Value::Object(o)
-            }
-            Ok(other) => json!({"ok": true, "result": other}),
-            Err(e) => json!({"ok": false, "error": {"code": e.code, "message": e.message}}),
-        })),
+        Some(r) => r.send(Ok(result_json(outcome))),
         None => {
             let script = match &outcome {
                 Ok(v) => answer_script(&console_text(&call.method, v), false),

@@ -142,6 +142,20 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
             }
         });
     }
+    if config.http.enabled {
+        match crate::http::start(
+            &config.http,
+            m.clone(),
+            cals.clone(),
+            config.soak.clone(),
+            cancel.clone(),
+        )
+        .await
+        {
+            Ok(addr) => info!("page and API on http://{addr}/ ([http] bind)"),
+            Err(e) => tracing::error!("the page and API are off: {e:#}"),
+        }
+    }
     let agent = tokio::spawn(crate::agent::serve(m.clone(), cals, calls));
     cancel.cancelled().await;
     // Every task selects on the token; give them a moment to close the socket cleanly.

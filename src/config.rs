@@ -60,6 +60,70 @@ pub struct Config {
     pub soak: crate::calib::soak::SoakParams,
     /// Backlash measurement (seed 004): verdict thresholds, smooth_time budget, jog sizes.
     pub backlash: BacklashConfig,
+    /// The daemon's own HTTP API and page.
+    pub http: HttpConfig,
+}
+
+/// `[http]`: the daemon's page and API (`src/http/`).
+#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[serde(default, deny_unknown_fields)]
+pub struct HttpConfig {
+    /// Serve the page and API at all.
+    pub enabled: bool,
+    /// Address and port to listen on; `0.0.0.0:7150` listens on the LAN.
+    pub bind: String,
+    /// Addresses (CIDR ranges) allowed without an API key; the default is what a standard
+    /// Moonraker install trusts: loopback, the private ranges, link-local.
+    pub trusted_clients: Vec<String>,
+    /// When set, a request carrying `X-Api-Key: <this>` is allowed from any address.
+    pub api_key: String,
+    /// Host names (besides IP addresses, `localhost`, single-label names and `*.local`) a
+    /// changing request may be addressed to: a guard against DNS rebinding.
+    pub host_names: Vec<String>,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            bind: "0.0.0.0:7150".into(),
+            trusted_clients: [
+                "127.0.0.0/8",
+                "10.0.0.0/8",
+                "172.16.0.0/12",
+                "192.168.0.0/16",
+                "169.254.0.0/16",
+                "::1/128",
+                "fe80::/10",
+            ]
+            .iter()
+            .map(|s| (*s).to_string())
+            .collect(),
+            api_key: String::new(),
+            host_names: Vec::new(),
+        }
+    }
+}
+
+impl HttpConfig {
+    /// The trusted ranges, parsed.
+    ///
+    /// # Errors
+    /// An entry that is not an address or a CIDR range.
+    pub fn trusted(&self) -> Result<Vec<ipnet::IpNet>, Error> {
+        self.trusted_clients
+            .iter()
+            .map(|t| {
+                t.parse::<ipnet::IpNet>()
+                    .or_else(|_| t.parse::<std::net::IpAddr>().map(ipnet::IpNet::from))
+                    .map_err(|_| Error::Invalid {
+                        key: "http.trusted_clients",
+                        value: format!("{t:?}"),
+                        expected: "addresses or CIDR ranges such as \"192.168.1.0/24\" or \"::1\"",
+                    })
+            })
+            .collect()
+    }
 }
 
 /// `[backlash]`: the guided camera measurement and its statistics (seed 004).
@@ -422,11 +486,39 @@ impl Config {
                 });
             }
         }
+        if ab.cooldown_s >= ab.hold_max_s {
+            return Err(Error::Invalid {
+                key: "ab.cooldown_s",
+                value: format!("{} (ab.hold_max_s = {})", ab.cooldown_s, ab.hold_max_s),
+                expected: "a cool-down shorter than ab.hold_max_s: the hold limit turns the \
+                           heaters off before the readings are asked for otherwise",
+            });
+        }
         if !(3..=20).contains(&ab.readings_per_pair) {
             return Err(Error::Invalid {
                 key: "ab.readings_per_pair",
                 value: ab.readings_per_pair.to_string(),
                 expected: "a whole number from 3 to 20",
+            });
+        }
+        if self.http.bind.parse::<std::net::SocketAddr>().is_err() {
+            return Err(Error::Invalid {
+                key: "http.bind",
+                value: format!("{:?}", self.http.bind),
+                expected: "an address and port such as \"0.0.0.0:7150\" or \"127.0.0.1:7150\"",
+            });
+        }
+        self.http.trusted()?;
+        if let Some(h) = self.http.host_names.iter().find(|h| {
+            h.is_empty()
+                || !h
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '.' || c == '-')
+        }) {
+            return Err(Error::Invalid {
+                key: "http.host_names",
+                value: format!("{h:?}"),
+                expected: "host names such as \"printer.example.org\"",
             });
         }
         self.soak.validate()?;
@@ -461,6 +553,18 @@ impl Config {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_cooldown_not_shorter_than_the_hold_limit_is_refused_at_load() {
+        let e = Config::parse("[ab]\ncooldown_s = 1800\nhold_max_s = 1800\n")
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("ab.cooldown_s") && e.contains("hold_max_s"),
+            "{e}"
+        );
+        assert!(Config::parse("[ab]\ncooldown_s = 600\nhold_max_s = 1800\n").is_ok());
+    }
 
     #[test]
     fn empty_file_gives_the_embedded_defaults() {

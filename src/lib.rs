@@ -22,6 +22,10 @@
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget,
 //!   thermal soak detection.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
+//! - [`plots`]: PURE. The plots people look at (bed soak with its fitted decay, convergence
+//!   over rounds) as SVG text, drawn with plotters.
+//! - [`http`]: the daemon's own page and JSON API (axum): the address/key/origin guard in front,
+//!   every operation through `agent::dispatch`, the same checks and messages as the macros.
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
@@ -36,9 +40,11 @@ pub mod cmd;
 pub mod config;
 pub mod fsio;
 pub mod gcode;
+pub mod http;
 pub mod jobs;
 pub mod klipper;
 pub mod layout;
 pub mod moonraker;
+pub mod plots;
 pub mod printer;
 pub mod store;

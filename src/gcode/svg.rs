@@ -115,6 +115,8 @@ pub(crate) fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout)
             to.center[1] + sign * t / 2.0 * u[1] + to.axis[1] * off,
         ];
         let colour = COLOURS[from.group % COLOURS.len()];
+        // One group per pair, so a page can highlight the pair being entered.
+        let _ = writeln!(s, r##"<g class="pair" data-pair="{}">"##, pair.id);
         for (face, p) in [(a, from), (b, to)] {
             let near = [
                 face[0] - p.axis[0] * (off - l / 2.0),
@@ -146,6 +148,7 @@ pub(crate) fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout)
             pair.id,
             pair.nominal_mm
         );
+        s.push_str("</g>\n");
     }
     s.push_str("</svg>\n");
     s
@@ -171,7 +174,13 @@ mod tests {
         for pair in &job.layout.pairs {
             let label = format!("{} {:.2} mm", pair.id, pair.nominal_mm);
             assert!(job.svg.contains(&label), "missing {label}");
+            let group = format!("<g class=\"pair\" data-pair=\"{}\">", pair.id);
+            assert_eq!(job.svg.matches(&group).count(), 1, "{group}");
         }
+        assert_eq!(
+            job.svg.matches("<g ").count(),
+            job.svg.matches("</g>").count()
+        );
         assert_eq!(job.svg.matches("<rect x=\"-1.800\"").count(), 12);
     }
 }

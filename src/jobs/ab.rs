@@ -37,6 +37,7 @@ pub const METHODS: &[&str] = &[
     "klipcal_measure",
     "klipcal_solve",
     "klipcal_apply",
+    "klipcal_ab_check",
 ];
 
 /// The store's kind.
@@ -885,26 +886,7 @@ impl Ab {
     /// No session waiting for readings, an unknown pair, or an entry refused (nothing saved).
     pub async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
         let s = self.measuring()?;
-        let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
-        let Some(pair) = round
-            .layout
-            .pairs
-            .iter()
-            .find(|p| p.id.eq_ignore_ascii_case(&req.pair))
-            .cloned()
-        else {
-            let ids: Vec<&str> = round.layout.pairs.iter().map(|p| p.id.as_str()).collect();
-            return Err(user(format!(
-                "unknown pair {:?}; this print's pairs are {}",
-                req.pair,
-                ids.join(", ")
-            )));
-        };
-        let window = entry::Window {
-            nominal_mm: pair.nominal_mm,
-            tolerance_mm: s.options.reading_tolerance_mm,
-            max_change_pct: s.options.max_change_pct,
-        };
+        let (pair, window) = pair_window(&s, &req.pair)?;
         let values = if req.values.is_empty() && req.clear {
             Vec::new()
         } else {
@@ -978,6 +960,48 @@ impl Ab {
         Ok(json!({"pair": pair.id, "saved": values, "count": count,
                   "readings": have.get(&pair.id).cloned().unwrap_or_default(),
                   "missing": missing, "message": message}))
+    }
+
+    /// `klipcal_ab_check`: judges an entry by the rules [`Ab::measure`] applies, item by item,
+    /// and saves nothing (the page's live validation).
+    ///
+    /// # Errors
+    /// No session waiting for readings, or an unknown pair.
+    pub fn check(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
+        let s = self.measuring()?;
+        let (pair, window) = pair_window(&s, &req.pair)?;
+        let items: Vec<Value> = req
+            .values
+            .iter()
+            .map(|item| {
+                let one = entry::parse(std::slice::from_ref(item), &pair.id, &window);
+                json!({
+                    "text": item,
+                    "value": one.as_ref().ok().and_then(|v| v.first().copied()),
+                    "error": one.err().map(|e| e.0),
+                })
+            })
+            .collect();
+        let whole = entry::parse(&req.values, &pair.id, &window);
+        let message = match &whole {
+            Ok(v) => format!(
+                "{}: {} reading(s) would be accepted (plausible {:.2}–{:.2} mm); nothing saved",
+                pair.id,
+                v.len(),
+                window.nominal_mm - window.half_width_mm(),
+                window.nominal_mm + window.half_width_mm()
+            ),
+            Err(e) => e.0.clone(),
+        };
+        Ok(json!({
+            "pair": pair.id,
+            "nominal_mm": pair.nominal_mm,
+            "window_mm": [window.nominal_mm - window.half_width_mm(),
+                          window.nominal_mm + window.half_width_mm()],
+            "ok": whole.is_ok(),
+            "message": message,
+            "items": items,
+        }))
     }
 
     /// `klipcal_solve`: computes new rotation distances from the readings.
@@ -1234,6 +1258,7 @@ impl Ab {
                     "n": r.n,
                     "file": r.file,
                     "rotation_distance": [r.stepper_x.rotation_distance_mm, r.stepper_y.rotation_distance_mm],
+                    "rotation_distance_new": sol.map(|s| json!([s.stepper_x.rotation_distance_new, s.stepper_y.rotation_distance_new])),
                     "scale": sol.map(|s| json!([s.stepper_x.scale, s.stepper_y.scale])),
                     "error_um_per_100mm": sol.map(|s| {
                         ((s.stepper_x.scale - 1.0) * 1e5).abs().max(((s.stepper_y.scale - 1.0) * 1e5).abs())
@@ -1253,6 +1278,9 @@ impl Ab {
             "pairs": s.rounds.last().map(|r| json!(r.layout.pairs)),
             "file": s.rounds.last().map(|r| r.file.clone()),
             "readings": readings,
+            "readings_per_pair": s.options.readings_per_pair,
+            "bed_temp_c": s.options.bed_temp_c,
+            "diagram": s.rounds.last().and_then(|r| r.diagram.clone()),
             "missing": if matches!(s.state, State::Measuring | State::Solved) { json!(self.missing_lines(s)?) } else { json!([]) },
             "rounds": rounds,
             "notes": s.notes,
@@ -1288,6 +1316,7 @@ impl Calibration for Ab {
                     self.solve().await
                 }
                 "klipcal_apply" => self.apply(&ApplyRequest::parse(args)?).await,
+                "klipcal_ab_check" => self.check(&MeasureRequest::parse(args)?),
                 other => Err(anyhow!("{other} is not an A/B method")),
             }
         }
@@ -1339,6 +1368,30 @@ impl Calibration for Ab {
         }
         .boxed()
     }
+}
+
+/// The round's pair named `typed` (any case) and its plausibility window.
+fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair, entry::Window)> {
+    let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
+    let Some(pair) = round
+        .layout
+        .pairs
+        .iter()
+        .find(|p| p.id.eq_ignore_ascii_case(typed))
+        .cloned()
+    else {
+        let ids: Vec<&str> = round.layout.pairs.iter().map(|p| p.id.as_str()).collect();
+        return Err(user(format!(
+            "unknown pair {typed:?}; this print's pairs are {}",
+            ids.join(", ")
+        )));
+    };
+    let window = entry::Window {
+        nominal_mm: pair.nominal_mm,
+        tolerance_mm: s.options.reading_tolerance_mm,
+        max_change_pct: s.options.max_change_pct,
+    };
+    Ok((pair, window))
 }
 
 /// What to measure and how, for the console and the measuring prompt.

@@ -200,6 +200,29 @@ impl Calibrations {
         Ok(json!({"session": session, "last": last}))
     }
 
+    /// One session as [`Calibrations::status`] shows it, whatever its state; `None` when there
+    /// is no such session.
+    ///
+    /// # Errors
+    /// A damaged database.
+    pub fn session(&self, id: i64) -> anyhow::Result<Option<Value>> {
+        let Some(row) = self.core.store().session(id)? else {
+            return Ok(None);
+        };
+        Ok(match self.by_kind(&row.kind) {
+            Some(c) => Some(with_kind(c.status(&row)?, &row.kind)),
+            None => Some(json!({"id": row.id, "kind": row.kind, "state": row.state})),
+        })
+    }
+
+    /// The newest sessions, at most `limit`, without their documents.
+    ///
+    /// # Errors
+    /// A damaged database.
+    pub fn sessions(&self, limit: usize) -> anyhow::Result<Vec<crate::store::SessionSummary>> {
+        Ok(self.core.store().sessions(limit)?)
+    }
+
     /// Turns the heaters off once a waiting session's hold limit has passed. Runs until
     /// shutdown.
     pub async fn hold_watchdog(self) {

@@ -49,6 +49,21 @@ pub struct SessionRow {
     pub doc: Value,
 }
 
+/// A session in a list: no document.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct SessionSummary {
+    /// Id.
+    pub id: i64,
+    /// Kind, e.g. `ab`.
+    pub kind: String,
+    /// State name.
+    pub state: String,
+    /// Created, UTC.
+    pub created_at: String,
+    /// Last changed, UTC.
+    pub updated_at: String,
+}
+
 /// One caliper reading.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ReadingRow {
@@ -216,6 +231,28 @@ impl Store {
             )
             .optional()?;
         r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
+    /// The newest sessions first, at most `limit`: id, kind, state and when each was created
+    /// and last changed (UTC, `YYYY-MM-DD HH:MM:SS`), without their documents.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn sessions(&self, limit: usize) -> Result<Vec<SessionSummary>, Error> {
+        let conn = self.conn();
+        let mut st = conn.prepare(
+            "SELECT id, kind, state, created_at, updated_at FROM sessions ORDER BY id DESC LIMIT ?1",
+        )?;
+        let rows = st.query_map(params![limit as i64], |r| {
+            Ok(SessionSummary {
+                id: r.get(0)?,
+                kind: r.get(1)?,
+                state: r.get(2)?,
+                created_at: r.get(3)?,
+                updated_at: r.get(4)?,
+            })
+        })?;
+        Ok(rows.collect::<Result<Vec<_>, _>>()?)
     }
 
     /// The newest session of one kind, in any state.

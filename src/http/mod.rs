@@ -1,0 +1,437 @@
+//! The daemon's own HTTP server: the page (`/`), the JSON API (`/api/…`) and the plots.
+//! Every operation goes through [`crate::agent::dispatch`], the one entry point the remote
+//! methods use too, so the page, curl and the macros get the same checks and messages. The
+//! [`guard`] runs before every handler. Nothing a request carries becomes G-code text here:
+//! requests become typed arguments that the calibrations validate.
+
+pub mod guard;
+pub mod page;
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use axum::body::Bytes;
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, Query, Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::Router;
+use serde_json::{json, Value};
+use tokio_util::sync::CancellationToken;
+
+use crate::agent::{dispatch, result_json};
+use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
+use crate::config::HttpConfig;
+use crate::jobs::Calibrations;
+use crate::moonraker::{Moonraker, RpcError};
+use crate::plots;
+
+/// Largest request body accepted (a long list of readings is a few hundred bytes).
+pub const MAX_BODY_BYTES: usize = 64 * 1024;
+
+/// What the handlers share.
+pub struct Http {
+    m: Moonraker,
+    cals: Option<Calibrations>,
+    guard: guard::Guard,
+    soak: SoakParams,
+}
+
+type Shared = Arc<Http>;
+
+/// The operations a POST may name, and the remote method behind each (`ab/clear` is
+/// `klipcal_measure` with `clear`).
+pub const OPERATIONS: &[(&str, &str)] = &[
+    ("ab/start", "klipcal_ab_start"),
+    ("ab/measure", "klipcal_measure"),
+    ("ab/check", "klipcal_ab_check"),
+    ("ab/clear", "klipcal_measure"),
+    ("ab/solve", "klipcal_solve"),
+    ("ab/apply", "klipcal_apply"),
+    ("cancel", "klipcal_cancel"),
+    ("backlash/set_point", "klipcal_backlash_set_point"),
+    ("backlash/start", "klipcal_backlash_start"),
+    ("backlash/jog", "klipcal_backlash_jog"),
+    ("backlash/apply", "klipcal_backlash_apply"),
+];
+
+/// Binds `[http] bind` and serves until `cancel`; returns the bound address.
+///
+/// # Errors
+/// Bad settings or an address that cannot be bound (in use, not this host's).
+pub async fn start(
+    cfg: &HttpConfig,
+    m: Moonraker,
+    cals: Option<Calibrations>,
+    soak: SoakParams,
+    cancel: CancellationToken,
+) -> anyhow::Result<SocketAddr> {
+    let shared = Arc::new(Http {
+        m,
+        cals,
+        guard: guard::Guard::new(cfg)?,
+        soak,
+    });
+    let listener = tokio::net::TcpListener::bind(&cfg.bind)
+        .await
+        .map_err(|e| anyhow::anyhow!("cannot listen on {} ([http] bind): {e}", cfg.bind))?;
+    let addr = listener.local_addr()?;
+    let app = router(shared).into_make_service_with_connect_info::<SocketAddr>();
+    tokio::spawn(async move {
+        let served = axum::serve(listener, app)
+            .with_graceful_shutdown(async move { cancel.cancelled().await })
+            .await;
+        if let Err(e) = served {
+            tracing::error!(error = %e, "the HTTP server stopped");
+        }
+    });
+    Ok(addr)
+}
+
+fn router(shared: Shared) -> Router {
+    Router::new()
+        .route("/", get(index))
+        .route("/api/status", get(status))
+        .route("/api/sessions", get(sessions))
+        .route("/api/sessions/{id}", get(session))
+        .route("/api/sessions/{id}/diagram.svg", get(diagram))
+        .route("/api/sessions/{id}/convergence.svg", get(convergence))
+        .route("/api/plots/soak.svg", get(soak_plot))
+        .route("/api/{*op}", post(operation))
+        .fallback(not_found)
+        .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
+        .layer(axum::middleware::from_fn_with_state(
+            shared.clone(),
+            guarded,
+        ))
+        .with_state(shared)
+}
+
+async fn guarded(
+    State(h): State<Shared>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    req: Request,
+    next: Next,
+) -> Response {
+    if let Err((code, message)) = h.guard.check(peer.ip(), req.method(), req.headers()) {
+        tracing::info!(%peer, path = %req.uri().path(), %message, "HTTP request refused");
+        return error(code, &message);
+    }
+    let mut res = next.run(req).await;
+    let hd = res.headers_mut();
+    hd.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-store"));
+    hd.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    hd.insert(
+        header::CONTENT_SECURITY_POLICY,
+        HeaderValue::from_static(
+            "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; \
+             script-src 'self' 'unsafe-inline'; connect-src 'self'",
+        ),
+    );
+    res
+}
+
+/// A JSON error in the shape the agent's HTTP callers get.
+fn error(code: StatusCode, message: &str) -> Response {
+    let body = json!({"ok": false, "error": {"code": code.as_u16(), "message": message}});
+    (code, axum::Json(body)).into_response()
+}
+
+fn answer(outcome: Result<Value, RpcError>) -> Response {
+    let code = match &outcome {
+        Ok(_) => StatusCode::OK,
+        Err(e) => match e.code {
+            400 => StatusCode::BAD_REQUEST,
+            404 | -32601 => StatusCode::NOT_FOUND,
+            409 => StatusCode::CONFLICT,
+            503 => StatusCode::SERVICE_UNAVAILABLE,
+            _ => StatusCode::INTERNAL_SERVER_ERROR,
+        },
+    };
+    (code, axum::Json(result_json(outcome))).into_response()
+}
+
+async fn not_found() -> Response {
+    error(
+        StatusCode::NOT_FOUND,
+        "no such page; the page is at / and the API under /api/ (see README)",
+    )
+}
+
+async fn status(State(h): State<Shared>) -> Response {
+    answer(dispatch(&h.m, h.cals.as_ref(), "klipcal_status", &json!({})).await)
+}
+
+fn no_sessions() -> Response {
+    error(
+        StatusCode::SERVICE_UNAVAILABLE,
+        "calibration sessions are not available (no session database)",
+    )
+}
+
+#[derive(serde::Deserialize)]
+struct ListQuery {
+    limit: Option<usize>,
+}
+
+async fn sessions(
+    State(h): State<Shared>,
+    q: Result<Query<ListQuery>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let Some(cals) = &h.cals else {
+        return no_sessions();
+    };
+    let limit = match q {
+        Ok(Query(q)) => q.limit.unwrap_or(50).clamp(1, 500),
+        Err(_) => {
+            return error(
+                StatusCode::BAD_REQUEST,
+                "limit: expected a whole number, e.g. /api/sessions?limit=20",
+            )
+        }
+    };
+    match cals.sessions(limit) {
+        Ok(list) => answer(Ok(json!({"sessions": list}))),
+        Err(e) => error(StatusCode::INTERNAL_SERVER_ERROR, &format!("{e:#}")),
+    }
+}
+
+fn session_doc(h: &Http, id: &str) -> Result<Value, (StatusCode, String)> {
+    let Some(cals) = &h.cals else {
+        return Err((
+            StatusCode::SERVICE_UNAVAILABLE,
+            "calibration sessions are not available (no session database)".into(),
+        ));
+    };
+    let Ok(id) = id.parse::<i64>() else {
+        return Err((
+            StatusCode::BAD_REQUEST,
+            format!("session id {id:?}: expected a whole number, e.g. /api/sessions/3"),
+        ));
+    };
+    match cals.session(id) {
+        Ok(Some(v)) => Ok(v),
+        Ok(None) => Err((
+            StatusCode::NOT_FOUND,
+            format!("no session {id}; /api/sessions lists them"),
+        )),
+        Err(e) => Err((StatusCode::INTERNAL_SERVER_ERROR, format!("{e:#}"))),
+    }
+}
+
+async fn session(State(h): State<Shared>, Path(id): Path<String>) -> Response {
+    match session_doc(&h, &id) {
+        Ok(v) => answer(Ok(json!({"session": v}))),
+        Err((code, why)) => error(code, &why),
+    }
+}
+
+fn svg(text: String) -> Response {
+    (
+        [(header::CONTENT_TYPE, "image/svg+xml; charset=utf-8")],
+        text,
+    )
+        .into_response()
+}
+
+/// The session's layout diagram (as uploaded next to the job), for the readings form.
+async fn diagram(State(h): State<Shared>, Path(id): Path<String>) -> Response {
+    let doc = match session_doc(&h, &id) {
+        Ok(v) => v,
+        Err((code, why)) => return error(code, &why),
+    };
+    match fetch_diagram(&h, &doc).await {
+        Some(text) => svg(text),
+        None => error(
+            StatusCode::NOT_FOUND,
+            &format!("session {id} has no layout diagram"),
+        ),
+    }
+}
+
+async fn fetch_diagram(h: &Http, doc: &Value) -> Option<String> {
+    let path = doc["diagram"].as_str()?;
+    let cals = h.cals.as_ref()?;
+    let bytes = cals.core().files().download("config", path).await.ok()?;
+    let text = String::from_utf8(bytes).ok()?;
+    text.trim_start().starts_with("<svg").then_some(text)
+}
+
+async fn convergence(State(h): State<Shared>, Path(id): Path<String>) -> Response {
+    let doc = match session_doc(&h, &id) {
+        Ok(v) => v,
+        Err((code, why)) => return error(code, &why),
+    };
+    match convergence_svg(&doc) {
+        Ok(text) => svg(text),
+        Err(why) => error(StatusCode::NOT_FOUND, &why),
+    }
+}
+
+/// The convergence plot of an A/B session's status document.
+///
+/// # Errors
+/// No solved round.
+pub fn convergence_svg(doc: &Value) -> Result<String, String> {
+    let points: Vec<plots::RoundPoint> = doc["rounds"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|r| {
+            let scale = r["scale"].as_array()?;
+            let unc = r["uncertainty"].as_array()?;
+            let s = |k: usize| scale.get(k).and_then(Value::as_f64);
+            let u = |k: usize| unc.get(k).and_then(Value::as_f64);
+            Some(plots::RoundPoint {
+                n: u32::try_from(r["n"].as_u64()?).ok()?,
+                error_um_per_100mm: [(s(0)? - 1.0).abs() * 1e5, (s(1)? - 1.0).abs() * 1e5],
+                uncertainty_um_per_100mm: [u(0)? * 1e5, u(1)? * 1e5],
+            })
+        })
+        .collect();
+    plots::convergence_svg(
+        &points,
+        ["stepper_x", "stepper_y"],
+        &format!("session {}: scale error per round", doc["id"]),
+    )
+}
+
+/// The bed over Moonraker's temperature store (~20 min at 1 Hz) with the soak detector's fit
+/// replayed over the same samples.
+async fn soak_plot(State(h): State<Shared>) -> Response {
+    match soak_svg(&h).await {
+        Ok(text) => svg(text),
+        Err(why) => error(StatusCode::SERVICE_UNAVAILABLE, &why),
+    }
+}
+
+async fn soak_svg(h: &Http) -> Result<String, String> {
+    let store =
+        h.m.call(
+            "server.temperature_store",
+            json!({"include_monitors": false}),
+        )
+        .await
+        .map_err(|e| format!("Moonraker's temperature store: {e}"))?;
+    let (samples, fit, eta_s) = replay_soak(&store["heater_bed"], &h.soak)
+        .ok_or("the printer has no heater_bed in Moonraker's temperature store")?;
+    plots::soak_svg(&samples, fit, eta_s, "bed soak (last 20 min)")
+}
+
+/// The bed samples of a `server.temperature_store` entry (1 s apart, the last one now) and
+/// what a soak detector fed with them says: its fitted decay and ETA while soaking.
+#[must_use]
+pub fn replay_soak(
+    bed: &Value,
+    params: &SoakParams,
+) -> Option<(
+    Vec<plots::BedSample>,
+    Option<plots::DecayCurve>,
+    Option<f64>,
+)> {
+    let series = |k: &str| -> Option<Vec<f64>> {
+        Some(
+            bed[k]
+                .as_array()?
+                .iter()
+                .map(|v| v.as_f64().unwrap_or(f64::NAN))
+                .collect(),
+        )
+    };
+    let temps = series("temperatures")?;
+    let targets = series("targets").unwrap_or_else(|| vec![f64::NAN; temps.len()]);
+    let powers = series("powers").unwrap_or_else(|| vec![0.0; temps.len()]);
+    let n = temps.len().min(targets.len()).min(powers.len());
+    let mut det = SoakDetector::new(params.clone());
+    let mut samples = Vec::with_capacity(n);
+    let mut eta = None;
+    for i in 0..n {
+        let s = plots::BedSample {
+            t_s: i as f64,
+            temp_c: temps[i],
+            target_c: targets[i],
+            power: powers[i],
+        };
+        if [s.temp_c, s.target_c, s.power]
+            .iter()
+            .all(|v| v.is_finite())
+        {
+            eta = match det.push(s.t_s, s.power, s.temp_c, s.target_c) {
+                SoakStatus::Soaking { eta_s, .. } => eta_s,
+                _ => None,
+            };
+        }
+        samples.push(s);
+    }
+    let fit = det.fit().map(|f| plots::DecayCurve {
+        now_s: n.saturating_sub(1) as f64,
+        tau_s: f.tau_s,
+        final_power: f.final_power,
+        remaining: f.remaining,
+    });
+    Some((samples, fit, eta))
+}
+
+async fn index(State(h): State<Shared>) -> Response {
+    let st = dispatch(&h.m, h.cals.as_ref(), "klipcal_status", &json!({})).await;
+    let status = result_json(st);
+    let diagram = match status.get("session") {
+        Some(s) if matches!(s["state"].as_str(), Some("measuring" | "solved")) => {
+            fetch_diagram(&h, s).await
+        }
+        _ => None,
+    };
+    (
+        [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
+        page::render(&status, diagram.as_deref()),
+    )
+        .into_response()
+}
+
+async fn operation(
+    State(h): State<Shared>,
+    Path(op): Path<String>,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
+) -> Response {
+    let Some(&(_, method)) = OPERATIONS.iter().find(|(name, _)| *name == op) else {
+        let known: Vec<&str> = OPERATIONS.iter().map(|(n, _)| *n).collect();
+        return error(
+            StatusCode::NOT_FOUND,
+            &format!("unknown operation /api/{op}; known: {}", known.join(", ")),
+        );
+    };
+    let body = match body {
+        Ok(b) => b,
+        Err(rej) => return error(rej.status(), &format!("request body: {}", rej.body_text())),
+    };
+    let mut args = if body.iter().all(u8::is_ascii_whitespace) {
+        json!({})
+    } else {
+        match serde_json::from_slice::<Value>(&body) {
+            Ok(v @ Value::Object(_)) => v,
+            Ok(_) => {
+                return error(
+                    StatusCode::BAD_REQUEST,
+                    "expected a JSON object of arguments, e.g. {\"pair\": \"A-D1\", \"values\": [10.02, 10.03]}",
+                )
+            }
+            Err(e) => {
+                return error(
+                    StatusCode::BAD_REQUEST,
+                    &format!("the body is not valid JSON ({e}); expected an object of arguments"),
+                )
+            }
+        }
+    };
+    if op == "ab/clear" {
+        if let Value::Object(o) = &mut args {
+            o.insert("clear".into(), json!(1));
+        }
+    }
+    tracing::info!(%op, "HTTP call");
+    answer(dispatch(&h.m, h.cals.as_ref(), method, &args).await)
+}

@@ -1,0 +1,511 @@
+//! The page: server-rendered HTML from the status document (the same JSON `/api/status`
+//! answers), with a small inline script that polls the status, validates readings live
+//! through `/api/ab/check` and posts the forms as JSON. No build step, no external resources
+//! (printer hosts are often offline), fits a phone. Every text from a document is escaped.
+
+use std::fmt::Write as _;
+
+use serde_json::Value;
+
+/// Escapes text for HTML content and attribute values.
+fn esc(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&#39;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+fn text(v: &Value) -> String {
+    match v {
+        Value::String(s) => esc(s),
+        Value::Null => String::new(),
+        other => esc(&other.to_string()),
+    }
+}
+
+/// A distance with at most 3 decimals (as the console shows it).
+fn mm(v: f64) -> String {
+    crate::calib::entry::fmt_mm(v)
+}
+
+const STYLE: &str = r#"
+*{box-sizing:border-box}body{font:15px/1.45 system-ui,-apple-system,"Segoe UI",Roboto,sans-serif;margin:0;background:#f1f3f5;color:#212529}
+header{background:#212529;color:#f8f9fa;padding:.6em 1em;display:flex;gap:1em;align-items:baseline;flex-wrap:wrap}
+header h1{font-size:1.15em;margin:0}main{max-width:980px;margin:0 auto;padding:.6em}
+section{background:#fff;border-radius:8px;padding:.8em 1em;margin:.7em 0;box-shadow:0 1px 2px #0001}
+h2{font-size:1.05em;margin:.1em 0 .5em}.state{display:inline-block;padding:.05em .5em;border-radius:1em;background:#e7f5ff;color:#1864ab;font-weight:600}
+.state.failed,.state.cancelled{background:#fff5f5;color:#c92a2a}.state.converged,.state.applied{background:#ebfbee;color:#2b8a3e}
+fieldset{border:1px solid #dee2e6;border-radius:6px;margin:.5em 0;padding:.5em .7em}legend{font-weight:600}
+.fields{display:flex;flex-wrap:wrap;gap:.4em}.field{display:flex;flex-direction:column;width:7.5em}
+input{font:inherit;padding:.35em .4em;border:1px solid #adb5bd;border-radius:4px;width:100%}
+input[aria-invalid=true]{border-color:#e03131;background:#fff5f5}.err{color:#c92a2a;font-size:.8em;min-height:1em}
+.msg{margin:.3em 0}.msg.error{color:#c92a2a}.msg.ok{color:#2b8a3e}
+button{font:inherit;padding:.35em .9em;border-radius:4px;border:1px solid #1c7ed6;background:#1c7ed6;color:#fff;cursor:pointer}
+button.quiet{background:#fff;color:#1c7ed6}button.danger{background:#fff;color:#c92a2a;border-color:#c92a2a}
+button:disabled{opacity:.5;cursor:default}.row{display:flex;gap:.6em;flex-wrap:wrap;align-items:center}
+table{border-collapse:collapse;width:100%}td,th{text-align:left;padding:.2em .4em;border-bottom:1px solid #e9ecef}
+img.plot,.diagram svg{width:100%;height:auto;max-height:70vh}.diagram .pair.hl line{stroke:#e03131;stroke-width:1.2}
+.diagram .pair.hl text{fill:#c92a2a;font-weight:700}#banner{display:none;background:#fff3bf;padding:.5em 1em}
+.saved{color:#495057;font-size:.9em}small{color:#495057}
+"#;
+
+const SCRIPT: &str = r#"
+const $=(s,e=document)=>e.querySelector(s),$$=(s,e=document)=>[...e.querySelectorAll(s)];
+async function call(op,body){
+  const r=await fetch('/api/'+op,{method:'POST',headers:{'Content-Type':'application/json'},body:JSON.stringify(body||{})});
+  let j;try{j=await r.json()}catch(e){j={ok:false,error:{message:'HTTP '+r.status}}}
+  return j;
+}
+function say(el,msg,ok){if(!el)return;el.textContent=msg||'';el.className='msg '+(ok?'ok':'error')}
+function entries(fs){return $$('input.reading',fs)}
+let timers={};
+async function check(fs){
+  const pair=fs.dataset.pair,inputs=entries(fs),filled=inputs.filter(i=>i.value.trim()!=='');
+  inputs.forEach(i=>{if(i.value.trim()===''){i.removeAttribute('aria-invalid');$('.err',i.parentNode).textContent=''}});
+  if(!filled.length){say($('.msg',fs),'');return}
+  const j=await call('ab/check',{pair,values:filled.map(i=>i.value.trim())});
+  if(j.ok===false){say($('.msg',fs),j.error.message,false);return}
+  filled.forEach((inp,k)=>{const it=(j.items||[])[k]||{};const bad=!!it.error;
+    inp.setAttribute('aria-invalid',bad?'true':'false');$('.err',inp.parentNode).textContent=bad?it.error.replace(/^.*?: (nothing saved; )?item 1 "[^"]*": /,''):''});
+  say($('.msg',fs),j.ok?'':j.message,j.ok);
+}
+let dirty=false;
+$$('fieldset.pair').forEach(fs=>{
+  entries(fs).forEach(i=>{
+    i.addEventListener('input',()=>{dirty=true;clearTimeout(timers[fs.dataset.pair]);timers[fs.dataset.pair]=setTimeout(()=>check(fs),300)});
+    i.addEventListener('focus',()=>{$$('.diagram .pair').forEach(g=>g.classList.toggle('hl',g.dataset.pair===fs.dataset.pair))});
+  });
+  const save=$('button.save',fs);
+  if(save)save.addEventListener('click',async ev=>{ev.preventDefault();
+    const values=entries(fs).map(i=>i.value.trim()).filter(v=>v!=='');
+    const j=await call('ab/measure',{pair:fs.dataset.pair,values});
+    if(j.ok){dirty=false;say($('.msg',fs),j.message,true);setTimeout(()=>location.reload(),400)}
+    else{say($('.msg',fs),j.error.message,false);check(fs)}});
+  const clear=$('button.clear',fs);
+  if(clear)clear.addEventListener('click',async ev=>{ev.preventDefault();
+    if(!confirm('Remove every saved reading of '+fs.dataset.pair+'?'))return;
+    const j=await call('ab/clear',{pair:fs.dataset.pair});
+    if(j.ok)location.reload();else say($('.msg',fs),j.error.message,false)});
+});
+$$('button[data-op]').forEach(b=>b.addEventListener('click',async ev=>{ev.preventDefault();
+  if(b.dataset.confirm&&!confirm(b.dataset.confirm))return;
+  let body={};const f=b.closest('form');
+  if(f)$$('[name]',f).forEach(i=>{if(i.type==='checkbox'){if(i.checked)body[i.name]=1}else if(i.value!=='')body[i.name]=i.value});
+  b.disabled=true;const j=await call(b.dataset.op,body);b.disabled=false;
+  const out=$('#'+b.dataset.out)||$('#opmsg');
+  if(j.ok){say(out,j.message||'done',true);setTimeout(()=>location.reload(),600)}else say(out,j.error.message,false)}));
+const sig=document.body.dataset.sig;
+async function poll(){
+  try{const r=await fetch('/api/status');const j=await r.json();const s=j.session||{};
+    const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{})].join('|');
+    const p=$('#progress');if(p&&s.progress!==undefined)p.textContent=s.progress;
+    const k=$('#klippy');if(k&&j.connection)k.textContent=j.connection.klippy_state||j.connection.moonraker;
+    if(now!==sig){if(dirty)$('#banner').style.display='block';else location.reload()}
+  }catch(e){}
+}
+setInterval(poll,3000);
+const soak=$('#soak');if(soak)setInterval(()=>{soak.src='/api/plots/soak.svg?t='+Date.now()},15000);
+"#;
+
+/// The signature the script compares with each poll to know when to reload.
+fn signature(session: &Value) -> String {
+    if session.is_null() {
+        return "|||{}".into();
+    }
+    let readings = if session["readings"].is_null() {
+        "{}".to_string()
+    } else {
+        session["readings"].to_string()
+    };
+    format!(
+        "{}|{}|{}|{}",
+        session["id"]
+            .as_i64()
+            .map(|v| v.to_string())
+            .unwrap_or_default(),
+        session["state"].as_str().unwrap_or(""),
+        session["round"]
+            .as_i64()
+            .map(|v| v.to_string())
+            .unwrap_or_default(),
+        readings
+    )
+}
+
+/// The whole page for a status answer (`{"ok", "session", "last", …}` or an error) and, while
+/// readings are taken, the layout diagram.
+#[must_use]
+pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
+    let session = status.get("session").cloned().unwrap_or(Value::Null);
+    let mut h = String::new();
+    let _ = write!(
+        h,
+        "<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\">\
+         <meta name=\"viewport\" content=\"width=device-width,initial-scale=1\">\
+         <title>klipcal</title><style>{STYLE}</style></head><body data-sig=\"{}\">",
+        esc(&signature(&session))
+    );
+    let klippy = status["connection"]["klippy_state"]
+        .as_str()
+        .or_else(|| status["connection"]["moonraker"].as_str())
+        .unwrap_or("unknown");
+    let _ = write!(
+        h,
+        "<header><h1>klipcal</h1><span>Klipper: <b id=\"klippy\">{}</b></span>{}</header>\
+         <div id=\"banner\">The session moved on. <a href=\"/\">Reload</a> (your unsaved \
+         entries stay until you do).</div><main>",
+        esc(klippy),
+        status["daemon"]["version"]
+            .as_str()
+            .map(|v| format!("<small>v{}</small>", esc(v)))
+            .unwrap_or_default()
+    );
+    if status["ok"] == Value::Bool(false) {
+        let _ = write!(
+            h,
+            "<section><h2>Status unavailable</h2><p class=\"msg error\">{}</p></section>",
+            text(&status["error"]["message"])
+        );
+    }
+    h.push_str("<p id=\"opmsg\" class=\"msg\"></p>");
+    let active = session["state"]
+        .as_str()
+        .is_some_and(|s| !matches!(s, "converged" | "failed" | "cancelled"));
+    if session.is_null() || !active {
+        start_form(&mut h);
+    }
+    if !session.is_null() {
+        session_card(&mut h, &session, active);
+        if session["kind"] == "ab" {
+            ab_sections(&mut h, &session, diagram_svg);
+        }
+    }
+    last_results(&mut h, &status["last"], &session);
+    let _ = write!(h, "</main><script>{SCRIPT}</script></body></html>");
+    h
+}
+
+fn start_form(h: &mut String) {
+    h.push_str(
+        "<section><h2>Start an A/B calibration</h2><form class=\"row\" id=\"start\">\
+         <label>Bed °C <input name=\"bed\" inputmode=\"decimal\" placeholder=\"60\" size=\"4\" style=\"width:5em\"></label>\
+         <label>Nozzle °C <input name=\"extruder\" inputmode=\"decimal\" placeholder=\"215\" style=\"width:5em\"></label>\
+         <label>Layout <select name=\"layout\"><option value=\"\">default</option><option>paper</option><option>full</option></select></label>\
+         <button data-op=\"ab/start\" data-out=\"startmsg\" data-confirm=\"Print the pylon job now? The bed heats and the printer moves.\">Start</button>\
+         </form><p id=\"startmsg\" class=\"msg\"></p></section>",
+    );
+}
+
+fn session_card(h: &mut String, s: &Value, active: bool) {
+    let state = s["state"].as_str().unwrap_or("?");
+    let kind = match s["kind"].as_str() {
+        Some("ab") => "A/B calibration",
+        Some("backlash") => "backlash measurement",
+        Some("mesh") => "thermal mesh",
+        _ => "calibration",
+    };
+    let _ = write!(
+        h,
+        "<section id=\"session\"><h2>{kind} · session {} · round {} <span class=\"state {}\">{}</span></h2>\
+         <p id=\"progress\">{}</p>",
+        text(&s["id"]),
+        text(&s["round"]),
+        esc(state),
+        esc(state),
+        text(&s["progress"])
+    );
+    if let Some(r) = s["reason"].as_str() {
+        let _ = write!(h, "<p class=\"msg error\">{}</p>", esc(r));
+    }
+    if let Some(notes) = s["notes"].as_array().filter(|n| !n.is_empty()) {
+        h.push_str("<details><summary>Notes</summary><ul>");
+        for n in notes {
+            let _ = write!(h, "<li>{}</li>", text(n));
+        }
+        h.push_str("</ul></details>");
+    }
+    if active {
+        h.push_str(
+            "<p class=\"row\"><button class=\"danger\" data-op=\"cancel\" data-confirm=\"Cancel the session? \
+             A running print is cancelled and the heaters go off.\">Cancel session</button></p>",
+        );
+    }
+    h.push_str("</section>");
+}
+
+fn ab_sections(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
+    let state = s["state"].as_str().unwrap_or("");
+    if matches!(state, "heating" | "soaking" | "printing" | "holding") {
+        h.push_str(
+            "<section><h2>Bed</h2><img id=\"soak\" class=\"plot\" alt=\"bed temperature and power\" \
+             src=\"/api/plots/soak.svg\"></section>",
+        );
+    }
+    if matches!(state, "measuring" | "solved") {
+        readings_form(h, s, diagram_svg);
+    }
+    if state == "solved" {
+        solution(h, s);
+    }
+    rounds_table(h, s);
+}
+
+fn readings_form(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
+    let per_pair = s["readings_per_pair"].as_u64().unwrap_or(5) as usize;
+    let on = if s["bed_temp_c"].as_f64().unwrap_or(0.0) > 0.0 {
+        "with the part still on the hot bed"
+    } else {
+        "with the part still on the bed"
+    };
+    let _ = write!(
+        h,
+        "<section id=\"readings\"><h2>Readings</h2><p>Measure each pair {on}: {per_pair} readings with \
+         calipers from outer face to outer face, just below the top chamfer. Type them with a \
+         dot as decimal mark; each pair is saved whole or not at all.</p>"
+    );
+    if let Some(svg) = diagram_svg {
+        // The diagram is the generator's own SVG (ids from the layout, no user text).
+        let _ = write!(h, "<div class=\"diagram\">{svg}</div>");
+    }
+    let empty = serde_json::Map::new();
+    let readings = s["readings"].as_object().unwrap_or(&empty);
+    for p in s["pairs"].as_array().into_iter().flatten() {
+        let id = p["id"].as_str().unwrap_or("");
+        let have: Vec<f64> = readings
+            .get(id)
+            .and_then(Value::as_array)
+            .map(|a| a.iter().filter_map(Value::as_f64).collect())
+            .unwrap_or_default();
+        let nominal = p["nominal_mm"].as_f64().unwrap_or(0.0);
+        let _ = write!(
+            h,
+            "<fieldset class=\"pair\" data-pair=\"{}\"><legend>{}: pylon {} → pylon {}, nominal {} mm \
+             <span class=\"saved\">({} of {per_pair} saved{})</span></legend>",
+            esc(id),
+            esc(id),
+            text(&p["from"]),
+            text(&p["to"]),
+            mm(nominal),
+            have.len(),
+            if have.len() >= per_pair { " ✓" } else { "" }
+        );
+        if !have.is_empty() {
+            let list: Vec<String> = have.iter().map(|v| mm(*v)).collect();
+            let _ = write!(
+                h,
+                "<p class=\"saved\">saved: {} <button class=\"clear quiet\">Clear</button></p>",
+                esc(&list.join(", "))
+            );
+        }
+        let open = per_pair.saturating_sub(have.len());
+        if open > 0 {
+            h.push_str("<div class=\"fields\">");
+            for k in 0..open {
+                let _ = write!(
+                    h,
+                    "<label class=\"field\"><input class=\"reading\" inputmode=\"decimal\" \
+                     autocomplete=\"off\" aria-label=\"{} reading {}\" placeholder=\"{}\">\
+                     <span class=\"err\"></span></label>",
+                    esc(id),
+                    have.len() + k + 1,
+                    mm(nominal)
+                );
+            }
+            h.push_str("</div><p class=\"row\"><button class=\"save\">Save ");
+            h.push_str(&esc(id));
+            h.push_str("</button></p>");
+        }
+        h.push_str("<p class=\"msg\"></p></fieldset>");
+    }
+    let missing = s["missing"].as_array().map_or(0, Vec::len);
+    if state_is(s, "measuring") {
+        let _ = write!(
+            h,
+            "<p class=\"row\"><button data-op=\"ab/solve\" data-out=\"solvemsg\"{}>Solve</button>\
+             <span id=\"solvemsg\" class=\"msg\">{}</span></p>",
+            if missing > 0 { " disabled" } else { "" },
+            if missing > 0 {
+                "enter every pair's readings to solve"
+            } else {
+                "all pairs measured"
+            }
+        );
+    }
+    h.push_str("</section>");
+}
+
+fn state_is(s: &Value, name: &str) -> bool {
+    s["state"].as_str() == Some(name)
+}
+
+fn solution(h: &mut String, s: &Value) {
+    let Some(r) = s["rounds"].as_array().and_then(|r| r.last()) else {
+        return;
+    };
+    h.push_str("<section id=\"solution\"><h2>Solution</h2><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
+    for (k, name) in ["stepper_x", "stepper_y"].iter().enumerate() {
+        let f = |key: &str| r[key][k].as_f64();
+        let _ = write!(
+            h,
+            "<tr><td>{name}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            f("rotation_distance")
+                .map(|v| format!("{v:.6}"))
+                .unwrap_or_default(),
+            f("rotation_distance_new")
+                .map(|v| format!("{v:.6}"))
+                .unwrap_or_default(),
+            match (f("scale"), f("uncertainty")) {
+                (Some(sc), Some(u)) => format!("{sc:.5} ± {u:.5}"),
+                _ => String::new(),
+            }
+        );
+    }
+    let _ = write!(
+        h,
+        "</table><p>{}</p><form class=\"row\"><label><input type=\"checkbox\" name=\"force\" style=\"width:auto\"> \
+         apply even beyond the change limit (FORCE)</label><button data-op=\"ab/apply\" data-out=\"applymsg\" \
+         data-confirm=\"Write the new rotation distances and restart Klipper?\">Apply</button></form>\
+         <p id=\"applymsg\" class=\"msg\"></p></section>",
+        if r["converged"] == Value::Bool(true) {
+            "converged: within the error budget"
+        } else {
+            "not converged yet: apply, then print another round"
+        }
+    );
+}
+
+fn rounds_table(h: &mut String, s: &Value) {
+    let Some(rounds) = s["rounds"].as_array().filter(|r| !r.is_empty()) else {
+        return;
+    };
+    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
+    let mut solved = false;
+    for r in rounds {
+        solved |= !r["scale"].is_null();
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+            text(&r["n"]),
+            text(&r["file"]),
+            r["error_um_per_100mm"]
+                .as_f64()
+                .map(|v| format!("{v:.1}"))
+                .unwrap_or_default(),
+            match r["converged"].as_bool() {
+                Some(true) => "yes",
+                Some(false) => "no",
+                None => "",
+            },
+            if r["applied"].is_null() { "" } else { "yes" }
+        );
+    }
+    h.push_str("</table>");
+    if solved {
+        let _ = write!(
+            h,
+            "<img class=\"plot\" alt=\"convergence\" src=\"/api/sessions/{}/convergence.svg\">",
+            text(&s["id"])
+        );
+    }
+    h.push_str("</section>");
+}
+
+fn last_results(h: &mut String, last: &Value, shown: &Value) {
+    let Some(map) = last.as_object().filter(|m| !m.is_empty()) else {
+        return;
+    };
+    h.push_str("<section><h2>Last sessions</h2><table>");
+    for (kind, s) in map {
+        if s["id"] == shown["id"] {
+            continue;
+        }
+        let _ = write!(
+            h,
+            "<tr><td>{}</td><td>session {}</td><td>{}</td><td>{}</td></tr>",
+            esc(kind),
+            text(&s["id"]),
+            text(&s["state"]),
+            text(&s["progress"])
+        );
+    }
+    h.push_str("</table></section>");
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn measuring() -> Value {
+        json!({"ok": true, "daemon": {"version": "0.1.0"}, "connection": {"klippy_state": "ready"},
+            "session": {"kind": "ab", "id": 4, "state": "measuring", "round": 1,
+                "progress": "waiting for caliper readings <now>", "readings_per_pair": 5, "bed_temp_c": 0.0,
+                "pairs": [{"id": "A-D1", "from": "A1", "to": "A2", "nominal_mm": 10.0},
+                          {"id": "A-D2", "from": "A1", "to": "A3", "nominal_mm": 150.0}],
+                "readings": {"A-D1": [10.02, 10.03]}, "missing": ["A-D1: 3 more", "A-D2: 5 more"],
+                "rounds": [{"n": 1, "file": "klipcal/ab-s4-r1.gcode", "scale": null}], "notes": []},
+            "last": {}})
+    }
+
+    #[test]
+    fn the_readings_form_has_a_field_per_missing_reading_and_shows_saved_ones() {
+        let page = render(
+            &measuring(),
+            Some("<svg><g class=\"pair\" data-pair=\"A-D1\"></g></svg>"),
+        );
+        assert_eq!(page.matches("class=\"reading\"").count(), 3 + 5, "{page}");
+        assert!(page.contains("saved: 10.02, 10.03"));
+        assert!(page.contains("(2 of 5 saved)"));
+        assert!(page.contains("A-D2: pylon A1 → pylon A3, nominal 150 mm"));
+        assert!(
+            page.contains("data-pair=\"A-D1\"></g>"),
+            "the diagram is inline"
+        );
+        // BED=0: no "hot bed".
+        assert!(page.contains("with the part still on the bed") && !page.contains("hot bed"));
+        assert!(page.contains("data-op=\"ab/solve\"") && page.contains(" disabled>Solve"));
+    }
+
+    #[test]
+    fn document_text_is_escaped() {
+        let page = render(&measuring(), None);
+        assert!(page.contains("waiting for caliper readings &lt;now&gt;"));
+        assert!(!page.contains("<now>"));
+    }
+
+    #[test]
+    fn no_session_offers_the_start_form_and_an_error_is_shown() {
+        let page = render(&json!({"ok": true, "session": null, "last": {}}), None);
+        assert!(page.contains("data-op=\"ab/start\""));
+        let page = render(
+            &json!({"ok": false, "error": {"message": "no database"}}),
+            None,
+        );
+        assert!(page.contains("Status unavailable") && page.contains("no database"));
+    }
+
+    #[test]
+    fn a_solved_session_shows_the_values_and_the_apply_button() {
+        let mut st = measuring();
+        st["session"]["state"] = json!("solved");
+        st["session"]["missing"] = json!([]);
+        st["session"]["rounds"] = json!([{"n": 1, "file": "f", "rotation_distance": [40.0, 40.0],
+            "rotation_distance_new": [40.08, 39.96], "scale": [1.002, 0.999], "uncertainty": [0.0001, 0.0001],
+            "error_um_per_100mm": 200.0, "converged": false, "applied": null}]);
+        let page = render(&st, None);
+        assert!(
+            page.contains("40.080000") && page.contains("1.00200 ± 0.00010"),
+            "{page}"
+        );
+        assert!(page.contains("data-op=\"ab/apply\""));
+        assert!(page.contains("/api/sessions/4/convergence.svg"));
+    }
+}
