@@ -54,7 +54,7 @@ button:disabled{opacity:.5;cursor:default}.row{display:flex;gap:.6em;flex-wrap:w
 table{border-collapse:collapse;width:100%}td,th{text-align:left;padding:.2em .4em;border-bottom:1px solid #e9ecef}
 img.plot,.diagram svg{width:100%;height:auto;max-height:70vh}.diagram .pair.hl line{stroke:#e03131;stroke-width:1.2}
 .diagram .pair.hl text{fill:#c92a2a;font-weight:700}#banner{display:none;background:#fff3bf;padding:.5em 1em}
-.saved{color:#495057;font-size:.9em}small{color:#495057}
+.saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
 "#;
 
 const SCRIPT: &str = r#"
@@ -74,8 +74,8 @@ async function check(fs){
   const j=await call('ab/check',{pair,values:filled.map(i=>i.value.trim())});
   if(j.ok===false){say($('.msg',fs),j.error.message,false);return}
   filled.forEach((inp,k)=>{const it=(j.items||[])[k]||{};const bad=!!it.error;
-    inp.setAttribute('aria-invalid',bad?'true':'false');$('.err',inp.parentNode).textContent=bad?it.error.replace(/^.*?: (nothing saved; )?item 1 "[^"]*": /,''):''});
-  say($('.msg',fs),j.ok?'':j.message,j.ok);
+    inp.setAttribute('aria-invalid',bad?'true':'false');$('.err',inp.parentNode).textContent=bad?it.error.replace(/^.*?: nothing saved; item \d+ /,'').replace(/ for \S+ \(nominal [^)]*\); measure outer face to outer face/,''):''});
+  say($('.msg',fs),j.valid?'':j.message,j.valid);
 }
 let dirty=false;
 $$('fieldset.pair').forEach(fs=>{
@@ -350,7 +350,7 @@ fn solution(h: &mut String, s: &Value) {
     let Some(r) = s["rounds"].as_array().and_then(|r| r.last()) else {
         return;
     };
-    h.push_str("<section id=\"solution\"><h2>Solution</h2><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
+    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
     for (k, name) in ["stepper_x", "stepper_y"].iter().enumerate() {
         let f = |key: &str| r[key][k].as_f64();
         let _ = write!(
@@ -370,7 +370,7 @@ fn solution(h: &mut String, s: &Value) {
     }
     let _ = write!(
         h,
-        "</table><p>{}</p><form class=\"row\"><label><input type=\"checkbox\" name=\"force\" style=\"width:auto\"> \
+        "</table></div><p>{}</p><form class=\"row\"><label><input type=\"checkbox\" name=\"force\" style=\"width:auto\"> \
          apply even beyond the change limit (FORCE)</label><button data-op=\"ab/apply\" data-out=\"applymsg\" \
          data-confirm=\"Write the new rotation distances and restart Klipper?\">Apply</button></form>\
          <p id=\"applymsg\" class=\"msg\"></p></section>",
@@ -386,7 +386,7 @@ fn rounds_table(h: &mut String, s: &Value) {
     let Some(rounds) = s["rounds"].as_array().filter(|r| !r.is_empty()) else {
         return;
     };
-    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
+    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
     let mut solved = false;
     for r in rounds {
         solved |= !r["scale"].is_null();
@@ -407,7 +407,7 @@ fn rounds_table(h: &mut String, s: &Value) {
             if r["applied"].is_null() { "" } else { "yes" }
         );
     }
-    h.push_str("</table>");
+    h.push_str("</table></div>");
     if solved {
         let _ = write!(
             h,
@@ -422,11 +422,12 @@ fn last_results(h: &mut String, last: &Value, shown: &Value) {
     let Some(map) = last.as_object().filter(|m| !m.is_empty()) else {
         return;
     };
+    let rows: Vec<(&String, &Value)> = map.iter().filter(|(_, s)| s["id"] != shown["id"]).collect();
+    if rows.is_empty() {
+        return;
+    }
     h.push_str("<section><h2>Last sessions</h2><table>");
-    for (kind, s) in map {
-        if s["id"] == shown["id"] {
-            continue;
-        }
+    for (kind, s) in rows {
         let _ = write!(
             h,
             "<tr><td>{}</td><td>session {}</td><td>{}</td><td>{}</td></tr>",

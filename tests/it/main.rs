@@ -4,8 +4,10 @@
 
 mod backlash;
 mod bench;
+mod browser;
 mod daemon;
 mod fake;
+mod http;
 mod mesh;
 mod pylons;
 mod realcfg;

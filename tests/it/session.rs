@@ -29,7 +29,7 @@ const TRUE_Y: f64 = 39.9;
 /// What a caliper reads for a pair on a CoreXY whose motors move `true/config` times the
 /// commanded distance: stepper_x drives A (+45°), stepper_y drives B (−45°). The pylon width
 /// and shrinkage term `w` cancels in d2 − d1 (seed 000 §2).
-fn simulated_readings(pair: &Value) -> Vec<f64> {
+pub fn simulated_readings(pair: &Value) -> Vec<f64> {
     let nominal = pair["nominal_mm"].as_f64().unwrap();
     let alpha = match pair["group"].as_str().unwrap() {
         "A" => TRUE_X / 40.0,
@@ -43,14 +43,14 @@ fn simulated_readings(pair: &Value) -> Vec<f64> {
         .collect()
 }
 
-async fn session(bench: &Bench) -> Value {
+pub async fn session(bench: &Bench) -> Value {
     extension_request(&bench.files(), "klipcal_status", json!({}))
         .await
         .map(|v| v["session"].clone())
         .unwrap_or(Value::Null)
 }
 
-async fn wait_state(bench: &Bench, state: &str, limit: Duration) -> Value {
+pub async fn wait_state(bench: &Bench, state: &str, limit: Duration) -> Value {
     let got = poll(limit, || async {
         let s = session(bench).await;
         (s["state"] == state).then_some(s)
@@ -80,7 +80,7 @@ async fn wait_printing(m: &klipcal::moonraker::Moonraker) {
 }
 
 /// A daemon with a session started on a cold bed (no soak) and waiting for readings.
-async fn measuring_session(bench: &Bench) -> (Daemon, Value) {
+pub async fn measuring_session(bench: &Bench) -> (Daemon, Value) {
     let d = started(bench, 600.0).await;
     extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 0}))
         .await

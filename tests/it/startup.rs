@@ -24,7 +24,7 @@ impl Lone {
             &cfg,
             format!(
                 "[moonraker]\nurl = \"{url}\"\nreconnect_min_s = 0.2\nreconnect_max_s = \
-                 {reconnect_max_s}\n[daemon]\ndata_dir = \"{}\"\n",
+                 {reconnect_max_s}\n[daemon]\ndata_dir = \"{}\"\n[http]\nbind = \"127.0.0.1:0\"\n",
                 dir.path().join("data").display()
             ),
         )

@@ -1,0 +1,227 @@
+//! A real browser for the page's tests: Debian's headless Chromium (installed by the bench's
+//! setup), driven over the DevTools protocol on a websocket — navigate, evaluate JavaScript in
+//! the page as a user's clicks and typing would, take screenshots. Killed on drop.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use futures_util::{SinkExt, StreamExt};
+use serde_json::{json, Value};
+use tokio_tungstenite::tungstenite::Message;
+
+type Socket =
+    tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
+
+pub struct Browser {
+    child: Child,
+    ws: Socket,
+    session: String,
+    next_id: u64,
+    _profile: tempfile::TempDir,
+}
+
+impl Browser {
+    /// Starts headless Chromium with an empty profile and opens one tab.
+    pub async fn start() -> Browser {
+        let profile = tempfile::tempdir().unwrap();
+        let mut child = Command::new("chromium")
+            .args([
+                "--headless=new",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-dev-shm-usage",
+                "--no-first-run",
+                "--window-size=430,900",
+                "--remote-debugging-port=0",
+                &format!("--user-data-dir={}", profile.path().display()),
+                "about:blank",
+            ])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("chromium (tests/bench/setup.sh installs it with apt-get)");
+        let stderr = child.stderr.take().unwrap();
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                if let Some(url) = line.split("DevTools listening on ").nth(1) {
+                    let _ = tx.send(url.trim().to_string());
+                }
+            }
+        });
+        let url = rx
+            .recv_timeout(Duration::from_secs(30))
+            .expect("chromium never printed its DevTools address");
+        let (ws, _) = tokio_tungstenite::connect_async(url.as_str())
+            .await
+            .expect("DevTools websocket");
+        let mut b = Browser {
+            child,
+            ws,
+            session: String::new(),
+            next_id: 0,
+            _profile: profile,
+        };
+        let target = b
+            .send(None, "Target.createTarget", json!({"url": "about:blank"}))
+            .await;
+        let attached = b
+            .send(
+                None,
+                "Target.attachToTarget",
+                json!({"targetId": target["targetId"], "flatten": true}),
+            )
+            .await;
+        b.session = attached["sessionId"].as_str().unwrap().to_string();
+        b.cmd("Page.enable", json!({})).await;
+        b.cmd("Runtime.enable", json!({})).await;
+        // A phone-sized window.
+        b.cmd(
+            "Emulation.setDeviceMetricsOverride",
+            json!({"width": 430, "height": 900, "deviceScaleFactor": 1, "mobile": true}),
+        )
+        .await;
+        b
+    }
+
+    async fn send(&mut self, session: Option<&str>, method: &str, params: Value) -> Value {
+        match self.try_send(session, method, params).await {
+            Ok(v) => v,
+            Err(e) => panic!("DevTools {method}: {e}"),
+        }
+    }
+
+    async fn try_send(
+        &mut self,
+        session: Option<&str>,
+        method: &str,
+        params: Value,
+    ) -> Result<Value, String> {
+        self.next_id += 1;
+        let id = self.next_id;
+        let mut msg = json!({"id": id, "method": method, "params": params});
+        if let Some(s) = session {
+            msg["sessionId"] = json!(s);
+        }
+        self.ws
+            .send(Message::Text(msg.to_string().into()))
+            .await
+            .unwrap();
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+        loop {
+            let frame = tokio::time::timeout_at(deadline, self.ws.next())
+                .await
+                .unwrap_or_else(|_| panic!("DevTools never answered {method}"))
+                .expect("DevTools closed")
+                .unwrap();
+            let Message::Text(text) = frame else { continue };
+            let v: Value = serde_json::from_str(&text).unwrap();
+            if v["id"] == json!(id) {
+                if let Some(e) = v.get("error") {
+                    return Err(e.to_string());
+                }
+                return Ok(v["result"].clone());
+            }
+        }
+    }
+
+    /// A command in the tab.
+    pub async fn cmd(&mut self, method: &str, params: Value) -> Value {
+        let s = self.session.clone();
+        self.send(Some(&s), method, params).await
+    }
+
+    /// Evaluates `js` in the page (awaiting a promise) and returns its value.
+    pub async fn eval(&mut self, js: &str) -> Value {
+        let r = self
+            .cmd(
+                "Runtime.evaluate",
+                json!({"expression": js, "awaitPromise": true, "returnByValue": true}),
+            )
+            .await;
+        if let Some(e) = r.get("exceptionDetails") {
+            panic!("page script failed: {e}\n{js}");
+        }
+        r["result"]["value"].clone()
+    }
+
+    /// Opens `url` and waits until the document has loaded.
+    pub async fn open(&mut self, url: &str) {
+        self.cmd("Page.navigate", json!({"url": url})).await;
+        self.wait_for(
+            "document.readyState === 'complete' && location.href !== 'about:blank'",
+            Duration::from_secs(20),
+        )
+        .await;
+    }
+
+    /// Polls `js` until it is true (e.g. after a reload), at most `limit`.
+    pub async fn wait_for(&mut self, js: &str, limit: Duration) -> bool {
+        let deadline = tokio::time::Instant::now() + limit;
+        let probe =
+            format!("(() => {{ try {{ return !!({js}); }} catch (e) {{ return false; }} }})()");
+        while tokio::time::Instant::now() < deadline {
+            // While the page reloads the evaluation may fail: that is "not yet".
+            let s = self.session.clone();
+            let r = self
+                .try_send(
+                    Some(&s),
+                    "Runtime.evaluate",
+                    json!({"expression": probe, "returnByValue": true}),
+                )
+                .await;
+            if r.is_ok_and(|r| r["result"]["value"] == json!(true)) {
+                return true;
+            }
+            tokio::time::sleep(Duration::from_millis(150)).await;
+        }
+        false
+    }
+
+    /// Saves a PNG screenshot of the page to `path`.
+    pub async fn screenshot(&mut self, path: &std::path::Path) {
+        // The whole page: the window grows to the document's height for the shot.
+        let height = self
+            .eval("Math.ceil(document.documentElement.scrollHeight)")
+            .await
+            .as_u64()
+            .unwrap_or(900)
+            .clamp(300, 8000);
+        self.cmd(
+            "Emulation.setDeviceMetricsOverride",
+            json!({"width": 430, "height": height, "deviceScaleFactor": 1, "mobile": true}),
+        )
+        .await;
+        let r = self
+            .cmd("Page.captureScreenshot", json!({"format": "png"}))
+            .await;
+        self.cmd(
+            "Emulation.setDeviceMetricsOverride",
+            json!({"width": 430, "height": 900, "deviceScaleFactor": 1, "mobile": true}),
+        )
+        .await;
+        let data = r["data"].as_str().unwrap();
+        let png = data_encoding::BASE64.decode(data.as_bytes()).unwrap();
+        assert!(png.starts_with(b"\x89PNG"), "not a PNG");
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir).unwrap();
+        }
+        std::fs::write(path, png).unwrap();
+    }
+}
+
+impl Drop for Browser {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Where tests keep what a person would look at (screenshots): `target/test-artifacts/`.
+pub fn artifact(name: &str) -> std::path::PathBuf {
+    crate::bench::repo()
+        .join("target/test-artifacts")
+        .join(name)
+}

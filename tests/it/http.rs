@@ -1,0 +1,388 @@
+//! The daemon's own page and API (issue 13) on the bench: the API gives what the remote methods
+//! give, with the same messages; the guard refuses untrusted addresses, cross-site posts,
+//! non-JSON and huge bodies; malformed input never takes the server down; and in a real
+//! headless Chromium a user enters readings through the form, sees a bad one refused next to
+//! its field with nothing saved, and solves.
+
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::bench::{extension_request, Bench, Daemon};
+use crate::browser::{artifact, Browser};
+use crate::session::{measuring_session, session, simulated_readings, wait_state, PLANT};
+
+fn client_from(local: &str) -> reqwest::Client {
+    reqwest::Client::builder()
+        .local_address(Some(local.parse().unwrap()))
+        .timeout(Duration::from_secs(30))
+        .build()
+        .unwrap()
+}
+
+async fn post(c: &reqwest::Client, url: &str, body: &str) -> (u16, Value) {
+    let r = c
+        .post(url)
+        .header("content-type", "application/json")
+        .body(body.to_string())
+        .send()
+        .await
+        .unwrap();
+    let code = r.status().as_u16();
+    (code, r.json().await.unwrap_or(Value::Null))
+}
+
+#[tokio::test]
+async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
+    let bench = Bench::start("corexy");
+    let d = Daemon::ready(
+        &bench,
+        "[http]\nbind = \"127.0.0.1:0\"\ntrusted_clients = [\"127.0.0.1/32\"]\napi_key = \"k3y\"\n",
+    )
+    .await;
+    let base = d.page_url().await;
+    let me = client_from("127.0.0.1");
+
+    // Status: the same document the remote method answers.
+    let st: Value = me
+        .get(format!("{base}/api/status"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(st["ok"], json!(true), "{st}");
+    let via_moonraker = extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    assert_eq!(
+        st["printer"]["kinematics"],
+        via_moonraker["printer"]["kinematics"]
+    );
+    assert_eq!(st["printer"]["kinematics"], "corexy");
+
+    // A user's mistake carries the console's message, as a JSON error with 400.
+    let (code, v) = post(
+        &me,
+        &format!("{base}/api/ab/measure"),
+        r#"{"pair": "A-D1", "values": [10.02]}"#,
+    )
+    .await;
+    let console = extension_request(
+        &bench.files(),
+        "klipcal_measure",
+        json!({"pair": "A-D1", "values": [10.02]}),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(code, 400, "{v}");
+    assert_eq!(v["ok"], json!(false));
+    assert_eq!(v["error"]["message"].as_str().unwrap(), console);
+    // An unknown argument is refused by name, as from a macro.
+    let (code, v) = post(&me, &format!("{base}/api/ab/start"), r#"{"bde": 60}"#).await;
+    assert_eq!(code, 400);
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("unknown argument BDE"),
+        "{v}"
+    );
+
+    // Malformed input: clear JSON errors, never a crash.
+    for (body, want) in [
+        ("{not json", "not valid JSON"),
+        ("[1, 2]", "JSON object"),
+        ("\"A-D1\"", "JSON object"),
+        ("{\"pair\": {\"x\": [1]}, \"values\": null}", ""),
+    ] {
+        let (code, v) = post(&me, &format!("{base}/api/ab/measure"), body).await;
+        assert_eq!(code, 400, "{body}: {v}");
+        assert!(
+            v["error"]["message"].as_str().unwrap().contains(want),
+            "{body}: {v}"
+        );
+    }
+    let (code, v) = post(&me, &format!("{base}/api/ab/nonsense"), "{}").await;
+    assert_eq!(code, 404);
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("ab/measure"),
+        "{v}"
+    );
+    for (path, want) in [
+        ("/api/sessions/abc", 400),
+        ("/api/sessions/999", 404),
+        ("/nowhere", 404),
+    ] {
+        let r = me.get(format!("{base}{path}")).send().await.unwrap();
+        assert_eq!(r.status().as_u16(), want, "{path}");
+    }
+    // A huge body: 413 before anything reads it (on its own connection: the server closes it
+    // without reading the rest).
+    let huge = format!("{{\"pair\": \"{}\"}}", "x".repeat(200_000));
+    let (code, _) = post(&client_from("127.0.0.1"), &format!("{base}/api/ab/measure"), &huge).await;
+    assert_eq!(code, 413);
+
+    // Not JSON (what a cross-site form sends) and a cross-origin POST: refused.
+    let r = me
+        .post(format!("{base}/api/cancel"))
+        .header("content-type", "application/x-www-form-urlencoded")
+        .body("reason=x")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 415);
+    let r = me
+        .post(format!("{base}/api/cancel"))
+        .header("content-type", "application/json")
+        .header("origin", "http://evil.example")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+    let v: Value = r.json().await.unwrap();
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("cross-site"),
+        "{v}"
+    );
+
+    // Another loopback address is outside trusted_clients: 403, unless it brings the key.
+    let other = client_from("127.0.0.2");
+    let r = other
+        .get(format!("{base}/api/status"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+    let v: Value = r.json().await.unwrap();
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("127.0.0.2"),
+        "{v}"
+    );
+    let r = other.get(format!("{base}/")).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 403, "the page is guarded too");
+    let r = other
+        .get(format!("{base}/api/status"))
+        .header("x-api-key", "k3y")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let r = other
+        .get(format!("{base}/api/status"))
+        .header("x-api-key", "wrong")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+
+    // The bed plot from Moonraker's temperature store, with the detector replayed over it.
+    let r = me
+        .get(format!("{base}/api/plots/soak.svg"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let svg = r.text().await.unwrap();
+    assert!(
+        svg.contains("<svg") && svg.contains("bed °C") && svg.contains("power %"),
+        "{svg}"
+    );
+    // The page itself renders, with nothing external.
+    let r = me.get(format!("{base}/")).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let html = r.text().await.unwrap();
+    assert!(html.contains("Start an A/B calibration"), "{html}");
+    assert!(
+        !html.contains("http://") && !html.contains("https://"),
+        "no external resources"
+    );
+    // The daemon is still up after all that.
+    let st: Value = me
+        .get(format!("{base}/api/status"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(st["ok"], json!(true));
+    assert!(!d.log_text().contains("panicked"), "{}", d.log_text());
+}
+
+/// The JS that types `values` into the empty fields of `pair`'s fieldset, as a user would.
+fn type_into(pair: &str, values: &[String]) -> String {
+    format!(
+        "(() => {{ const fs = document.querySelector('fieldset.pair[data-pair=\"{pair}\"]');
+            const inputs = [...fs.querySelectorAll('input.reading')];
+            const vals = {};
+            vals.forEach((v, k) => {{ inputs[k].focus(); inputs[k].value = v;
+                inputs[k].dispatchEvent(new Event('input', {{bubbles: true}})); }});
+            return inputs.length; }})()",
+        serde_json::to_string(values).unwrap()
+    )
+}
+
+fn click_save(pair: &str) -> String {
+    format!("document.querySelector('fieldset.pair[data-pair=\"{pair}\"] button.save').click()")
+}
+
+#[tokio::test]
+async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_solved() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, s) = measuring_session(&bench).await;
+    let base = d.page_url().await;
+    let mut b = Browser::start().await;
+    b.open(&format!("{base}/")).await;
+    assert!(
+        b.wait_for(
+            "document.querySelectorAll('fieldset.pair').length > 0",
+            Duration::from_secs(10)
+        )
+        .await
+    );
+    b.screenshot(&artifact("page-measuring.png")).await;
+    let pairs = s["pairs"].as_array().unwrap().clone();
+    assert_eq!(
+        b.eval("document.querySelectorAll('fieldset.pair').length")
+            .await,
+        json!(pairs.len())
+    );
+    // The pylon diagram is inline, and focusing a field highlights its pair.
+    let first = pairs[0]["id"].as_str().unwrap().to_string();
+    let per_pair = s["readings_per_pair"].as_u64().unwrap() as usize;
+    assert_eq!(b.eval(&type_into(&first, &[])).await, json!(per_pair));
+    b.eval(&format!(
+        "document.querySelector('fieldset.pair[data-pair=\"{first}\"] input.reading').focus()"
+    ))
+    .await;
+    assert!(
+        b.wait_for(
+            &format!("document.querySelector('.diagram .pair.hl').dataset.pair === '{first}'"),
+            Duration::from_secs(5)
+        )
+        .await,
+        "the diagram does not highlight the pair"
+    );
+
+    // A bad reading (a comma decimal in the third field): its error shows beside that field,
+    // and saving refuses the whole entry.
+    let good: Vec<String> = simulated_readings(&pairs[0])
+        .iter()
+        .map(|v| v.to_string())
+        .collect();
+    let mut bad = good.clone();
+    let whole = bad[2].split('.').next().unwrap().to_string();
+    bad[2] = format!("{whole},5");
+    b.eval(&type_into(&first, &bad)).await;
+    let field3 =
+        format!("document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[2]");
+    assert!(
+        b.wait_for(&format!("{field3}.querySelector('input').getAttribute('aria-invalid') === 'true' && {field3}.querySelector('.err').textContent.length > 0"), Duration::from_secs(10)).await,
+        "no error next to the bad field"
+    );
+    let other_field = format!(
+        "document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[0].querySelector('input').getAttribute('aria-invalid')"
+    );
+    assert_eq!(b.eval(&other_field).await, json!("false"));
+    b.eval(&click_save(&first)).await;
+    let msg = format!("document.querySelector('fieldset.pair[data-pair=\"{first}\"] .msg')");
+    assert!(
+        b.wait_for(
+            &format!(
+                "{msg}.classList.contains('error') && {msg}.textContent.includes('nothing saved')"
+            ),
+            Duration::from_secs(10)
+        )
+        .await,
+        "the refusal is not shown: {}",
+        b.eval(&format!("{msg}.outerHTML")).await
+    );
+    assert!(
+        session(&bench).await["readings"][&first].is_null(),
+        "a refused entry was saved"
+    );
+    // What the user typed is still there to correct.
+    assert_eq!(
+        b.eval(&format!("document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] input.reading')[0].value")).await,
+        json!(good[0])
+    );
+    b.screenshot(&artifact("page-refused.png")).await;
+
+    // Every pair entered through the form: saved, and the page shows each as complete.
+    for p in &pairs {
+        let id = p["id"].as_str().unwrap();
+        let values: Vec<String> = simulated_readings(p)
+            .iter()
+            .map(|v| v.to_string())
+            .collect();
+        assert!(
+            b.wait_for(
+                &format!(
+                    "document.querySelector('fieldset.pair[data-pair=\"{id}\"] input.reading')"
+                ),
+                Duration::from_secs(15)
+            )
+            .await
+        );
+        b.eval(&format!(
+            "document.querySelectorAll('fieldset.pair[data-pair=\"{id}\"] input.reading').forEach(i => i.value = '')"
+        ))
+        .await;
+        b.eval(&type_into(id, &values)).await;
+        b.eval(&click_save(id)).await;
+        assert!(
+            b.wait_for(&format!("document.querySelector('fieldset.pair[data-pair=\"{id}\"] legend').textContent.includes('{per_pair} of {per_pair} saved')"), Duration::from_secs(15)).await,
+            "{id} not shown as saved"
+        );
+        let saved = session(&bench).await["readings"][id].clone();
+        assert_eq!(saved, json!(simulated_readings(p)), "{id}");
+    }
+    // Solve from the page: the state changes and the page shows the solution with Apply.
+    assert!(
+        b.wait_for(
+            "!document.querySelector('button[data-op=\"ab/solve\"]').disabled",
+            Duration::from_secs(10)
+        )
+        .await
+    );
+    b.eval("document.querySelector('button[data-op=\"ab/solve\"]').click()")
+        .await;
+    wait_state(&bench, "solved", Duration::from_secs(30)).await;
+    assert!(
+        b.wait_for(
+            "document.querySelector('#solution button[data-op=\"ab/apply\"]')",
+            Duration::from_secs(15)
+        )
+        .await,
+        "the page does not show the solution"
+    );
+    let table = b
+        .eval("document.querySelector('#solution table').textContent")
+        .await;
+    assert!(table.as_str().unwrap().contains("stepper_x"), "{table}");
+    b.screenshot(&artifact("page-solved.png")).await;
+    // The convergence plot and the diagram are served as SVG.
+    let me = client_from("127.0.0.1");
+    let id = s["id"].as_i64().unwrap();
+    for path in [
+        format!("/api/sessions/{id}/convergence.svg"),
+        format!("/api/sessions/{id}/diagram.svg"),
+    ] {
+        let r = me.get(format!("{base}{path}")).send().await.unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{path}");
+        assert!(r.text().await.unwrap().contains("<svg"), "{path}");
+    }
+    drop(d);
+}
