@@ -3,6 +3,9 @@
 //! rounds — drawn with plotters' SVG backend into a string. Data in, SVG text out; no I/O.
 
 use plotters::prelude::*;
+use serde_json::Value;
+
+use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// One heater sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -230,6 +233,84 @@ pub fn convergence_svg(
         root.present().map_err(err)?;
     }
     Ok(out)
+}
+
+/// The convergence plot of an A/B session's status document.
+///
+/// # Errors
+/// No solved round.
+pub fn convergence_of_status(doc: &Value) -> Result<String, String> {
+    let points: Vec<RoundPoint> = doc["rounds"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|r| {
+            let scale = r["scale"].as_array()?;
+            let unc = r["uncertainty"].as_array()?;
+            let s = |k: usize| scale.get(k).and_then(Value::as_f64);
+            let u = |k: usize| unc.get(k).and_then(Value::as_f64);
+            Some(RoundPoint {
+                n: u32::try_from(r["n"].as_u64()?).ok()?,
+                error_um_per_100mm: [(s(0)? - 1.0).abs() * 1e5, (s(1)? - 1.0).abs() * 1e5],
+                uncertainty_um_per_100mm: [u(0)? * 1e5, u(1)? * 1e5],
+            })
+        })
+        .collect();
+    convergence_svg(
+        &points,
+        ["stepper_x", "stepper_y"],
+        &format!("session {}: scale error per round", doc["id"]),
+    )
+}
+
+/// The bed samples of a `server.temperature_store` entry (1 s apart, the last one now) and
+/// what a soak detector fed with them says: its fitted decay and ETA while soaking.
+#[must_use]
+pub fn replay_soak(
+    bed: &Value,
+    params: &SoakParams,
+) -> Option<(Vec<BedSample>, Option<DecayCurve>, Option<f64>)> {
+    let series = |k: &str| -> Option<Vec<f64>> {
+        Some(
+            bed[k]
+                .as_array()?
+                .iter()
+                .map(|v| v.as_f64().unwrap_or(f64::NAN))
+                .collect(),
+        )
+    };
+    let temps = series("temperatures")?;
+    let targets = series("targets").unwrap_or_else(|| vec![f64::NAN; temps.len()]);
+    let powers = series("powers").unwrap_or_else(|| vec![0.0; temps.len()]);
+    let n = temps.len().min(targets.len()).min(powers.len());
+    let mut det = SoakDetector::new(params.clone());
+    let mut samples = Vec::with_capacity(n);
+    let mut eta = None;
+    for i in 0..n {
+        let s = BedSample {
+            t_s: i as f64,
+            temp_c: temps[i],
+            target_c: targets[i],
+            power: powers[i],
+        };
+        if [s.temp_c, s.target_c, s.power]
+            .iter()
+            .all(|v| v.is_finite())
+        {
+            eta = match det.push(s.t_s, s.power, s.temp_c, s.target_c) {
+                SoakStatus::Soaking { eta_s, .. } => eta_s,
+                _ => None,
+            };
+        }
+        samples.push(s);
+    }
+    let fit = det.fit().map(|f| DecayCurve {
+        now_s: n.saturating_sub(1) as f64,
+        tau_s: f.tau_s,
+        final_power: f.final_power,
+        remaining: f.remaining,
+    });
+    Some((samples, fit, eta))
 }
 
 #[cfg(test)]

@@ -21,7 +21,7 @@ use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
 
 use crate::agent::{dispatch, result_json};
-use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
+use crate::calib::soak::SoakParams;
 use crate::config::HttpConfig;
 use crate::jobs::Calibrations;
 use crate::moonraker::{Moonraker, RpcError};
@@ -266,114 +266,19 @@ async fn convergence(State(h): State<Shared>, Path(id): Path<String>) -> Respons
         Ok(v) => v,
         Err((code, why)) => return error(code, &why),
     };
-    match convergence_svg(&doc) {
+    match plots::convergence_of_status(&doc) {
         Ok(text) => svg(text),
         Err(why) => error(StatusCode::NOT_FOUND, &why),
     }
 }
 
-/// The convergence plot of an A/B session's status document.
-///
-/// # Errors
-/// No solved round.
-pub fn convergence_svg(doc: &Value) -> Result<String, String> {
-    let points: Vec<plots::RoundPoint> = doc["rounds"]
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|r| {
-            let scale = r["scale"].as_array()?;
-            let unc = r["uncertainty"].as_array()?;
-            let s = |k: usize| scale.get(k).and_then(Value::as_f64);
-            let u = |k: usize| unc.get(k).and_then(Value::as_f64);
-            Some(plots::RoundPoint {
-                n: u32::try_from(r["n"].as_u64()?).ok()?,
-                error_um_per_100mm: [(s(0)? - 1.0).abs() * 1e5, (s(1)? - 1.0).abs() * 1e5],
-                uncertainty_um_per_100mm: [u(0)? * 1e5, u(1)? * 1e5],
-            })
-        })
-        .collect();
-    plots::convergence_svg(
-        &points,
-        ["stepper_x", "stepper_y"],
-        &format!("session {}: scale error per round", doc["id"]),
-    )
-}
-
 /// The bed over Moonraker's temperature store (~20 min at 1 Hz) with the soak detector's fit
 /// replayed over the same samples.
 async fn soak_plot(State(h): State<Shared>) -> Response {
-    match soak_svg(&h).await {
+    match crate::jobs::soak::soak_picture(&h.m, &h.soak).await {
         Ok(text) => svg(text),
         Err(why) => error(StatusCode::SERVICE_UNAVAILABLE, &why),
     }
-}
-
-async fn soak_svg(h: &Http) -> Result<String, String> {
-    let store =
-        h.m.call(
-            "server.temperature_store",
-            json!({"include_monitors": false}),
-        )
-        .await
-        .map_err(|e| format!("Moonraker's temperature store: {e}"))?;
-    let (samples, fit, eta_s) = replay_soak(&store["heater_bed"], &h.soak)
-        .ok_or("the printer has no heater_bed in Moonraker's temperature store")?;
-    plots::soak_svg(&samples, fit, eta_s, "bed soak (last 20 min)")
-}
-
-/// The bed samples of a `server.temperature_store` entry (1 s apart, the last one now) and
-/// what a soak detector fed with them says: its fitted decay and ETA while soaking.
-#[must_use]
-pub fn replay_soak(
-    bed: &Value,
-    params: &SoakParams,
-) -> Option<(
-    Vec<plots::BedSample>,
-    Option<plots::DecayCurve>,
-    Option<f64>,
-)> {
-    let series = |k: &str| -> Option<Vec<f64>> {
-        Some(
-            bed[k]
-                .as_array()?
-                .iter()
-                .map(|v| v.as_f64().unwrap_or(f64::NAN))
-                .collect(),
-        )
-    };
-    let temps = series("temperatures")?;
-    let targets = series("targets").unwrap_or_else(|| vec![f64::NAN; temps.len()]);
-    let powers = series("powers").unwrap_or_else(|| vec![0.0; temps.len()]);
-    let n = temps.len().min(targets.len()).min(powers.len());
-    let mut det = SoakDetector::new(params.clone());
-    let mut samples = Vec::with_capacity(n);
-    let mut eta = None;
-    for i in 0..n {
-        let s = plots::BedSample {
-            t_s: i as f64,
-            temp_c: temps[i],
-            target_c: targets[i],
-            power: powers[i],
-        };
-        if [s.temp_c, s.target_c, s.power]
-            .iter()
-            .all(|v| v.is_finite())
-        {
-            eta = match det.push(s.t_s, s.power, s.temp_c, s.target_c) {
-                SoakStatus::Soaking { eta_s, .. } => eta_s,
-                _ => None,
-            };
-        }
-        samples.push(s);
-    }
-    let fit = det.fit().map(|f| plots::DecayCurve {
-        now_s: n.saturating_sub(1) as f64,
-        tau_s: f.tau_s,
-        final_power: f.final_power,
-        remaining: f.remaining,
-    });
-    Some((samples, fit, eta))
 }
 
 async fn index(State(h): State<Shared>) -> Response {

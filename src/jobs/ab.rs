@@ -585,20 +585,12 @@ impl Ab {
             .await
             .context("uploading the pylon job")?;
         let diagram = format!("klipcal/ab-s{id}-r{n}.svg");
-        let round = match self
-            .core
-            .files()
-            .upload("config", &diagram, job.svg.into_bytes())
-            .await
-        {
-            Ok(_) => Round {
+        let round = match self.core.save_picture(&diagram, job.svg).await {
+            Some(_) => Round {
                 diagram: Some(diagram),
                 ..round
             },
-            Err(e) => {
-                warn!(error = %e, "the layout diagram was not uploaded");
-                round
-            }
+            None => round,
         };
         let msg = format!(
             "round {n}: {} pylons uploaded as {file}; heating the bed to {} °C",
@@ -630,10 +622,17 @@ impl Ab {
         loop {
             match soak.poll(&self.core, TITLE).await? {
                 SoakUpdate::Stable { why } => {
+                    let n = s.rounds.len();
+                    let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
+                    let plot =
+                        super::soak::save_soak_picture(&self.core, &self.settings.soak, &path)
+                            .await
+                            .map(|p| format!("; plot: {p}"))
+                            .unwrap_or_default();
                     self.set_state(
                         id,
                         State::Printing,
-                        &format!("bed stable ({why}); printing"),
+                        &format!("bed stable ({why}){plot}; printing"),
                     )
                     .await?;
                     return Ok(());
@@ -1063,7 +1062,7 @@ impl Ab {
         }
         let solution =
             solve(&round.layout, &raw, &facts, &opts).map_err(|e| user(e.to_string()))?;
-        let message = solution_text(&solution);
+        let mut message = solution_text(&solution);
         let sol = serde_json::to_value(&solution)?;
         self.update(s.id, |s| {
             if let Some(r) = s.rounds.last_mut() {
@@ -1074,6 +1073,14 @@ impl Ab {
             Ok(())
         })
         .await?;
+        // The rounds so far as a picture where Mainsail/Fluidd's file browser shows it.
+        let doc = self.session_status(&self.load(s.id)?)?;
+        if let Ok(svg) = crate::plots::convergence_of_status(&doc) {
+            let path = format!("klipcal/ab-s{}-convergence.svg", s.id);
+            if let Some(shown) = self.core.save_picture(&path, svg).await {
+                message.push_str(&format!("\nplot of the rounds: {shown}"));
+            }
+        }
         self.core
             .prompt(&Prompt {
                 title: "klipcal: new rotation distances".into(),

@@ -90,6 +90,19 @@ impl Core {
         &self.inner.store
     }
 
+    /// Saves a picture (SVG text) under Moonraker's config root, where Mainsail/Fluidd's file
+    /// browser shows it; returns how to name it to a user (`config/klipcal/…`), or `None` when
+    /// the upload failed (logged: a picture never fails a calibration).
+    pub async fn save_picture(&self, path: &str, svg: String) -> Option<String> {
+        match self.files().upload("config", path, svg.into_bytes()).await {
+            Ok(_) => Some(format!("config/{path}")),
+            Err(e) => {
+                tracing::warn!(error = %e, %path, "the picture was not saved");
+                None
+            }
+        }
+    }
+
     /// The daemon's shutdown token.
     pub fn shutdown(&self) -> &CancellationToken {
         &self.inner.shutdown

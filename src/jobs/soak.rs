@@ -151,3 +151,30 @@ impl BedSoak {
         })
     }
 }
+
+/// The bed's last ~20 minutes (Moonraker's temperature store, 1 Hz) as an SVG plot, with the
+/// soak detector's fit replayed over the same samples.
+///
+/// # Errors
+/// Moonraker unreachable, no heater_bed, or nothing to plot (the message says which).
+pub async fn soak_picture(
+    m: &crate::moonraker::Moonraker,
+    params: &SoakParams,
+) -> Result<String, String> {
+    let store = m
+        .call(
+            "server.temperature_store",
+            json!({"include_monitors": false}),
+        )
+        .await
+        .map_err(|e| format!("Moonraker's temperature store: {e}"))?;
+    let (samples, fit, eta) = crate::plots::replay_soak(&store["heater_bed"], params)
+        .ok_or("the printer has no heater_bed in Moonraker's temperature store")?;
+    crate::plots::soak_svg(&samples, fit, eta, "bed soak (last 20 min)")
+}
+
+/// Saves [`soak_picture`] under the config root; returns its name for the user.
+pub async fn save_soak_picture(core: &Core, params: &SoakParams, path: &str) -> Option<String> {
+    let svg = soak_picture(core.m(), params).await.ok()?;
+    core.save_picture(path, svg).await
+}

@@ -124,7 +124,12 @@ async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
     // A huge body: 413 before anything reads it (on its own connection: the server closes it
     // without reading the rest).
     let huge = format!("{{\"pair\": \"{}\"}}", "x".repeat(200_000));
-    let (code, _) = post(&client_from("127.0.0.1"), &format!("{base}/api/ab/measure"), &huge).await;
+    let (code, _) = post(
+        &client_from("127.0.0.1"),
+        &format!("{base}/api/ab/measure"),
+        &huge,
+    )
+    .await;
     assert_eq!(code, 413);
 
     // Not JSON (what a cross-site form sends) and a cross-origin POST: refused.
@@ -373,9 +378,27 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         .await;
     assert!(table.as_str().unwrap().contains("stepper_x"), "{table}");
     b.screenshot(&artifact("page-solved.png")).await;
+    // Solving saved the rounds' plot under the config root and named it.
+    let id = s["id"].as_i64().unwrap();
+    let plot = bench
+        .dir
+        .path()
+        .join(format!("config/klipcal/ab-s{id}-convergence.svg"));
+    assert!(
+        std::fs::read_to_string(&plot)
+            .unwrap_or_default()
+            .contains("<svg"),
+        "{}",
+        plot.display()
+    );
+    assert!(b
+        .eval("document.body.textContent")
+        .await
+        .as_str()
+        .unwrap_or("")
+        .contains("stepper_x"));
     // The convergence plot and the diagram are served as SVG.
     let me = client_from("127.0.0.1");
-    let id = s["id"].as_i64().unwrap();
     for path in [
         format!("/api/sessions/{id}/convergence.svg"),
         format!("/api/sessions/{id}/diagram.svg"),

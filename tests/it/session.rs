@@ -118,6 +118,17 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     );
     let pairs = s["pairs"].as_array().unwrap().clone();
     assert_eq!(pairs.len(), 4, "{s}");
+    // The soak was saved as a picture where Mainsail's file browser shows it.
+    let soak_svg = bench
+        .dir
+        .path()
+        .join(format!("config/klipcal/ab-s{}-r1-soak.svg", s["id"]));
+    let svg = std::fs::read_to_string(&soak_svg).unwrap_or_default();
+    assert!(
+        svg.contains("<svg") && svg.contains("bed °C"),
+        "{}",
+        soak_svg.display()
+    );
     // The bed is still hot for the readings.
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
