@@ -37,6 +37,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve => rt.block_on(serve(config)),
         Command::Check(args) => rt.block_on(check(config, args.json)),
         Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::cmd::bench::footprint(&a)),
+        Command::Install(a) => rt.block_on(crate::cmd::install::install(&a, &config)),
+        Command::Uninstall(a) => rt.block_on(crate::cmd::install::uninstall(&a, &config)),
         Command::Pylons(args) => {
             crate::cmd::pylons::run(&args)?;
             Ok(ExitCode::SUCCESS)

@@ -39,6 +39,11 @@ pub enum Command {
     /// Offline thermal bed-mesh compensation: fit VGB/klipcal meshes, write profiles.
     #[command(subcommand)]
     Mesh(MeshCommand),
+    /// Install klipcal into a printer_data folder: binary, macros, settings, includes,
+    /// Moonraker's update_manager entry, the systemd service.
+    Install(crate::cmd::install::InstallArgs),
+    /// Take klipcal off again: every edited file restored, what install added removed.
+    Uninstall(crate::cmd::install::UninstallArgs),
     /// Offline backlash commands (seed 004).
     #[command(subcommand)]
     Backlash(BacklashCommand),

@@ -3,6 +3,7 @@
 
 pub mod backlash;
 pub mod bench;
+pub mod install;
 pub mod mesh;
 pub mod pylons;
 pub mod soak;

@@ -8,6 +8,7 @@ mod browser;
 mod daemon;
 mod fake;
 mod http;
+mod install;
 mod mesh;
 mod pylons;
 mod realcfg;

@@ -1,0 +1,277 @@
+//! `klipcal install` / `uninstall` on the bench's printer_data (issue 14): Moonraker restarted
+//! with the edited moonraker.conf loads `[update_manager klipcal]` without a warning, Klipper
+//! restarted with the include runs the macros, a second install changes nothing, a dry run
+//! writes nothing, uninstall restores every file byte for byte, and conflicts are refused.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::bench::{poll, wait_event, Bench, Daemon};
+
+fn klipcal(bench: &Bench, args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+        .args(["--moonraker", &bench.ws_url()])
+        .args(args)
+        .env("HOME", bench.dir.path())
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+fn install_args(bench: &Bench, extra: &[&str]) -> Vec<String> {
+    let pd = bench.dir.path().display().to_string();
+    let mut v: Vec<String> = vec![
+        "install".into(),
+        "--printer-data".into(),
+        pd.clone(),
+        "--bin-dir".into(),
+        format!("{pd}/klipcal-bin"),
+        "--no-systemd".into(),
+    ];
+    v.extend(extra.iter().map(|s| (*s).to_string()));
+    v
+}
+
+fn run(bench: &Bench, args: &[String]) -> (bool, String) {
+    let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+    klipcal(bench, &refs)
+}
+
+/// The files an install may touch — config/ (not its backups or Moonraker's hidden copies),
+/// moonraker.asvc, the binary folder — each with its bytes.
+fn snapshot(dir: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    for sub in ["config", "klipcal-bin"] {
+        let Ok(rd) = std::fs::read_dir(dir.join(sub)) else {
+            continue;
+        };
+        for e in rd.flatten() {
+            let p = e.path();
+            let name = p.file_name().unwrap().to_string_lossy().to_string();
+            if p.is_file() && !name.starts_with('.') {
+                out.push((p.clone(), std::fs::read(&p).unwrap_or_default()));
+            }
+        }
+    }
+    let asvc = dir.join("moonraker.asvc");
+    out.push((asvc.clone(), std::fs::read(&asvc).unwrap_or_default()));
+    out.sort();
+    out
+}
+
+/// The paths whose bytes differ between two snapshots (for a readable failure).
+fn differ(a: &[(PathBuf, Vec<u8>)], b: &[(PathBuf, Vec<u8>)]) -> Vec<String> {
+    let mut paths: Vec<&PathBuf> = a.iter().chain(b).map(|(p, _)| p).collect();
+    paths.sort();
+    paths.dedup();
+    paths
+        .into_iter()
+        .filter(|p| {
+            a.iter().find(|x| &x.0 == *p).map(|x| &x.1)
+                != b.iter().find(|x| &x.0 == *p).map(|x| &x.1)
+        })
+        .map(|p| p.display().to_string())
+        .collect()
+}
+
+async fn wait_ready(bench: &Bench) {
+    let files = bench.files();
+    let ok = poll(Duration::from_secs(60), || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    })
+    .await;
+    assert!(ok.is_some(), "Moonraker/Klipper did not come back ready");
+}
+
+#[tokio::test]
+async fn install_twice_then_uninstall_restores_every_file_byte_for_byte() {
+    let bench = Bench::start("corexy");
+    let pd = bench.dir.path().to_path_buf();
+    let cfg = pd.join("config");
+    // A printer as a new user has it: no klipcal include, no macros, no [respond], and
+    // Moonraker with its update manager on.
+    let printer = std::fs::read_to_string(cfg.join("printer.cfg")).unwrap();
+    let printer = printer
+        .replace("[include klipcal.cfg]", "")
+        .replace("[respond]\n", "");
+    std::fs::write(cfg.join("printer.cfg"), &printer).unwrap();
+    std::fs::remove_file(cfg.join("klipcal.cfg")).unwrap();
+    let mut conf = std::fs::read_to_string(cfg.join("moonraker.conf")).unwrap();
+    conf.push_str("\n[update_manager]\nenable_system_updates: False\n");
+    std::fs::write(cfg.join("moonraker.conf"), &conf).unwrap();
+    let files = bench.files();
+    files.post("/server/restart", &json!({})).await.unwrap();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    wait_ready(&bench).await;
+    let before = snapshot(&pd);
+
+    // A dry run prints the diffs and writes nothing.
+    let (ok, out) = run(&bench, &install_args(&bench, &["--dry-run"]));
+    assert!(ok, "{out}");
+    assert!(
+        out.contains("+[include klipcal.cfg]") && out.contains("+[update_manager klipcal]"),
+        "{out}"
+    );
+    assert!(out.contains("+type: executable"), "{out}");
+    assert_eq!(
+        differ(&snapshot(&pd), &before),
+        Vec::<String>::new(),
+        "a dry run wrote something"
+    );
+
+    let (ok, out) = run(&bench, &install_args(&bench, &["--yes"]));
+    assert!(ok, "{out}");
+    let after_install = snapshot(&pd);
+    let printer_now = std::fs::read_to_string(cfg.join("printer.cfg")).unwrap();
+    assert_eq!(
+        printer_now.matches("[include klipcal.cfg]").count(),
+        1,
+        "{printer_now}"
+    );
+    assert!(printer_now.contains("[respond]"));
+    assert!(std::fs::read_to_string(pd.join("moonraker.asvc"))
+        .unwrap()
+        .lines()
+        .any(|l| l == "klipcal"));
+    let rinfo: Value = serde_json::from_str(
+        &std::fs::read_to_string(pd.join("klipcal-bin/release_info.json")).unwrap(),
+    )
+    .unwrap();
+    let asset = rinfo["asset_name"].as_str().unwrap();
+    assert!(pd.join("klipcal-bin").join(asset).is_file(), "{rinfo}");
+
+    // Moonraker (restarted by install) loads the section without a warning about klipcal.
+    wait_ready(&bench).await;
+    let info = files.get("/server/info").await.unwrap();
+    let warnings = info["warnings"].to_string();
+    assert!(!warnings.to_lowercase().contains("klipcal"), "{warnings}");
+    let upd = poll(Duration::from_secs(30), || async {
+        let v = files.get("/machine/update/status").await.ok()?;
+        let k = v["version_info"]["klipcal"].clone();
+        (!k.is_null()).then_some(k)
+    })
+    .await
+    .expect("update_manager does not list klipcal");
+    assert_eq!(
+        upd["version"],
+        json!(format!("v{}", env!("CARGO_PKG_VERSION"))),
+        "{upd}"
+    );
+    assert_eq!(upd["configured_type"], "executable", "{upd}");
+    assert!(
+        upd["warnings"].as_array().is_none_or(|w| w.is_empty()),
+        "update_manager warns about klipcal: {upd}"
+    );
+    // Klipper (restarted by install) runs the macros, and KLIPCAL_STATUS answers.
+    let help = files.get("/printer/gcode/help").await.unwrap();
+    assert!(help["KLIPCAL_STATUS"].is_string(), "{help}");
+    let _d = Daemon::ready(&bench, "").await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = m.events();
+    m.gcode("KLIPCAL_STATUS").await.unwrap();
+    let answer = wait_event(&mut rx, Duration::from_secs(15), |e| {
+        matches!(e, klipcal::moonraker::Event::GcodeResponse(t) if t.contains("rotation_distance"))
+    })
+    .await;
+    assert!(answer.is_some(), "KLIPCAL_STATUS did not answer");
+
+    // A second install changes nothing.
+    let (ok, out) = run(&bench, &install_args(&bench, &["--yes"]));
+    assert!(ok && out.contains("nothing to change"), "{out}");
+    assert_eq!(differ(&snapshot(&pd), &after_install), Vec::<String>::new());
+
+    // Uninstall: a dry run writes nothing; then every file is back byte for byte.
+    let un = [
+        "uninstall".to_string(),
+        "--printer-data".into(),
+        pd.display().to_string(),
+    ];
+    let mut dry = un.to_vec();
+    dry.push("--dry-run".into());
+    let (ok, out) = run(&bench, &dry);
+    assert!(ok && out.contains("-[include klipcal.cfg]"), "{out}");
+    assert_eq!(differ(&snapshot(&pd), &after_install), Vec::<String>::new());
+    let (ok, out) = run(&bench, &un);
+    assert!(ok, "{out}");
+    assert_eq!(
+        differ(&snapshot(&pd), &before),
+        Vec::<String>::new(),
+        "uninstall left differences"
+    );
+    wait_ready(&bench).await;
+    let info = files.get("/server/info").await.unwrap();
+    assert!(
+        info["failed_components"].as_array().unwrap().is_empty(),
+        "{info}"
+    );
+}
+
+#[tokio::test]
+async fn install_refuses_a_conflict_a_missing_layout_and_keeps_a_users_later_edits() {
+    let bench = Bench::start("corexy");
+    let pd = bench.dir.path().to_path_buf();
+    let cfg = pd.join("config");
+    // No printer_data layout.
+    let (ok, out) = klipcal(
+        &bench,
+        &[
+            "install",
+            "--printer-data",
+            "/nonexistent/pd",
+            "--no-systemd",
+        ],
+    );
+    assert!(!ok && out.contains("no printer_data layout"), "{out}");
+    // A moonraker.conf with someone else's [update_manager klipcal].
+    let conf0 = std::fs::read_to_string(cfg.join("moonraker.conf")).unwrap();
+    let theirs = format!("{conf0}\n[update_manager klipcal]\ntype: git_repo\npath: ~/klipcal\norigin: https://example.org/klipcal.git\n");
+    std::fs::write(cfg.join("moonraker.conf"), &theirs).unwrap();
+    let before = snapshot(&pd);
+    let (ok, out) = run(&bench, &install_args(&bench, &["--yes", "--no-restart"]));
+    assert!(!ok && out.contains("did not write"), "{out}");
+    assert_eq!(
+        differ(&snapshot(&pd), &before),
+        Vec::<String>::new(),
+        "a refused install wrote something"
+    );
+    std::fs::write(cfg.join("moonraker.conf"), &conf0).unwrap();
+    // An existing include of klipcal.cfg is kept as it is (the bench's printer.cfg has one).
+    let printer0 = std::fs::read_to_string(cfg.join("printer.cfg")).unwrap();
+    let (ok, out) = run(&bench, &install_args(&bench, &["--yes", "--no-restart"]));
+    assert!(ok, "{out}");
+    assert_eq!(
+        std::fs::read_to_string(cfg.join("printer.cfg")).unwrap(),
+        printer0
+    );
+    // The user edits moonraker.conf after the install: uninstall takes out only klipcal's part.
+    let mut conf = std::fs::read_to_string(cfg.join("moonraker.conf")).unwrap();
+    conf.push_str("\n[webcam cam]\nservice: mjpegstreamer\n");
+    std::fs::write(cfg.join("moonraker.conf"), &conf).unwrap();
+    let (ok, out) = klipcal(
+        &bench,
+        &[
+            "uninstall",
+            "--printer-data",
+            pd.to_str().unwrap(),
+            "--no-restart",
+        ],
+    );
+    assert!(ok, "{out}");
+    let after = std::fs::read_to_string(cfg.join("moonraker.conf")).unwrap();
+    assert!(!after.contains("update_manager klipcal"), "{after}");
+    assert!(
+        after.contains("[webcam cam]\nservice: mjpegstreamer\n"),
+        "{after}"
+    );
+    assert!(after.starts_with(&conf0), "{after}");
+}
