@@ -60,21 +60,30 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
 }
 
 fn init_tracing(level: &str) {
-    use tracing_subscriber::EnvFilter;
-    let filter = EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| EnvFilter::new(format!("klipcal={level},warn")));
+    use tracing_subscriber::filter::{LevelFilter, Targets};
+    // RUST_LOG as `target=level` pairs (`klipcal=debug,warn`); a plain target filter keeps
+    // the regex engine out of the binary (see `klipcal bench footprint`).
+    let filter = std::env::var("RUST_LOG")
+        .ok()
+        .and_then(|v| v.parse::<Targets>().ok())
+        .unwrap_or_else(|| {
+            Targets::new()
+                .with_target("klipcal", level.parse().unwrap_or(LevelFilter::INFO))
+                .with_default(LevelFilter::WARN)
+        });
     use std::io::IsTerminal;
+    use tracing_subscriber::layer::SubscriberExt;
+    use tracing_subscriber::util::SubscriberInitExt;
     // Colour only on a terminal: log files and journald get plain text.
     let builder = tracing_subscriber::fmt()
-        .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())
         .with_target(false);
     // journald stamps every line itself.
     if std::env::var_os("JOURNAL_STREAM").is_some() {
-        let _ = builder.without_time().try_init();
+        let _ = builder.without_time().finish().with(filter).try_init();
     } else {
-        let _ = builder.try_init();
+        let _ = builder.finish().with(filter).try_init();
     }
 }
 

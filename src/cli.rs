@@ -243,6 +243,17 @@ pub struct FootprintArgs {
     /// Seconds to measure.
     #[arg(long, default_value_t = 60.0)]
     pub seconds: f64,
+    /// The daemon's binary, for its size.
+    #[arg(long, value_name = "PATH")]
+    pub binary: Option<PathBuf>,
+    /// Milliseconds from the daemon's start to "connected to Moonraker" (measured by the
+    /// caller, e.g. tests/bench-footprint.sh).
+    #[arg(long, value_name = "MS")]
+    pub startup_ms: Option<f64>,
+    /// The daemon's page (`http://127.0.0.1:7150`): polled while measuring as an open page
+    /// does (status every 3 s, the soak plot every 15 s).
+    #[arg(long, value_name = "URL")]
+    pub page_url: Option<String>,
 }
 
 /// `klipcal pylons`

@@ -378,7 +378,16 @@ impl Config {
     /// The first key whose value is out of range.
     pub fn validate(&self) -> Result<(), Error> {
         let m = &self.moonraker;
-        if !(m.url.starts_with("ws://") || m.url.starts_with("wss://")) {
+        if m.url.starts_with("wss://") {
+            return Err(Error::Invalid {
+                key: "moonraker.url",
+                value: format!("{:?}", m.url),
+                expected: "a plain ws:// URL: klipcal runs on the printer host and talks to \
+                           Moonraker over loopback (\"ws://127.0.0.1:7125/websocket\"); TLS \
+                           is not built in",
+            });
+        }
+        if !m.url.starts_with("ws://") {
             return Err(Error::Invalid {
                 key: "moonraker.url",
                 value: format!("{:?}", m.url),
@@ -540,11 +549,7 @@ impl Config {
     /// The HTTP base URL derived from the websocket URL (`ws://h:p/websocket` → `http://h:p`).
     pub fn http_base(&self) -> String {
         let url = &self.moonraker.url;
-        let (scheme, rest) = if let Some(r) = url.strip_prefix("wss://") {
-            ("https://", r)
-        } else {
-            ("http://", url.strip_prefix("ws://").unwrap_or(url))
-        };
+        let (scheme, rest) = ("http://", url.strip_prefix("ws://").unwrap_or(url));
         let host = rest.split('/').next().unwrap_or(rest);
         format!("{scheme}{host}")
     }
