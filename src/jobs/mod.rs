@@ -2,12 +2,13 @@
 //! (`session`: stored documents, one active session, the runner, the printer guards; `console`:
 //! answers and prompts; `soak`: the bed soak step; `args`: typed arguments; `printer_config`:
 //! the config transaction; `registry`: routing, status, cancel, resume, the hold watchdog), and
-//! one file per calibration, each reading like a klippy/extras module: `ab`, `backlash`.
+//! one file per calibration, each reading like a klippy/extras module: `ab`, `backlash`, `mesh`.
 
 pub mod ab;
 pub mod args;
 pub mod backlash;
 pub mod console;
+pub mod mesh;
 pub mod printer_config;
 pub mod registry;
 pub mod session;

@@ -53,6 +53,10 @@ pub trait Calibration: Send + Sync {
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.
     fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()>;
+    /// Runs once the daemon is connected (e.g. a follower the settings switch on).
+    fn connected(&self) -> BoxFuture<'_, ()> {
+        Box::pin(async {})
+    }
 }
 
 /// The methods every daemon answers besides the calibrations' own.
@@ -65,6 +69,7 @@ pub fn all_methods() -> Vec<String> {
         .iter()
         .chain(super::ab::METHODS)
         .chain(super::backlash::METHODS)
+        .chain(super::mesh::METHODS)
         .map(|s| (*s).to_string())
         .collect()
 }
@@ -91,6 +96,11 @@ impl Calibrations {
             Arc::new(super::backlash::Backlash::new(
                 core.clone(),
                 config.backlash.clone(),
+            )),
+            Arc::new(super::mesh::Mesh::new(
+                core.clone(),
+                config.mesh.clone(),
+                config.soak.clone(),
             )),
         ];
         for c in &list {
@@ -160,6 +170,9 @@ impl Calibrations {
 
     /// Resumes the active session after a daemon start or a reconnect.
     pub async fn resume(&self) {
+        for c in &self.list {
+            c.connected().await;
+        }
         let row = match self.core.active() {
             Ok(Some(r)) => r,
             Ok(None) => return,

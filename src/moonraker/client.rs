@@ -247,7 +247,20 @@ impl Moonraker {
     /// # Errors
     /// Moonraker's refusal, a timeout, or a lost connection.
     pub async fn call(&self, method: &str, params: Value) -> Result<Value, Error> {
-        let limit = self.shared.opts.request_timeout;
+        self.call_within(method, params, self.shared.opts.request_timeout)
+            .await
+    }
+
+    /// [`Moonraker::call`] with its own time limit (a long G-code such as BED_MESH_CALIBRATE).
+    ///
+    /// # Errors
+    /// As [`Moonraker::call`].
+    pub async fn call_within(
+        &self,
+        method: &str,
+        params: Value,
+        limit: Duration,
+    ) -> Result<Value, Error> {
         let timeout_err = || Error::Timeout {
             method: method.to_string(),
             timeout_s: limit.as_secs_f64(),
@@ -260,13 +273,13 @@ impl Moonraker {
                 Err(e) => return Err(e),
             }
         }
-        let fut = self.call_raw(method, params);
+        let fut = self.call_raw(method, params, limit);
         tokio::time::timeout_at(deadline, fut)
             .await
             .map_err(|_| timeout_err())?
     }
 
-    async fn call_raw(&self, method: &str, params: Value) -> Result<Value, Error> {
+    async fn call_raw(&self, method: &str, params: Value, limit: Duration) -> Result<Value, Error> {
         let (tx, rx) = oneshot::channel();
         self.shared
             .tx
@@ -276,7 +289,6 @@ impl Moonraker {
                 tx,
             })
             .map_err(|_| Error::Shutdown)?;
-        let limit = self.shared.opts.request_timeout;
         match tokio::time::timeout(limit, rx).await {
             Ok(Ok(r)) => r,
             Ok(Err(_)) => Err(Error::Disconnected(method.to_string())),
@@ -294,6 +306,16 @@ impl Moonraker {
     /// not an error here: Klipper reports it on the console as `// Unknown command`.
     pub async fn gcode(&self, script: &str) -> Result<(), Error> {
         self.call("printer.gcode.script", json!({ "script": script }))
+            .await
+            .map(|_| ())
+    }
+
+    /// [`Moonraker::gcode`] with its own time limit.
+    ///
+    /// # Errors
+    /// As [`Moonraker::gcode`].
+    pub async fn gcode_within(&self, script: &str, limit: Duration) -> Result<(), Error> {
+        self.call_within("printer.gcode.script", json!({ "script": script }), limit)
             .await
             .map(|_| ())
     }
@@ -366,7 +388,12 @@ impl Moonraker {
         let objects = Value::Object(lock(&self.shared.subscriptions).clone());
         let params = json!({ "objects": objects });
         let v = if raw {
-            self.call_raw("printer.objects.subscribe", params).await?
+            self.call_raw(
+                "printer.objects.subscribe",
+                params,
+                self.shared.opts.request_timeout,
+            )
+            .await?
         } else {
             self.call("printer.objects.subscribe", params).await?
         };
@@ -451,7 +478,14 @@ impl Moonraker {
         if let Some(key) = &opts.api_key {
             ident["api_key"] = json!(key);
         }
-        let r = match self.call_raw("server.connection.identify", ident).await {
+        let r = match self
+            .call_raw(
+                "server.connection.identify",
+                ident,
+                self.shared.opts.request_timeout,
+            )
+            .await
+        {
             Ok(r) => r,
             Err(e) => {
                 use std::sync::atomic::Ordering;
@@ -489,13 +523,16 @@ impl Moonraker {
                 .call_raw(
                     "connection.register_remote_method",
                     json!({ "method_name": m }),
+                    self.shared.opts.request_timeout,
                 )
                 .await
             {
                 warn!(method = %m, error = %e, "could not register remote method");
             }
         }
-        let info = self.call_raw("server.info", Value::Null).await?;
+        let info = self
+            .call_raw("server.info", Value::Null, self.shared.opts.request_timeout)
+            .await?;
         let klippy_state = info["klippy_state"]
             .as_str()
             .unwrap_or("unknown")

@@ -10,6 +10,7 @@ mod fake;
 mod http;
 mod install;
 mod mesh;
+mod mesh_job;
 mod pylons;
 mod realcfg;
 mod runall;

@@ -1,0 +1,1392 @@
+//! Thermal bed-mesh compensation (seed 002, VGB): capture → fit → profiles, then follow and
+//! check. Capture: preflight → heating → soaking → capturing (a mesh each time the frame
+//! moved by `mesh.step_c` or `mesh.interval_s` passed, each probe point stamped with the frame
+//! temperature of the moment it was probed, every mesh stored the moment it completes) →
+//! writing (`[bed_mesh klipcal_<T>]` profiles into the SAVE_CONFIG block: backup, restart,
+//! verify, roll back) → done. Follow: loads the profile for the frame temperature only when
+//! the model says it matters (`calib::mesh_follow`). Check: seed 001's 0.5 mm reference rule
+//! before a print.
+
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, Context};
+use futures_util::future::BoxFuture;
+use futures_util::FutureExt;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+use tokio_util::sync::CancellationToken;
+use tracing::{info, warn};
+
+use super::args::Args;
+use super::registry::{Calibration, Hold};
+use super::session::{now_unix, Core, Doc};
+use super::soak::{BedSoak, SoakUpdate};
+use super::user;
+use crate::calib::mesh::{self as cm, Capture, Phase};
+use crate::calib::mesh_follow::{Decision, Follower};
+use crate::calib::soak::SoakParams;
+use crate::config::MeshConfig;
+use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
+use crate::store::SessionRow;
+
+/// The remote methods of the thermal mesh.
+pub const METHODS: &[&str] = &[
+    "klipcal_mesh_capture",
+    "klipcal_mesh_follow",
+    "klipcal_mesh_check",
+];
+
+/// The store's kind.
+pub const KIND: &str = "mesh";
+
+const TITLE: &str = "thermal mesh";
+
+/// A capture session's state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum State {
+    /// Checking the printer.
+    Preflight,
+    /// Bed heating and soaking.
+    Soaking,
+    /// Taking meshes as the frame warms.
+    Capturing,
+    /// Writing the profiles.
+    Writing,
+    /// Profiles written.
+    Done,
+    /// Failed, with the reason.
+    Failed,
+    /// Cancelled, with the reason.
+    Cancelled,
+}
+
+impl State {
+    fn name(self) -> String {
+        serde_json::to_value(self)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_string))
+            .unwrap_or_default()
+    }
+
+    fn is_final(self) -> bool {
+        matches!(self, State::Done | State::Failed | State::Cancelled)
+    }
+}
+
+/// One stored mesh.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CaptureDoc {
+    /// 1-based.
+    pub n: usize,
+    /// Unix time it completed.
+    pub at_unix: f64,
+    /// Frame temperature per point, °C (row-major like `points_mm`).
+    pub temps_c: Vec<f64>,
+    /// z per point, mm, row-major (y rows of x values).
+    pub points_mm: Vec<f64>,
+    /// Whether the frame was warming or cooling.
+    pub heating: bool,
+}
+
+/// What the fit and the profile write gave.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ResultDoc {
+    /// The chosen model.
+    pub model: String,
+    /// Leave-one-mesh-out errors per model: (name, max, mean, rms) µm.
+    pub models: Vec<(String, f64, f64, f64)>,
+    /// VGB's two-mesh method on the same data (max, mean, rms) µm.
+    pub vgb: Option<(f64, f64, f64)>,
+    /// Captured frame range, °C.
+    pub range_c: (f64, f64),
+    /// Profile temperatures written, °C.
+    pub profiles_c: Vec<f64>,
+    /// Worst error of using the nearest profile, µm.
+    pub max_quantisation_um: f64,
+    /// Where the backup of printer.cfg went.
+    pub backup: Option<String>,
+}
+
+/// The session document.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Session {
+    /// Store id.
+    pub id: i64,
+    /// State.
+    pub state: State,
+    /// Why it failed or was cancelled.
+    pub reason: Option<String>,
+    /// The current step in words.
+    pub progress: String,
+    /// `[mesh]` as the session runs it.
+    pub options: MeshOptions,
+    /// The mesh parameters (from Klipper's `default` profile after the first mesh).
+    pub params: Option<Params>,
+    /// Every mesh so far.
+    pub captures: Vec<CaptureDoc>,
+    /// Unix time the capture started (after the soak).
+    pub started_unix: Option<f64>,
+    /// The result, once written.
+    pub result: Option<ResultDoc>,
+    /// Things the user should know.
+    pub notes: Vec<String>,
+}
+
+/// The settings a session runs with (a copy of `[mesh]` at its start).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MeshOptions {
+    /// °C.
+    pub bed_temp_c: f64,
+    /// Sensor name.
+    pub frame_sensor: String,
+    /// °C.
+    pub step_c: f64,
+    /// s.
+    pub interval_s: f64,
+    /// °C.
+    pub settle_c: f64,
+    /// Count.
+    pub min_meshes: usize,
+    /// Count.
+    pub max_meshes: usize,
+    /// s.
+    pub max_s: f64,
+    /// s.
+    pub soak_max_s: f64,
+    /// µm.
+    pub tolerance_um: f64,
+}
+
+/// Mesh parameters as stored (the `MeshParams` fields).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Params {
+    /// Points along X.
+    pub x_count: usize,
+    /// Points along Y.
+    pub y_count: usize,
+    /// Interpolation points per segment.
+    pub mesh_x_pps: usize,
+    /// Interpolation points per segment.
+    pub mesh_y_pps: usize,
+    /// `lagrange` or `bicubic`.
+    pub algo: String,
+    /// Bicubic tension.
+    pub tension: f64,
+    /// mm.
+    pub min_x: f64,
+    /// mm.
+    pub max_x: f64,
+    /// mm.
+    pub min_y: f64,
+    /// mm.
+    pub max_y: f64,
+}
+
+impl Params {
+    fn to_klipper(&self) -> MeshParams {
+        MeshParams {
+            x_count: self.x_count,
+            y_count: self.y_count,
+            mesh_x_pps: self.mesh_x_pps,
+            mesh_y_pps: self.mesh_y_pps,
+            algo: self.algo.clone(),
+            tension: self.tension,
+            min_x: self.min_x,
+            max_x: self.max_x,
+            min_y: self.min_y,
+            max_y: self.max_y,
+        }
+    }
+
+    fn from_status(p: &Value) -> Option<Self> {
+        let n = |k: &str| p[k].as_f64();
+        Some(Self {
+            x_count: p["x_count"].as_u64()? as usize,
+            y_count: p["y_count"].as_u64()? as usize,
+            mesh_x_pps: p["mesh_x_pps"].as_u64().unwrap_or(2) as usize,
+            mesh_y_pps: p["mesh_y_pps"].as_u64().unwrap_or(2) as usize,
+            algo: p["algo"].as_str().unwrap_or("lagrange").to_string(),
+            tension: n("tension").unwrap_or(0.2),
+            min_x: n("min_x")?,
+            max_x: n("max_x")?,
+            min_y: n("min_y")?,
+            max_y: n("max_y")?,
+        })
+    }
+}
+
+impl Doc for Session {
+    fn state_name(&self) -> String {
+        self.state.name()
+    }
+}
+
+/// The frame temperature of each point of a mesh probed in Klipper's order (rows along Y,
+/// alternating direction along X) from temperature samples `(t_s, temp_c)` spanning the
+/// mesh: the probes are taken as evenly spread over the samples' time span.
+#[must_use]
+pub fn point_temps(samples: &[(f64, f64)], x_count: usize, y_count: usize) -> Vec<f64> {
+    let n = x_count * y_count;
+    let mut out = vec![f64::NAN; n];
+    if samples.is_empty() || n == 0 {
+        return out;
+    }
+    let (t0, t1) = (samples[0].0, samples[samples.len() - 1].0);
+    let at = |t: f64| -> f64 {
+        match samples.iter().position(|s| s.0 >= t) {
+            Some(0) => samples[0].1,
+            Some(k) => {
+                let (a, b) = (samples[k - 1], samples[k]);
+                if b.0 > a.0 {
+                    a.1 + (b.1 - a.1) * (t - a.0) / (b.0 - a.0)
+                } else {
+                    b.1
+                }
+            }
+            None => samples[samples.len() - 1].1,
+        }
+    };
+    for y in 0..y_count {
+        for x in 0..x_count {
+            let order = y * x_count + if y % 2 == 0 { x } else { x_count - 1 - x };
+            let frac = if n > 1 {
+                order as f64 / (n - 1) as f64
+            } else {
+                0.0
+            };
+            out[y * x_count + x] = at(t0 + (t1 - t0) * frac);
+        }
+    }
+    out
+}
+
+/// Whether the next mesh is due: the frame moved `step_c` since the last one, or
+/// `interval_s` passed.
+#[must_use]
+pub fn mesh_due(last_temp_c: f64, now_temp_c: f64, since_last_s: f64, o: &MeshOptions) -> bool {
+    (now_temp_c - last_temp_c).abs() >= o.step_c || since_last_s >= o.interval_s
+}
+
+/// Why the capture ends now, if it does: enough meshes and a settled frame, the most meshes,
+/// or the longest capture.
+#[must_use]
+pub fn capture_done(
+    caps: &[CaptureDoc],
+    now_unix: f64,
+    started_unix: f64,
+    o: &MeshOptions,
+) -> Option<String> {
+    if caps.len() >= o.max_meshes {
+        return Some(format!("{} meshes taken (mesh.max_meshes)", caps.len()));
+    }
+    if now_unix - started_unix >= o.max_s {
+        return Some(format!(
+            "the longest capture of {:.0} s passed (mesh.max_s)",
+            o.max_s
+        ));
+    }
+    if caps.len() >= o.min_meshes {
+        let last = caps.last()?;
+        let mean = |c: &CaptureDoc| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64;
+        // The mesh one interval back (or the earliest) against the last.
+        let back = caps
+            .iter()
+            .rev()
+            .find(|c| last.at_unix - c.at_unix >= o.interval_s * 0.99);
+        if let Some(b) = back {
+            let moved = (mean(last) - mean(b)).abs();
+            if moved < o.settle_c {
+                return Some(format!(
+                    "the frame settled ({moved:.2} °C over {:.0} min, below mesh.settle_c = {} °C)",
+                    (last.at_unix - b.at_unix) / 60.0,
+                    o.settle_c
+                ));
+            }
+        }
+    }
+    None
+}
+
+fn calib_captures(s: &Session) -> Vec<Capture> {
+    s.captures
+        .iter()
+        .map(|c| Capture {
+            name: format!("capture_{}", c.n),
+            temps_c: c.temps_c.clone(),
+            points_mm: c.points_mm.clone(),
+            phase: if c.heating {
+                Phase::Heating
+            } else {
+                Phase::Cooling
+            },
+        })
+        .collect()
+}
+
+/// The fit of a session's heating captures (the cooling ones are judged, not fitted, unless
+/// there are no heating ones).
+fn fit_session(s: &Session) -> anyhow::Result<cm::Selection> {
+    let caps = calib_captures(s);
+    let heating: Vec<&Capture> = caps.iter().filter(|c| c.phase == Phase::Heating).collect();
+    let use_caps: Vec<&Capture> = if heating.len() >= 2 {
+        heating
+    } else {
+        caps.iter().collect()
+    };
+    cm::select(&use_caps).map_err(|e| user(format!("fitting the meshes: {e}")))
+}
+
+/// The thermal mesh over the shared core.
+#[derive(Clone)]
+pub struct Mesh {
+    core: Core,
+    settings: MeshConfig,
+    soak: SoakParams,
+    follow: Arc<Mutex<Option<CancellationToken>>>,
+    follow_status: Arc<Mutex<Value>>,
+}
+
+impl Mesh {
+    /// The calibration over `core`.
+    #[must_use]
+    pub fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
+        Self {
+            core,
+            settings,
+            soak,
+            follow: Arc::new(Mutex::new(None)),
+            follow_status: Arc::new(Mutex::new(json!({"following": false}))),
+        }
+    }
+
+    fn options(&self) -> MeshOptions {
+        let c = &self.settings;
+        MeshOptions {
+            bed_temp_c: c.bed_temp_c,
+            frame_sensor: c.frame_sensor.clone(),
+            step_c: c.step_c,
+            interval_s: c.interval_s,
+            settle_c: c.settle_c,
+            min_meshes: c.min_meshes,
+            max_meshes: c.max_meshes,
+            max_s: c.max_s,
+            soak_max_s: c.soak_max_s,
+            tolerance_um: c.tolerance_um,
+        }
+    }
+
+    async fn update<T>(
+        &self,
+        id: i64,
+        f: impl FnOnce(&mut Session) -> anyhow::Result<T>,
+    ) -> anyhow::Result<T> {
+        self.core.update(id, f).await
+    }
+
+    async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
+        info!(session = id, state = %state.name(), "{progress}");
+        let p = progress.to_string();
+        self.update(id, |s| {
+            s.state = state;
+            s.progress = p;
+            Ok(())
+        })
+        .await
+    }
+
+    async fn frame_temp(&self, sensor: &str) -> anyhow::Result<f64> {
+        let obj = format!("temperature_sensor {sensor}");
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({ obj.clone(): ["temperature"] }))
+            .await?;
+        st[&obj]["temperature"].as_f64().ok_or_else(|| {
+            user(format!(
+                "[{obj}] reports no temperature; mesh.frame_sensor names the frame thermistor"
+            ))
+        })
+    }
+
+    /// `klipcal_mesh_capture`: starts a capture.
+    async fn capture(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_MESH_CAPTURE", &["bed"])?;
+        let mut options = self.options();
+        if let Some(b) = a.num("bed", "60")? {
+            if !(0.0..=130.0).contains(&b) {
+                return Err(user(format!(
+                    "BED={b}: expected a bed temperature from 0 (unheated) to 130 °C"
+                )));
+            }
+            options.bed_temp_c = b;
+        }
+        self.core.refuse_other_kind(KIND)?;
+        self.core.printer_idle().await?;
+        self.preflight(&options).await?;
+        self.stop_following("a capture starts").await;
+        let mut doc = Session {
+            id: 0,
+            state: State::Preflight,
+            reason: None,
+            progress: "starting".into(),
+            options,
+            params: None,
+            captures: Vec::new(),
+            started_unix: None,
+            result: None,
+            notes: Vec::new(),
+        };
+        let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
+        self.spawn_runner(id);
+        let msg = format!(
+            "thermal mesh capture started (session {id}): the bed heats to {} °C, then a mesh is \
+             taken each time the frame moves {} °C or every {:.0} min until it settles",
+            doc.options.bed_temp_c,
+            doc.options.step_c,
+            doc.options.interval_s / 60.0
+        );
+        self.core.console(&msg).await;
+        Ok(json!({"session": id, "state": "preflight", "message": msg}))
+    }
+
+    /// Refuses when the printer lacks what a capture needs, naming it.
+    async fn preflight(&self, o: &MeshOptions) -> anyhow::Result<()> {
+        let objects = self.core.m().objects_list().await?;
+        let mut missing = Vec::new();
+        let sensor = format!("temperature_sensor {}", o.frame_sensor);
+        if !objects.contains(&sensor) {
+            missing.push(format!(
+                "[{sensor}] (the frame thermistor; mesh.frame_sensor names it)"
+            ));
+        }
+        if !objects.iter().any(|x| x == "bed_mesh") {
+            missing.push("[bed_mesh]".to_string());
+        }
+        if !objects.iter().any(|x| {
+            x == "probe"
+                || x.starts_with("bltouch")
+                || x.starts_with("probe_eddy")
+                || x.starts_with("beacon")
+                || x.starts_with("cartographer")
+        }) {
+            missing.push("a probe ([probe], [bltouch], …)".to_string());
+        }
+        if o.bed_temp_c > 0.0 && !objects.iter().any(|x| x == "heater_bed") {
+            missing.push("[heater_bed] (or capture with BED=0)".to_string());
+        }
+        if !missing.is_empty() {
+            return Err(user(format!(
+                "the printer lacks what a thermal mesh capture needs: {}",
+                missing.join(", ")
+            )));
+        }
+        Ok(())
+    }
+
+    fn spawn_runner(&self, id: i64) {
+        let me = self.clone();
+        self.core.spawn_runner(async move {
+            if let Err(e) = me.run(id).await {
+                let msg = format!("{e:#}");
+                warn!(session = id, error = %msg, "mesh session failed");
+                let _ = me.core.heaters_off().await;
+                let _ = me
+                    .update(id, |s| {
+                        if !s.state.is_final() {
+                            s.state = State::Failed;
+                            s.reason = Some(msg.clone());
+                            s.progress = "failed; heaters off".into();
+                        }
+                        Ok(())
+                    })
+                    .await;
+                me.core
+                    .console_error(&format!("{TITLE} failed: {msg}"))
+                    .await;
+            }
+        });
+    }
+
+    async fn run(&self, id: i64) -> anyhow::Result<()> {
+        loop {
+            let s: Session = self.core.load(id)?;
+            match s.state {
+                State::Preflight => {
+                    if s.options.bed_temp_c > 0.0 {
+                        BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                    }
+                    self.set_state(id, State::Soaking, "heating the bed")
+                        .await?;
+                }
+                State::Soaking => self.soak_bed(&s).await?,
+                State::Capturing => self.capture_loop(s).await?,
+                State::Writing => self.write_profiles(s).await?,
+                _ => return Ok(()),
+            }
+        }
+    }
+
+    async fn soak_bed(&self, s: &Session) -> anyhow::Result<()> {
+        if s.options.bed_temp_c > 0.0 {
+            // After a restart the bed may be cold again: heat (again) before watching.
+            BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+            let mut soak = BedSoak::new(
+                self.soak.clone(),
+                s.options.bed_temp_c,
+                s.options.soak_max_s,
+                "mesh.soak_max_s",
+            );
+            loop {
+                match soak.poll(&self.core, "thermal mesh").await? {
+                    SoakUpdate::Stable { .. } => break,
+                    SoakUpdate::Heating => {}
+                    SoakUpdate::Soaking { text, .. } => {
+                        let _ = self
+                            .update(s.id, |d| {
+                                d.progress = text;
+                                Ok(())
+                            })
+                            .await;
+                    }
+                }
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+        let now = now_unix();
+        self.update(s.id, |d| {
+            d.state = State::Capturing;
+            d.started_unix.get_or_insert(now);
+            d.progress = "bed stable; taking the first mesh".into();
+            Ok(())
+        })
+        .await
+    }
+
+    async fn homed(&self) -> anyhow::Result<()> {
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"toolhead": ["homed_axes"]}))
+            .await?;
+        if st["toolhead"]["homed_axes"].as_str().unwrap_or("") != "xyz" {
+            self.core
+                .m()
+                .gcode_within("G28", Duration::from_secs(300))
+                .await?;
+        }
+        Ok(())
+    }
+
+    /// One BED_MESH_CALIBRATE with the frame sampled while it runs.
+    async fn take_mesh(&self, s: &Session) -> anyhow::Result<(CaptureDoc, Params)> {
+        self.homed().await?;
+        let sensor = s.options.frame_sensor.clone();
+        let me = self.clone();
+        let stop = CancellationToken::new();
+        let stop2 = stop.clone();
+        let sampler = tokio::spawn(async move {
+            let t0 = Instant::now();
+            let mut out: Vec<(f64, f64)> = Vec::new();
+            loop {
+                if let Ok(t) = me.frame_temp(&sensor).await {
+                    out.push((t0.elapsed().as_secs_f64(), t));
+                }
+                tokio::select! {
+                    () = stop2.cancelled() => break,
+                    () = tokio::time::sleep(Duration::from_millis(250)) => {}
+                }
+            }
+            if let Ok(t) = me.frame_temp(&sensor).await {
+                out.push((t0.elapsed().as_secs_f64(), t));
+            }
+            out
+        });
+        let done = self
+            .core
+            .m()
+            .gcode_within("BED_MESH_CALIBRATE", Duration::from_secs(900))
+            .await;
+        stop.cancel();
+        let samples = sampler.await.unwrap_or_default();
+        done.context("BED_MESH_CALIBRATE")?;
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"bed_mesh": ["probed_matrix", "profiles", "profile_name"]}))
+            .await?;
+        let bm = &st["bed_mesh"];
+        let rows: Vec<Vec<f64>> = serde_json::from_value(bm["probed_matrix"].clone())
+            .context("reading bed_mesh.probed_matrix")?;
+        let name = bm["profile_name"].as_str().unwrap_or("default");
+        let params = Params::from_status(&bm["profiles"][name]["mesh_params"])
+            .ok_or_else(|| anyhow!("bed_mesh reports no mesh_params for profile {name}"))?;
+        if rows.len() != params.y_count || rows.iter().any(|r| r.len() != params.x_count) {
+            return Err(anyhow!(
+                "the probed mesh is not {}×{}",
+                params.x_count,
+                params.y_count
+            ));
+        }
+        let temps = point_temps(&samples, params.x_count, params.y_count);
+        if temps.iter().any(|t| !t.is_finite()) {
+            return Err(user(format!(
+                "the frame sensor [temperature_sensor {}] gave no reading during the mesh",
+                s.options.frame_sensor
+            )));
+        }
+        let first = samples.first().map_or(f64::NAN, |s| s.1);
+        let last = samples.last().map_or(f64::NAN, |s| s.1);
+        let prev = s
+            .captures
+            .last()
+            .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64);
+        let heating = match prev {
+            Some(p) => (first + last) / 2.0 >= p,
+            None => last >= first,
+        };
+        Ok((
+            CaptureDoc {
+                n: s.captures.len() + 1,
+                at_unix: now_unix(),
+                temps_c: temps,
+                points_mm: rows.into_iter().flatten().collect(),
+                heating,
+            },
+            params,
+        ))
+    }
+
+    async fn capture_loop(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        let o = s.options.clone();
+        let started = s.started_unix.unwrap_or_else(now_unix);
+        if s.captures.is_empty() {
+            self.mesh_now(id).await?;
+        }
+        loop {
+            let s: Session = self.core.load(id)?;
+            if let Some(why) = capture_done(&s.captures, now_unix(), started, &o) {
+                let _ = self.core.heaters_off().await;
+                let msg = format!("{TITLE}: capture complete, {why}; heaters off; fitting");
+                self.core.console(&msg).await;
+                self.set_state(id, State::Writing, &msg).await?;
+                return Ok(());
+            }
+            let last = s.captures.last().ok_or_else(|| anyhow!("no mesh"))?;
+            let last_t = last.temps_c.iter().sum::<f64>() / last.temps_c.len().max(1) as f64;
+            let now_t = self.frame_temp(&o.frame_sensor).await?;
+            if mesh_due(last_t, now_t, now_unix() - last.at_unix, &o) {
+                self.mesh_now(id).await?;
+            } else {
+                tokio::time::sleep(Duration::from_secs(1)).await;
+            }
+        }
+    }
+
+    async fn mesh_now(&self, id: i64) -> anyhow::Result<()> {
+        let s: Session = self.core.load(id)?;
+        let (cap, params) = self.take_mesh(&s).await?;
+        let n = cap.n;
+        let mean = cap.temps_c.iter().sum::<f64>() / cap.temps_c.len().max(1) as f64;
+        if let Some(p) = &s.params {
+            if p.x_count != params.x_count || p.y_count != params.y_count {
+                return Err(user(format!(
+                    "mesh {n} is {}×{} but the first was {}×{}: the [bed_mesh] settings changed during the capture",
+                    params.x_count, params.y_count, p.x_count, p.y_count
+                )));
+            }
+        }
+        let msg = format!("{TITLE}: mesh {n} stored at frame {mean:.2} °C");
+        self.update(id, |d| {
+            d.captures.push(cap);
+            d.params.get_or_insert(params);
+            d.progress = msg.clone();
+            Ok(())
+        })
+        .await?;
+        self.core.console(&msg).await;
+        Ok(())
+    }
+
+    /// Fits, plans the profiles and writes them into the SAVE_CONFIG block; rolls back when
+    /// Klipper does not come back ready with every profile.
+    async fn write_profiles(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        let sel = fit_session(&s)?;
+        let params = s
+            .params
+            .clone()
+            .ok_or_else(|| anyhow!("no mesh parameters"))?;
+        let (lo, hi) = sel.fit.range_c;
+        let plan = cm::plan_profiles(&sel.fit, lo, hi, s.options.tolerance_um)
+            .map_err(|e| user(e.to_string()))?;
+        let caps = calib_captures(&s);
+        let refs: Vec<&Capture> = caps.iter().collect();
+        let vgb = cm::vgb_lomo(&refs).map(|e| (e.max_um, e.mean_um, e.rms_um));
+        let profiles: Vec<MeshProfile> = plan
+            .temps_c
+            .iter()
+            .map(|&t| {
+                let flat = sel.fit.predict(t).points_mm;
+                MeshProfile {
+                    name: profile_name(t),
+                    params: params.to_klipper(),
+                    points_mm: flat.chunks(params.x_count).map(<[f64]>::to_vec).collect(),
+                }
+            })
+            .collect();
+        self.core.printer_idle().await?;
+        let backup = self.write_block(&profiles).await?;
+        let result = ResultDoc {
+            model: sel.fit.kind.name().to_string(),
+            models: sel
+                .models
+                .iter()
+                .map(|(k, e)| (k.name().to_string(), e.max_um, e.mean_um, e.rms_um))
+                .collect(),
+            vgb,
+            range_c: (lo, hi),
+            profiles_c: plan.temps_c.clone(),
+            max_quantisation_um: plan.max_quantisation_um,
+            backup: Some(backup),
+        };
+        let msg = format!(
+            "{TITLE}: {} profiles klipcal_* written for {lo:.2}–{hi:.2} °C (model {}, worst \
+             step {:.1} µm); KLIPCAL_MESH_FOLLOW ENABLE=1 follows the frame",
+            plan.temps_c.len(),
+            result.model,
+            plan.max_quantisation_um
+        );
+        self.update(id, |d| {
+            d.result = Some(result);
+            d.state = State::Done;
+            d.progress = msg.clone();
+            Ok(())
+        })
+        .await?;
+        self.core.console(&msg).await;
+        Ok(())
+    }
+
+    /// Replaces the klipcal profiles in printer.cfg's SAVE_CONFIG block: backup, upload,
+    /// restart, verify each profile is known; on failure the backup goes back.
+    async fn write_block(&self, profiles: &[MeshProfile]) -> anyhow::Result<String> {
+        let files = self.core.files();
+        let old = files
+            .download("config", "printer.cfg")
+            .await
+            .context("reading printer.cfg")?;
+        let text =
+            String::from_utf8(old.clone()).map_err(|_| anyhow!("printer.cfg is not UTF-8"))?;
+        let new =
+            bed_mesh::replace_klipcal_profiles(&text, profiles).map_err(|e| user(e.to_string()))?;
+        let stamp = super::printer_config::stamp(now_unix() as u64);
+        let backup = format!("klipcal_backups/{stamp}/printer.cfg");
+        files
+            .upload("config", &backup, old.clone())
+            .await
+            .context("backing up printer.cfg")?;
+        files
+            .upload("config", "printer.cfg", new.into_bytes())
+            .await
+            .context("writing printer.cfg")?;
+        let (state, msg) =
+            super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
+                .await?;
+        let ok = state == "ready" && {
+            let st = self
+                .core
+                .m()
+                .objects_query(json!({"bed_mesh": ["profiles"]}))
+                .await?;
+            profiles
+                .iter()
+                .all(|p| !st["bed_mesh"]["profiles"][&p.name].is_null())
+        };
+        if ok {
+            return Ok(format!("config/{backup}"));
+        }
+        files
+            .upload("config", "printer.cfg", old)
+            .await
+            .context("restoring printer.cfg")?;
+        let _ =
+            super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
+                .await;
+        Err(user(format!(
+            "Klipper did not accept the profiles ({state}: {}); printer.cfg was restored from config/{backup}",
+            msg.trim()
+        )))
+    }
+
+    /// The newest finished capture and its fit.
+    fn model(&self) -> anyhow::Result<(Session, cm::Selection)> {
+        let Some((_, s)) = self.core.latest_of::<Session>(KIND)? else {
+            return Err(user(
+                "no thermal mesh captured yet; run KLIPCAL_MESH_CAPTURE first",
+            ));
+        };
+        let s: Session = match s.state {
+            State::Done => s,
+            _ => {
+                // the latest may be running or failed: use the newest done one
+                return Err(user(format!(
+                    "the newest thermal mesh session ({}) is {}; a finished capture is needed",
+                    s.id,
+                    s.state.name()
+                )));
+            }
+        };
+        let sel = fit_session(&s)?;
+        Ok((s, sel))
+    }
+
+    async fn stop_following(&self, why: &str) {
+        let t = self.follow.lock().ok().and_then(|mut f| f.take());
+        if let Some(t) = t {
+            t.cancel();
+            if let Ok(mut st) = self.follow_status.lock() {
+                *st = json!({"following": false, "stopped": why});
+            }
+            self.core
+                .console(&format!("{TITLE}: following stopped ({why})"))
+                .await;
+        }
+    }
+
+    /// `klipcal_mesh_follow`: starts or stops following the frame temperature.
+    async fn follow_cmd(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_MESH_FOLLOW", &["enable"])?;
+        let enable = match a.text("enable").as_deref() {
+            None | Some("1") => true,
+            Some("0") => false,
+            Some(other) => {
+                return Err(user(format!(
+                    "ENABLE={other}: expected 1 (follow) or 0 (stop)"
+                )))
+            }
+        };
+        if !enable {
+            self.stop_following("KLIPCAL_MESH_FOLLOW ENABLE=0").await;
+            return Ok(json!({"following": false, "message": "thermal mesh following is off"}));
+        }
+        let (s, sel) = self.model()?;
+        let temps = s
+            .result
+            .as_ref()
+            .map(|r| r.profiles_c.clone())
+            .unwrap_or_default();
+        if temps.is_empty() {
+            return Err(user(
+                "the last capture wrote no profiles; run KLIPCAL_MESH_CAPTURE again",
+            ));
+        }
+        let cf = self.core.m().configfile().await?;
+        let bm = &cf["settings"]["bed_mesh"];
+        let fade_end = bm["fade_end"].as_f64().unwrap_or(0.0);
+        let fade_start = bm["fade_start"].as_f64().unwrap_or(1.0);
+        if fade_end > fade_start {
+            return Err(user(format!(
+                "[bed_mesh] fades the mesh out from {fade_start} to {fade_end} mm: a profile loaded mid-print \
+                 would be faded differently from the one it replaces (VGB: IMPORTANT). Set fade_end: 0 in \
+                 [bed_mesh] (or remove fade_start/fade_end), restart, then KLIPCAL_MESH_FOLLOW ENABLE=1"
+            )));
+        }
+        self.stop_following("restarted").await;
+        let token = self.core.shutdown().child_token();
+        if let Ok(mut f) = self.follow.lock() {
+            *f = Some(token.clone());
+        }
+        let me = self.clone();
+        let sensor = s.options.frame_sensor.clone();
+        let policy = self.settings.follow_policy();
+        tokio::spawn(async move {
+            me.follow_loop(token, sensor, policy, sel.fit, temps).await;
+        });
+        let msg = format!(
+            "{TITLE}: following the frame temperature with the profiles of session {}",
+            s.id
+        );
+        self.core.console(&msg).await;
+        Ok(json!({"following": true, "session": s.id, "message": msg}))
+    }
+
+    async fn follow_loop(
+        &self,
+        token: CancellationToken,
+        sensor: String,
+        policy: crate::calib::mesh_follow::FollowPolicy,
+        fit: cm::Fit,
+        temps: Vec<f64>,
+    ) {
+        let t0 = Instant::now();
+        let mut f = Follower::new(policy, &fit, &temps, None);
+        loop {
+            tokio::select! {
+                () = token.cancelled() => return,
+                () = tokio::time::sleep(Duration::from_secs(1)) => {}
+            }
+            let t = t0.elapsed().as_secs_f64();
+            let busy = self.busy().await;
+            let d = match self.frame_temp(&sensor).await {
+                Ok(temp) => {
+                    let d = f.push(t, temp, &fit, busy);
+                    if let Ok(mut st) = self.follow_status.lock() {
+                        *st = json!({"following": true, "frame_c": temp,
+                            "loaded": f.loaded().map(|k| profile_name(temps[k])),
+                            "residual_um": match &d { Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => Some(*residual_um), _ => None }});
+                    }
+                    d
+                }
+                Err(_) => match f.tick(t) {
+                    Some(d) => d,
+                    None => continue,
+                },
+            };
+            match d {
+                Decision::Keep { .. } => {}
+                Decision::Load {
+                    index,
+                    temp_c,
+                    residual_um,
+                } => {
+                    let name = profile_name(temp_c);
+                    match self
+                        .core
+                        .m()
+                        .gcode(&format!("BED_MESH_PROFILE LOAD={name}"))
+                        .await
+                    {
+                        Ok(()) => info!(profile = %name, residual_um, "mesh profile loaded"),
+                        Err(e) => warn!(profile = %name, error = %e, "mesh profile load failed"),
+                    }
+                    let _ = index;
+                }
+                Decision::RefuseJump { index, jump_um } => {
+                    self.core
+                        .console_error(&format!(
+                            "{TITLE}: loading {} would change the mesh by {jump_um:.0} µm (limit {:.0} µm, \
+                             mesh.jump_limit_um): following stopped — was it switched on mid-print, or did the \
+                             frame sensor jump?",
+                            profile_name(temps[index]),
+                            policy.jump_limit_um
+                        ))
+                        .await;
+                    self.stop_following("a jump over the limit").await;
+                    return;
+                }
+                Decision::Stopped { reason } => {
+                    self.core.console_error(&format!("{TITLE}: {reason}")).await;
+                    if let Ok(mut st) = self.follow_status.lock() {
+                        *st = json!({"following": false, "stopped": reason});
+                    }
+                    if let Ok(mut fl) = self.follow.lock() {
+                        fl.take();
+                    }
+                    return;
+                }
+            }
+        }
+    }
+
+    /// Homing or probing in progress (never load a mesh then).
+    async fn busy(&self) -> bool {
+        match self
+            .core
+            .m()
+            .objects_query(json!({"idle_timeout": ["state"]}))
+            .await
+        {
+            Ok(st) => {
+                // "Printing" in idle_timeout means busy executing G-code (a move, a probe);
+                // during a print the mesh is loaded between moves by Klipper's queue, which
+                // is safe, so only an active print_stats print counts as not busy.
+                let it = st["idle_timeout"]["state"].as_str().unwrap_or("");
+                let ps = self
+                    .core
+                    .m()
+                    .objects_query(json!({"print_stats": ["state"]}))
+                    .await
+                    .ok()
+                    .and_then(|s| s["print_stats"]["state"].as_str().map(str::to_string))
+                    .unwrap_or_default();
+                it == "Printing" && ps != "printing"
+            }
+            Err(_) => true,
+        }
+    }
+
+    /// `klipcal_mesh_check`: probes the mesh's corners and centre and compares each with the
+    /// model at the current frame temperature (seed 001: a difference over the reference
+    /// limit halts the print start).
+    async fn check(&self, _args: &Value) -> anyhow::Result<Value> {
+        // From PRINT_START the macro pauses the print right after asking (a remote call does
+        // not wait): wait for the pause, probe, then RESUME on a pass or CANCEL_PRINT on a fail.
+        let in_print = self.paused_print().await?;
+        let outcome = self.check_points().await;
+        if in_print {
+            let next = if outcome.is_ok() {
+                "RESUME"
+            } else {
+                "CANCEL_PRINT"
+            };
+            if let Err(e) = self.core.m().gcode(next).await {
+                warn!(error = %e, "{next} after the mesh check failed");
+            }
+        }
+        outcome
+    }
+
+    /// Whether a print is paused for the check (waiting up to 20 s for the macro's PAUSE).
+    async fn paused_print(&self) -> anyhow::Result<bool> {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let st = self
+                .core
+                .m()
+                .objects_query(json!({"print_stats": ["state"]}))
+                .await?;
+            match st["print_stats"]["state"].as_str().unwrap_or("") {
+                "paused" => return Ok(true),
+                "printing" if Instant::now() < deadline => {
+                    tokio::time::sleep(Duration::from_millis(250)).await;
+                }
+                "printing" => {
+                    return Err(user(
+                        "a print is running and was not paused for the check: KLIPCAL_MESH_CHECK pauses \
+                         the print itself when called from PRINT_START (use klipcal.cfg's macro)",
+                    ))
+                }
+                _ => return Ok(false),
+            }
+        }
+    }
+
+    async fn check_points(&self) -> anyhow::Result<Value> {
+        let (s, sel) = self.model()?;
+        let params = s
+            .params
+            .clone()
+            .ok_or_else(|| anyhow!("no mesh parameters"))?;
+        let temp = self.frame_temp(&s.options.frame_sensor).await?;
+        let (lo, hi) = sel.fit.range_c;
+        let t_model = temp.clamp(lo, hi);
+        let predicted = sel.fit.predict(t_model).points_mm;
+        self.homed().await?;
+        let (xc, yc) = (params.x_count, params.y_count);
+        let nodes = [
+            (0, 0),
+            (xc - 1, 0),
+            (0, yc - 1),
+            (xc - 1, yc - 1),
+            (xc / 2, yc / 2),
+        ];
+        let at = |i: usize, n: usize, a: f64, b: f64| {
+            if n > 1 {
+                a + (b - a) * i as f64 / (n - 1) as f64
+            } else {
+                a
+            }
+        };
+        let cf = self.core.m().configfile().await?;
+        let probe = probe_settings(&cf["settings"]);
+        let (ox, oy) = (
+            probe["x_offset"].as_f64().unwrap_or(0.0),
+            probe["y_offset"].as_f64().unwrap_or(0.0),
+        );
+        // bed_mesh stores each point as the probe's result less its z_offset: the same here.
+        let z_offset = probe["z_offset"].as_f64().unwrap_or(0.0);
+        let mut worst: (f64, String) = (0.0, String::new());
+        let mut rows = Vec::new();
+        for (ix, iy) in nodes {
+            let (x, y) = (
+                at(ix, xc, params.min_x, params.max_x),
+                at(iy, yc, params.min_y, params.max_y),
+            );
+            let up = crate::klipper::GcodeCmd::new("G1")
+                .axis('Z', 5.0)
+                .axis('F', 600.0)
+                .build()
+                .map_err(|e| anyhow!("{e}"))?;
+            let over = crate::klipper::GcodeCmd::new("G1")
+                .axis('X', x - ox)
+                .axis('Y', y - oy)
+                .axis('F', 6000.0)
+                .build()
+                .map_err(|e| anyhow!("{e}"))?;
+            self.core.m().gcode(&format!("G90\n{up}\n{over}")).await?;
+            self.core
+                .m()
+                .gcode_within("PROBE", Duration::from_secs(120))
+                .await?;
+            let st = self
+                .core
+                .m()
+                .objects_query(json!({"probe": ["last_z_result"]}))
+                .await?;
+            let z = st["probe"]["last_z_result"]
+                .as_f64()
+                .ok_or_else(|| anyhow!("probe gave no result"))?
+                - z_offset;
+            let want = predicted[iy * xc + ix];
+            let diff = z - want;
+            let label = format!("X{x:.1} Y{y:.1}");
+            if diff.abs() > worst.0.abs() {
+                worst = (diff, label.clone());
+            }
+            rows.push(json!({"x": x, "y": y, "probed_mm": z, "model_mm": want, "diff_mm": diff}));
+        }
+        let limit = self.settings.reference_limit_mm;
+        let clamp_note = if (temp - t_model).abs() > 1e-9 {
+            format!(" (frame {temp:.2} °C is outside the captured {lo:.2}–{hi:.2} °C: the model at {t_model:.2} °C was used)")
+        } else {
+            String::new()
+        };
+        if worst.0.abs() > limit {
+            self.stop_following("the reference check failed").await;
+            let msg = format!(
+                "{TITLE} check: at {} the bed is {:+.3} mm from the model (limit {limit} mm, \
+                 mesh.reference_limit_mm){clamp_note}: a swapped build plate or a loose probe? \
+                 The print start is cancelled and following is off until a new KLIPCAL_MESH_CAPTURE",
+                worst.1, worst.0
+            );
+            return Err(user(msg));
+        }
+        let msg = format!(
+            "{TITLE} check passed: largest difference {:+.3} mm at {} (limit {limit} mm){clamp_note}",
+            worst.0, worst.1
+        );
+        Ok(json!({"ok_check": true, "points": rows, "frame_c": temp, "message": msg}))
+    }
+
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+        self.core.stop_runner();
+        let _ = self.core.heaters_off().await;
+        self.update(id, |s| {
+            s.state = State::Cancelled;
+            s.reason = Some(reason.to_string());
+            s.progress = "cancelled; heaters off (meshes taken so far are kept)".into();
+            Ok(())
+        })
+        .await?;
+        Ok(json!({"session": id, "state": "cancelled",
+                  "message": format!("thermal mesh session {id} cancelled ({reason}); heaters off")}))
+    }
+
+    fn session_status(&self, s: &Session) -> Value {
+        let follow = self
+            .follow_status
+            .lock()
+            .map(|v| v.clone())
+            .unwrap_or(Value::Null);
+        json!({
+            "id": s.id,
+            "state": s.state.name(),
+            "progress": s.progress,
+            "reason": s.reason,
+            "meshes": s.captures.len(),
+            "frame_c": s.captures.iter().map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64).collect::<Vec<_>>(),
+            "result": s.result,
+            "notes": s.notes,
+            "follow": follow,
+        })
+    }
+}
+
+/// The probe's section in Klipper's settings: `[probe]`, `[bltouch]`, `[smart_effector]`, an
+/// eddy probe or another module's `[… probe]` — the first with a `z_offset`.
+fn probe_settings(settings: &Value) -> Value {
+    let Some(map) = settings.as_object() else {
+        return Value::Null;
+    };
+    let is_probe = |name: &str| {
+        name == "probe"
+            || name == "bltouch"
+            || name == "smart_effector"
+            || name.starts_with("probe_eddy_current")
+            || name.ends_with(" probe")
+    };
+    map.iter()
+        .find(|(k, v)| is_probe(k) && v.get("z_offset").is_some())
+        .map(|(_, v)| v.clone())
+        .unwrap_or(Value::Null)
+}
+
+/// `klipcal_<T>` with T to 0.01 °C.
+#[must_use]
+pub fn profile_name(temp_c: f64) -> String {
+    format!("{}{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX)
+}
+
+impl Calibration for Mesh {
+    fn kind(&self) -> &'static str {
+        KIND
+    }
+
+    fn title(&self) -> &'static str {
+        "a thermal mesh capture"
+    }
+
+    fn methods(&self) -> &'static [&'static str] {
+        METHODS
+    }
+
+    fn call<'a>(
+        &'a self,
+        method: &'a str,
+        args: &'a Value,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        async move {
+            match method {
+                "klipcal_mesh_capture" => self.capture(args).await,
+                "klipcal_mesh_follow" => self.follow_cmd(args).await,
+                "klipcal_mesh_check" => {
+                    Args::parse(args, "KLIPCAL_MESH_CHECK", &[])?;
+                    self.check(args).await
+                }
+                other => Err(anyhow!("{other} is not a thermal mesh method")),
+            }
+        }
+        .boxed()
+    }
+
+    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        async move {
+            let Ok(s) = self.core.load::<Session>(row.id) else {
+                return;
+            };
+            if !s.state.is_final() {
+                info!(session = s.id, state = %s.state.name(), "resuming thermal mesh session");
+                self.spawn_runner(s.id);
+            }
+        }
+        .boxed()
+    }
+
+    fn cancel<'a>(
+        &'a self,
+        row: &'a SessionRow,
+        reason: &'a str,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        self.cancel_session(row.id, reason).boxed()
+    }
+
+    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+        let s: Session = serde_json::from_value(row.doc.clone())
+            .with_context(|| format!("reading stored session {}", row.id))?;
+        Ok(self.session_status(&s))
+    }
+
+    fn held(&self, row: &SessionRow) -> Option<Hold> {
+        // The capture holds the bed hot for at most mesh.max_s from its start.
+        let s: Session = serde_json::from_value(row.doc.clone()).ok()?;
+        (s.state == State::Capturing).then_some(Hold {
+            since_unix: s.started_unix?,
+            max_s: s.options.max_s + 600.0,
+        })
+    }
+
+    fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        async move {
+            let _ = self
+                .update(row.id, |s| {
+                    s.notes
+                        .push("heaters turned off: the capture ran past mesh.max_s".into());
+                    Ok(())
+                })
+                .await;
+        }
+        .boxed()
+    }
+
+    fn connected(&self) -> BoxFuture<'_, ()> {
+        async move {
+            if self.settings.follow {
+                if let Err(e) = self.follow_cmd(&json!({"enable": "1"})).await {
+                    warn!(error = %format!("{e:#}"), "mesh.follow is on but following cannot start");
+                }
+            }
+        }
+        .boxed()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn opts() -> MeshOptions {
+        MeshOptions {
+            bed_temp_c: 60.0,
+            frame_sensor: "frame".into(),
+            step_c: 0.5,
+            interval_s: 600.0,
+            settle_c: 0.2,
+            min_meshes: 3,
+            max_meshes: 10,
+            max_s: 7200.0,
+            soak_max_s: 600.0,
+            tolerance_um: 5.0,
+        }
+    }
+
+    #[test]
+    fn each_point_gets_the_frame_temperature_of_its_moment_in_klippers_probe_order() {
+        // 3×2 mesh probed over 5 s while the frame rose 1 °C/s: row 0 left→right, row 1
+        // right→left (Klipper's zigzag).
+        let samples: Vec<(f64, f64)> = (0..=5).map(|k| (k as f64, 30.0 + k as f64)).collect();
+        let t = point_temps(&samples, 3, 2);
+        assert_eq!(t, vec![30.0, 31.0, 32.0, 35.0, 34.0, 33.0]);
+        assert!(point_temps(&[], 3, 2).iter().all(|v| v.is_nan()));
+    }
+
+    #[test]
+    fn a_mesh_is_due_after_a_step_or_an_interval() {
+        let o = opts();
+        assert!(!mesh_due(30.0, 30.4, 100.0, &o));
+        assert!(mesh_due(30.0, 30.5, 100.0, &o));
+        assert!(mesh_due(30.0, 29.4, 100.0, &o));
+        assert!(mesh_due(30.0, 30.0, 600.0, &o));
+    }
+
+    fn cap(n: usize, at: f64, t: f64) -> CaptureDoc {
+        CaptureDoc {
+            n,
+            at_unix: at,
+            temps_c: vec![t; 4],
+            points_mm: vec![0.0; 4],
+            heating: true,
+        }
+    }
+
+    #[test]
+    fn the_capture_ends_when_the_frame_settles_or_a_limit_is_reached() {
+        let o = opts();
+        // Still warming: 1 °C per interval.
+        let warming = [cap(1, 0.0, 30.0), cap(2, 600.0, 31.0), cap(3, 1200.0, 32.0)];
+        assert_eq!(capture_done(&warming, 1200.0, 0.0, &o), None);
+        // Settled: 0.1 °C over the last interval.
+        let settled = [cap(1, 0.0, 30.0), cap(2, 600.0, 33.0), cap(3, 1200.0, 33.1)];
+        assert!(capture_done(&settled, 1200.0, 0.0, &o)
+            .unwrap()
+            .contains("settled"));
+        // Too few meshes to stop on a settled frame.
+        assert_eq!(capture_done(&settled[..2], 600.0, 0.0, &o), None);
+        assert!(capture_done(&warming, 7300.0, 0.0, &o)
+            .unwrap()
+            .contains("mesh.max_s"));
+        let many: Vec<CaptureDoc> = (0..10)
+            .map(|k| cap(k + 1, k as f64 * 60.0, 30.0 + k as f64))
+            .collect();
+        assert!(capture_done(&many, 600.0, 0.0, &o)
+            .unwrap()
+            .contains("mesh.max_meshes"));
+    }
+
+    #[test]
+    fn profile_names_carry_the_temperature_to_a_hundredth() {
+        assert_eq!(profile_name(31.256), "klipcal_31.26");
+    }
+}

@@ -1,0 +1,201 @@
+//! The daemon's thermal mesh (issue 11) on the mesh-variant bench (simulated probe, a frame
+//! thermistor fed by the plant, a gantry bow that grows with the frame): a capture through
+//! the macro-facing remote method heats, soaks, takes meshes as the frame warms, fits and
+//! writes `klipcal_<T>` profiles Klipper loads; following loads them; the reference check
+//! passes on the same bed and halts on a shifted one; fade and bad arguments are refused.
+
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::bench::{extension_request, poll, Bench, Daemon};
+use crate::session::settings;
+
+const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0},
+    "frame": {"gain": 0.3, "tau_s": 400.0, "lag_s": 30.0}}"#;
+
+fn mesh_settings() -> String {
+    // The [soak] of the A/B bench tests (fast plant), and a capture that ends after 4 meshes.
+    let base = settings(600.0);
+    format!(
+        "{base}[mesh]\nbed_temp_c = 60.0\nstep_c = 0.3\ninterval_s = 5.0\nsettle_c = 0.01\n\
+         min_meshes = 3\nmax_meshes = 4\nmax_s = 900.0\nsoak_max_s = 600.0\ntolerance_um = 5.0\n\
+         follow_interval_s = 1.0\njump_limit_um = 1000.0\n"
+    )
+}
+
+async fn mesh_session(bench: &Bench) -> Value {
+    extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .map(|v| v["last"]["mesh"].clone())
+        .unwrap_or(Value::Null)
+}
+
+#[tokio::test]
+async fn capture_fit_profiles_follow_and_check_on_the_bench() {
+    let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
+    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    let files = bench.files();
+    // Bad arguments are refused by name.
+    let e = extension_request(&files, "klipcal_mesh_capture", json!({"bde": 60}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("unknown argument BDE"), "{e}");
+    let e = extension_request(&files, "klipcal_mesh_follow", json!({"enable": "yes"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("ENABLE=yes"), "{e}");
+    let e = extension_request(&files, "klipcal_mesh_follow", json!({}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("KLIPCAL_MESH_CAPTURE"),
+        "following needs a capture first: {e}"
+    );
+
+    extension_request(&files, "klipcal_mesh_capture", json!({}))
+        .await
+        .unwrap();
+    let done = poll(Duration::from_secs(600), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("capture never finished: {}\n{}", "", d.log_text()));
+    assert_eq!(done["state"], "done", "{done}\n{}", d.log_text());
+    assert!(done["meshes"].as_u64().unwrap() >= 3, "{done}");
+    // The frame warmed while the meshes were taken, and each mesh is stamped with it.
+    let frames: Vec<f64> = serde_json::from_value(done["frame_c"].clone()).unwrap();
+    assert!(
+        frames.last().unwrap() > frames.first().unwrap(),
+        "{frames:?}"
+    );
+    let result = &done["result"];
+    let temps: Vec<f64> = serde_json::from_value(result["profiles_c"].clone()).unwrap();
+    assert!(!temps.is_empty(), "{result}");
+    // The profiles are in printer.cfg's SAVE_CONFIG block and Klipper knows them.
+    let cfg = std::fs::read_to_string(bench.dir.path().join("config/printer.cfg")).unwrap();
+    assert!(
+        cfg.contains("#*# [bed_mesh klipcal_"),
+        "no profiles in printer.cfg"
+    );
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let st = m
+        .objects_query(json!({"bed_mesh": ["profiles"]}))
+        .await
+        .unwrap();
+    let known: Vec<String> = st["bed_mesh"]["profiles"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .cloned()
+        .collect();
+    for t in &temps {
+        let name = format!("klipcal_{t:.2}");
+        assert!(known.contains(&name), "{name} not in {known:?}");
+    }
+    // The heaters went off at the end of the capture.
+    let hb = m
+        .objects_query(json!({"heater_bed": ["target"]}))
+        .await
+        .unwrap();
+    assert_eq!(hb["heater_bed"]["target"], json!(0.0));
+
+    // Following loads a klipcal profile.
+    extension_request(&files, "klipcal_mesh_follow", json!({"enable": "1"}))
+        .await
+        .unwrap();
+    let loaded = poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"bed_mesh": ["profile_name"]}))
+            .await
+            .ok()?;
+        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
+        name.starts_with("klipcal_").then_some(name)
+    })
+    .await;
+    assert!(
+        loaded.is_some(),
+        "no klipcal profile loaded\n{}",
+        d.log_text()
+    );
+    let s = mesh_session(&bench).await;
+    assert_eq!(s["follow"]["following"], json!(true), "{s}");
+    extension_request(&files, "klipcal_mesh_follow", json!({"enable": "0"}))
+        .await
+        .unwrap();
+
+    // The reference check passes on the same bed.
+    let r = extension_request(&files, "klipcal_mesh_check", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        r["message"].as_str().unwrap().contains("check passed"),
+        "{r}"
+    );
+
+    // A shifted bed (a swapped plate): the check refuses with the point and the difference.
+    let surface = bench.dir.path().join("comms/surface.json");
+    let mut sp: Value = serde_json::from_str(&std::fs::read_to_string(&surface).unwrap()).unwrap();
+    sp["tilt_x_um"] = json!(900.0);
+    std::fs::write(&surface, sp.to_string()).unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    poll(Duration::from_secs(60), || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    })
+    .await
+    .expect("klippy back");
+    let e = extension_request(&files, "klipcal_mesh_check", json!({}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("from the model") && e.contains("limit 0.5 mm"),
+        "{e}"
+    );
+    drop(d);
+}
+
+#[tokio::test]
+async fn following_is_refused_while_bed_mesh_fades() {
+    let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
+    // A finished capture is needed first; take a short one, then turn fade on.
+    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_mesh_capture", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let done = poll(Duration::from_secs(600), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .expect("capture finished");
+    assert_eq!(done["state"], "done", "{done}");
+    let path = bench.dir.path().join("config/printer.cfg");
+    let cfg = std::fs::read_to_string(&path).unwrap();
+    std::fs::write(
+        &path,
+        cfg.replacen(
+            "[bed_mesh]\n",
+            "[bed_mesh]\nfade_start: 1\nfade_end: 10\n",
+            1,
+        ),
+    )
+    .unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let ready = poll(Duration::from_secs(60), || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    })
+    .await;
+    assert!(ready.is_some());
+    let e = extension_request(&files, "klipcal_mesh_follow", json!({"enable": "1"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("fade_end: 0"), "{e}");
+    drop(d);
+}
