@@ -54,6 +54,9 @@ pub const OPERATIONS: &[(&str, &str)] = &[
     ("backlash/start", "klipcal_backlash_start"),
     ("backlash/jog", "klipcal_backlash_jog"),
     ("backlash/apply", "klipcal_backlash_apply"),
+    ("mesh/capture", "klipcal_mesh_capture"),
+    ("mesh/follow", "klipcal_mesh_follow"),
+    ("mesh/check", "klipcal_mesh_check"),
 ];
 
 /// Binds `[http] bind` and serves until `cancel`; returns the bound address.
