@@ -554,6 +554,11 @@ impl Mesh {
                 tokio::time::sleep(Duration::from_secs(1)).await;
             }
         }
+        // Between meshes the printer idles: Klipper's idle timeout must not end the capture,
+        // yet still turns the heaters off if klipcal stops (at most an interval later).
+        self.core
+            .hold_heaters_for(s.options.interval_s + 600.0)
+            .await?;
         let now = now_unix();
         self.update(s.id, |d| {
             d.state = State::Capturing;

@@ -159,21 +159,57 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
 }
 
 #[tokio::test]
-async fn following_is_refused_while_bed_mesh_fades() {
+async fn a_capture_started_over_http_survives_kill_9_and_following_refuses_a_fading_mesh() {
     let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
-    // A finished capture is needed first; take a short one, then turn fade on.
-    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    let mut d = Daemon::ready(&bench, &mesh_settings()).await;
     let files = bench.files();
-    extension_request(&files, "klipcal_mesh_capture", json!({"bed": 60}))
+    // Started through the daemon's own API.
+    let base = d.page_url().await;
+    let r = reqwest::Client::new()
+        .post(format!("{base}/api/mesh/capture"))
+        .header("content-type", "application/json")
+        .body(r#"{"bed": 60}"#)
+        .send()
         .await
         .unwrap();
+    assert_eq!(
+        r.status().as_u16(),
+        200,
+        "{}",
+        r.text().await.unwrap_or_default()
+    );
+    // Killed (-9) once a mesh is stored: the stored meshes survive and the capture goes on.
+    let first = poll(Duration::from_secs(300), || async {
+        let s = mesh_session(&bench).await;
+        (s["meshes"].as_u64().unwrap_or(0) >= 1).then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("no mesh stored\n{}", d.log_text()));
+    let _ = d.child.kill();
+    let _ = d.child.wait();
+    let before: Vec<f64> = serde_json::from_value(first["frame_c"].clone()).unwrap();
+    let d2 = Daemon::ready(&bench, &mesh_settings()).await;
     let done = poll(Duration::from_secs(600), || async {
         let s = mesh_session(&bench).await;
         matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
     })
     .await
-    .expect("capture finished");
-    assert_eq!(done["state"], "done", "{done}");
+    .expect("capture finished after the restart");
+    assert_eq!(done["state"], "done", "{done}\n{}", d2.log_text());
+    let after: Vec<f64> = serde_json::from_value(done["frame_c"].clone()).unwrap();
+    assert_eq!(
+        &after[..before.len()],
+        &before[..],
+        "meshes stored before the kill were lost"
+    );
+    assert!(after.len() > before.len(), "{after:?}");
+    assert!(
+        d2.log_text().contains("resuming thermal mesh session"),
+        "{}",
+        d2.log_text()
+    );
+
+    // With [bed_mesh] fading, following is refused and says how to fix it.
     let path = bench.dir.path().join("config/printer.cfg");
     let cfg = std::fs::read_to_string(&path).unwrap();
     std::fs::write(
@@ -197,5 +233,5 @@ async fn following_is_refused_while_bed_mesh_fades() {
         .await
         .unwrap_err();
     assert!(e.contains("fade_end: 0"), "{e}");
-    drop(d);
+    drop(d2);
 }
