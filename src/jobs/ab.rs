@@ -953,8 +953,21 @@ impl Ab {
             values.len(),
             s.options.readings_per_pair
         ));
-        if missing.is_empty() {
+        let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
+        let progress = pairs_progress(&round.layout.pairs, &have, s.options.readings_per_pair);
+        message.push('\n');
+        message.push_str(&progress);
+        if missing.is_empty() && s.state == State::Measuring {
             message.push_str("\nall pairs measured: KLIPCAL_AB_SOLVE computes the new values");
+            // A decision its buttons can answer: solve now, or close and look again.
+            self.core
+                .prompt(&Prompt {
+                    title: format!("klipcal: all pairs measured (round {})", s.rounds.len()),
+                    lines: vec![progress.clone()],
+                    buttons: vec![Button::new("Solve", "KLIPCAL_AB_SOLVE", "primary")],
+                    footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+                })
+                .await;
         }
         Ok(json!({"pair": pair.id, "saved": values, "count": count,
                   "readings": have.get(&pair.id).cloned().unwrap_or_default(),
@@ -1394,6 +1407,26 @@ impl Calibration for Ab {
     }
 }
 
+/// Every pair's count of readings in one line: `A-D1 5/5 ✓ · A-D2 2/5 · …`.
+fn pairs_progress(
+    pairs: &[crate::layout::Pair],
+    have: &BTreeMap<String, Vec<f64>>,
+    per_pair: usize,
+) -> String {
+    pairs
+        .iter()
+        .map(|p| {
+            let n = have.get(&p.id).map_or(0, Vec::len);
+            format!(
+                "{} {n}/{per_pair}{}",
+                p.id,
+                if n >= per_pair { " ✓" } else { "" }
+            )
+        })
+        .collect::<Vec<_>>()
+        .join(" · ")
+}
+
 /// The round's pair named `typed` (any case) and its plausibility window.
 fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair, entry::Window)> {
     let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
@@ -1491,6 +1524,23 @@ fn solution_text(sol: &Solution) -> String {
 mod tests {
     use super::*;
     use crate::store::Store;
+
+    #[test]
+    fn the_measuring_progress_marks_complete_pairs() {
+        let pair = |id: &str| crate::layout::Pair {
+            id: id.into(),
+            group: "A".into(),
+            from: "A1".into(),
+            to: "A2".into(),
+            direction_deg: 45.0,
+            nominal_mm: 10.0,
+        };
+        let mut have = BTreeMap::new();
+        have.insert("A-D1".to_string(), vec![10.0; 5]);
+        have.insert("A-D2".to_string(), vec![150.0; 2]);
+        let line = pairs_progress(&[pair("A-D1"), pair("A-D2"), pair("B-D1")], &have, 5);
+        assert_eq!(line, "A-D1 5/5 ✓ · A-D2 2/5 · B-D1 0/5");
+    }
 
     #[test]
     fn rotation_distances_are_written_without_trailing_zeros() {

@@ -353,6 +353,9 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     assert!(text.contains("saved"), "{text}");
     assert!(text.contains("rotation_distance"), "{text}");
     assert!(text.contains("action:prompt_begin"), "{text}");
+    // Each answer shows every pair's count; the last one offers Solve as a decision.
+    assert!(text.contains("5/5 ✓"), "{text}");
+    assert!(text.contains("all pairs measured"), "{text}");
 }
 
 fn futures_lite(bench: &Bench) -> String {
