@@ -15,7 +15,7 @@ use serde_json::{json, Value};
 
 use crate::bench::Bench;
 
-fn nozzle(bench: &Bench) -> [f64; 3] {
+pub fn nozzle(bench: &Bench) -> [f64; 3] {
     let path = bench.dir.path().join("comms/nozzle_true.json");
     let v: Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
     let n = &v["nozzle"];
@@ -72,7 +72,7 @@ async fn measure(
     }
 }
 
-async fn connect(bench: &Bench) -> (Moonraker, tokio_util::sync::CancellationToken) {
+pub async fn connect(bench: &Bench) -> (Moonraker, tokio_util::sync::CancellationToken) {
     let (m, c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     (m, c)
@@ -85,7 +85,7 @@ async fn detection(m: &Moonraker) -> klipcal::klipper::backlash::Detection {
 }
 
 /// Puts the nozzle on the camera point from the − side and returns the mark the person sees.
-async fn set_point(bench: &Bench, m: &Moonraker, point: [f64; 3]) -> [f64; 3] {
+pub async fn set_point(bench: &Bench, m: &Moonraker, point: [f64; 3]) -> [f64; 3] {
     m.gcode("G28\nG90").await.unwrap();
     move_to(m, [point[0] - 1.0, point[1] - 1.0, point[2]]).await;
     move_to(m, point).await;
