@@ -75,7 +75,9 @@ fn init_tracing(level: &str) {
     use tracing_subscriber::layer::SubscriberExt;
     use tracing_subscriber::util::SubscriberInitExt;
     // Colour only on a terminal: log files and journald get plain text.
+    // The Targets filter decides; the formatter itself lets every level through.
     let builder = tracing_subscriber::fmt()
+        .with_max_level(LevelFilter::TRACE)
         .with_writer(std::io::stderr)
         .with_ansi(std::io::stderr().is_terminal())
         .with_target(false);

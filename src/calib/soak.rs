@@ -293,6 +293,8 @@ pub struct SoakDetector {
     out_of_band_bins: u32,
     excursions: u32,
     last_saturated_s: Option<f64>,
+    /// The heater's `max_power` (Klipper caps the pwm there): saturation is measured against it.
+    max_power: f64,
     status: SoakStatus,
     explanation: String,
     fit: Option<DecayFit>,
@@ -329,9 +331,19 @@ impl SoakDetector {
             out_of_band_bins: 0,
             excursions: 0,
             last_saturated_s: None,
+            max_power: 1.0,
             status: SoakStatus::Heating,
             explanation: "no samples yet".into(),
             fit: None,
+        }
+    }
+
+    /// The heater's `max_power` from Klipper's config (0.05–1; Klipper reports the pwm as a
+    /// fraction of full power, capped there): a heater at `saturated_power` of it has no
+    /// headroom left. Out-of-range values are ignored.
+    pub fn set_max_power(&mut self, max_power: f64) {
+        if max_power.is_finite() && (0.05..=1.0).contains(&max_power) {
+            self.max_power = max_power;
         }
     }
 
@@ -357,7 +369,9 @@ impl SoakDetector {
 
     /// Forgets everything but the thresholds (a new heat-up).
     pub fn reset(&mut self) {
+        let max_power = self.max_power;
         *self = SoakDetector::new(self.params.clone());
+        self.max_power = max_power;
     }
 
     /// Feeds one sample: time `t_s` (any origin, increasing), heater `power` (0..1),
@@ -496,12 +510,14 @@ impl SoakDetector {
             return;
         }
         self.out_of_band_bins = 0;
-        if power >= self.params.saturated_power {
+        if power >= self.params.saturated_power * self.max_power {
             if self.band_since_s.is_none() {
                 self.status = SoakStatus::Heating;
                 self.explanation = format!(
-                    "heater at {:.0} % of full power: still heating (no headroom left)",
-                    power * 100.0
+                    "heater at {:.0} % of full power (max_power {:.2}): still heating (no \
+                     headroom left)",
+                    power * 100.0,
+                    self.max_power
                 );
                 return;
             }
@@ -1109,6 +1125,33 @@ mod tests {
                 "seed {seed}, τ {tau_s} s: declared at {at:?}, the 1 % moment is {moment} s"
             );
         }
+    }
+
+    #[test]
+    fn a_heater_capped_by_max_power_counts_as_saturated_at_its_cap() {
+        // A bed whose max_power is 0.6, in the band, driving 0.6: no headroom, still heating.
+        let mut d = SoakDetector::new(SoakParams::default());
+        d.set_max_power(0.6);
+        for k in 0..30 {
+            d.push(f64::from(k) * 10.0, 0.6, TARGET_C, TARGET_C);
+        }
+        assert_eq!(*d.status(), SoakStatus::Heating, "{}", d.explanation());
+        assert!(
+            d.explanation().contains("max_power 0.60"),
+            "{}",
+            d.explanation()
+        );
+        // Measured against full power the same bed would seem to have headroom.
+        let mut full = SoakDetector::new(SoakParams::default());
+        for k in 0..30 {
+            full.push(f64::from(k) * 10.0, 0.6, TARGET_C, TARGET_C);
+        }
+        assert_ne!(*full.status(), SoakStatus::Heating);
+        // Nonsense is ignored.
+        let mut d = SoakDetector::new(SoakParams::default());
+        d.set_max_power(7.0);
+        d.set_max_power(f64::NAN);
+        assert_eq!(d.max_power, 1.0);
     }
 
     #[test]

@@ -44,6 +44,7 @@ pub struct BedSoak {
     best_progress: f64,
     soaking_since_s: Option<f64>,
     last_console_s: f64,
+    primed: bool,
 }
 
 /// How often the console hears of the soak.
@@ -63,7 +64,66 @@ impl BedSoak {
             best_progress: 0.0,
             soaking_since_s: None,
             last_console_s: f64::NEG_INFINITY,
+            primed: false,
         }
+    }
+
+    /// Once per soak, before the first live sample: the bed's `max_power` from Klipper's
+    /// settings (saturation is measured against it), and the detector primed with Moonraker's
+    /// temperature store (~20 min at 1 Hz), so a daemon restarted mid-soak goes on from what
+    /// the bed did instead of starting from zero. Returns how many samples were replayed.
+    async fn prime(&mut self, core: &Core) -> usize {
+        self.primed = true;
+        if let Ok(cf) = core.m().configfile().await {
+            if let Some(p) = cf["settings"]["heater_bed"]["max_power"].as_f64() {
+                self.detector.set_max_power(p);
+            }
+        }
+        let Ok(store) = core
+            .m()
+            .call(
+                "server.temperature_store",
+                json!({"include_monitors": false}),
+            )
+            .await
+        else {
+            return 0;
+        };
+        let bed = &store["heater_bed"];
+        let series = |k: &str| -> Vec<f64> {
+            bed[k]
+                .as_array()
+                .map(|a| a.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect())
+                .unwrap_or_default()
+        };
+        let (temps, targets, powers) =
+            (series("temperatures"), series("targets"), series("powers"));
+        let n = temps.len().min(targets.len()).min(powers.len());
+        if n == 0 {
+            return 0;
+        }
+        // Only the stretch at the current target counts (before it the bed was doing
+        // something else). The store is 1 Hz with its last entry now, so the soak clock
+        // started that many seconds ago.
+        let last = targets[n - 1];
+        if !(last.is_finite() && (last - self.target_c).abs() < 0.5) {
+            tracing::debug!(store_target = last, target = self.target_c, "temperature store not at this soak's target");
+            return 0;
+        }
+        let from = (0..n)
+            .rev()
+            .take_while(|&i| (targets[i] - last).abs() < 0.05)
+            .last()
+            .unwrap_or(n - 1);
+        let k = n - from;
+        if let Some(start) = Instant::now().checked_sub(std::time::Duration::from_secs(k as u64)) {
+            self.start = start;
+        }
+        for i in from..n {
+            self.detector
+                .push((i - from) as f64, powers[i], temps[i], targets[i]);
+        }
+        k
     }
 
     /// Sets the bed's target through Klipper.
@@ -82,6 +142,15 @@ impl BedSoak {
     /// # Errors
     /// The soak took longer than allowed (a user error naming the setting), or Moonraker failed.
     pub async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
+        if !self.primed {
+            let n = self.prime(core).await;
+            if n > 0 {
+                tracing::debug!(
+                    samples = n,
+                    "soak detector primed from Moonraker's temperature store"
+                );
+            }
+        }
         let t_s = self.start.elapsed().as_secs_f64();
         if t_s > self.max_s {
             return Err(user(format!(

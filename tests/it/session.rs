@@ -722,3 +722,39 @@ async fn klipper_restarting_mid_print_fails_the_session_with_the_reason() {
     let s = wait_state(&bench, "failed", Duration::from_secs(60)).await;
     assert!(s["reason"].as_str().unwrap().contains("Klipper"), "{s}");
 }
+
+#[tokio::test]
+async fn a_daemon_restarted_mid_soak_primes_the_detector_from_moonrakers_temperature_store() {
+    // A slower plate so the soak lasts long enough to kill the daemon in it.
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 200.0, "tau_heater_s": 20.0}}"#;
+    let bench = Bench::start_with("corexy", Some(plant));
+    let mut d = started(&bench, 600.0).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    wait_state(&bench, "soaking", Duration::from_secs(120)).await;
+    tokio::time::sleep(Duration::from_secs(3)).await;
+    let _ = d.child.kill();
+    let _ = d.child.wait();
+    let d2 = started(&bench, 600.0).await;
+    let primed = poll(Duration::from_secs(30), || async {
+        let log = d2.log_text();
+        let line = log
+            .lines()
+            .find(|l| l.contains("soak detector primed"))?
+            .to_string();
+        Some(line)
+    })
+    .await
+    .unwrap_or_else(|| panic!("no priming after the restart:\n{}", d2.log_text()));
+    let samples: usize = primed
+        .split("samples=")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(0);
+    assert!(samples >= 3, "{primed}");
+    // The session goes on to print after the restart.
+    wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    drop(d2);
+}
