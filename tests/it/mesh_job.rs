@@ -12,13 +12,13 @@ use crate::bench::{extension_request, poll, Bench, Daemon};
 use crate::session::settings;
 
 const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0},
-    "frame": {"gain": 0.3, "tau_s": 400.0, "lag_s": 30.0}}"#;
+    "frame": {"gain": 0.6, "tau_s": 1200.0, "lag_s": 30.0}}"#;
 
 fn mesh_settings() -> String {
     // The [soak] of the A/B bench tests (fast plant), and a capture that ends after 4 meshes.
     let base = settings(600.0);
     format!(
-        "{base}[mesh]\nbed_temp_c = 60.0\nstep_c = 0.3\ninterval_s = 5.0\nsettle_c = 0.01\n\
+        "{base}[mesh]\nbed_temp_c = 60.0\nstep_c = 0.5\ninterval_s = 120.0\nsettle_c = 0.01\n\
          min_meshes = 3\nmax_meshes = 4\nmax_s = 900.0\nsoak_max_s = 600.0\ntolerance_um = 5.0\n\
          follow_interval_s = 1.0\njump_limit_um = 1000.0\n"
     )
