@@ -38,10 +38,16 @@ pub const METHODS: &[&str] = &[
     "klipcal_solve",
     "klipcal_apply",
     "klipcal_ab_check",
+    "klipcal_soak_choice",
 ];
 
 /// The store's kind.
 pub const KIND: &str = "ab";
+
+/// "Wait 10 min more" after a soak that ran past `soak_max_s`.
+const SOAK_MORE_S: f64 = 600.0;
+/// Longest the soak prompt waits for an answer (the bed stays hot meanwhile).
+const SOAK_ANSWER_S: f64 = 900.0;
 
 /// How the console names it.
 const TITLE: &str = "A/B calibration";
@@ -167,6 +173,12 @@ pub struct Session {
     pub print_done_unix: Option<f64>,
     /// The heaters were turned off by the hold limit.
     pub heaters_off: bool,
+    /// The soak ran past `soak_max_s` and waits for the user's choice.
+    #[serde(default)]
+    pub soak_asking: bool,
+    /// The user's answer (`print` or `wait`), taken by the runner.
+    #[serde(default)]
+    pub soak_choice: Option<String>,
 }
 
 impl Doc for Session {
@@ -649,9 +661,130 @@ impl Ab {
                         last = text;
                     }
                 }
+                SoakUpdate::TooLong {
+                    minutes,
+                    falling_pct_per_10min,
+                } => {
+                    if self
+                        .ask_soak_choice(id, minutes, falling_pct_per_10min)
+                        .await?
+                    {
+                        return Ok(());
+                    }
+                    soak.extend(SOAK_MORE_S);
+                    last.clear();
+                }
             }
             tokio::time::sleep(Duration::from_millis(250)).await;
         }
+    }
+
+    /// The bed is at its target but its power still moves after `soak_max_s`: asks print now
+    /// / wait 10 min more / cancel. Returns true when the user chose to print (state set).
+    ///
+    /// # Errors
+    /// No answer within [`SOAK_ANSWER_S`] (heaters go off with the failure), store failures.
+    async fn ask_soak_choice(
+        &self,
+        id: i64,
+        minutes: f64,
+        falling: Option<f64>,
+    ) -> anyhow::Result<bool> {
+        let line = match falling {
+            Some(f) => format!(
+                "bed power still falling by {f:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)"
+            ),
+            None => format!("the bed has not settled after {minutes:.0} min (ab.soak_max_s)"),
+        };
+        self.update(id, |s| {
+            s.soak_asking = true;
+            s.soak_choice = None;
+            s.progress =
+                format!("{line}: waiting for your choice (print now / wait 10 min more / cancel)");
+            Ok(())
+        })
+        .await?;
+        self.core.console(&format!("{TITLE}: {line}")).await;
+        self.core
+            .prompt(&Prompt {
+                title: "klipcal: the bed has not settled".into(),
+                lines: vec![
+                    line.clone(),
+                    "Print now: the readings may carry some thermal drift. Wait: 10 more \
+                     minutes. Cancel: heaters off."
+                        .into(),
+                ],
+                buttons: vec![
+                    Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                    Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+                ],
+                footer: vec![Button::new("Cancel session", "KLIPCAL_CANCEL", "error")],
+            })
+            .await;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(SOAK_ANSWER_S);
+        while tokio::time::Instant::now() < deadline {
+            tokio::time::sleep(Duration::from_millis(250)).await;
+            let s = self.load(id)?;
+            let Some(choice) = s.soak_choice.clone() else {
+                continue;
+            };
+            self.core.prompt_end().await;
+            let print = choice == "print";
+            let note = format!(
+                "{line}; the user chose to {}",
+                if print {
+                    "print now"
+                } else {
+                    "wait 10 min more"
+                }
+            );
+            self.update(id, |s| {
+                s.soak_asking = false;
+                s.soak_choice = None;
+                s.notes.push(note);
+                if print {
+                    s.state = State::Printing;
+                    s.progress = "printing before the bed settled, as chosen".into();
+                } else {
+                    s.progress = "soaking 10 min more, as chosen".into();
+                }
+                Ok(())
+            })
+            .await?;
+            return Ok(print);
+        }
+        self.core.prompt_end().await;
+        Err(user(format!(
+            "no answer to the soak prompt within {:.0} min ({line})",
+            SOAK_ANSWER_S / 60.0
+        )))
+    }
+
+    /// `klipcal_soak_choice CHOICE=print|wait`: answers the soak prompt.
+    ///
+    /// # Errors
+    /// A bad CHOICE, or no soak waiting for one.
+    pub async fn soak_choice(&self, args: &Value) -> anyhow::Result<Value> {
+        let a = Args::parse(args, "KLIPCAL_SOAK_CHOICE", &["choice"])?;
+        let choice = a.choice("choice", &["print", "wait"])?.ok_or_else(|| {
+            user("no CHOICE given; expected CHOICE=print or CHOICE=wait (KLIPCAL_CANCEL cancels)")
+        })?;
+        let s = match self.active()? {
+            Some(s) if s.soak_asking => s,
+            _ => {
+                return Err(user(
+                    "nothing to choose: no bed soak is waiting for an answer",
+                ))
+            }
+        };
+        let c = choice.clone();
+        self.update(s.id, |d| {
+            d.soak_choice = Some(c);
+            Ok(())
+        })
+        .await?;
+        Ok(json!({"session": s.id, "choice": choice,
+                  "message": if choice == "print" { "printing now" } else { "waiting 10 min more" }}))
     }
 
     async fn print(&self, s: Session) -> anyhow::Result<()> {
@@ -855,6 +988,8 @@ impl Ab {
                     skew_before: None,
                     print_done_unix: None,
                     heaters_off: false,
+                    soak_asking: false,
+                    soak_choice: None,
                 };
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
@@ -1354,6 +1489,7 @@ impl Calibration for Ab {
                 }
                 "klipcal_apply" => self.apply(&ApplyRequest::parse(args)?).await,
                 "klipcal_ab_check" => self.check(args),
+                "klipcal_soak_choice" => self.soak_choice(args).await,
                 other => Err(anyhow!("{other} is not an A/B method")),
             }
         }

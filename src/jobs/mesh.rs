@@ -541,6 +541,12 @@ impl Mesh {
             loop {
                 match soak.poll(&self.core, "thermal mesh").await? {
                     SoakUpdate::Stable { .. } => break,
+                    SoakUpdate::TooLong { minutes, .. } => {
+                        return Err(user(format!(
+                            "the bed had not settled after {minutes:.0} min (mesh.soak_max_s); \
+                             the meshes would drift with it"
+                        )))
+                    }
                     SoakUpdate::Heating => {}
                     SoakUpdate::Soaking { text, .. } => {
                         let _ = self

@@ -27,6 +27,14 @@ pub enum SoakUpdate {
         /// Progress in words.
         text: String,
     },
+    /// The soak ran past its longest wait with the bed at its target but its power still
+    /// moving: the caller asks the user (print now / wait / cancel) instead of failing.
+    TooLong {
+        /// Minutes since the target was set.
+        minutes: f64,
+        /// How fast the power still falls, % of full power per 10 min, when the fit can tell.
+        falling_pct_per_10min: Option<f64>,
+    },
     /// Stable (or skipped: unheated bed); `why` is the detector's explanation.
     Stable {
         /// The detector's explanation.
@@ -107,7 +115,11 @@ impl BedSoak {
         // started that many seconds ago.
         let last = targets[n - 1];
         if !(last.is_finite() && (last - self.target_c).abs() < 0.5) {
-            tracing::debug!(store_target = last, target = self.target_c, "temperature store not at this soak's target");
+            tracing::debug!(
+                store_target = last,
+                target = self.target_c,
+                "temperature store not at this soak's target"
+            );
             return 0;
         }
         let from = (0..n)
@@ -124,6 +136,11 @@ impl BedSoak {
                 .push((i - from) as f64, powers[i], temps[i], targets[i]);
         }
         k
+    }
+
+    /// Allows `extra_s` more from now (the user chose to wait).
+    pub fn extend(&mut self, extra_s: f64) {
+        self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
     }
 
     /// Sets the bed's target through Klipper.
@@ -153,10 +170,23 @@ impl BedSoak {
         }
         let t_s = self.start.elapsed().as_secs_f64();
         if t_s > self.max_s {
-            return Err(user(format!(
-                "the bed did not reach thermal equilibrium within {:.0} s ({})",
-                self.max_s, self.max_setting
-            )));
+            if matches!(self.detector.status(), SoakStatus::Heating) {
+                return Err(user(format!(
+                    "the bed did not reach its target of {:.0} °C within {:.0} s ({}): {}",
+                    self.target_c,
+                    self.max_s,
+                    self.max_setting,
+                    self.detector.explanation()
+                )));
+            }
+            return Ok(SoakUpdate::TooLong {
+                minutes: t_s / 60.0,
+                falling_pct_per_10min: self
+                    .detector
+                    .fit()
+                    .filter(|f| f.tau_s > 0.0)
+                    .map(|f| f.remaining / f.tau_s * 600.0 * 100.0),
+            });
         }
         let st = core
             .m()

@@ -758,3 +758,53 @@ async fn a_daemon_restarted_mid_soak_primes_the_detector_from_moonrakers_tempera
     wait_state(&bench, "measuring", Duration::from_secs(400)).await;
     drop(d2);
 }
+
+#[tokio::test]
+async fn a_soak_past_its_limit_asks_print_now_or_wait_instead_of_failing() {
+    // A plate far slower than ab.soak_max_s allows.
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 3000.0, "tau_heater_s": 20.0}}"#;
+    let bench = Bench::start_with("corexy", Some(plant));
+    let toml = settings(600.0).replace("soak_max_s = 600.0", "soak_max_s = 8.0");
+    let d = Daemon::ready(&bench, &toml).await;
+    let files = bench.files();
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = m.events();
+    // Nothing to choose yet.
+    let e = extension_request(&files, "klipcal_soak_choice", json!({"choice": "print"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("nothing to choose"), "{e}");
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let asking = poll(Duration::from_secs(120), || async {
+        let s = session(&bench).await;
+        s["progress"]
+            .as_str()
+            .is_some_and(|p| p.contains("waiting for your choice"))
+            .then_some(s)
+    })
+    .await
+    .expect("no choice asked (soak_max_s passed without a prompt)");
+    assert_eq!(asking["state"], "soaking", "{asking}");
+    let e = extension_request(&files, "klipcal_soak_choice", json!({"choice": "maybe"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("CHOICE") && e.contains("print"), "{e}");
+    extension_request(&files, "klipcal_soak_choice", json!({"choice": "print"}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    assert!(s["notes"].to_string().contains("chose to print now"), "{s}");
+    let mut lines = Vec::new();
+    while let Ok(e) = rx.try_recv() {
+        if let klipcal::moonraker::Event::GcodeResponse(l) = e {
+            lines.push(l);
+        }
+    }
+    let text = lines.join("\n");
+    assert!(text.contains("the bed has not settled"), "{text}");
+    assert!(text.contains("KLIPCAL_SOAK_CHOICE CHOICE=wait"), "{text}");
+    drop(d);
+}
