@@ -43,10 +43,10 @@ pub struct SoakParams {
     pub settle_s: f64,
     /// Samples are averaged over bins of this length before anything else. Default 10 s.
     pub bin_s: f64,
-    /// Shortest soak (after `settle_s`) before the bed may be declared stable. Default 600 s.
+    /// Shortest soak (after `settle_s`) before the bed may be declared stable. Default 300 s.
     pub min_soak_s: f64,
     /// Largest fitted power still to fall (fraction of full power) at which the bed is
-    /// stable. Default 0.004 (0.4 % of full power).
+    /// stable. Default 0.003 (0.3 % of full power).
     pub max_remaining: f64,
     /// When the fit sees a decay, its data must span this many fitted time constants before
     /// the fit is trusted. Default 2.0.
@@ -56,10 +56,10 @@ pub struct SoakParams {
     /// transients at the start drop out. Default 6.0.
     pub fit_taus: f64,
     /// Shortest trailing window of the trend check; the window is `max(this, τ)`, capped at
-    /// the soak so far. Default 600 s.
+    /// the soak so far. Default 300 s.
     pub trend_window_s: f64,
     /// The trend window grows until the fall over it is known to ± this (one standard error,
-    /// fraction of full power): noisier beds are watched longer. Default 0.01.
+    /// fraction of full power): noisier beds are watched longer. Default 0.02.
     pub max_drop_se: f64,
     /// Largest fall of the smoothed power over the trend window (fraction of full power),
     /// beyond one standard error of its noise, at which the bed is stable. Default 0.008.
@@ -1125,6 +1125,37 @@ mod tests {
                 "seed {seed}, τ {tau_s} s: declared at {at:?}, the 1 % moment is {moment} s"
             );
         }
+    }
+
+    /// Every field's doc comment states its default, and states the one the code uses.
+    #[test]
+    fn the_doc_comments_state_the_real_defaults() {
+        let src = include_str!("soak.rs");
+        let start = src.find("pub struct SoakParams {").unwrap();
+        let end = start + src[start..].find("\n}").unwrap();
+        let defaults = serde_json::to_value(SoakParams::default()).unwrap();
+        let mut doc = String::new();
+        let mut checked = 0;
+        for line in src[start..end].lines().skip(1) {
+            let t = line.trim();
+            if let Some(d) = t.strip_prefix("///") {
+                doc.push_str(d);
+                doc.push(' ');
+            } else if let Some(field) = t.strip_prefix("pub ").and_then(|r| r.split(':').next()) {
+                let stated: f64 = doc
+                    .split("Default ")
+                    .nth(1)
+                    .and_then(|r| r.split_whitespace().next())
+                    .map(|n| n.trim_end_matches(['.', ',', ')']))
+                    .and_then(|n| n.parse().ok())
+                    .unwrap_or_else(|| panic!("soak.{field}: no \"Default N\" in its doc comment"));
+                let real = defaults[field].as_f64().unwrap();
+                assert!((stated - real).abs() < 1e-12, "soak.{field}: doc says {stated}, code {real}");
+                checked += 1;
+                doc.clear();
+            }
+        }
+        assert_eq!(checked, defaults.as_object().unwrap().len());
     }
 
     #[test]
