@@ -1150,7 +1150,10 @@ mod tests {
                     .and_then(|n| n.parse().ok())
                     .unwrap_or_else(|| panic!("soak.{field}: no \"Default N\" in its doc comment"));
                 let real = defaults[field].as_f64().unwrap();
-                assert!((stated - real).abs() < 1e-12, "soak.{field}: doc says {stated}, code {real}");
+                assert!(
+                    (stated - real).abs() < 1e-12,
+                    "soak.{field}: doc says {stated}, code {real}"
+                );
                 checked += 1;
                 doc.clear();
             }

@@ -7,4 +7,5 @@ pub mod install;
 pub mod mesh;
 pub mod pylons;
 pub mod soak;
+pub mod soak_families;
 pub mod solve;

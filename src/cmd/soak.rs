@@ -470,7 +470,6 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
             simulate_bed(&bed, &mut rng, &params)
         })
         .collect();
-    let elapsed = started.elapsed().as_secs_f64();
     let total = outcomes.len() as f64;
     let pct = |k: usize| 100.0 * k as f64 / total;
 
@@ -513,7 +512,6 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
     );
     let early_ok = early == 0;
     let in_time_ok = pct(in_time) >= 95.0;
-    let time_ok = elapsed < 60.0;
     println!(
         "  declared before the 1 % moment          {early:4} of {beds} ({:5.1} %)   target 0          {}",
         pct(early),
@@ -584,11 +582,51 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
             }
         }
     }
+    // The families written apart from this plant (issue 10), each on its own.
+    let mut families_ok = true;
+    for (k, (name, make)) in [
+        ("three_node (heater, plate, enclosure; PID with filtered derivative on a lagging noisy \
+          thermistor; 40 % of beds pwm-capped at max_power 0.6–0.75; 1–4 Hz with gaps)",
+         crate::cmd::soak_families::three_node as fn(&mut fastrand::Rng) -> crate::cmd::soak_families::Run),
+        ("bang_bang (watermark control, power reported 0 or max_power)", crate::cmd::soak_families::bang_bang),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let r = crate::cmd::soak_families::evaluate(name, beds, args.seed + 100 + k as u64, &params, make);
+        let fp = |n: usize| 100.0 * n as f64 / r.beds as f64;
+        let ok = r.early == 0 && fp(r.within_125) >= 95.0;
+        families_ok &= ok;
+        println!("  family {}: {} beds", r.name, r.beds);
+        println!(
+            "    declared before the 1 % moment      {:4} ({:5.1} %)   target 0          {}",
+            r.early,
+            fp(r.early),
+            pass(r.early == 0)
+        );
+        println!(
+            "    within 1.25 × moment + 60 s          {:4} ({:5.1} %)   target ≥ 95 %     {}   (1.5 ×: {:.1} %, never: {:.1} %)",
+            r.within_125,
+            fp(r.within_125),
+            pass(fp(r.within_125) >= 95.0),
+            fp(r.within_150),
+            fp(r.never)
+        );
+        println!(
+            "    median declared / true moment {:.2}; a fixed 10 / 15 min after reaching temperature \
+             starts too early on {:.1} % / {:.1} % of these beds (anchor)",
+            r.median_ratio,
+            fp(r.fixed10_early),
+            fp(r.fixed15_early)
+        );
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let time_ok = elapsed < 120.0;
     println!(
-        "  run time {elapsed:.1} s                        target < 60 s (release)   {}",
+        "  run time {elapsed:.1} s (all families)         target < 120 s (release)   {}",
         pass(time_ok)
     );
-    Ok(if early_ok && in_time_ok && time_ok {
+    Ok(if early_ok && in_time_ok && time_ok && families_ok {
         ExitCode::SUCCESS
     } else {
         ExitCode::FAILURE

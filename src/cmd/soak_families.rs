@@ -1,0 +1,403 @@
+//! Bed families for `klipcal bench soak` written apart from the plant the detector was tuned
+//! on (issue 10): structurally different physics and control, so a pass on one family is not
+//! a pass by construction on the others.
+//!
+//! - `three_node`: heater, plate and the enclosure air (a third, slower node the plate warms),
+//!   a PID with a filtered derivative acting on a lagging thermistor with its noise in the
+//!   loop, beds whose `max_power` caps the pwm at 0.6–0.75, 1–4 Hz reports with gaps.
+//! - `bang_bang`: Klipper's watermark control (full `max_power` below target − max_delta, off
+//!   above target + max_delta); the power reported is the instantaneous 0 or max_power.
+//!
+//! Each run gives the samples the detector sees and the true moment: the last time the
+//! noise-free power (for bang-bang its duty over a 2-minute window) was more than 1 % of full
+//! power from its final value.
+
+use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
+
+/// One simulated bed run, as the detector sees it.
+#[derive(Debug, Clone)]
+pub struct Run {
+    /// `(t_s, power, temp_c, target_c)` as Klipper would report them.
+    pub samples: Vec<[f64; 4]>,
+    /// The true 1 % moment, s.
+    pub t_one_s: f64,
+    /// First time the reported temperature was within 2 °C of the target, s.
+    pub t_reach_s: f64,
+    /// The bed's `max_power`.
+    pub max_power: f64,
+    /// Its slowest time constant, s (for the report).
+    pub tau_s: f64,
+}
+
+/// The detector's declaration on a run (with the bed's max_power), s.
+#[must_use]
+pub fn declare(run: &Run, params: &SoakParams) -> Option<f64> {
+    let mut det = SoakDetector::new(params.clone());
+    det.set_max_power(run.max_power);
+    for s in &run.samples {
+        if let SoakStatus::Stable { at_s } = det.push(s[0], s[1], s[2], s[3]) {
+            return Some(at_s);
+        }
+    }
+    None
+}
+
+fn uniform(rng: &mut fastrand::Rng, lo: f64, hi: f64) -> f64 {
+    lo + (hi - lo) * rng.f64()
+}
+
+fn gauss(rng: &mut fastrand::Rng) -> f64 {
+    let u = 1.0 - rng.f64();
+    let v = rng.f64();
+    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+}
+
+/// The last time `power` (at times `t`) was more than 0.01 from its final value.
+fn one_pct_moment(t: &[f64], power: &[f64]) -> f64 {
+    let Some(&fin) = power.last() else { return 0.0 };
+    t.iter()
+        .zip(power)
+        .filter(|(_, p)| (**p - fin).abs() > 0.01)
+        .map(|(t, _)| *t)
+        .fold(0.0, f64::max)
+}
+
+/// Heater, plate and enclosure air under a filtered-derivative PID on a lagging thermistor.
+#[derive(Debug, Clone)]
+struct ThreeNode {
+    t_amb: f64,
+    target: f64,
+    c_h: f64,
+    c_p: f64,
+    c_e: f64,
+    g_hp: f64,
+    g_pe: f64,
+    g_ea: f64,
+    g_ha: f64,
+    tau_sensor: f64,
+    kp: f64,
+    ki: f64,
+    kd: f64,
+    tau_d: f64,
+    max_power: f64,
+    tau_slow: f64,
+}
+
+impl ThreeNode {
+    fn random(rng: &mut fastrand::Rng) -> Self {
+        let t_amb = uniform(rng, 15.0, 30.0);
+        let target = uniform(rng, 60.0, 110.0);
+        let max_power = if rng.f64() < 0.4 {
+            uniform(rng, 0.6, 0.75)
+        } else {
+            1.0
+        };
+        // Time constants: heater 15–60 s, plate 2–30 min, enclosure 10–40 min.
+        let tau_h = uniform(rng, 15.0, 60.0);
+        let tau_p = (uniform(rng, 120f64.ln(), 1800f64.ln())).exp();
+        let tau_e = uniform(rng, 600.0, 2400.0);
+        let g_hp = 1.0 / uniform(rng, 8.0, 30.0);
+        let c_h = tau_h * g_hp;
+        // Plate loses mostly to the enclosure air; the air to the room.
+        let g_pe = uniform(rng, 0.004, 0.012);
+        let c_p = tau_p * (g_hp + g_pe);
+        let g_ea = uniform(rng, 0.003, 0.02);
+        let c_e = tau_e * (g_pe + g_ea);
+        let g_ha = uniform(rng, 0.0005, 0.002);
+        let tau_sensor = uniform(rng, 1.0, 8.0);
+        // Klipper-like PID gains scaled to the heater (per kelvin of error, full-power units).
+        let kp = uniform(rng, 0.5, 1.5) * c_h / (40.0 * max_power);
+        let ki = kp / uniform(rng, 60.0, 200.0);
+        let kd = kp * uniform(rng, 5.0, 20.0);
+        Self {
+            t_amb,
+            target,
+            c_h,
+            c_p,
+            c_e,
+            g_hp,
+            g_pe,
+            g_ea,
+            g_ha,
+            tau_sensor,
+            kp,
+            ki,
+            kd,
+            tau_d: uniform(rng, 1.0, 4.0),
+            max_power,
+            tau_slow: tau_p.max(tau_e),
+        }
+    }
+
+    /// Runs `until_s`; `noise` adds thermistor noise in the loop. Returns (t, power, temp).
+    fn run(
+        &self,
+        rng: &mut fastrand::Rng,
+        until_s: f64,
+        noise_c: f64,
+        every_s: f64,
+    ) -> Vec<[f64; 3]> {
+        const DT: f64 = 0.25;
+        let (mut th, mut tp, mut te) = (self.t_amb, self.t_amb, self.t_amb);
+        let mut ts = self.t_amb;
+        let (mut integ, mut dfilt, mut prev) = (0.0, 0.0, self.t_amb);
+        let mut out = Vec::new();
+        let mut next = 0.0;
+        let mut t = 0.0;
+        while t <= until_s {
+            ts += DT * (th - ts) / self.tau_sensor;
+            let meas = ts + noise_c * gauss(rng);
+            let err = self.target - meas;
+            // Derivative on the measurement, low-pass filtered.
+            let raw_d = (meas - prev) / DT;
+            prev = meas;
+            dfilt += DT * (raw_d - dfilt) / self.tau_d;
+            let co = self.kp * err + self.ki * integ - self.kd * dfilt;
+            let power = co.clamp(0.0, self.max_power);
+            if (co - power).abs() < 1e-12
+                || (co > self.max_power && err < 0.0)
+                || (co < 0.0 && err > 0.0)
+            {
+                integ += err * DT;
+            }
+            if t >= next {
+                out.push([t, power, meas]);
+                next += every_s;
+            }
+            let q_hp = self.g_hp * (th - tp);
+            let q_pe = self.g_pe * (tp - te);
+            th += DT * (power - q_hp - self.g_ha * (th - self.t_amb)) / self.c_h;
+            tp += DT * (q_hp - q_pe) / self.c_p;
+            te += DT * (q_pe - self.g_ea * (te - self.t_amb)) / self.c_e;
+            t += DT;
+        }
+        out
+    }
+}
+
+/// A `three_node` bed run.
+#[must_use]
+pub fn three_node(rng: &mut fastrand::Rng) -> Run {
+    let bed = ThreeNode::random(rng);
+    let horizon = 12.0 * bed.tau_slow + 3600.0;
+    let clean = bed.run(rng, horizon, 0.0, 1.0);
+    let t: Vec<f64> = clean.iter().map(|s| s[0]).collect();
+    let p: Vec<f64> = clean.iter().map(|s| s[1]).collect();
+    let t_one = one_pct_moment(&t, &p);
+    let every = 1.0 / [1.0, 2.0, 4.0][rng.usize(0..3)];
+    let noise_c = uniform(rng, 0.02, 0.1);
+    let noisy = bed.run(rng, (3.0 * t_one + 3600.0).min(horizon), noise_c, every);
+    let mut samples = Vec::with_capacity(noisy.len());
+    let mut gap_until = f64::NEG_INFINITY;
+    let mut t_reach = f64::NAN;
+    for s in noisy {
+        if t_reach.is_nan() && (s[2] - bed.target).abs() <= 2.0 {
+            t_reach = s[0];
+        }
+        // Gaps: now and then 5–30 s of reports go missing.
+        if s[0] < gap_until {
+            continue;
+        }
+        if rng.f64() < 0.002 {
+            gap_until = s[0] + uniform(rng, 5.0, 30.0);
+            continue;
+        }
+        samples.push([s[0], s[1], s[2], bed.target]);
+    }
+    Run {
+        samples,
+        t_one_s: t_one,
+        t_reach_s: t_reach,
+        max_power: bed.max_power,
+        tau_s: bed.tau_slow,
+    }
+}
+
+/// A `bang_bang` bed run: heater + plate, watermark control.
+#[must_use]
+pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
+    let t_amb = uniform(rng, 15.0, 30.0);
+    let target = uniform(rng, 60.0, 100.0);
+    let max_power = if rng.f64() < 0.3 {
+        uniform(rng, 0.6, 0.8)
+    } else {
+        1.0
+    };
+    let max_delta = uniform(rng, 0.5, 2.0);
+    let tau_h = uniform(rng, 20.0, 60.0);
+    let tau_p = (uniform(rng, 120f64.ln(), 1800f64.ln())).exp();
+    let g_hp = 1.0 / uniform(rng, 10.0, 30.0);
+    let c_h = tau_h * g_hp;
+    // Losses so the equilibrium duty is 0.2–0.5 of max_power.
+    let duty = uniform(rng, 0.2, 0.5) * max_power;
+    let g_pa = duty / (target - t_amb).max(1.0) * 1.1;
+    let c_p = tau_p * (g_hp + g_pa);
+    let sim = |rng: &mut fastrand::Rng, until: f64, noise_c: f64| {
+        const DT: f64 = 0.25;
+        let (mut th, mut tp) = (t_amb, t_amb);
+        let mut on = true;
+        let mut out = Vec::new();
+        let mut t = 0.0;
+        let mut next = 0.0;
+        while t <= until {
+            let meas = th + noise_c * gauss(rng);
+            if meas >= target + max_delta {
+                on = false;
+            } else if meas <= target - max_delta {
+                on = true;
+            }
+            let power = if on { max_power } else { 0.0 };
+            if t >= next {
+                out.push([t, power, meas]);
+                next += 1.0;
+            }
+            let q = g_hp * (th - tp);
+            th += DT * (power - q) / c_h;
+            tp += DT * (q - g_pa * (tp - t_amb)) / c_p;
+            t += DT;
+        }
+        out
+    };
+    let horizon = 12.0 * tau_p + 3600.0;
+    let clean = sim(rng, horizon, 0.0);
+    // The duty over a trailing 2-minute window is the power a user would read.
+    let mut duty_t = Vec::new();
+    let mut duty_p = Vec::new();
+    let mut acc = 0.0;
+    for (k, s) in clean.iter().enumerate() {
+        acc += s[1];
+        if k >= 120 {
+            acc -= clean[k - 120][1];
+            duty_t.push(s[0]);
+            duty_p.push(acc / 120.0);
+        }
+    }
+    let t_one = one_pct_moment(&duty_t, &duty_p);
+    let noise_c = uniform(rng, 0.02, 0.1);
+    let noisy = sim(rng, (3.0 * t_one + 3600.0).min(horizon), noise_c);
+    let t_reach = noisy
+        .iter()
+        .find(|s| (s[2] - target).abs() <= 2.0)
+        .map_or(f64::NAN, |s| s[0]);
+    Run {
+        samples: noisy.iter().map(|s| [s[0], s[1], s[2], target]).collect(),
+        t_one_s: t_one,
+        t_reach_s: t_reach,
+        max_power,
+        tau_s: tau_p,
+    }
+}
+
+/// What one family gave: early, within 1.25× + 60 s, within 1.5× + 60 s, never, the median
+/// declared/true ratio, and a fixed preheat's too-early counts.
+#[derive(Debug, Clone)]
+pub struct FamilyReport {
+    /// Family name.
+    pub name: &'static str,
+    /// Beds.
+    pub beds: usize,
+    /// Declared before the true moment.
+    pub early: usize,
+    /// Declared within 1.25 × the moment + 60 s (and not early).
+    pub within_125: usize,
+    /// Declared within 1.5 × the moment + 60 s (and not early).
+    pub within_150: usize,
+    /// Never declared in the run.
+    pub never: usize,
+    /// Median declared / true moment.
+    pub median_ratio: f64,
+    /// A fixed 10 min after reaching temperature would have started before the moment.
+    pub fixed10_early: usize,
+    /// A fixed 15 min after reaching temperature would have.
+    pub fixed15_early: usize,
+}
+
+/// Runs `beds` beds of one family through the detector.
+pub fn evaluate(
+    name: &'static str,
+    beds: usize,
+    seed: u64,
+    params: &SoakParams,
+    make: fn(&mut fastrand::Rng) -> Run,
+) -> FamilyReport {
+    let mut rng = fastrand::Rng::with_seed(seed);
+    let mut r = FamilyReport {
+        name,
+        beds,
+        early: 0,
+        within_125: 0,
+        within_150: 0,
+        never: 0,
+        median_ratio: f64::NAN,
+        fixed10_early: 0,
+        fixed15_early: 0,
+    };
+    let mut ratios = Vec::new();
+    for _ in 0..beds {
+        let run = make(&mut rng);
+        let moment = run.t_one_s;
+        match declare(&run, params) {
+            None => r.never += 1,
+            Some(d) if d < moment => {
+                r.early += 1;
+                ratios.push(d / moment.max(1.0));
+            }
+            Some(d) => {
+                if d <= 1.25 * moment + 60.0 {
+                    r.within_125 += 1;
+                }
+                if d <= 1.5 * moment + 60.0 {
+                    r.within_150 += 1;
+                }
+                ratios.push(d / moment.max(1.0));
+            }
+        }
+        if run.t_reach_s + 600.0 < moment {
+            r.fixed10_early += 1;
+        }
+        if run.t_reach_s + 900.0 < moment {
+            r.fixed15_early += 1;
+        }
+    }
+    ratios.sort_by(f64::total_cmp);
+    if !ratios.is_empty() {
+        r.median_ratio = ratios[ratios.len() / 2];
+    }
+    r
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_true_moment_is_the_last_time_the_power_was_off_by_more_than_one_percent() {
+        let t = [0.0, 1.0, 2.0, 3.0, 4.0];
+        let p = [1.0, 0.5, 0.32, 0.305, 0.30];
+        assert_eq!(one_pct_moment(&t, &p), 2.0);
+    }
+
+    #[test]
+    fn three_node_beds_settle_at_their_target_within_their_max_power() {
+        let mut rng = fastrand::Rng::with_seed(3);
+        for _ in 0..3 {
+            let run = three_node(&mut rng);
+            assert!(run.t_reach_s.is_finite(), "never reached");
+            assert!(run.samples.iter().all(|s| s[1] <= run.max_power + 1e-12));
+            let last = run.samples.last().unwrap();
+            assert!((last[2] - last[3]).abs() < 1.0, "{last:?}");
+            assert!(run.t_one_s > run.t_reach_s);
+        }
+    }
+
+    #[test]
+    fn bang_bang_beds_report_only_off_or_max_power() {
+        let mut rng = fastrand::Rng::with_seed(5);
+        let run = bang_bang(&mut rng);
+        assert!(run
+            .samples
+            .iter()
+            .all(|s| s[1] == 0.0 || (s[1] - run.max_power).abs() < 1e-12));
+        assert!(run.t_one_s > 0.0);
+    }
+}
