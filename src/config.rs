@@ -67,7 +67,7 @@ pub struct Config {
 }
 
 /// `[mesh]`: thermal bed-mesh compensation (`KLIPCAL_MESH_CAPTURE`, `_FOLLOW`, `_CHECK`).
-#[derive(Debug, Clone, Deserialize, PartialEq)]
+#[derive(Debug, Clone, Deserialize, serde::Serialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub struct MeshConfig {
     /// Bed temperature for the capture, °C.

@@ -12,6 +12,7 @@
 //! noise-free power (for bang-bang its duty over a 2-minute window) was more than 1 % of full
 //! power from its final value.
 
+use super::soak::{gauss, uniform};
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// One simulated bed run, as the detector sees it.
@@ -40,16 +41,6 @@ pub fn declare(run: &Run, params: &SoakParams) -> Option<f64> {
         }
     }
     None
-}
-
-fn uniform(rng: &mut fastrand::Rng, lo: f64, hi: f64) -> f64 {
-    lo + (hi - lo) * rng.f64()
-}
-
-fn gauss(rng: &mut fastrand::Rng) -> f64 {
-    let u = 1.0 - rng.f64();
-    let v = rng.f64();
-    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
 }
 
 /// The last time `power` (at times `t`) was more than 0.01 from its final value.

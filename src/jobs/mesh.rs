@@ -121,9 +121,9 @@ pub struct Session {
     /// The current step in words.
     pub progress: String,
     /// `[mesh]` as the session runs it.
-    pub options: MeshOptions,
+    pub options: MeshConfig,
     /// The mesh parameters (from Klipper's `default` profile after the first mesh).
-    pub params: Option<Params>,
+    pub params: Option<MeshParams>,
     /// Every mesh so far.
     pub captures: Vec<CaptureDoc>,
     /// Unix time the capture started (after the soak).
@@ -134,87 +134,9 @@ pub struct Session {
     pub notes: Vec<String>,
 }
 
-/// The settings a session runs with (a copy of `[mesh]` at its start).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct MeshOptions {
-    /// °C.
-    pub bed_temp_c: f64,
-    /// Sensor name.
-    pub frame_sensor: String,
-    /// °C.
-    pub step_c: f64,
-    /// s.
-    pub interval_s: f64,
-    /// °C.
-    pub settle_c: f64,
-    /// Count.
-    pub min_meshes: usize,
-    /// Count.
-    pub max_meshes: usize,
-    /// s.
-    pub max_s: f64,
-    /// s.
-    pub soak_max_s: f64,
-    /// µm.
-    pub tolerance_um: f64,
-}
-
-/// Mesh parameters as stored (the `MeshParams` fields).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Params {
-    /// Points along X.
-    pub x_count: usize,
-    /// Points along Y.
-    pub y_count: usize,
-    /// Interpolation points per segment.
-    pub mesh_x_pps: usize,
-    /// Interpolation points per segment.
-    pub mesh_y_pps: usize,
-    /// `lagrange` or `bicubic`.
-    pub algo: String,
-    /// Bicubic tension.
-    pub tension: f64,
-    /// mm.
-    pub min_x: f64,
-    /// mm.
-    pub max_x: f64,
-    /// mm.
-    pub min_y: f64,
-    /// mm.
-    pub max_y: f64,
-}
-
-impl Params {
-    fn to_klipper(&self) -> MeshParams {
-        MeshParams {
-            x_count: self.x_count,
-            y_count: self.y_count,
-            mesh_x_pps: self.mesh_x_pps,
-            mesh_y_pps: self.mesh_y_pps,
-            algo: self.algo.clone(),
-            tension: self.tension,
-            min_x: self.min_x,
-            max_x: self.max_x,
-            min_y: self.min_y,
-            max_y: self.max_y,
-        }
-    }
-
-    fn from_status(p: &Value) -> Option<Self> {
-        let n = |k: &str| p[k].as_f64();
-        Some(Self {
-            x_count: p["x_count"].as_u64()? as usize,
-            y_count: p["y_count"].as_u64()? as usize,
-            mesh_x_pps: p["mesh_x_pps"].as_u64().unwrap_or(2) as usize,
-            mesh_y_pps: p["mesh_y_pps"].as_u64().unwrap_or(2) as usize,
-            algo: p["algo"].as_str().unwrap_or("lagrange").to_string(),
-            tension: n("tension").unwrap_or(0.2),
-            min_x: n("min_x")?,
-            max_x: n("max_x")?,
-            min_y: n("min_y")?,
-            max_y: n("max_y")?,
-        })
-    }
+/// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
+fn params_from_status(p: &Value) -> Option<MeshParams> {
+    serde_json::from_value(p.clone()).ok()
 }
 
 impl Doc for Session {
@@ -265,7 +187,7 @@ pub fn point_temps(samples: &[(f64, f64)], x_count: usize, y_count: usize) -> Ve
 /// Whether the next mesh is due: the frame moved `step_c` since the last one, or
 /// `interval_s` passed.
 #[must_use]
-pub fn mesh_due(last_temp_c: f64, now_temp_c: f64, since_last_s: f64, o: &MeshOptions) -> bool {
+pub fn mesh_due(last_temp_c: f64, now_temp_c: f64, since_last_s: f64, o: &MeshConfig) -> bool {
     (now_temp_c - last_temp_c).abs() >= o.step_c || since_last_s >= o.interval_s
 }
 
@@ -276,7 +198,7 @@ pub fn capture_done(
     caps: &[CaptureDoc],
     now_unix: f64,
     started_unix: f64,
-    o: &MeshOptions,
+    o: &MeshConfig,
 ) -> Option<String> {
     if caps.len() >= o.max_meshes {
         return Some(format!("{} meshes taken (mesh.max_meshes)", caps.len()));
@@ -361,22 +283,6 @@ impl Mesh {
         }
     }
 
-    fn options(&self) -> MeshOptions {
-        let c = &self.settings;
-        MeshOptions {
-            bed_temp_c: c.bed_temp_c,
-            frame_sensor: c.frame_sensor.clone(),
-            step_c: c.step_c,
-            interval_s: c.interval_s,
-            settle_c: c.settle_c,
-            min_meshes: c.min_meshes,
-            max_meshes: c.max_meshes,
-            max_s: c.max_s,
-            soak_max_s: c.soak_max_s,
-            tolerance_um: c.tolerance_um,
-        }
-    }
-
     async fn update<T>(
         &self,
         id: i64,
@@ -413,7 +319,7 @@ impl Mesh {
     /// `klipcal_mesh_capture`: starts a capture.
     async fn capture(&self, args: &Value) -> anyhow::Result<Value> {
         let a = Args::parse(args, "KLIPCAL_MESH_CAPTURE", &["bed"])?;
-        let mut options = self.options();
+        let mut options = self.settings.clone();
         if let Some(b) = a.num("bed", "60")? {
             if !(0.0..=130.0).contains(&b) {
                 return Err(user(format!(
@@ -452,7 +358,7 @@ impl Mesh {
     }
 
     /// Refuses when the printer lacks what a capture needs, naming it.
-    async fn preflight(&self, o: &MeshOptions) -> anyhow::Result<()> {
+    async fn preflight(&self, o: &MeshConfig) -> anyhow::Result<()> {
         let objects = self.core.m().objects_list().await?;
         let mut missing = Vec::new();
         let sensor = format!("temperature_sensor {}", o.frame_sensor);
@@ -591,7 +497,7 @@ impl Mesh {
     }
 
     /// One BED_MESH_CALIBRATE with the frame sampled while it runs.
-    async fn take_mesh(&self, s: &Session) -> anyhow::Result<(CaptureDoc, Params)> {
+    async fn take_mesh(&self, s: &Session) -> anyhow::Result<(CaptureDoc, MeshParams)> {
         self.homed().await?;
         let sensor = s.options.frame_sensor.clone();
         let me = self.clone();
@@ -631,7 +537,7 @@ impl Mesh {
         let rows: Vec<Vec<f64>> = serde_json::from_value(bm["probed_matrix"].clone())
             .context("reading bed_mesh.probed_matrix")?;
         let name = bm["profile_name"].as_str().unwrap_or("default");
-        let params = Params::from_status(&bm["profiles"][name]["mesh_params"])
+        let params = params_from_status(&bm["profiles"][name]["mesh_params"])
             .ok_or_else(|| anyhow!("bed_mesh reports no mesh_params for profile {name}"))?;
         if rows.len() != params.y_count || rows.iter().any(|r| r.len() != params.x_count) {
             return Err(anyhow!(
@@ -743,7 +649,7 @@ impl Mesh {
                 let flat = sel.fit.predict(t).points_mm;
                 MeshProfile {
                     name: profile_name(t),
-                    params: params.to_klipper(),
+                    params: params.clone(),
                     points_mm: flat.chunks(params.x_count).map(<[f64]>::to_vec).collect(),
                 }
             })
@@ -1328,18 +1234,11 @@ impl Calibration for Mesh {
 mod tests {
     use super::*;
 
-    fn opts() -> MeshOptions {
-        MeshOptions {
-            bed_temp_c: 60.0,
-            frame_sensor: "frame".into(),
-            step_c: 0.5,
-            interval_s: 600.0,
-            settle_c: 0.2,
-            min_meshes: 3,
+    fn opts() -> MeshConfig {
+        MeshConfig {
             max_meshes: 10,
             max_s: 7200.0,
-            soak_max_s: 600.0,
-            tolerance_um: 5.0,
+            ..MeshConfig::default()
         }
     }
 

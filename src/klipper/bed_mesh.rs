@@ -11,8 +11,9 @@ pub const PROFILE_VERSION: i64 = 1;
 /// Prefix of the profiles klipcal owns; all others are the user's and are never touched.
 pub const KLIPCAL_PREFIX: &str = "klipcal_";
 
-/// `bed_mesh.PROFILE_OPTIONS`, in the order Klipper writes them.
-#[derive(Debug, Clone, PartialEq)]
+/// `bed_mesh.PROFILE_OPTIONS`, in the order Klipper writes them (the same names as the
+/// `mesh_params` of Klipper's `bed_mesh` status).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MeshParams {
     /// Probed points along X.
     pub x_count: usize,
