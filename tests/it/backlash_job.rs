@@ -106,6 +106,40 @@ async fn a_guided_x_measurement_survives_kill_9_matches_the_play_and_is_applied(
     );
     assert_eq!(x["cycles"].as_u64(), Some(3), "{measured}");
 
+    // While a print runs, apply is refused and nothing changes.
+    files
+        .upload(
+            "gcodes",
+            "other.gcode",
+            b"BENCH_SLEEP SECONDS=60\n".to_vec(),
+        )
+        .await
+        .unwrap();
+    m.print_start("other.gcode").await.unwrap();
+    let printing = crate::bench::poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await;
+    assert!(printing.is_some(), "the other print did not start");
+    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("a print is printing"), "{e}");
+    m.gcode("CANCEL_PRINT").await.unwrap();
+    let idle = crate::bench::poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] != "printing").then_some(())
+    })
+    .await;
+    assert!(idle.is_some());
+
     // Apply: SET_BACKLASH_COMPENSATION with its reply checked, and the value in the config.
     let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
         .await
