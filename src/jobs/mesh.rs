@@ -846,6 +846,21 @@ impl Mesh {
                 () = tokio::time::sleep(Duration::from_secs(1)) => {}
             }
             let t = t0.elapsed().as_secs_f64();
+            // A Klipper restart (or a manual load) replaces the mesh the follower loaded: start
+            // over, so the right profile is loaded again.
+            if let Some(k) = f.loaded() {
+                let active = self
+                    .core
+                    .m()
+                    .objects_query(json!({"bed_mesh": ["profile_name"]}))
+                    .await
+                    .ok()
+                    .and_then(|st| st["bed_mesh"]["profile_name"].as_str().map(str::to_string));
+                if active.is_some_and(|a| a != profile_name(temps[k])) {
+                    info!("the active mesh changed under the follower (Klipper restarted?); reloading");
+                    f = Follower::new(policy, &fit, &temps, None);
+                }
+            }
             let busy = self.busy().await;
             let d = match self.frame_temp(&sensor).await {
                 Ok(temp) => {

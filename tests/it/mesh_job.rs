@@ -122,6 +122,23 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     );
     let s = mesh_session(&bench).await;
     assert_eq!(s["follow"]["following"], json!(true), "{s}");
+    // Klipper restarted mid-follow: the restart drops the mesh; the follower loads it again.
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let again = poll(Duration::from_secs(60), || async {
+        let st = m
+            .objects_query(json!({"bed_mesh": ["profile_name"]}))
+            .await
+            .ok()?;
+        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
+        name.starts_with("klipcal_").then_some(name)
+    })
+    .await;
+    assert!(
+        again.is_some(),
+        "no klipcal profile after the restart\n{}",
+        d.log_text()
+    );
     extension_request(&files, "klipcal_mesh_follow", json!({"enable": "0"}))
         .await
         .unwrap();
