@@ -808,3 +808,46 @@ async fn a_soak_past_its_limit_asks_print_now_or_wait_instead_of_failing() {
     assert!(text.contains("KLIPCAL_SOAK_CHOICE CHOICE=wait"), "{text}");
     drop(d);
 }
+
+#[tokio::test]
+async fn applying_a_solution_that_changes_nothing_says_already_calibrated_and_writes_nothing() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, s) = measuring_session(&bench).await;
+    let files = bench.files();
+    // Readings of a printer whose rotation distances are right: every pair at its nominal
+    // distance plus the same width term (seed 000 §2: it cancels in the differential).
+    for p in s["pairs"].as_array().unwrap() {
+        let v = p["nominal_mm"].as_f64().unwrap() - 0.06;
+        extension_request(
+            &files,
+            "klipcal_measure",
+            json!({"pair": p["id"], "values": [v, v, v, v, v]}),
+        )
+        .await
+        .unwrap();
+    }
+    extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    let before = steppers_cfg(&bench);
+    let r = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
+    assert!(
+        r["message"]
+            .as_str()
+            .unwrap()
+            .contains("already calibrated"),
+        "{r}"
+    );
+    assert_eq!(
+        steppers_cfg(&bench),
+        before,
+        "a no-change apply edited the config"
+    );
+    assert!(
+        !bench.dir.path().join("config/klipcal_backups").exists(),
+        "a no-change apply made a backup"
+    );
+    assert_eq!(session(&bench).await["state"], "converged");
+}
