@@ -190,6 +190,9 @@ pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
         if session["kind"] == "mesh" {
             mesh_section(&mut h, &session);
         }
+        if session["kind"] == "backlash" {
+            backlash_section(&mut h, &session);
+        }
     }
     last_results(&mut h, &status["last"], &session);
     let _ = write!(h, "</main><script>{SCRIPT}</script></body></html>");
@@ -360,6 +363,51 @@ fn mesh_section(h: &mut String, s: &Value) {
             "<p class=\"msg error\">following stopped: {}</p>",
             esc(why)
         );
+    }
+    h.push_str("</section>");
+}
+
+fn backlash_section(h: &mut String, s: &Value) {
+    h.push_str("<section id=\"backlash\"><h2>Backlash</h2>");
+    if let Some(axis) = s["axis"].as_str() {
+        let _ = write!(
+            h,
+            "<p>measuring {} — cycle {}: use the prompt's jog buttons (or KLIPCAL_BACKLASH_JOG) \
+             while looking through the camera</p>",
+            esc(axis),
+            text(&s["cycle"])
+        );
+    }
+    if let Some(results) = s["results"].as_object().filter(|r| !r.is_empty()) {
+        h.push_str(
+            "<div class=\"scroll\"><table><tr><th>axis</th><th>backlash mm</th><th>± mm</th>\
+             <th>spread mm</th><th>cycles</th><th>compensate</th><th>smooth_time s</th></tr>",
+        );
+        for (axis, r) in results {
+            let f = |k: &str, d: usize| {
+                r[k].as_f64()
+                    .map(|v| format!("{v:.d$}"))
+                    .unwrap_or_default()
+            };
+            let _ = write!(
+                h,
+                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                esc(axis),
+                f("backlash_mm", 3),
+                f("uncertainty_mm", 3),
+                f("spread_mm", 3),
+                text(&r["cycles"]),
+                if r["compensate"] == Value::Bool(true) { "yes" } else { "no" },
+                f("smooth_time_s", 4)
+            );
+        }
+        h.push_str("</table></div>");
+        if s["state"] == "measured" {
+            h.push_str(
+                "<p class=\"row\"><button data-op=\"backlash/apply\" data-confirm=\"Set the measured \
+                 backlash compensation and write it to the config (Klipper restarts)?\">Apply</button></p>",
+            );
+        }
     }
     h.push_str("</section>");
 }
@@ -597,6 +645,21 @@ mod tests {
         assert!(page.contains("<td>VGB two-mesh</td><td>9.0</td>"));
         assert!(page.contains("profile klipcal_29.05, residual 1.2 µm"));
         assert!(page.contains("data-op=\"mesh/follow\""));
+    }
+
+    #[test]
+    fn a_backlash_session_shows_its_results_and_apply() {
+        let st = json!({"ok": true, "session": {"kind": "backlash", "id": 9, "state": "measured",
+            "progress": "x measured", "axis": null,
+            "results": {"x": {"backlash_mm": 0.0812, "uncertainty_mm": 0.0021, "spread_mm": 0.004,
+                              "cycles": 5, "compensate": true, "smooth_time_s": 0.005}}},
+            "last": {}});
+        let page = render(&st, None);
+        assert!(
+            page.contains("<td>x</td><td>0.081</td><td>0.002</td>"),
+            "{page}"
+        );
+        assert!(page.contains("data-op=\"backlash/apply\""));
     }
 
     #[test]
