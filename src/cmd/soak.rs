@@ -622,6 +622,41 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
             fp(r.fixed15_early)
         );
     }
+    // (c) heat-ups recorded on the bench's real Klipper PID.
+    println!("  recorded on the bench's Klipper PID (tests/fixtures/soak):");
+    for (name, text) in crate::cmd::soak_families::RECORDED {
+        match crate::cmd::soak_families::recorded(text) {
+            Ok(run) => {
+                let d = crate::cmd::soak_families::declare(&run, &params);
+                let m = run.t_one_s;
+                let verdict = match d {
+                    None => "never declared".to_string(),
+                    Some(d) if d < m => {
+                        families_ok = false;
+                        format!("declared {:.1} min: EARLY", d / 60.0)
+                    }
+                    Some(d) => format!(
+                        "declared {:.1} min ({:.2} × the moment){}",
+                        d / 60.0,
+                        d / m.max(1.0),
+                        if d <= 1.25 * m + 60.0 {
+                            ""
+                        } else {
+                            ", later than 1.25 × + 60 s"
+                        }
+                    ),
+                };
+                println!(
+                    "    {name}: fitted decay τ {:.1} min, 1 % moment {:.1} min, reached temperature \
+                     {:.1} min; {verdict}",
+                    run.tau_s / 60.0,
+                    m / 60.0,
+                    run.t_reach_s / 60.0
+                );
+            }
+            Err(e) => println!("    {name}: unreadable fixture: {e}"),
+        }
+    }
     let elapsed = started.elapsed().as_secs_f64();
     let time_ok = elapsed < 120.0;
     println!(

@@ -279,6 +279,94 @@ pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
     }
 }
 
+/// Heat-ups recorded once on the bench's real Klipper PID (klippy + the thermal plant, by
+/// `tests/bench/record_soak_trace.py`) at plate time constants of 5, 15 and 30 min.
+pub const RECORDED: &[(&str, &str)] = &[
+    (
+        "bench PID, plate τ 300 s",
+        include_str!("../../tests/fixtures/soak/bench-pid-tau300.csv"),
+    ),
+    (
+        "bench PID, plate τ 900 s",
+        include_str!("../../tests/fixtures/soak/bench-pid-tau900.csv"),
+    ),
+    (
+        "bench PID, plate τ 1800 s",
+        include_str!("../../tests/fixtures/soak/bench-pid-tau1800.csv"),
+    ),
+];
+
+/// A recorded trace as a run. Its true moment comes from the plant's physics: after the
+/// heater's transient the bench's two-node plate decays as one exponential, so
+/// P(t) = P∞ + A·e^(−t/τ) is fitted (least squares, τ on a log grid) to the power from 5 min
+/// after the bed reached its target, and the moment is when A·e^(−t/τ) falls to 1 % of full
+/// power.
+///
+/// # Errors
+/// A fixture that does not parse, or one too short to fit.
+pub fn recorded(text: &str) -> Result<Run, String> {
+    let samples = super::soak::parse_trace(text).map_err(|e| e.to_string())?;
+    let t_reach = samples
+        .iter()
+        .find(|s| (s.temp_c - s.target_c).abs() <= 2.0)
+        .map_or(f64::NAN, |s| s.t_s);
+    let t0 = t_reach + 300.0;
+    let pts: Vec<(f64, f64)> = samples
+        .iter()
+        .filter(|s| s.t_s >= t0)
+        .map(|s| (s.t_s - t0, s.power))
+        .collect();
+    if pts.len() < 60 {
+        return Err(format!(
+            "{} samples after the bed settled: too few to fit",
+            pts.len()
+        ));
+    }
+    let mut best = (f64::INFINITY, 0.0, 0.0);
+    for k in 0..120 {
+        let tau = (60f64.ln() + (7200f64.ln() - 60f64.ln()) * f64::from(k) / 119.0).exp();
+        // Linear least squares for P∞ and A with x = e^(−t/τ).
+        let n = pts.len() as f64;
+        let (mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0);
+        for &(t, p) in &pts {
+            let x = (-t / tau).exp();
+            sx += x;
+            sy += p;
+            sxx += x * x;
+            sxy += x * p;
+        }
+        let det = n * sxx - sx * sx;
+        if det.abs() < 1e-12 {
+            continue;
+        }
+        let a = (n * sxy - sx * sy) / det;
+        let p_inf = (sy - a * sx) / n;
+        let sse: f64 = pts
+            .iter()
+            .map(|&(t, p)| (p - p_inf - a * (-t / tau).exp()).powi(2))
+            .sum();
+        if sse < best.0 {
+            best = (sse, tau, a);
+        }
+    }
+    let (_, tau, a) = best;
+    let t_one = if a.abs() > 0.01 {
+        t0 + tau * (a.abs() / 0.01).ln()
+    } else {
+        t0
+    };
+    Ok(Run {
+        samples: samples
+            .iter()
+            .map(|s| [s.t_s, s.power, s.temp_c, s.target_c])
+            .collect(),
+        t_one_s: t_one,
+        t_reach_s: t_reach,
+        max_power: 1.0,
+        tau_s: tau,
+    })
+}
+
 /// What one family gave: early, within 1.25× + 60 s, within 1.5× + 60 s, never, the median
 /// declared/true ratio, and a fixed preheat's too-early counts.
 #[derive(Debug, Clone)]
@@ -378,6 +466,24 @@ mod tests {
             let last = run.samples.last().unwrap();
             assert!((last[2] - last[3]).abs() < 1.0, "{last:?}");
             assert!(run.t_one_s > run.t_reach_s);
+        }
+    }
+
+    #[test]
+    fn the_recorded_bench_traces_parse_and_settle_within_the_recording() {
+        for (name, text) in RECORDED {
+            let run = recorded(text).unwrap_or_else(|e| panic!("{name}: {e}"));
+            let last = run.samples.last().unwrap()[0];
+            assert!(
+                run.t_one_s > run.t_reach_s && run.t_one_s < last,
+                "{name}: {} of {last}",
+                run.t_one_s
+            );
+            assert!(
+                run.tau_s > 60.0 && run.tau_s < 7200.0,
+                "{name}: τ {}",
+                run.tau_s
+            );
         }
     }
 
