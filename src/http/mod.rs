@@ -55,6 +55,7 @@ pub const OPERATIONS: &[(&str, &str)] = &[
     ("backlash/jog", "klipcal_backlash_jog"),
     ("backlash/apply", "klipcal_backlash_apply"),
     ("mesh/capture", "klipcal_mesh_capture"),
+    ("mesh/import", "klipcal_mesh_import"),
     ("mesh/follow", "klipcal_mesh_follow"),
     ("mesh/check", "klipcal_mesh_check"),
 ];

@@ -33,6 +33,7 @@ use crate::store::SessionRow;
 /// The remote methods of the thermal mesh.
 pub const METHODS: &[&str] = &[
     "klipcal_mesh_capture",
+    "klipcal_mesh_import",
     "klipcal_mesh_follow",
     "klipcal_mesh_check",
 ];
@@ -355,6 +356,91 @@ impl Mesh {
         );
         self.core.console(&msg).await;
         Ok(json!({"session": id, "state": "preflight", "message": msg}))
+    }
+
+    /// `klipcal_mesh_import`: fits the VGB profiles already in the config (`COLDxx.x`,
+    /// `HOTxx.x`; `TESTxx.x` are judged, never fitted) and writes klipcal's profiles from
+    /// them, every profile's mesh parameters checked against the others.
+    async fn import(&self, args: &Value) -> anyhow::Result<Value> {
+        Args::parse(args, "KLIPCAL_MESH_IMPORT", &[])?;
+        self.core.refuse_other_kind(KIND)?;
+        self.core.printer_idle().await?;
+        let pc = super::printer_config::fetch(self.core.m(), self.core.files()).await?;
+        let all = bed_mesh::profiles(&pc.config).map_err(|e| user(e.to_string()))?;
+        let mut fitted: Vec<(&MeshProfile, f64)> = Vec::new();
+        let mut tests: Vec<&MeshProfile> = Vec::new();
+        for p in &all {
+            match bed_mesh::vgb_kind(&p.name) {
+                Some((bed_mesh::VgbKind::Cold | bed_mesh::VgbKind::Hot, t)) => fitted.push((p, t)),
+                Some((bed_mesh::VgbKind::Test, _)) => tests.push(p),
+                None => {}
+            }
+        }
+        if fitted.len() < 2 {
+            return Err(user(format!(
+                "found {} VGB profile(s) to fit ([bed_mesh COLDxx.x] / [bed_mesh HOTxx.x] in the \
+                 SAVE_CONFIG block); a fit needs at least two at different frame temperatures",
+                fitted.len()
+            )));
+        }
+        let refs: Vec<&MeshProfile> = fitted
+            .iter()
+            .map(|(p, _)| *p)
+            .chain(tests.iter().copied())
+            .collect();
+        bed_mesh::check_same_params(&refs).map_err(|e| user(e.to_string()))?;
+        let now = now_unix();
+        let captures: Vec<CaptureDoc> = fitted
+            .iter()
+            .enumerate()
+            .map(|(k, (p, t))| {
+                let flat = p.flat_mm();
+                CaptureDoc {
+                    n: k + 1,
+                    at_unix: now,
+                    temps_c: vec![*t; flat.len()],
+                    points_mm: flat,
+                    heating: true,
+                }
+            })
+            .collect();
+        let names: Vec<&str> = fitted.iter().map(|(p, _)| p.name.as_str()).collect();
+        let mut doc = Session {
+            id: 0,
+            state: State::Writing,
+            reason: None,
+            progress: format!("fitting {} imported VGB profiles", names.len()),
+            options: self.settings.clone(),
+            params: Some(fitted[0].0.params.clone()),
+            captures,
+            started_unix: Some(now),
+            result: None,
+            notes: vec![format!(
+                "imported from the config: {}{}",
+                names.join(", "),
+                if tests.is_empty() {
+                    String::new()
+                } else {
+                    format!(
+                        " (TEST profiles not fitted: {})",
+                        tests
+                            .iter()
+                            .map(|p| p.name.as_str())
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                }
+            )],
+        };
+        let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
+        self.spawn_runner(id);
+        let msg = format!(
+            "thermal mesh session {id}: fitting {} VGB profiles ({}); klipcal_* profiles follow",
+            names.len(),
+            names.join(", ")
+        );
+        self.core.console(&msg).await;
+        Ok(json!({"session": id, "state": "writing", "imported": names, "message": msg}))
     }
 
     /// Refuses when the printer lacks what a capture needs, naming it.
@@ -1173,6 +1259,7 @@ impl Calibration for Mesh {
         async move {
             match method {
                 "klipcal_mesh_capture" => self.capture(args).await,
+                "klipcal_mesh_import" => self.import(args).await,
                 "klipcal_mesh_follow" => self.follow_cmd(args).await,
                 "klipcal_mesh_check" => {
                     Args::parse(args, "KLIPCAL_MESH_CHECK", &[])?;

@@ -252,3 +252,75 @@ async fn a_capture_started_over_http_survives_kill_9_and_following_refuses_a_fad
     assert!(e.contains("fade_end: 0"), "{e}");
     drop(d2);
 }
+
+#[tokio::test]
+async fn vgb_profiles_in_the_config_are_imported_fitted_and_written_as_klipcal_profiles() {
+    use klipcal::klipper::bed_mesh::{format_profile, profiles, MeshProfile};
+    let bench = Bench::start("corexy");
+    let path = bench.dir.path().join("config/printer.cfg");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &path).unwrap();
+    let base = profiles(&cfg).unwrap().remove(0);
+    // VGB's set: a cold and a hot mesh (the centre sags 40 µm per 10 °C) and a test mesh.
+    let mk = |name: &str, temp: f64| MeshProfile {
+        name: name.into(),
+        params: base.params.clone(),
+        points_mm: base
+            .points_mm
+            .iter()
+            .map(|r| r.iter().map(|z| z - 0.004 * (temp - 25.0)).collect())
+            .collect(),
+    };
+    let mut block = String::new();
+    for (n, t) in [("COLD25.0", 25.0), ("HOT35.0", 35.0), ("TEST30.0", 30.0)] {
+        block.push_str(&format_profile(&mk(n, t)));
+        block.push_str("#*#\n");
+    }
+    assert!(
+        text.contains("#*# <---"),
+        "the bench config has a SAVE_CONFIG block"
+    );
+    std::fs::write(&path, format!("{text}{block}")).unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let d = Daemon::ready(&bench, "").await;
+    let files = bench.files();
+    let r = extension_request(&files, "klipcal_mesh_import", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("import: {e}\n{}", d.log_text()));
+    assert_eq!(r["imported"], json!(["COLD25.0", "HOT35.0"]), "{r}");
+    let done = poll(Duration::from_secs(120), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .expect("import finished");
+    assert_eq!(done["state"], "done", "{done}\n{}", d.log_text());
+    assert!(done["notes"].to_string().contains("TEST30.0"), "{done}");
+    // The written profiles sit between the two meshes, with the user's VGB ones kept.
+    let after = std::fs::read_to_string(&path).unwrap();
+    assert!(
+        after.contains("#*# [bed_mesh klipcal_"),
+        "no klipcal profiles written"
+    );
+    assert!(after.contains("#*# [bed_mesh COLD25.0]") && after.contains("#*# [bed_mesh TEST30.0]"));
+    let temps: Vec<f64> = serde_json::from_value(done["result"]["profiles_c"].clone()).unwrap();
+    assert!(temps.iter().all(|t| (25.0..=35.0).contains(t)), "{temps:?}");
+    // Mismatched mesh parameters are refused, naming the profile.
+    let mut odd = mk("HOT40.0", 40.0);
+    odd.params.max_x -= 10.0;
+    std::fs::write(&path, format!("{after}{}#*#\n", format_profile(&odd))).unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let ready = poll(Duration::from_secs(60), || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    })
+    .await;
+    assert!(ready.is_some());
+    let e = extension_request(&files, "klipcal_mesh_import", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("HOT40.0"), "{e}");
+    drop(d);
+}
