@@ -29,6 +29,12 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         _ => "warn",
     };
     init_tracing(level);
+    for key in &config.retired_keys {
+        tracing::warn!(
+            "settings: {key} is no longer used (the soak detector's statistics are not \
+             settings any more); ignored — remove it from the file"
+        );
+    }
     let rt = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -45,7 +51,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         }
         Command::Solve(args) => crate::cmd::solve::run(&args),
         Command::Bench(BenchCommand::Metrology(args)) => crate::cmd::bench::metrology(&args),
-        Command::Bench(BenchCommand::Soak(a)) => crate::cmd::soak::bench(&a),
+        Command::Bench(BenchCommand::Soak(a)) => crate::cmd::soak::bench(&a, &config.soak),
         Command::SoakDetect(a) => crate::cmd::soak::detect(&a, &config.soak),
         Command::Bench(BenchCommand::Mesh(a)) => crate::cmd::mesh::bench(&a),
         Command::Mesh(crate::cli::MeshCommand::Fit(a)) => crate::cmd::mesh::fit_cmd(&a),

@@ -64,6 +64,9 @@ pub struct Config {
     pub http: HttpConfig,
     /// Thermal bed-mesh compensation (seed 002): capture, fit, profiles, follow, check.
     pub mesh: MeshConfig,
+    /// Keys of earlier versions found in the file and ignored (for a warning at start).
+    #[serde(skip)]
+    pub retired_keys: Vec<String>,
 }
 
 /// `[mesh]`: thermal bed-mesh compensation (`KLIPCAL_MESH_CAPTURE`, `_FOLLOW`, `_CHECK`).
@@ -112,7 +115,7 @@ impl Default for MeshConfig {
             min_meshes: 3,
             max_meshes: 40,
             max_s: 10_800.0,
-            soak_max_s: 3600.0,
+            soak_max_s: 5400.0,
             tolerance_um: 5.0,
             reference_limit_mm: 0.5,
             follow: false,
@@ -322,7 +325,7 @@ impl Default for AbConfig {
             cooldown_s: 720.0,
             hold_max_s: 1800.0,
             max_change_pct: 3.0,
-            soak_max_s: 3600.0,
+            soak_max_s: 5400.0,
             reading_tolerance_mm: 2.0,
             shear_to: "motors".into(),
             start_macro: String::new(),
@@ -435,10 +438,23 @@ impl Config {
     /// # Errors
     /// Bad TOML, an unknown key or a value out of range.
     pub fn parse(text: &str) -> Result<Self, Error> {
-        let cfg: Config = toml::from_str(text).map_err(|e| Error::Parse {
+        let parse_error = |e: toml::de::Error| Error::Parse {
             path: PathBuf::new(),
             message: e.to_string(),
-        })?;
+        };
+        let mut table: toml::Table = toml::from_str(text).map_err(parse_error)?;
+        // `[soak]` keys of earlier versions are read and ignored (named in a warning), so an
+        // old settings file still loads.
+        let mut retired = Vec::new();
+        if let Some(toml::Value::Table(soak)) = table.get_mut("soak") {
+            for key in crate::calib::soak::RETIRED_KEYS {
+                if soak.remove(*key).is_some() {
+                    retired.push(format!("soak.{key}"));
+                }
+            }
+        }
+        let mut cfg: Config = table.try_into().map_err(parse_error)?;
+        cfg.retired_keys = retired;
         cfg.validate()?;
         Ok(cfg)
     }

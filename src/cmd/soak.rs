@@ -461,9 +461,9 @@ fn pass(ok: bool) -> &'static str {
 ///
 /// # Errors
 /// None in practice; the signature matches the other commands.
-pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
+pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
-    let params = SoakParams::default();
+    let params = params.clone();
     let mut rng = fastrand::Rng::with_seed(args.seed);
     let beds = args.beds.max(1);
     let outcomes: Vec<Outcome> = (0..beds)
@@ -504,6 +504,14 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
         quantile(noise.clone(), 0.0),
         quantile(noise.clone(), 1.0),
         median(noise),
+    );
+    println!(
+        "  detector: stable once the data rule out (3 σ) a fall of {:.1} % or more still to come \
+         from any decay up to tau_max_s = {:.0} min; ruling out the slowest takes about \
+         (3·tau_max·σ·√(12·bin)/max_remaining)^(2/3) of soak at bin noise σ, so on noisy fast \
+         beds the 1.25 × target is out of reach by information, not by tuning",
+        params.max_remaining * 100.0,
+        params.tau_max_s / 60.0
     );
     println!(
         "  1 % moment (true power within 1 % of full power of its final value): median {:.1} min, \
@@ -621,13 +629,18 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
             fp(r.fixed10_early),
             fp(r.fixed15_early)
         );
+        if args.show_failures {
+            for line in &r.failures {
+                println!("    {line}");
+            }
+        }
     }
     // (c) heat-ups recorded on the bench's real Klipper PID.
     println!("  recorded on the bench's Klipper PID (tests/fixtures/soak):");
     for (name, text) in crate::cmd::soak_families::RECORDED {
         match crate::cmd::soak_families::recorded(text) {
             Ok(run) => {
-                let d = crate::cmd::soak_families::declare(&run, &params);
+                let (d, why) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
                 let verdict = match d {
                     None => "never declared".to_string(),
@@ -653,6 +666,9 @@ pub fn bench(args: &BenchSoakArgs) -> anyhow::Result<ExitCode> {
                     m / 60.0,
                     run.t_reach_s / 60.0
                 );
+                if args.show_failures {
+                    println!("      {why}");
+                }
             }
             Err(e) => println!("    {name}: unreadable fixture: {e}"),
         }

@@ -16,9 +16,8 @@ pub const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heat
 pub fn settings(hold_max_s: f64) -> String {
     format!(
         "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 600.0\n\
-         [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 3.0\ntrend_window_s = 3.0\n\
-         tau_min_s = 0.5\ntau_max_s = 60.0\nmax_remaining = 0.03\nspan_taus = 1.0\n\
-         max_drop_se = 0.1\nmax_window_drop = 0.05\n"
+         [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 3.0\ntau_max_s = 30.0\n\
+         max_remaining = 0.03\n"
     )
 }
 
