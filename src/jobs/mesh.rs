@@ -798,30 +798,78 @@ impl Mesh {
         let (state, msg) =
             super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
                 .await?;
-        let ok = state == "ready" && {
-            let st = self
-                .core
-                .m()
-                .objects_query(json!({"bed_mesh": ["profiles"]}))
-                .await?;
-            profiles
-                .iter()
-                .all(|p| !st["bed_mesh"]["profiles"][&p.name].is_null())
+        let refused = if state == "ready" {
+            self.verify_profiles(profiles).await?
+        } else {
+            Some(format!("Klipper did not start ({state}: {})", msg.trim()))
         };
-        if ok {
+        let Some(why) = refused else {
             return Ok(format!("config/{backup}"));
-        }
+        };
         files
             .upload("config", "printer.cfg", old)
             .await
             .context("restoring printer.cfg")?;
-        let _ =
+        let back =
             super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
                 .await;
+        let after = match back {
+            Ok((s, _)) if s == "ready" => "Klipper is ready again".to_string(),
+            Ok((s, m)) => format!("but Klipper is {s} after the restore: {}", m.trim()),
+            Err(e) => format!("but Klipper did not come back after the restore: {e:#}"),
+        };
         Err(user(format!(
-            "Klipper did not accept the profiles ({state}: {}); printer.cfg was restored from config/{backup}",
-            msg.trim()
+            "{why}; printer.cfg was restored from config/{backup} and {after}"
         )))
+    }
+
+    /// After the restart with new profiles: every profile is known to Klipper and loads
+    /// (`BED_MESH_PROFILE LOAD=`, which builds the mesh as a print would and applies
+    /// `[bed_mesh]`'s fade checks); the mesh active before is put back. `Some(why)` names the
+    /// first profile Klipper refused, in Klipper's words.
+    async fn verify_profiles(&self, profiles: &[MeshProfile]) -> anyhow::Result<Option<String>> {
+        let m = self.core.m();
+        let st = m
+            .objects_query(json!({"bed_mesh": ["profiles", "profile_name"]}))
+            .await?;
+        let bm = &st["bed_mesh"];
+        if let Some(p) = profiles.iter().find(|p| bm["profiles"][&p.name].is_null()) {
+            return Ok(Some(format!(
+                "Klipper did not read profile {} from printer.cfg",
+                p.name
+            )));
+        }
+        let active = bm["profile_name"].as_str().unwrap_or("").to_string();
+        let mut refused = None;
+        for p in profiles {
+            let load = crate::klipper::GcodeCmd::new("BED_MESH_PROFILE")
+                .word("LOAD", &p.name)
+                .build()
+                .map_err(|e| anyhow!("{e}"))?;
+            match m.gcode(&load).await {
+                Ok(()) => {}
+                Err(e) if e.is_refusal() => {
+                    refused = Some(format!(
+                        "Klipper refused to load profile {}: {}",
+                        p.name,
+                        klipper_message(&e)
+                    ));
+                    break;
+                }
+                Err(e) => return Err(e).context(format!("loading profile {}", p.name)),
+            }
+        }
+        // Leave the mesh as the restart left it.
+        let back = crate::klipper::GcodeCmd::new("BED_MESH_PROFILE")
+            .word("LOAD", &active)
+            .build()
+            .ok()
+            .filter(|_| !active.is_empty())
+            .unwrap_or_else(|| "BED_MESH_CLEAR".to_string());
+        if let Err(e) = m.gcode(&back).await {
+            warn!(error = %e, "putting the mesh back after verifying the profiles");
+        }
+        Ok(refused)
     }
 
     /// The newest finished capture and its fit.
@@ -1230,6 +1278,14 @@ fn probe_settings(settings: &Value) -> Value {
         .find(|(k, v)| is_probe(k) && v.get("z_offset").is_some())
         .map(|(_, v)| v.clone())
         .unwrap_or(Value::Null)
+}
+
+/// Klipper's own words in a refused G-code (Moonraker's message without the wrapping).
+fn klipper_message(e: &crate::moonraker::Error) -> String {
+    match e {
+        crate::moonraker::Error::Rpc { message, .. } => message.trim().replace('\n', " "),
+        other => other.to_string(),
+    }
 }
 
 /// `klipcal_<T>` with T to 0.01 °C.

@@ -324,3 +324,127 @@ async fn vgb_profiles_in_the_config_are_imported_fitted_and_written_as_klipcal_p
     assert!(e.contains("HOT40.0"), "{e}");
     drop(d);
 }
+
+/// Every file under `dir` (recursively), by path relative to it.
+fn snapshot(dir: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                let rel = p.strip_prefix(dir).unwrap().to_string_lossy().into_owned();
+                out.insert(rel, std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+#[tokio::test]
+async fn a_profile_write_klipper_refuses_is_rolled_back_byte_for_byte() {
+    use klipcal::klipper::bed_mesh::{format_profile, profiles, MeshProfile};
+    let bench = Bench::start("corexy");
+    let files = bench.files();
+    let path = bench.dir.path().join("config/printer.cfg");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &path).unwrap();
+    let base = profiles(&cfg).unwrap().remove(0);
+    // VGB's COLD and HOT meshes to import: every fitted profile lies within ±0.1 mm.
+    let mk = |name: &str, temp: f64| MeshProfile {
+        name: name.into(),
+        params: base.params.clone(),
+        points_mm: base
+            .points_mm
+            .iter()
+            .map(|r| r.iter().map(|z| z - 0.004 * (temp - 25.0)).collect())
+            .collect(),
+    };
+    let mut block = String::new();
+    for (n, t) in [("COLD25.0", 25.0), ("HOT35.0", 35.0)] {
+        block.push_str(&format_profile(&mk(n, t)));
+        block.push_str("#*#\n");
+    }
+    // The user's [bed_mesh] fades towards z = 0.5 mm: Klipper starts with it (profiles are
+    // only read at start) but refuses to load any mesh whose z range does not hold 0.5 mm
+    // ("fade_target lies outside of mesh z range", bed_mesh.py set_mesh).
+    let faded = format!("{text}{block}").replacen(
+        "[bed_mesh]\n",
+        "[bed_mesh]\nfade_start: 1\nfade_end: 10\nfade_target: 0.5\n",
+        1,
+    );
+    assert_ne!(
+        faded,
+        format!("{text}{block}"),
+        "no [bed_mesh] in the bench"
+    );
+    std::fs::write(&path, faded).unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let ready = || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    };
+    assert!(poll(Duration::from_secs(60), ready).await.is_some());
+    let d = Daemon::ready(&bench, "").await;
+    let config_dir = bench.dir.path().join("config");
+    let before = snapshot(&config_dir);
+
+    extension_request(&files, "klipcal_mesh_import", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("import: {e}\n{}", d.log_text()));
+    let failed = poll(Duration::from_secs(180), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("the write never ended\n{}", d.log_text()));
+    // The session failed and says which profile Klipper refused, in Klipper's words, and
+    // that the config went back.
+    assert_eq!(failed["state"], "failed", "{failed}\n{}", d.log_text());
+    let reason = failed["reason"].as_str().unwrap_or("");
+    assert!(
+        reason.contains("Klipper refused to load profile klipcal_")
+            && reason.contains("fade_target lies outside of mesh z range")
+            && reason.contains("printer.cfg was restored")
+            && reason.contains("Klipper is ready again"),
+        "{reason}"
+    );
+    // The profiles were really written: the backup holds the file as it was.
+    let after = snapshot(&config_dir);
+    let backups: Vec<&String> = after
+        .keys()
+        .filter(|k| k.starts_with("klipcal_backups/"))
+        .collect();
+    assert_eq!(backups.len(), 1, "{backups:?}");
+    assert_eq!(after[backups[0]], before["printer.cfg"]);
+    // Every config file's bytes are as before; the backup is the only new file.
+    for (name, bytes) in &before {
+        assert!(
+            after.get(name) == Some(bytes),
+            "{name} differs after the rollback"
+        );
+    }
+    assert_eq!(after.len(), before.len() + 1, "{:?}", after.keys());
+    // Klipper is ready with the config of before: the user's profiles, no klipcal ones.
+    assert!(poll(Duration::from_secs(30), ready).await.is_some());
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let st = m
+        .objects_query(json!({"bed_mesh": ["profiles"]}))
+        .await
+        .unwrap();
+    let known: Vec<&String> = st["bed_mesh"]["profiles"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .collect();
+    assert!(known.iter().any(|k| *k == "COLD25.0"), "{known:?}");
+    assert!(
+        !known.iter().any(|k| k.starts_with("klipcal_")),
+        "{known:?}"
+    );
+    drop(d);
+}
