@@ -41,6 +41,11 @@ pub const METHODS: &[&str] = &[
 /// The store's kind.
 pub const KIND: &str = "mesh";
 
+/// klipcal.cfg's macro that keeps the user's `BED_MESH_OFFSET` (in its variables `x`, `y`) so
+/// the follower can set it again after each load: Klipper's status does not show the offset,
+/// and `BED_MESH_PROFILE LOAD=` drops it.
+pub const OFFSET_MACRO: &str = "KLIPCAL_MESH_OFFSET";
+
 const TITLE: &str = "thermal mesh";
 
 /// A capture session's state.
@@ -945,6 +950,20 @@ impl Mesh {
                  [bed_mesh] (or remove fade_start/fade_end), restart, then KLIPCAL_MESH_FOLLOW ENABLE=1"
             )));
         }
+        let offset_note = if self.kept_offset().await.is_some() {
+            format!(
+                "; an offset set with {OFFSET_MACRO} X= Y= is set again after each load (a plain \
+                 BED_MESH_OFFSET is dropped by the next load)"
+            )
+        } else {
+            self.core
+                .console_error(&format!(
+                    "{TITLE}: klipcal.cfg has no {OFFSET_MACRO} (update klipcal.cfg): each profile \
+                     load drops a BED_MESH_OFFSET and klipcal cannot set it again"
+                ))
+                .await;
+            String::new()
+        };
         self.stop_following("restarted").await;
         let token = self.core.shutdown().child_token();
         if let Ok(mut f) = self.follow.lock() {
@@ -957,7 +976,7 @@ impl Mesh {
             me.follow_loop(token, sensor, policy, sel.fit, temps).await;
         });
         let msg = format!(
-            "{TITLE}: following the frame temperature with the profiles of session {}",
+            "{TITLE}: following the frame temperature with the profiles of session {}{offset_note}",
             s.id
         );
         self.core.console(&msg).await;
@@ -974,6 +993,7 @@ impl Mesh {
     ) {
         let t0 = Instant::now();
         let mut f = Follower::new(policy, &fit, &temps, None);
+        let mut offset_mm = (0.0, 0.0);
         loop {
             tokio::select! {
                 () = token.cancelled() => return,
@@ -1002,6 +1022,7 @@ impl Mesh {
                     if let Ok(mut st) = self.follow_status.lock() {
                         *st = json!({"following": true, "frame_c": temp,
                             "loaded": f.loaded().map(|k| profile_name(temps[k])),
+                            "offset_mm": [offset_mm.0, offset_mm.1],
                             "residual_um": match &d { Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => Some(*residual_um), _ => None }});
                     }
                     d
@@ -1019,14 +1040,28 @@ impl Mesh {
                     residual_um,
                 } => {
                     let name = profile_name(temp_c);
-                    match self
-                        .core
-                        .m()
-                        .gcode(&format!("BED_MESH_PROFILE LOAD={name}"))
-                        .await
-                    {
-                        Ok(()) => info!(profile = %name, residual_um, "mesh profile loaded"),
-                        Err(e) => warn!(profile = %name, error = %e, "mesh profile load failed"),
+                    // The load drops BED_MESH_OFFSET: the one kept by KLIPCAL_MESH_OFFSET is
+                    // set again in the same script.
+                    let kept = self.kept_offset().await.unwrap_or((0.0, 0.0));
+                    match bed_mesh::load_script(&name, kept) {
+                        Ok(script) => match self.core.m().gcode(&script).await {
+                            Ok(()) => {
+                                offset_mm = kept;
+                                info!(profile = %name, residual_um, offset_x_mm = kept.0,
+                                      offset_y_mm = kept.1, "mesh profile loaded");
+                            }
+                            Err(e) => {
+                                warn!(profile = %name, error = %e, "mesh profile load failed");
+                            }
+                        },
+                        Err(e) => {
+                            self.core
+                                .console_error(&format!(
+                                    "{TITLE}: {OFFSET_MACRO} holds an offset klipcal cannot send \
+                                     ({e}); {name} not loaded"
+                                ))
+                                .await;
+                        }
                     }
                     let _ = index;
                 }
@@ -1055,6 +1090,22 @@ impl Mesh {
                 }
             }
         }
+    }
+
+    /// The offset `KLIPCAL_MESH_OFFSET` keeps, mm (X, Y); `None` when klipcal.cfg lacks the
+    /// macro. A variable that is not a number counts as 0.
+    async fn kept_offset(&self) -> Option<(f64, f64)> {
+        let obj = format!("gcode_macro {OFFSET_MACRO}");
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({ obj.clone(): ["x", "y"] }))
+            .await
+            .ok()?;
+        // Klipper answers an object it does not have with `{}`.
+        let vars = st.get(&obj).filter(|v| v.get("x").is_some())?;
+        let num = |k: &str| vars[k].as_f64().filter(|v| v.is_finite()).unwrap_or(0.0);
+        Some((num("x"), num("y")))
     }
 
     /// Homing or probing in progress (never load a mesh then).

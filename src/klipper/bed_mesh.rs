@@ -4,6 +4,7 @@
 //! VGB's `COLDxx.x` / `HOTxx.x` / `TESTxx.x` profiles. Never touches files.
 
 use super::config::{Config, Section, SAVE_CONFIG_MARKER};
+use super::gcode_cmd::GcodeCmd;
 use super::Error;
 
 /// `bed_mesh.PROFILE_VERSION`: profiles with another version are ignored by Klipper.
@@ -275,6 +276,26 @@ pub fn format_profile(p: &MeshProfile) -> String {
     out
 }
 
+/// The G-code script that loads profile `name` and, when `offset_mm` (X, Y) is not zero, sets
+/// `BED_MESH_OFFSET` again right after: `BED_MESH_PROFILE LOAD=` builds a new mesh whose
+/// offsets are zero. One script, so Klipper runs nothing between the two lines.
+///
+/// # Errors
+/// A name outside `[A-Za-z0-9_.-]`, or an offset that is not a finite number.
+pub fn load_script(name: &str, offset_mm: (f64, f64)) -> Result<String, Error> {
+    let load = GcodeCmd::new("BED_MESH_PROFILE")
+        .word("LOAD", name)
+        .build()?;
+    if offset_mm == (0.0, 0.0) {
+        return Ok(load);
+    }
+    let offset = GcodeCmd::new("BED_MESH_OFFSET")
+        .num("X", offset_mm.0)
+        .num("Y", offset_mm.1)
+        .build()?;
+    Ok(format!("{load}\n{offset}"))
+}
+
 /// The printer.cfg text with every `[bed_mesh klipcal_*]` profile of its SAVE_CONFIG block
 /// replaced by `new` (the user's other sections kept byte for byte). A file without a block
 /// gets Klipper's header appended.
@@ -422,5 +443,19 @@ mod tests {
         let ps = profiles(&load(CFG)).unwrap();
         let err = replace_klipcal_profiles(CFG, &[ps[0].clone()]).unwrap_err();
         assert!(err.to_string().contains("COLD27.3"), "{err}");
+    }
+
+    #[test]
+    fn a_load_sets_a_nonzero_offset_again_in_the_same_script() {
+        assert_eq!(
+            load_script("klipcal_30.00", (0.0, 0.0)).unwrap(),
+            "BED_MESH_PROFILE LOAD=klipcal_30.00"
+        );
+        assert_eq!(
+            load_script("klipcal_30.00", (5.0, -3.25)).unwrap(),
+            "BED_MESH_PROFILE LOAD=klipcal_30.00\nBED_MESH_OFFSET X=5 Y=-3.25"
+        );
+        assert!(load_script("klipcal 30", (0.0, 0.0)).is_err());
+        assert!(load_script("klipcal_30.00", (f64::NAN, 0.0)).is_err());
     }
 }

@@ -325,6 +325,30 @@ async fn vgb_profiles_in_the_config_are_imported_fitted_and_written_as_klipcal_p
     drop(d);
 }
 
+/// VGB's `COLD25.0` and `HOT35.0` profiles for the bench's printer.cfg (the centre and every
+/// point sag 40 µm per 10 °C from the bench's `default` profile), as SAVE_CONFIG lines.
+fn vgb_block(bench: &Bench) -> String {
+    use klipcal::klipper::bed_mesh::{format_profile, profiles, MeshProfile};
+    let path = bench.dir.path().join("config/printer.cfg");
+    let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &path).unwrap();
+    let base = profiles(&cfg).unwrap().remove(0);
+    let mut block = String::new();
+    for (name, temp) in [("COLD25.0", 25.0), ("HOT35.0", 35.0)] {
+        let p = MeshProfile {
+            name: name.into(),
+            params: base.params.clone(),
+            points_mm: base
+                .points_mm
+                .iter()
+                .map(|r| r.iter().map(|z| z - 0.004 * (temp - 25.0)).collect())
+                .collect(),
+        };
+        block.push_str(&format_profile(&p));
+        block.push_str("#*#\n");
+    }
+    block
+}
+
 /// Every file under `dir` (recursively), by path relative to it.
 fn snapshot(dir: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>> {
     let mut out = std::collections::BTreeMap::new();
@@ -345,28 +369,12 @@ fn snapshot(dir: &std::path::Path) -> std::collections::BTreeMap<String, Vec<u8>
 
 #[tokio::test]
 async fn a_profile_write_klipper_refuses_is_rolled_back_byte_for_byte() {
-    use klipcal::klipper::bed_mesh::{format_profile, profiles, MeshProfile};
     let bench = Bench::start("corexy");
     let files = bench.files();
     let path = bench.dir.path().join("config/printer.cfg");
     let text = std::fs::read_to_string(&path).unwrap();
-    let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &path).unwrap();
-    let base = profiles(&cfg).unwrap().remove(0);
     // VGB's COLD and HOT meshes to import: every fitted profile lies within ±0.1 mm.
-    let mk = |name: &str, temp: f64| MeshProfile {
-        name: name.into(),
-        params: base.params.clone(),
-        points_mm: base
-            .points_mm
-            .iter()
-            .map(|r| r.iter().map(|z| z - 0.004 * (temp - 25.0)).collect())
-            .collect(),
-    };
-    let mut block = String::new();
-    for (n, t) in [("COLD25.0", 25.0), ("HOT35.0", 35.0)] {
-        block.push_str(&format_profile(&mk(n, t)));
-        block.push_str("#*#\n");
-    }
+    let block = vgb_block(&bench);
     // The user's [bed_mesh] fades towards z = 0.5 mm: Klipper starts with it (profiles are
     // only read at start) but refuses to load any mesh whose z range does not hold 0.5 mm
     // ("fade_target lies outside of mesh z range", bed_mesh.py set_mesh).
@@ -446,5 +454,117 @@ async fn a_profile_write_klipper_refuses_is_rolled_back_byte_for_byte() {
         !known.iter().any(|k| k.starts_with("klipcal_")),
         "{known:?}"
     );
+    drop(d);
+}
+
+#[tokio::test]
+async fn following_sets_the_kept_bed_mesh_offset_again_after_each_load() {
+    // The mesh bench (a frame sensor at 25 °C) with VGB's profiles imported: 25–35 °C.
+    let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
+    let files = bench.files();
+    let path = bench.dir.path().join("config/printer.cfg");
+    let text = std::fs::read_to_string(&path).unwrap();
+    std::fs::write(&path, format!("{text}{}", vgb_block(&bench))).unwrap();
+    bench.stop_one("klippy");
+    bench.start_one("klippy");
+    let ready = poll(Duration::from_secs(60), || async {
+        let v = files.get("/server/info").await.ok()?;
+        (v["klippy_state"] == "ready").then_some(())
+    })
+    .await;
+    assert!(ready.is_some());
+    let d = Daemon::ready(
+        &bench,
+        "[mesh]\nfollow_interval_s = 1.0\njump_limit_um = 1000.0\n",
+    )
+    .await;
+    extension_request(&files, "klipcal_mesh_import", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("import: {e}\n{}", d.log_text()));
+    let done = poll(Duration::from_secs(120), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .expect("import finished");
+    assert_eq!(done["state"], "done", "{done}\n{}", d.log_text());
+
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    // Klipper's own report of the active mesh's offsets (its status does not carry them).
+    let offsets = || async {
+        let mut rx = m.events();
+        m.gcode("BED_MESH_OUTPUT").await.unwrap();
+        let e = crate::bench::wait_event(&mut rx, Duration::from_secs(10), |e| {
+            matches!(e, klipcal::moonraker::Event::GcodeResponse(l) if l.contains("Mesh Offsets:"))
+        })
+        .await;
+        match e {
+            Some(klipcal::moonraker::Event::GcodeResponse(l)) => l
+                .lines()
+                .find(|l| l.contains("Mesh Offsets:"))
+                .unwrap_or("")
+                .trim()
+                .to_string(),
+            _ => String::new(),
+        }
+    };
+    let active = || async {
+        let st = m
+            .objects_query(json!({"bed_mesh": ["profile_name"]}))
+            .await
+            .ok()?;
+        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
+        name.starts_with("klipcal_").then_some(name)
+    };
+    // The user's mesh with an offset set through klipcal.cfg's macro.
+    m.gcode("BED_MESH_PROFILE LOAD=default\nKLIPCAL_MESH_OFFSET X=5 Y=-3")
+        .await
+        .unwrap();
+    assert_eq!(offsets().await, "Mesh Offsets: X=5.0000, Y=-3.0000");
+    let r = extension_request(&files, "klipcal_mesh_follow", json!({"enable": "1"}))
+        .await
+        .unwrap();
+    assert!(
+        r["message"]
+            .as_str()
+            .unwrap()
+            .contains("KLIPCAL_MESH_OFFSET"),
+        "{r}"
+    );
+    // The follower's load (which zeroes the offsets) sets the kept offset again.
+    let loaded = poll(Duration::from_secs(30), active).await;
+    assert!(
+        loaded.is_some(),
+        "no klipcal profile loaded\n{}",
+        d.log_text()
+    );
+    assert_eq!(offsets().await, "Mesh Offsets: X=5.0000, Y=-3.0000");
+    let s = poll(Duration::from_secs(10), || async {
+        let s = mesh_session(&bench).await;
+        (s["follow"]["offset_mm"] == json!([5.0, -3.0])).then_some(s)
+    })
+    .await;
+    assert!(s.is_some(), "{}", mesh_session(&bench).await);
+    // A new X through the macro (Y kept), then a load by hand drops it: the follower loads its
+    // profile again and sets the offset the user set last.
+    m.gcode("KLIPCAL_MESH_OFFSET X=2").await.unwrap();
+    m.gcode("BED_MESH_PROFILE LOAD=hot").await.unwrap();
+    let again = poll(Duration::from_secs(30), active).await;
+    assert!(again.is_some(), "not loaded again\n{}", d.log_text());
+    assert_eq!(offsets().await, "Mesh Offsets: X=2.0000, Y=-3.0000");
+    // A value Klipper refuses stops the macro: the kept offset stays.
+    assert!(m.gcode("KLIPCAL_MESH_OFFSET X=abc").await.is_err());
+    let st = m
+        .objects_query(json!({"gcode_macro KLIPCAL_MESH_OFFSET": ["x", "y"]}))
+        .await
+        .unwrap();
+    assert_eq!(
+        st["gcode_macro KLIPCAL_MESH_OFFSET"],
+        json!({"x": 2.0, "y": -3.0})
+    );
+    extension_request(&files, "klipcal_mesh_follow", json!({"enable": "0"}))
+        .await
+        .unwrap();
     drop(d);
 }
