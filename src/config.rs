@@ -102,6 +102,10 @@ pub struct MeshConfig {
     pub follow_interval_s: f64,
     /// A load that would change the mesh by more than this is refused, µm.
     pub jump_limit_um: f64,
+    /// When heating and cooling have their own profiles: the frame counts as cooling once it
+    /// fell this far below its highest reading, and as heating again once it rose this far
+    /// above its lowest, °C.
+    pub trend_c: f64,
 }
 
 impl Default for MeshConfig {
@@ -121,6 +125,7 @@ impl Default for MeshConfig {
             follow: false,
             follow_interval_s: 30.0,
             jump_limit_um: 50.0,
+            trend_c: 0.3,
         }
     }
 }
@@ -133,6 +138,7 @@ impl MeshConfig {
             tolerance_um: self.tolerance_um,
             min_interval_s: self.follow_interval_s,
             jump_limit_um: self.jump_limit_um,
+            trend_c: self.trend_c,
             ..Default::default()
         }
     }
@@ -690,6 +696,7 @@ impl Config {
                 1000.0,
                 "µm from 1 to 1000",
             ),
+            ("mesh.trend_c", me.trend_c, 0.05, 5.0, "°C from 0.05 to 5"),
         ] {
             if !(v.is_finite() && (lo..=hi).contains(&v)) {
                 return Err(Error::Invalid {

@@ -416,15 +416,9 @@ pub fn bench(a: &BenchMeshArgs) -> anyhow::Result<ExitCode> {
             );
         }
         if !cool.is_empty() {
-            let differ = mesh::phases_differ(&sel.fit, &cool, a.tolerance_um);
-            println!(
-                "  cooling meshes vs heating model: {}",
-                if differ {
-                    "differ → fitted apart"
-                } else {
-                    "agree"
-                }
-            );
+            // The daemon's choice on the same meshes (calib::mesh::select_directions).
+            let d = mesh::select_directions(&caps.iter().collect::<Vec<_>>(), a.tolerance_um)?;
+            println!("  directions: {}", d.directions.describe(a.tolerance_um));
         }
         let plan = plan_profiles(&sel.fit, lo, hi, a.tolerance_um)?;
         let grid = vgb_grid(lo, hi, 0.1);
@@ -461,12 +455,15 @@ pub fn bench(a: &BenchMeshArgs) -> anyhow::Result<ExitCode> {
             th.step(1.0, 100.0);
             let t = f64::from(k);
             let reading = th.frame_c + gauss(&mut rng, 0.05);
-            match fo.push(t, reading, &sel.fit, false) {
+            match fo.push(t, reading, false) {
                 Decision::Load { .. } => loads += 1,
                 Decision::RefuseJump { .. } | Decision::Stopped { .. } => break,
                 Decision::Keep { .. } => {}
             }
-            if let Some(i) = fo.loaded() {
+            let loaded = fo
+                .loaded()
+                .and_then(|(_, lt)| plan.temps_c.iter().position(|&x| x == lt));
+            if let Some(i) = loaded {
                 let want = sel.fit.predict(th.frame_c).points_mm;
                 worst = worst.max(mesh::max_abs_diff_um(&want, &ours[i].flat_mm()));
             }

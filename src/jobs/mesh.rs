@@ -24,7 +24,7 @@ use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
 use super::user;
 use crate::calib::mesh::{self as cm, Capture, Phase};
-use crate::calib::mesh_follow::{Decision, Follower};
+use crate::calib::mesh_follow::{Branch, Decision, Follower};
 use crate::calib::soak::SoakParams;
 use crate::config::MeshConfig;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
@@ -113,6 +113,28 @@ pub struct ResultDoc {
     pub max_quantisation_um: f64,
     /// Where the backup of printer.cfg went.
     pub backup: Option<String>,
+    /// Heating and cooling: which meshes were fitted, and why, in words.
+    #[serde(default)]
+    pub directions: String,
+    /// The cooling direction's model and profiles (`klipcal_cool_<T>`), when heating and
+    /// cooling differ by more than the tolerance; the fields above are then heating's.
+    #[serde(default)]
+    pub cooling: Option<CoolingDoc>,
+}
+
+/// The cooling direction's fit and profiles.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CoolingDoc {
+    /// The chosen model.
+    pub model: String,
+    /// Leave-one-mesh-out errors per model: (name, max, mean, rms) µm.
+    pub models: Vec<(String, f64, f64, f64)>,
+    /// Captured frame range of the cooling meshes, °C.
+    pub range_c: (f64, f64),
+    /// Profile temperatures written, °C.
+    pub profiles_c: Vec<f64>,
+    /// Worst error of using the nearest profile, µm.
+    pub max_quantisation_um: f64,
 }
 
 /// The session document.
@@ -253,17 +275,92 @@ fn calib_captures(s: &Session) -> Vec<Capture> {
         .collect()
 }
 
-/// The fit of a session's heating captures (the cooling ones are judged, not fitted, unless
-/// there are no heating ones).
-fn fit_session(s: &Session) -> anyhow::Result<cm::Selection> {
+/// The fit of a session's captures: heating and cooling apart when they differ by more than
+/// the session's tolerance, one model otherwise (`calib::mesh::select_directions`).
+fn fit_session(s: &Session) -> anyhow::Result<cm::DirectionalSelection> {
     let caps = calib_captures(s);
-    let heating: Vec<&Capture> = caps.iter().filter(|c| c.phase == Phase::Heating).collect();
-    let use_caps: Vec<&Capture> = if heating.len() >= 2 {
-        heating
-    } else {
-        caps.iter().collect()
+    let refs: Vec<&Capture> = caps.iter().collect();
+    cm::select_directions(&refs, s.options.tolerance_um)
+        .map_err(|e| user(format!("fitting the meshes: {e}")))
+}
+
+/// The profiles of one direction's model over its range.
+fn plan_direction(sel: &cm::Selection, tolerance_um: f64) -> anyhow::Result<cm::ProfilePlan> {
+    let (lo, hi) = sel.fit.range_c;
+    cm::plan_profiles(&sel.fit, lo, hi, tolerance_um).map_err(|e| user(e.to_string()))
+}
+
+fn model_rows(sel: &cm::Selection) -> Vec<(String, f64, f64, f64)> {
+    sel.models
+        .iter()
+        .map(|(k, e)| (k.name().to_string(), e.max_um, e.mean_um, e.rms_um))
+        .collect()
+}
+
+/// The profiles a finished capture writes and its result (no backup yet): the heating (or
+/// only) model's `klipcal_<T>` and, when heating and cooling differ, the cooling model's
+/// `klipcal_cool_<T>`, each the fewest within the session's tolerance.
+///
+/// # Errors
+/// No mesh parameters, or a fit that fails.
+pub fn plan_session(s: &Session) -> anyhow::Result<(Vec<MeshProfile>, ResultDoc)> {
+    let dsel = fit_session(s)?;
+    let sel = &dsel.heating;
+    let params = s
+        .params
+        .clone()
+        .ok_or_else(|| anyhow!("no mesh parameters"))?;
+    let plan = plan_direction(sel, s.options.tolerance_um)?;
+    let cooling = match &dsel.cooling {
+        Some(c) => Some((c, plan_direction(c, s.options.tolerance_um)?)),
+        None => None,
     };
-    cm::select(&use_caps).map_err(|e| user(format!("fitting the meshes: {e}")))
+    // VGB's method is judged on the meshes of the heating model.
+    let caps = calib_captures(s);
+    let refs: Vec<&Capture> = caps
+        .iter()
+        .filter(|c| dsel.cooling.is_none() || c.phase == Phase::Heating)
+        .collect();
+    let vgb = cm::vgb_lomo(&refs).map(|e| (e.max_um, e.mean_um, e.rms_um));
+    let profile = |phase: Phase, fit: &cm::Fit, t: f64| {
+        let flat = fit.predict(t).points_mm;
+        MeshProfile {
+            name: direction_profile_name(phase, t),
+            params: params.clone(),
+            points_mm: flat.chunks(params.x_count).map(<[f64]>::to_vec).collect(),
+        }
+    };
+    let mut profiles: Vec<MeshProfile> = plan
+        .temps_c
+        .iter()
+        .map(|&t| profile(Phase::Heating, &sel.fit, t))
+        .collect();
+    if let Some((c, cplan)) = &cooling {
+        profiles.extend(
+            cplan
+                .temps_c
+                .iter()
+                .map(|&t| profile(Phase::Cooling, &c.fit, t)),
+        );
+    }
+    let result = ResultDoc {
+        model: sel.fit.kind.name().to_string(),
+        models: model_rows(sel),
+        vgb,
+        range_c: sel.fit.range_c,
+        profiles_c: plan.temps_c,
+        max_quantisation_um: plan.max_quantisation_um,
+        backup: None,
+        directions: dsel.directions.describe(s.options.tolerance_um),
+        cooling: cooling.map(|(c, cplan)| CoolingDoc {
+            model: c.fit.kind.name().to_string(),
+            models: model_rows(c),
+            range_c: c.fit.range_c,
+            profiles_c: cplan.temps_c,
+            max_quantisation_um: cplan.max_quantisation_um,
+        }),
+    };
+    Ok((profiles, result))
 }
 
 /// The thermal mesh over the shared core.
@@ -722,50 +819,27 @@ impl Mesh {
     /// Klipper does not come back ready with every profile.
     async fn write_profiles(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
-        let sel = fit_session(&s)?;
-        let params = s
-            .params
-            .clone()
-            .ok_or_else(|| anyhow!("no mesh parameters"))?;
-        let (lo, hi) = sel.fit.range_c;
-        let plan = cm::plan_profiles(&sel.fit, lo, hi, s.options.tolerance_um)
-            .map_err(|e| user(e.to_string()))?;
-        let caps = calib_captures(&s);
-        let refs: Vec<&Capture> = caps.iter().collect();
-        let vgb = cm::vgb_lomo(&refs).map(|e| (e.max_um, e.mean_um, e.rms_um));
-        let profiles: Vec<MeshProfile> = plan
-            .temps_c
-            .iter()
-            .map(|&t| {
-                let flat = sel.fit.predict(t).points_mm;
-                MeshProfile {
-                    name: profile_name(t),
-                    params: params.clone(),
-                    points_mm: flat.chunks(params.x_count).map(<[f64]>::to_vec).collect(),
-                }
-            })
-            .collect();
+        let (profiles, mut result) = plan_session(&s)?;
         self.core.printer_idle().await?;
-        let backup = self.write_block(&profiles).await?;
-        let result = ResultDoc {
-            model: sel.fit.kind.name().to_string(),
-            models: sel
-                .models
-                .iter()
-                .map(|(k, e)| (k.name().to_string(), e.max_um, e.mean_um, e.rms_um))
-                .collect(),
-            vgb,
-            range_c: (lo, hi),
-            profiles_c: plan.temps_c.clone(),
-            max_quantisation_um: plan.max_quantisation_um,
-            backup: Some(backup),
+        result.backup = Some(self.write_block(&profiles).await?);
+        let (lo, hi) = result.range_c;
+        let cooling_words = match &result.cooling {
+            Some(c) => format!(
+                " and {} klipcal_cool_* for cooling over {:.2}–{:.2} °C (model {})",
+                c.profiles_c.len(),
+                c.range_c.0,
+                c.range_c.1,
+                c.model
+            ),
+            None => String::new(),
         };
         let msg = format!(
             "{TITLE}: {} profiles klipcal_* written for {lo:.2}–{hi:.2} °C (model {}, worst \
-             step {:.1} µm); KLIPCAL_MESH_FOLLOW ENABLE=1 follows the frame",
-            plan.temps_c.len(),
+             step {:.1} µm){cooling_words}; {}; KLIPCAL_MESH_FOLLOW ENABLE=1 follows the frame",
+            result.profiles_c.len(),
             result.model,
-            plan.max_quantisation_um
+            result.max_quantisation_um,
+            result.directions
         );
         self.update(id, |d| {
             d.result = Some(result);
@@ -878,7 +952,7 @@ impl Mesh {
     }
 
     /// The newest finished capture and its fit.
-    fn model(&self) -> anyhow::Result<(Session, cm::Selection)> {
+    fn model(&self) -> anyhow::Result<(Session, cm::DirectionalSelection)> {
         let Some((_, s)) = self.core.latest_of::<Session>(KIND)? else {
             return Err(user(
                 "no thermal mesh captured yet; run KLIPCAL_MESH_CAPTURE first",
@@ -934,6 +1008,19 @@ impl Mesh {
             .as_ref()
             .map(|r| r.profiles_c.clone())
             .unwrap_or_default();
+        // The cooling profiles, when the session wrote them (the fit is the same: the same
+        // captures and tolerance).
+        let cooling = match (
+            sel.cooling,
+            s.result.as_ref().and_then(|r| r.cooling.as_ref()),
+        ) {
+            (Some(c), Some(doc)) if !doc.profiles_c.is_empty() => Some(Branch {
+                phase: Phase::Cooling,
+                fit: c.fit,
+                temps_c: doc.profiles_c.clone(),
+            }),
+            _ => None,
+        };
         if temps.is_empty() {
             return Err(user(
                 "the last capture wrote no profiles; run KLIPCAL_MESH_CAPTURE again",
@@ -972,11 +1059,22 @@ impl Mesh {
         let me = self.clone();
         let sensor = s.options.frame_sensor.clone();
         let policy = self.settings.follow_policy();
+        let directions = if cooling.is_some() {
+            " (klipcal_* while the frame warms, klipcal_cool_* while it cools)"
+        } else {
+            ""
+        };
+        let heating = Branch {
+            phase: Phase::Heating,
+            fit: sel.heating.fit,
+            temps_c: temps,
+        };
         tokio::spawn(async move {
-            me.follow_loop(token, sensor, policy, sel.fit, temps).await;
+            me.follow_loop(token, sensor, policy, heating, cooling)
+                .await;
         });
         let msg = format!(
-            "{TITLE}: following the frame temperature with the profiles of session {}{offset_note}",
+            "{TITLE}: following the frame temperature with the profiles of session {}{directions}{offset_note}",
             s.id
         );
         self.core.console(&msg).await;
@@ -988,11 +1086,12 @@ impl Mesh {
         token: CancellationToken,
         sensor: String,
         policy: crate::calib::mesh_follow::FollowPolicy,
-        fit: cm::Fit,
-        temps: Vec<f64>,
+        heating: Branch,
+        cooling: Option<Branch>,
     ) {
         let t0 = Instant::now();
-        let mut f = Follower::new(policy, &fit, &temps, None);
+        let fresh = || Follower::with_directions(policy, heating.clone(), cooling.clone(), None);
+        let mut f = fresh();
         let mut offset_mm = (0.0, 0.0);
         loop {
             tokio::select! {
@@ -1002,7 +1101,7 @@ impl Mesh {
             let t = t0.elapsed().as_secs_f64();
             // A Klipper restart (or a manual load) replaces the mesh the follower loaded: start
             // over, so the right profile is loaded again.
-            if let Some(k) = f.loaded() {
+            if let Some((phase, temp_c)) = f.loaded() {
                 let active = self
                     .core
                     .m()
@@ -1010,18 +1109,19 @@ impl Mesh {
                     .await
                     .ok()
                     .and_then(|st| st["bed_mesh"]["profile_name"].as_str().map(str::to_string));
-                if active.is_some_and(|a| a != profile_name(temps[k])) {
+                if active.is_some_and(|a| a != direction_profile_name(phase, temp_c)) {
                     info!("the active mesh changed under the follower (Klipper restarted?); reloading");
-                    f = Follower::new(policy, &fit, &temps, None);
+                    f = fresh();
                 }
             }
             let busy = self.busy().await;
             let d = match self.frame_temp(&sensor).await {
                 Ok(temp) => {
-                    let d = f.push(t, temp, &fit, busy);
+                    let d = f.push(t, temp, busy);
                     if let Ok(mut st) = self.follow_status.lock() {
                         *st = json!({"following": true, "frame_c": temp,
-                            "loaded": f.loaded().map(|k| profile_name(temps[k])),
+                            "trend": f.trend(),
+                            "loaded": f.loaded().map(|(p, t)| direction_profile_name(p, t)),
                             "offset_mm": [offset_mm.0, offset_mm.1],
                             "residual_um": match &d { Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => Some(*residual_um), _ => None }});
                     }
@@ -1035,11 +1135,12 @@ impl Mesh {
             match d {
                 Decision::Keep { .. } => {}
                 Decision::Load {
-                    index,
+                    phase,
                     temp_c,
                     residual_um,
+                    ..
                 } => {
-                    let name = profile_name(temp_c);
+                    let name = direction_profile_name(phase, temp_c);
                     // The load drops BED_MESH_OFFSET: the one kept by KLIPCAL_MESH_OFFSET is
                     // set again in the same script.
                     let kept = self.kept_offset().await.unwrap_or((0.0, 0.0));
@@ -1063,15 +1164,27 @@ impl Mesh {
                                 .await;
                         }
                     }
-                    let _ = index;
                 }
-                Decision::RefuseJump { index, jump_um } => {
+                Decision::RefuseJump {
+                    phase,
+                    index,
+                    jump_um,
+                } => {
+                    let set = if phase == Phase::Cooling {
+                        cooling.as_ref().unwrap_or(&heating)
+                    } else {
+                        &heating
+                    };
+                    let name = set
+                        .temps_c
+                        .get(index)
+                        .map_or_else(String::new, |&t| direction_profile_name(phase, t));
                     self.core
                         .console_error(&format!(
                             "{TITLE}: loading {} would change the mesh by {jump_um:.0} µm (limit {:.0} µm, \
                              mesh.jump_limit_um): following stopped — was it switched on mid-print, or did the \
                              frame sensor jump?",
-                            profile_name(temps[index]),
+                            name,
                             policy.jump_limit_um
                         ))
                         .await;
@@ -1188,9 +1301,10 @@ impl Mesh {
             .clone()
             .ok_or_else(|| anyhow!("no mesh parameters"))?;
         let temp = self.frame_temp(&s.options.frame_sensor).await?;
-        let (lo, hi) = sel.fit.range_c;
+        // A print start warms the frame: the heating model.
+        let (lo, hi) = sel.heating.fit.range_c;
         let t_model = temp.clamp(lo, hi);
-        let predicted = sel.fit.predict(t_model).points_mm;
+        let predicted = sel.heating.fit.predict(t_model).points_mm;
         self.homed().await?;
         let (xc, yc) = (params.x_count, params.y_count);
         let nodes = [
@@ -1343,6 +1457,16 @@ fn klipper_message(e: &crate::moonraker::Error) -> String {
 #[must_use]
 pub fn profile_name(temp_c: f64) -> String {
     format!("{}{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX)
+}
+
+/// The profile of a direction: `klipcal_<T>` while heating (or for one model in every
+/// direction), `klipcal_cool_<T>` for the cooling model kept apart.
+#[must_use]
+pub fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
+    match phase {
+        Phase::Heating => profile_name(temp_c),
+        Phase::Cooling => format!("{}cool_{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX),
+    }
 }
 
 impl Calibration for Mesh {
@@ -1507,5 +1631,111 @@ mod tests {
     #[test]
     fn profile_names_carry_the_temperature_to_a_hundredth() {
         assert_eq!(profile_name(31.256), "klipcal_31.26");
+    }
+
+    /// A 3×3 capture session: heating 25 → 40 °C, then cooling 39 → 28.5 °C with the bow
+    /// lagging `lag_c` behind (VGB's hysteresis), ±1 µm of noise.
+    fn hysteresis_session(lag_c: f64) -> Session {
+        let mut state = 11u64;
+        let mut noise = move || {
+            state = state
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            ((state >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.002
+        };
+        let gain = [0.3, 0.6, 0.3, 0.6, 1.0, 0.6, 0.3, 0.6, 0.3];
+        let mut mesh = |n: usize, t: f64, bow_t: f64, heating: bool| CaptureDoc {
+            n,
+            at_unix: n as f64 * 600.0,
+            temps_c: vec![t; 9],
+            points_mm: gain
+                .iter()
+                .map(|g| -g * 0.006 * (bow_t - 25.0) + noise())
+                .collect(),
+            heating,
+        };
+        let mut captures: Vec<CaptureDoc> = (0..11)
+            .map(|k| {
+                let t = 25.0 + 1.5 * k as f64;
+                mesh(k + 1, t, t, true)
+            })
+            .collect();
+        for k in 0..8 {
+            let t = 39.0 - 1.5 * k as f64;
+            captures.push(mesh(12 + k, t, t + lag_c, false));
+        }
+        Session {
+            id: 1,
+            state: State::Writing,
+            reason: None,
+            progress: String::new(),
+            options: MeshConfig::default(),
+            params: Some(MeshParams {
+                x_count: 3,
+                y_count: 3,
+                mesh_x_pps: 2,
+                mesh_y_pps: 2,
+                algo: "lagrange".into(),
+                tension: 0.2,
+                min_x: 20.0,
+                max_x: 280.0,
+                min_y: 20.0,
+                max_y: 280.0,
+            }),
+            captures,
+            started_unix: Some(0.0),
+            result: None,
+            notes: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_capture_whose_cooling_meshes_differ_writes_cooling_profiles_beside_the_heating_ones() {
+        let (profiles, result) = plan_session(&hysteresis_session(3.0)).unwrap();
+        let cooling = result.cooling.as_ref().expect("cooling kept apart");
+        let heat: Vec<&MeshProfile> = profiles
+            .iter()
+            .filter(|p| !p.name.starts_with("klipcal_cool_"))
+            .collect();
+        let cool: Vec<&MeshProfile> = profiles
+            .iter()
+            .filter(|p| p.name.starts_with("klipcal_cool_"))
+            .collect();
+        assert_eq!(heat.len(), result.profiles_c.len());
+        assert_eq!(cool.len(), cooling.profiles_c.len());
+        assert!(!cool.is_empty() && heat[0].name.starts_with("klipcal_"));
+        assert!(
+            result.directions.contains("differ"),
+            "{}",
+            result.directions
+        );
+        // The cooling range is the cooling meshes' own.
+        assert!((cooling.range_c.0 - 28.5).abs() < 1e-9 && (cooling.range_c.1 - 39.0).abs() < 1e-9);
+        // At the same temperature the cooling profile sits ~18 µm (3 °C × 6 µm/°C) lower.
+        let at = |name: String| {
+            profiles
+                .iter()
+                .find(|p| p.name == name)
+                .map(|p| p.points_mm[1][1])
+        };
+        let t = cooling.profiles_c[cooling.profiles_c.len() / 2];
+        let hc = fit_session(&hysteresis_session(3.0)).unwrap();
+        let heating_centre = hc.heating.fit.predict(t).points_mm[4];
+        let cooling_centre = at(direction_profile_name(Phase::Cooling, t)).unwrap();
+        assert!(
+            (heating_centre - cooling_centre - 0.018).abs() < 0.004,
+            "{heating_centre} vs {cooling_centre}"
+        );
+        // Klipper's names: klipcal's to replace, nothing else.
+        let text = bed_mesh::replace_klipcal_profiles("[printer]\n", &profiles).unwrap();
+        assert_eq!(text.matches("[bed_mesh klipcal_cool_").count(), cool.len());
+    }
+
+    #[test]
+    fn a_capture_whose_directions_agree_writes_one_profile_set() {
+        let (profiles, result) = plan_session(&hysteresis_session(0.0)).unwrap();
+        assert!(result.cooling.is_none());
+        assert!(result.directions.contains("agree"), "{}", result.directions);
+        assert!(profiles.iter().all(|p| !p.name.contains("cool")));
     }
 }
