@@ -47,7 +47,12 @@ impl Args {
                     }
                 )));
             }
-            map.insert(key, v.clone());
+            if map.insert(key, v.clone()).is_some() {
+                return Err(user(format!(
+                    "{command}: argument {} given twice; give it once",
+                    k.to_uppercase()
+                )));
+            }
         }
         Ok(Self { map })
     }
@@ -201,6 +206,12 @@ mod tests {
             err.to_string(),
             "KLIPCAL_AB_START: unknown argument BDE; it takes BED, EXTRUDER"
         );
+    }
+
+    #[test]
+    fn an_argument_given_twice_in_two_cases_is_refused_by_name() {
+        let err = Args::parse(&json!({"bed": 60, "BED": 70}), "C", &["bed"]).unwrap_err();
+        assert_eq!(err.to_string(), "C: argument BED given twice; give it once");
     }
 
     #[test]

@@ -568,3 +568,207 @@ async fn following_sets_the_kept_bed_mesh_offset_again_after_each_load() {
         .unwrap();
     drop(d);
 }
+
+#[tokio::test]
+async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
+    use klipcal::moonraker::Event;
+    let bench = Bench::start("corexy");
+    let d = Daemon::ready(&bench, "").await;
+    let files = bench.files();
+    let base = d.page_url().await;
+    let http = reqwest::Client::new();
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    // (remote method, arguments, what the refusal names, the same through its macro).
+    let cases: &[(&str, Value, &str, Option<&str>)] = &[
+        (
+            "capture",
+            json!({"bde": 60}),
+            "unknown argument BDE",
+            Some("KLIPCAL_MESH_CAPTURE BDE=60"),
+        ),
+        (
+            "capture",
+            json!({"bed": "60", "extruder": 200}),
+            "unknown argument EXTRUDER",
+            Some("KLIPCAL_MESH_CAPTURE BED=60 EXTRUDER=200"),
+        ),
+        (
+            "capture",
+            json!({"bed": "hot"}),
+            "BED=hot is not a number",
+            Some("KLIPCAL_MESH_CAPTURE BED=hot"),
+        ),
+        (
+            "capture",
+            json!({"bed": 131}),
+            "BED=131: expected a bed temperature from 0",
+            Some("KLIPCAL_MESH_CAPTURE BED=131"),
+        ),
+        (
+            "capture",
+            json!({"bed": -5}),
+            "BED=-5: expected a bed temperature from 0",
+            Some("KLIPCAL_MESH_CAPTURE BED=-5"),
+        ),
+        (
+            "capture",
+            json!({"bed": "nan"}),
+            "BED=nan is not a number",
+            Some("KLIPCAL_MESH_CAPTURE BED=nan"),
+        ),
+        (
+            "capture",
+            json!({"bed": "inf"}),
+            "BED=inf is not a number",
+            None,
+        ),
+        (
+            "capture",
+            json!({"bed": true}),
+            "BED=true is not a number",
+            None,
+        ),
+        (
+            "capture",
+            json!({"bed": [60]}),
+            "BED=[60] is not a number",
+            None,
+        ),
+        (
+            "capture",
+            json!({"bed": {"c": 60}}),
+            "BED={\"c\":60} is not a number",
+            None,
+        ),
+        (
+            "capture",
+            json!({"bed": 60, "BED": 70}),
+            "argument BED given twice",
+            None,
+        ),
+        (
+            "import",
+            json!({"force": 1}),
+            "unknown argument FORCE",
+            Some("KLIPCAL_MESH_IMPORT FORCE=1"),
+        ),
+        (
+            "follow",
+            json!({"enable": "yes"}),
+            "ENABLE=yes: expected 1 (follow) or 0 (stop)",
+            Some("KLIPCAL_MESH_FOLLOW ENABLE=yes"),
+        ),
+        (
+            "follow",
+            json!({"enable": 2}),
+            "ENABLE=2: expected 1",
+            Some("KLIPCAL_MESH_FOLLOW ENABLE=2"),
+        ),
+        (
+            "follow",
+            json!({"enable": "-1"}),
+            "ENABLE=-1: expected 1",
+            None,
+        ),
+        (
+            "follow",
+            json!({"enable": [1]}),
+            "ENABLE=[1]: expected 1",
+            None,
+        ),
+        (
+            "follow",
+            json!({"enabel": 0}),
+            "unknown argument ENABEL",
+            Some("KLIPCAL_MESH_FOLLOW ENABEL=0"),
+        ),
+        (
+            "check",
+            json!({"x": 1}),
+            "unknown argument X; it takes no arguments",
+            Some("KLIPCAL_MESH_CHECK X=1"),
+        ),
+    ];
+    for (op, args, want, mac) in cases {
+        let method = format!("klipcal_mesh_{op}");
+        // Through Moonraker, as an HTTP caller of the remote method.
+        let e = extension_request(&files, &method, args.clone())
+            .await
+            .expect_err(&format!("{method} {args} was accepted"));
+        assert!(e.contains(want), "{method} {args}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        // The daemon's own API: the same refusal, a 400.
+        let r = http
+            .post(format!("{base}/api/mesh/{op}"))
+            .header("content-type", "application/json")
+            .body(args.to_string())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 400, "{op} {args}");
+        let v: Value = r.json().await.unwrap();
+        assert_eq!(v["error"]["message"], json!(e), "{op} {args}");
+        // From the macro: the console says it (a console line has ',' for ';').
+        if let Some(line) = mac {
+            let said_want = want.replace(';', ",");
+            let mut rx = m.events();
+            m.gcode(line).await.unwrap();
+            let said = crate::bench::wait_event(
+                &mut rx,
+                Duration::from_secs(15),
+                |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(&said_want)),
+            )
+            .await;
+            assert!(
+                said.is_some(),
+                "{line}: no console line with {said_want:?}\n{}",
+                d.log_text()
+            );
+        }
+    }
+    // Positional arguments name the command and say what is expected.
+    let e = extension_request(&files, "klipcal_mesh_capture", json!([60]))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("KLIPCAL_MESH_CAPTURE: arguments must be named"),
+        "{e}"
+    );
+    // klipcal.cfg's offset macro refuses what BED_MESH_OFFSET would ignore or not parse.
+    let e = m.gcode("KLIPCAL_MESH_OFFSET X=1 Z=2").await.unwrap_err();
+    assert!(
+        e.to_string().contains("unknown argument Z; it takes X, Y"),
+        "{e}"
+    );
+    for (line, want) in [
+        ("KLIPCAL_MESH_OFFSET X=abc", "X=abc is not a number of mm"),
+        (
+            "KLIPCAL_MESH_OFFSET X=1 Y=nan",
+            "Y=nan is not a number of mm",
+        ),
+        ("KLIPCAL_MESH_OFFSET Y=1e9", "Y=1e9 is not a number of mm"),
+    ] {
+        let e = m.gcode(line).await.expect_err(line);
+        assert!(e.to_string().contains(want), "{line}: {e}");
+    }
+    // None of them kept anything.
+    let st = m
+        .objects_query(json!({"gcode_macro KLIPCAL_MESH_OFFSET": ["x", "y"]}))
+        .await
+        .unwrap();
+    assert_eq!(
+        st["gcode_macro KLIPCAL_MESH_OFFSET"],
+        json!({"x": 0.0, "y": 0.0})
+    );
+    // Nothing was started: no session, the bed cold, no mesh loaded.
+    assert_eq!(mesh_session(&bench).await, Value::Null);
+    let st = m
+        .objects_query(json!({"heater_bed": ["target"], "bed_mesh": ["profile_name"]}))
+        .await
+        .unwrap();
+    assert_eq!(st["heater_bed"]["target"], json!(0.0));
+    assert_eq!(st["bed_mesh"]["profile_name"], json!(""));
+    assert!(!d.log_text().contains("following the frame temperature"));
+    drop(d);
+}
