@@ -21,10 +21,10 @@ use super::printer_config::{self, ValueSet};
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::user;
-use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult};
+use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult, SEED_SMOOTH_TIME_S};
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
-use crate::klipper::backlash::{self as kb, Branch, Detection, SetBacklash};
+use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
 use crate::klipper::GcodeCmd;
 use crate::store::SessionRow;
 
@@ -98,6 +98,10 @@ pub struct Session {
     pub cycles: BTreeMap<String, Vec<crate::calib::backlash::Cycle>>,
     /// [printer] max_accel, mm/s².
     pub max_accel_mm_s2: Option<f64>,
+    /// The dual carriage selected for the axis in progress (`SET_DUAL_CARRIAGE CARRIAGE=`);
+    /// its results are kept as `<axis>@<carriage>`, e.g. `x@1`.
+    #[serde(default)]
+    pub carriage: Option<u32>,
     /// Things the user should know.
     pub notes: Vec<String>,
 }
@@ -211,8 +215,10 @@ impl Backlash {
         let axis = g.axis.name().to_uppercase();
         Prompt {
             title: format!(
-                "klipcal: backlash {axis} — cycle {}/{}, moving only {dir}",
-                step.cycle, g.params.cycles
+                "klipcal: backlash {} — cycle {}/{}, moving only {dir}",
+                key_words(&result_key(g.axis, s.carriage)),
+                step.cycle,
+                g.params.cycles
             ),
             lines: vec![
                 format!(
@@ -261,7 +267,7 @@ impl Backlash {
             let active = s.active_mm.get(&axis).copied().unwrap_or(0.0);
             out.push(format!(
                 "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
-                axis.to_uppercase(),
+                key_words(&axis),
                 r.backlash_mm,
                 r.uncertainty_mm,
                 r.cycles,
@@ -327,7 +333,12 @@ impl Backlash {
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
     pub async fn start(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_BACKLASH_START", &["axis", "cycles"])?;
+        let a = Args::parse(
+            args,
+            "KLIPCAL_BACKLASH_START",
+            &["axis", "cycles", "carriage"],
+        )?;
+        let carriage_arg = a.int("carriage", "1")?;
         let axis_text = a.text("axis").ok_or_else(|| {
             user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
         })?;
@@ -358,6 +369,13 @@ impl Backlash {
             )));
         }
         let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let carriage = self
+            .carriage_for(&detection, &cf, axis, carriage_arg)
+            .await?;
+        if let Some(n) = carriage {
+            self.park_and_select(n).await?;
+        }
+        let key = result_key(axis, carriage);
         let mut active_mm = BTreeMap::new();
         match detection.branch {
             Branch::Seed => {
@@ -365,6 +383,13 @@ impl Backlash {
                 active_mm.insert("x".into(), r.x_mm);
                 active_mm.insert("y".into(), r.y_mm);
                 active_mm.insert("z".into(), r.z_mm);
+                if carriage.is_some() {
+                    let own = match axis {
+                        GuideAxis::Y => r.y_mm,
+                        _ => r.x_mm,
+                    };
+                    active_mm.insert(key.clone(), own);
+                }
             }
             Branch::Pr7157 { .. } => {
                 if let Some(o) = cf["settings"]["backlash"].as_object() {
@@ -388,7 +413,8 @@ impl Backlash {
                     s.guide = Some(guide.clone());
                     s.point = point;
                     s.detection = detection.clone();
-                    s.active_mm = active_mm.clone();
+                    s.active_mm.extend(active_mm.clone());
+                    s.carriage = carriage;
                     self.core.save(s.id, &s)?;
                     Some(s)
                 }
@@ -417,6 +443,7 @@ impl Backlash {
                     cycles: BTreeMap::new(),
                     max_accel_mm_s2: max_accel,
                     notes: Vec::new(),
+                    carriage,
                 };
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
                 s
@@ -427,11 +454,13 @@ impl Backlash {
         let msg = format!(
             "{TITLE} session {}: {} from {} mm in −, jog only in + until centred",
             s.id,
-            axis.name().to_uppercase(),
+            key_words(&key),
             s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
         );
         self.core.console(&msg).await;
-        Ok(json!({"session": s.id, "state": "measuring", "axis": axis.name(), "message": msg}))
+        Ok(
+            json!({"session": s.id, "state": "measuring", "axis": axis.name(), "carriage": carriage, "message": msg}),
+        )
     }
 
     /// `klipcal_backlash_jog PRESS=coarse|fine|centred|overshot`.
@@ -458,13 +487,16 @@ impl Backlash {
                 .ok_or_else(|| anyhow!("measuring without a guide"))?;
             let step = g.press(press).map_err(|e| user(e.to_string()))?;
             if step.phase == Phase::Done {
-                let axis = g.axis.name().to_string();
+                let key = result_key(g.axis, s.carriage);
                 let cycles = g.cycles.clone();
-                s.cycles.insert(axis.clone(), cycles);
+                s.cycles.insert(key.clone(), cycles);
                 s.guide = None;
+                s.carriage = None;
                 s.state = State::Measured;
-                s.progress =
-                    format!("{axis} measured; start another axis or KLIPCAL_BACKLASH_APPLY");
+                s.progress = format!(
+                    "{} measured; start another axis or KLIPCAL_BACKLASH_APPLY",
+                    key_words(&key)
+                );
             }
             self.core.save(s.id, &s)?;
             (s, step)
@@ -509,12 +541,6 @@ impl Backlash {
         if !detection.can_apply() {
             return Err(user(format!("cannot apply: {}", detection.why)));
         }
-        if detection.dual_carriage && detection.branch == Branch::Seed {
-            return Err(user(
-                "dual_carriage: PR 7259 refuses non-zero values in [backlash_compensation]; the \
-                 per-carriage [delayed_gcode] include is not written automatically yet",
-            ));
-        }
         let results = self.results(&s)?;
         let mut values: BTreeMap<String, f64> = BTreeMap::new();
         for (axis, r) in &results {
@@ -536,23 +562,46 @@ impl Backlash {
         }
         let smooth =
             (detection.branch == Branch::Seed).then(|| common_smooth_time_s(results.values()));
+        if detection.dual_carriage && detection.branch == Branch::Seed {
+            return self
+                .apply_dual(&s, &values, smooth.unwrap_or(SEED_SMOOTH_TIME_S))
+                .await;
+        }
+        if let Some(k) = values.keys().find(|k| k.contains('@')) {
+            return Err(user(format!(
+                "{} was measured for a dual carriage, but this printer's config has no \
+                 [dual_carriage] now; measure again",
+                key_words(k)
+            )));
+        }
         let triples = kb::config_values(detection.branch, &values, smooth)
             .map_err(|e| user(e.to_string()))?;
         self.set_state(s.id, State::Applying, "applying").await?;
         let outcome = self
             .apply_values(&detection, &values, smooth, &triples)
             .await;
+        self.settle(s.id, &values, smooth, outcome).await
+    }
+
+    /// Ends an apply: done with the message, or back to measured with the reason.
+    async fn settle(
+        &self,
+        id: i64,
+        values: &BTreeMap<String, f64>,
+        smooth: Option<f64>,
+        outcome: anyhow::Result<String>,
+    ) -> anyhow::Result<Value> {
         match outcome {
             Ok(msg) => {
-                self.finish(s.id, State::Done, &msg).await?;
+                self.finish(id, State::Done, &msg).await?;
                 self.core.console(&format!("{TITLE}: {msg}")).await;
                 Ok(
-                    json!({"session": s.id, "state": "done", "values": values, "smooth_time_s": smooth, "message": msg}),
+                    json!({"session": id, "state": "done", "values": values, "smooth_time_s": smooth, "message": msg}),
                 )
             }
             Err(e) => {
                 let why = format!("{e:#}");
-                self.set_state(s.id, State::Measured, &format!("apply failed: {why}"))
+                self.set_state(id, State::Measured, &format!("apply failed: {why}"))
                     .await?;
                 self.core
                     .console_error(&format!("{TITLE}: apply failed: {why}"))
@@ -620,6 +669,290 @@ impl Backlash {
         ))
     }
 
+    /// The carriage an axis is measured on: `None` without a `[dual_carriage]` or for an axis
+    /// both carriages share; else CARRIAGE (0 or 1), or the carriage active now.
+    async fn carriage_for(
+        &self,
+        detection: &Detection,
+        cf: &Value,
+        axis: GuideAxis,
+        asked: Option<i64>,
+    ) -> anyhow::Result<Option<u32>> {
+        if !detection.dual_carriage {
+            return match asked {
+                Some(n) => Err(user(format!(
+                    "CARRIAGE={n}: this printer's config has no [dual_carriage]; leave CARRIAGE out"
+                ))),
+                None => Ok(None),
+            };
+        }
+        let dc_axis = cf["settings"]["dual_carriage"]["axis"]
+            .as_str()
+            .unwrap_or("x")
+            .to_ascii_lowercase();
+        if axis.name() != dc_axis {
+            return match asked {
+                Some(n) => Err(user(format!(
+                    "CARRIAGE={n}: only {} has two carriages; {} is shared by both, leave \
+                     CARRIAGE out",
+                    dc_axis.to_uppercase(),
+                    axis.name().to_uppercase()
+                ))),
+                None => Ok(None),
+            };
+        }
+        match asked {
+            Some(n @ 0..=1) => Ok(Some(n as u32)),
+            Some(n) => Err(user(format!(
+                "CARRIAGE={n}: expected 0 or 1, the carriages SET_DUAL_CARRIAGE selects"
+            ))),
+            None => Ok(Some(self.active_carriage().await?)),
+        }
+    }
+
+    /// The dual carriage Klipper moves now (`dual_carriage` status: `PRIMARY`).
+    async fn active_carriage(&self) -> anyhow::Result<u32> {
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"dual_carriage": null}))
+            .await?;
+        let dc = &st["dual_carriage"];
+        Ok(
+            if dc["carriage_1"] == "PRIMARY" && dc["carriage_0"] != "PRIMARY" {
+                1
+            } else {
+                0
+            },
+        )
+    }
+
+    async fn select_carriage(&self, n: u32) -> anyhow::Result<()> {
+        let cmd = GcodeCmd::new("SET_DUAL_CARRIAGE")
+            .word("CARRIAGE", &n.to_string())
+            .build()?;
+        self.core
+            .m()
+            .gcode(&cmd)
+            .await
+            .with_context(|| format!("selecting carriage {n} ({cmd})"))
+    }
+
+    /// Selects carriage `n` to be measured, the other first parked where it homes (a
+    /// carriage may not pass the inactive one, so the camera point is reachable only with
+    /// the other out of the way; Klipper's IDEX examples park the same way).
+    async fn park_and_select(&self, n: u32) -> anyhow::Result<()> {
+        let cf = self.core.m().configfile().await?;
+        let other = 1 - n.min(1);
+        let axis = cf["settings"]["dual_carriage"]["axis"]
+            .as_str()
+            .unwrap_or("x")
+            .to_ascii_lowercase();
+        let section = if other == 0 {
+            format!("stepper_{axis}")
+        } else {
+            "dual_carriage".to_string()
+        };
+        let park = cf["settings"][section.as_str()]["position_endstop"]
+            .as_f64()
+            .ok_or_else(|| {
+                anyhow!("[{section}] has no position_endstop to park carriage {other} at")
+            })?;
+        self.select_carriage(other).await?;
+        let line = GcodeCmd::new("G1")
+            .axis(if axis == "y" { 'Y' } else { 'X' }, park)
+            .axis('F', JOG_F * 5.0)
+            .build()?;
+        self.core
+            .m()
+            .gcode(&format!("G90\n{line}"))
+            .await
+            .with_context(|| format!("parking carriage {other} ({line})"))?;
+        self.select_carriage(n).await
+    }
+
+    /// Each carriage's values as PR 7259 reports them (the active carriage selected again).
+    async fn carriage_values(&self) -> anyhow::Result<[kb::BacklashReply; 2]> {
+        let was = self.active_carriage().await?;
+        let mut out = Vec::with_capacity(2);
+        for n in 0..2 {
+            self.select_carriage(n).await?;
+            out.push(self.seed_values().await?);
+        }
+        self.select_carriage(was).await?;
+        let [a, b]: [kb::BacklashReply; 2] = out
+            .try_into()
+            .map_err(|_| anyhow!("two carriages expected"))?;
+        Ok([a, b])
+    }
+
+    /// Dual carriage with PR 7259 (the seed's recipe): non-zero values cannot sit in
+    /// `[backlash_compensation]`, so each carriage's values are set at run time with the
+    /// reply checked, then written into klipcal's `[delayed_gcode]` include (created and
+    /// included on first use) through the config transaction, verified per carriage after
+    /// the restart. Values not measured now stay as Klipper runs them.
+    async fn apply_dual(
+        &self,
+        s: &Session,
+        values: &BTreeMap<String, f64>,
+        smooth_s: f64,
+    ) -> anyhow::Result<Value> {
+        let (_, cf) = self.detect().await?;
+        let dc_axis = cf["settings"]["dual_carriage"]["axis"]
+            .as_str()
+            .unwrap_or("x")
+            .to_ascii_lowercase();
+        if let Some(k) = values.keys().find(|k| k.as_str() == dc_axis.as_str()) {
+            return Err(user(format!(
+                "{} was measured without naming a carriage; measure it again with \
+                 KLIPCAL_BACKLASH_START AXIS={} CARRIAGE=0 (and 1)",
+                key_words(k),
+                dc_axis.to_uppercase()
+            )));
+        }
+        self.set_state(s.id, State::Applying, "applying").await?;
+        let outcome = self.apply_dual_values(values, smooth_s, &dc_axis).await;
+        self.settle(s.id, values, Some(smooth_s), outcome).await
+    }
+
+    async fn apply_dual_values(
+        &self,
+        values: &BTreeMap<String, f64>,
+        smooth_s: f64,
+        dc_axis: &str,
+    ) -> anyhow::Result<String> {
+        let now = self.carriage_values().await?;
+        let pick = |n: u32, axis: &str, current: f64| -> f64 {
+            let own = if axis == dc_axis {
+                values.get(&format!("{axis}@{n}"))
+            } else {
+                values.get(axis)
+            };
+            own.copied().unwrap_or(current)
+        };
+        let wanted: Vec<CarriageBacklash> = (0..2u32)
+            .map(|n| {
+                let r = &now[n as usize];
+                CarriageBacklash {
+                    carriage: n.to_string(),
+                    values: SetBacklash {
+                        x_mm: Some(pick(n, "x", r.x_mm)),
+                        y_mm: Some(pick(n, "y", r.y_mm)),
+                        z_mm: Some(pick(n, "z", r.z_mm)),
+                        smooth_time_s: Some(smooth_s),
+                    },
+                }
+            })
+            .collect();
+        // At run time first, each reply checked; the carriage active before selected again.
+        let was = self.active_carriage().await?;
+        for c in &wanted {
+            self.select_carriage(c.carriage.parse()?).await?;
+            let cmd = kb::set_backlash_command(&c.values)?;
+            self.core
+                .m()
+                .gcode(&cmd)
+                .await
+                .context("SET_BACKLASH_COMPENSATION")?;
+            let reply = kb::parse_reply(&self.console_tail().await?)?;
+            if !reply.agrees_with(&c.values) {
+                return Err(anyhow!(
+                    "carriage {}: Klipper answered {reply:?} to {cmd}",
+                    c.carriage
+                ));
+            }
+        }
+        self.select_carriage(was).await?;
+        // Then the include, through the config transaction.
+        let include = kb::dual_carriage_include(&wanted[0], &wanted[1])?;
+        let pc = printer_config::fetch(self.core.m(), self.core.files()).await?;
+        let main = pc
+            .config
+            .files()
+            .first()
+            .ok_or_else(|| anyhow!("the config has no files"))?;
+        let main_rel = pc.rel(&main.path)?;
+        let dir = main_rel.rsplit_once('/').map_or("", |(d, _)| d);
+        let inc_rel = if dir.is_empty() {
+            kb::DUAL_CARRIAGE_INCLUDE.to_string()
+        } else {
+            format!("{dir}/{}", kb::DUAL_CARRIAGE_INCLUDE)
+        };
+        let included = pc
+            .config
+            .files()
+            .iter()
+            .any(|f| pc.rel(&f.path).ok().as_deref() == Some(inc_rel.as_str()));
+        // A stale include not read now is still put back as it was on a rollback.
+        let old_inc = match self.core.files().download("config", &inc_rel).await {
+            Ok(b) => Some(b),
+            Err(e) if e.to_string().contains("404") => None,
+            Err(e) => return Err(e).context(format!("reading {inc_rel}")),
+        };
+        let mut writes = vec![printer_config::FileWrite {
+            rel: inc_rel.clone(),
+            old: old_inc,
+            new: include.into_bytes(),
+        }];
+        if !included {
+            writes.push(printer_config::FileWrite {
+                rel: main_rel.clone(),
+                old: Some(main.text.clone().into_bytes()),
+                new: crate::klipper::add_include(
+                    &main.text,
+                    kb::DUAL_CARRIAGE_INCLUDE,
+                    "klipcal: per-carriage backlash compensation (dual_carriage, PR 7259)",
+                )
+                .into_bytes(),
+            });
+        }
+        let stamp = printer_config::stamp(now_unix() as u64);
+        let backup_dir = format!("klipcal_backups/{stamp}");
+        printer_config::transact(
+            self.core.m(),
+            self.core.files(),
+            &writes,
+            &backup_dir,
+            "FIRMWARE_RESTART",
+            || async {
+                // The [delayed_gcode] runs 0.1 s after ready.
+                tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+                let after = self.carriage_values().await?;
+                for (c, got) in wanted.iter().zip(after.iter()) {
+                    if !got.agrees_with(&c.values) {
+                        return Ok(Some(format!(
+                            "after the restart carriage {} reports {got:?}, not the values \
+                             written to {inc_rel}",
+                            c.carriage
+                        )));
+                    }
+                }
+                Ok(None)
+            },
+        )
+        .await?;
+        Ok(format!(
+            "{} written to {inc_rel}{} (backup in {backup_dir}); {}",
+            wanted
+                .iter()
+                .map(|c| format!(
+                    "carriage {}: X {} Y {} Z {} mm",
+                    c.carriage,
+                    c.values.x_mm.unwrap_or(0.0),
+                    c.values.y_mm.unwrap_or(0.0),
+                    c.values.z_mm.unwrap_or(0.0)
+                ))
+                .collect::<Vec<_>>()
+                .join(", "),
+            if included {
+                String::new()
+            } else {
+                format!(", included from {main_rel}")
+            },
+            format_args!("smooth_time {smooth_s} s")
+        ))
+    }
+
     async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
         self.core
             .update::<Session, ()>(id, |s| {
@@ -666,6 +999,11 @@ impl Backlash {
                         .await;
                     return;
                 }
+                if let Some(n) = s2.carriage {
+                    if self.park_and_select(n).await.is_err() {
+                        return;
+                    }
+                }
                 if self.move_along(&s2, &step).await.is_ok() {
                     self.core.prompt(&Self::prompt_for(&s2, &step)).await;
                 }
@@ -688,6 +1026,22 @@ impl Backlash {
         self.core.prompt_end().await;
         Ok(json!({"session": id, "state": "cancelled",
                   "message": format!("backlash session {id} cancelled ({reason})")}))
+    }
+}
+
+/// Where an axis's cycles are kept: `x`, or `x@1` for dual carriage 1's X.
+fn result_key(axis: GuideAxis, carriage: Option<u32>) -> String {
+    match carriage {
+        Some(n) => format!("{}@{n}", axis.name()),
+        None => axis.name().to_string(),
+    }
+}
+
+/// A result key in words: `X`, `X (carriage 1)`.
+fn key_words(key: &str) -> String {
+    match key.split_once('@') {
+        Some((axis, n)) => format!("{} (carriage {n})", axis.to_uppercase()),
+        None => key.to_uppercase(),
     }
 }
 

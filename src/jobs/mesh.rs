@@ -19,6 +19,7 @@ use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
 use super::args::Args;
+use super::printer_config::FileWrite;
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
@@ -865,41 +866,22 @@ impl Mesh {
         let new =
             bed_mesh::replace_klipcal_profiles(&text, profiles).map_err(|e| user(e.to_string()))?;
         let stamp = super::printer_config::stamp(now_unix() as u64);
-        let backup = format!("klipcal_backups/{stamp}/printer.cfg");
-        files
-            .upload("config", &backup, old.clone())
-            .await
-            .context("backing up printer.cfg")?;
-        files
-            .upload("config", "printer.cfg", new.into_bytes())
-            .await
-            .context("writing printer.cfg")?;
-        let (state, msg) =
-            super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
-                .await?;
-        let refused = if state == "ready" {
-            self.verify_profiles(profiles).await?
-        } else {
-            Some(format!("Klipper did not start ({state}: {})", msg.trim()))
-        };
-        let Some(why) = refused else {
-            return Ok(format!("config/{backup}"));
-        };
-        files
-            .upload("config", "printer.cfg", old)
-            .await
-            .context("restoring printer.cfg")?;
-        let back =
-            super::printer_config::restart_with(self.core.m(), "RESTART", Duration::from_secs(90))
-                .await;
-        let after = match back {
-            Ok((s, _)) if s == "ready" => "Klipper is ready again".to_string(),
-            Ok((s, m)) => format!("but Klipper is {s} after the restore: {}", m.trim()),
-            Err(e) => format!("but Klipper did not come back after the restore: {e:#}"),
-        };
-        Err(user(format!(
-            "{why}; printer.cfg was restored from config/{backup} and {after}"
-        )))
+        let backup_dir = format!("klipcal_backups/{stamp}");
+        let writes = [FileWrite {
+            rel: "printer.cfg".into(),
+            old: Some(old),
+            new: new.into_bytes(),
+        }];
+        super::printer_config::transact(
+            self.core.m(),
+            files,
+            &writes,
+            &backup_dir,
+            "RESTART",
+            || self.verify_profiles(profiles),
+        )
+        .await?;
+        Ok(format!("config/{backup_dir}/printer.cfg"))
     }
 
     /// After the restart with new profiles: every profile is known to Klipper and loads

@@ -257,7 +257,11 @@ impl klipper::Files for Listed {
 }
 
 impl PrinterConfig {
-    fn rel(&self, path: &Path) -> anyhow::Result<String> {
+    /// `path` relative to the `config` root.
+    ///
+    /// # Errors
+    /// A path outside the `config` root.
+    pub fn rel(&self, path: &Path) -> anyhow::Result<String> {
         path.strip_prefix(&self.root)
             .map(|p| p.to_string_lossy().into_owned())
             .map_err(|_| {
@@ -276,12 +280,6 @@ async fn klipper_state(m: &Moonraker) -> Option<(String, String)> {
         info["state"].as_str().unwrap_or("").to_string(),
         info["state_message"].as_str().unwrap_or("").to_string(),
     ))
-}
-
-/// FIRMWARE_RESTART and wait until Klipper is ready or has failed; returns its final state
-/// and message.
-async fn restart(m: &Moonraker, limit: Duration) -> anyhow::Result<(String, String)> {
-    restart_with(m, "FIRMWARE_RESTART", limit).await
 }
 
 /// Runs a G-code that restarts Klipper (`FIRMWARE_RESTART`, `SAVE_CONFIG`) and waits until
@@ -373,29 +371,18 @@ pub async fn apply(
             .collect(),
         notes: plan.notes.clone(),
     };
-    // (relative path, text before; None for a file the plan creates)
-    let mut originals: Vec<(String, Option<String>)> = Vec::new();
-    for f in &plan.files {
-        let rel = pc.rel(&f.path)?;
-        if let Some(old) = &f.old_text {
-            files
-                .upload(
-                    "config",
-                    &format!("{backup_dir}/{rel}"),
-                    old.clone().into_bytes(),
-                )
-                .await
-                .with_context(|| format!("backing up {rel}"))?;
-        }
-        originals.push((rel.clone(), f.old_text.clone()));
-        report.files.push(rel);
-    }
-    for (f, (rel, _)) in plan.files.iter().zip(&originals) {
-        files
-            .upload("config", rel, f.new_text.clone().into_bytes())
-            .await
-            .with_context(|| format!("writing {rel}"))?;
-    }
+    let writes: Vec<FileWrite> = plan
+        .files
+        .iter()
+        .map(|f| {
+            Ok(FileWrite {
+                rel: pc.rel(&f.path)?,
+                old: f.old_text.clone().map(String::into_bytes),
+                new: f.new_text.clone().into_bytes(),
+            })
+        })
+        .collect::<anyhow::Result<_>>()?;
+    report.files = writes.iter().map(|w| w.rel.clone()).collect();
     let values: Vec<ValueSet> = plan
         .values
         .iter()
@@ -405,40 +392,118 @@ pub async fn apply(
             value: value.clone(),
         })
         .collect();
-    let values = values.as_slice();
-    let (state, msg) = restart(m, Duration::from_secs(60)).await?;
-    let verified = if state == "ready" {
-        verify(m, values).await
+    transact(
+        m,
+        files,
+        &writes,
+        &backup_dir,
+        "FIRMWARE_RESTART",
+        || async { Ok(verify(m, &values).await.err().map(|e| format!("{e:#}"))) },
+    )
+    .await?;
+    Ok(report)
+}
+
+/// One file of a config transaction: its path relative to the `config` root, its bytes
+/// before (`None` when the transaction creates it) and after.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FileWrite {
+    /// Relative to Moonraker's `config` root.
+    pub rel: String,
+    /// The bytes now; `None` for a file the transaction creates.
+    pub old: Option<Vec<u8>>,
+    /// The bytes to write.
+    pub new: Vec<u8>,
+}
+
+/// The config transaction every calibration writes through: each existing file is backed up
+/// under `backup_dir` (relative to the `config` root) before anything is written, the new
+/// bytes are uploaded, Klipper is restarted with `restart_gcode` (`FIRMWARE_RESTART` or
+/// `RESTART`), and `verify` runs once it is ready (`Some(why)`: the new config is refused).
+/// When Klipper does not come back ready or `verify` refuses, every file is put back byte for
+/// byte (files the transaction created are removed), Klipper is restarted again, and the
+/// error says why, what was restored and the state Klipper is in.
+///
+/// # Errors
+/// Moonraker failures, a refused config (after the rollback), or a failing rollback.
+pub async fn transact<F, Fut>(
+    m: &Moonraker,
+    files: &Files,
+    writes: &[FileWrite],
+    backup_dir: &str,
+    restart_gcode: &str,
+    verify: F,
+) -> anyhow::Result<()>
+where
+    F: FnOnce() -> Fut,
+    Fut: std::future::Future<Output = anyhow::Result<Option<String>>>,
+{
+    for w in writes {
+        if let Some(old) = &w.old {
+            files
+                .upload("config", &format!("{backup_dir}/{}", w.rel), old.clone())
+                .await
+                .with_context(|| format!("backing up {}", w.rel))?;
+        }
+    }
+    for w in writes {
+        files
+            .upload("config", &w.rel, w.new.clone())
+            .await
+            .with_context(|| format!("writing {}", w.rel))?;
+    }
+    let (state, msg) = restart_with(m, restart_gcode, Duration::from_secs(90)).await?;
+    let refused = if state == "ready" {
+        verify().await?
     } else {
-        Err(anyhow!("Klipper came up in state `{state}`: {msg}"))
+        Some(format!(
+            "Klipper came up in state `{state}`: {}",
+            msg.trim()
+        ))
     };
-    if let Err(why) = verified {
-        for (rel, old) in &originals {
-            match old {
-                Some(old) => files
-                    .upload("config", rel, old.clone().into_bytes())
+    let Some(why) = refused else {
+        return Ok(());
+    };
+    let mut restored = Vec::new();
+    let mut removed = Vec::new();
+    for w in writes {
+        match &w.old {
+            Some(old) => {
+                files
+                    .upload("config", &w.rel, old.clone())
                     .await
-                    .map(|_| ())
-                    .with_context(|| format!("restoring {rel} from {backup_dir}"))?,
-                None => files
-                    .delete("config", rel)
+                    .with_context(|| format!("restoring {} from {backup_dir}", w.rel))?;
+                restored.push(w.rel.as_str());
+            }
+            None => {
+                files
+                    .delete("config", &w.rel)
                     .await
-                    .map(|_| ())
-                    .with_context(|| format!("removing {rel}, which klipcal created"))?,
+                    .with_context(|| format!("removing {}, which klipcal created", w.rel))?;
+                removed.push(w.rel.as_str());
             }
         }
-        let (state2, msg2) = restart(m, Duration::from_secs(60)).await?;
-        bail!(
-            "the new values were rolled back: {why:#}. The config files are restored from \
-             {backup_dir} and Klipper is {state2}{}",
-            if msg2.is_empty() {
-                String::new()
-            } else {
-                format!(" ({})", msg2.trim())
-            }
-        );
     }
-    Ok(report)
+    let after = match restart_with(m, restart_gcode, Duration::from_secs(90)).await {
+        Ok((s, _)) if s == "ready" => "Klipper is ready again".to_string(),
+        Ok((s, msg)) => format!("Klipper is {s} after the restore: {}", msg.trim()),
+        Err(e) => format!("Klipper did not come back after the restore: {e:#}"),
+    };
+    let mut what = Vec::new();
+    if !restored.is_empty() {
+        what.push(format!(
+            "{} {} restored from config/{backup_dir}",
+            restored.join(", "),
+            if restored.len() == 1 { "was" } else { "were" }
+        ));
+    }
+    if !removed.is_empty() {
+        what.push(format!("{} (new) removed", removed.join(", ")));
+    }
+    Err(super::user(format!(
+        "{why}; rolled back: {}; {after}",
+        what.join(", ")
+    )))
 }
 
 async fn verify(m: &Moonraker, values: &[ValueSet]) -> anyhow::Result<()> {

@@ -227,39 +227,32 @@ pub fn parse_reply(text: &str) -> Result<BacklashReply, Error> {
     })
 }
 
-/// A carriage and its X backlash, for the dual-carriage include.
+/// A carriage and its values, for the dual-carriage include.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct CarriageBacklash {
     /// The name `SET_DUAL_CARRIAGE CARRIAGE=` takes.
     pub carriage: String,
-    /// Its X backlash, mm.
-    pub x_mm: f64,
+    /// What `SET_BACKLASH_COMPENSATION` sets while it is the active carriage.
+    pub values: SetBacklash,
 }
+
+/// The name of the klipcal-managed include for a dual-carriage printer with PR 7259.
+pub const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
 
 /// The klipcal-managed include for a dual-carriage printer with PR 7259 (the seed's recipe:
 /// non-zero values cannot sit in `[backlash_compensation]` there, so a `[delayed_gcode]`
-/// selects each carriage and sets its values, the primary last).
+/// selects each carriage and sets its values, the primary last so it is active after start).
 ///
 /// # Errors
 /// A carriage name outside `[A-Za-z0-9_.-]`, or a value [`set_backlash_command`] refuses.
 pub fn dual_carriage_include(
     primary: &CarriageBacklash,
     dual: &CarriageBacklash,
-    y_mm: f64,
-    smooth_time_s: f64,
 ) -> Result<String, Error> {
     let select = |c: &CarriageBacklash| {
         GcodeCmd::new("SET_DUAL_CARRIAGE")
             .word("CARRIAGE", &c.carriage)
             .build()
-    };
-    let set = |c: &CarriageBacklash| {
-        set_backlash_command(&SetBacklash {
-            x_mm: Some(c.x_mm),
-            y_mm: Some(y_mm),
-            z_mm: None,
-            smooth_time_s: Some(smooth_time_s),
-        })
     };
     Ok(format!(
         "# Written by klipcal (backlash): per-carriage backlash compensation for Klipper PR 7259.\n\
@@ -269,9 +262,9 @@ pub fn dual_carriage_include(
          initial_duration: 0.1\n\
          gcode:\n  {}\n  {}\n  {}\n  {}\n",
         select(dual)?,
-        set(dual)?,
+        set_backlash_command(&dual.values)?,
         select(primary)?,
-        set(primary)?,
+        set_backlash_command(&primary.values)?,
     ))
 }
 
@@ -420,19 +413,16 @@ mod tests {
 
     #[test]
     fn the_dual_carriage_include_follows_the_seed_recipe() {
-        let text = dual_carriage_include(
-            &CarriageBacklash {
-                carriage: "0".into(),
-                x_mm: 0.015,
+        let c = |name: &str, x: f64| CarriageBacklash {
+            carriage: name.into(),
+            values: SetBacklash {
+                x_mm: Some(x),
+                y_mm: Some(0.05),
+                z_mm: None,
+                smooth_time_s: Some(0.005),
             },
-            &CarriageBacklash {
-                carriage: "1".into(),
-                x_mm: 0.02,
-            },
-            0.05,
-            0.005,
-        )
-        .unwrap();
+        };
+        let text = dual_carriage_include(&c("0", 0.015), &c("1", 0.02)).unwrap();
         let gcode: Vec<&str> = text
             .lines()
             .skip_while(|l| *l != "gcode:")
@@ -449,11 +439,8 @@ mod tests {
             ]
         );
         assert!(text.contains("[delayed_gcode klipcal_backlash]\ninitial_duration: 0.1\n"));
-        let bad = CarriageBacklash {
-            carriage: "a b".into(),
-            x_mm: 0.0,
-        };
-        assert!(dual_carriage_include(&bad, &bad, 0.0, 0.005).is_err());
+        let bad = c("a b", 0.0);
+        assert!(dual_carriage_include(&bad, &bad).is_err());
     }
 
     #[test]

@@ -36,7 +36,7 @@ pub use edit::{set_value, set_values, FileEdit, ValueChange};
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
-pub use plan::{plan_values, PlannedFile, Protected, WritePlan};
+pub use plan::{add_include, plan_values, PlannedFile, Protected, WritePlan};
 pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
 
 /// Everything that can go wrong reading Klipper config text or building G-code text.

@@ -116,22 +116,11 @@ pub fn plan_values(
         }
         files.insert(&over_path, over_text);
         if existing.is_none() {
-            let text = &config.files()[0].text;
-            let include = format!("[include {OVERRIDES_FILE}]\n");
-            let at = text
-                .find(&format!("\n{SAVE_CONFIG_MARKER}"))
-                .map_or(text.len(), |i| i + 1);
-            let mut new = text[..at].to_string();
-            if !new.is_empty() && !new.ends_with('\n') {
-                new.push('\n');
-            }
-            new.push_str(&format!(
-                "\n# klipcal: its overrides, read last so they win\n{include}"
-            ));
-            if at < text.len() {
-                new.push('\n');
-            }
-            new.push_str(&text[at..]);
+            let new = add_include(
+                &config.files()[0].text,
+                OVERRIDES_FILE,
+                "klipcal: its overrides, read last so they win",
+            );
             files.insert(&main, new);
         }
         let working = Config::load(&files, &main).map_err(|e| {
@@ -221,6 +210,24 @@ pub fn plan_values(
         values,
         notes,
     })
+}
+
+/// `text` (a main config file) with `[include <file>]` after a `# <comment>` line appended at
+/// the end of its regular part: before the SAVE_CONFIG block, read after everything else.
+pub fn add_include(text: &str, file: &str, comment: &str) -> String {
+    let at = text
+        .find(&format!("\n{SAVE_CONFIG_MARKER}"))
+        .map_or(text.len(), |i| i + 1);
+    let mut new = text[..at].to_string();
+    if !new.is_empty() && !new.ends_with('\n') {
+        new.push('\n');
+    }
+    new.push_str(&format!("\n# {comment}\n[include {file}]\n"));
+    if at < text.len() {
+        new.push('\n');
+    }
+    new.push_str(&text[at..]);
+    new
 }
 
 /// Adds, for every `rotation_distance` of a `[stepper_<axis>]`, the same change to the other

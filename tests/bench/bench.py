@@ -14,7 +14,9 @@ command line before any signal).
                  finer Z microsteps; the surface parameters go to
                  comms/surface.json, each probe's truth to comms/probe_log.jsonl)
                  [--backlash-module none|seed|pr7157]
-                 [--play '{"x": 0.08, "y": 0.05}']
+                 [--play '{"x": 0.08, "y": 0.05}'] [--dual-carriage]
+                 (--dual-carriage, cartesian only: a second X carriage,
+                 [dual_carriage] homing to X max; its play is joint "x1")
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
@@ -95,14 +97,37 @@ def check_installed():
                                  "tests/bench/setup.sh" % (dst, src))
 
 
-def backlash_sections(kinematics, module, play, comms_dir):
+DUAL_CARRIAGE = """# Second X carriage (IDEX), homing to X max.
+[dual_carriage]
+axis: x
+step_pin: PD0
+dir_pin: PD1
+enable_pin: !PD2
+microsteps: 16
+rotation_distance: 40
+endstop_pin: ^PD3
+position_endstop: @@SIZE@@
+position_min: 0
+position_max: @@SIZE@@
+homing_speed: 50
+
+"""
+
+
+def backlash_sections(kinematics, module, play, comms_dir,
+                      dual_carriage=False, size_mm=0):
     """printer.cfg text for the backlash variant: `module` is none, seed
     (PR 7259's [backlash_compensation]) or pr7157 ([backlash]); `play` maps
-    joints (cartesian x/y/z, corexy a/b/z) to simulated play in mm."""
+    joints (cartesian x/y/z, corexy a/b/z; x1 for the dual carriage) to
+    simulated play in mm; `dual_carriage` adds a second X carriage."""
     if module not in BACKLASH_MODULES:
         raise BenchError("--backlash-module %r: expected one of %s"
                          % (module, ", ".join(BACKLASH_MODULES)))
     joints = ("a", "b", "z") if kinematics == "corexy" else ("x", "y", "z")
+    if dual_carriage:
+        if kinematics != "cartesian":
+            raise BenchError("--dual-carriage needs --kinematics cartesian")
+        joints = joints + ("x1",)
     for k, v in play.items():
         if k not in joints or not isinstance(v, (int, float)) or v < 0:
             raise BenchError("--play %s=%r: expected joints %s with mm >= 0 "
@@ -116,6 +141,8 @@ def backlash_sections(kinematics, module, play, comms_dir):
         text += "".join("%s: %s\n" % (k, play[k]) for k in joints
                         if k in play)
         text += "\n"
+    if dual_carriage:
+        text += DUAL_CARRIAGE.replace("@@SIZE@@", str(size_mm))
     if module == "seed":
         text += ("[backlash_compensation]\nsmooth_time: 0.005\n"
                  "x_backlash: 0.0\ny_backlash: 0.0\n\n")
@@ -212,7 +239,7 @@ VARIANTS = ("plain", "mesh")
 
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
                    plant_params, variant="plain", backlash_module="none",
-                   play=None):
+                   play=None, dual_carriage=False):
     """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
     PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
@@ -232,7 +259,7 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
         # quantised to 2.5 um when the fit is judged in microns.
         "Z_MICROSTEPS": 128 if variant == "mesh" else 16,
         "BACKLASH": backlash_sections(kinematics, backlash_module, play or {},
-                                      comms_dir),
+                                      comms_dir, dual_carriage, size_mm),
     })
     text = render("printer.cfg", values)
     if variant == "mesh":
@@ -568,7 +595,8 @@ def cmd_start(args):
         raise BenchError("--surface-json needs --variant mesh")
     play = load_plant_params(args.play, "--play") if args.play else {}
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
-                   plant_params, args.variant, args.backlash_module, play)
+                   plant_params, args.variant, args.backlash_module, play,
+                   args.dual_carriage)
     info = {
         "variant": args.variant,
         "run_dir": rd,
@@ -852,6 +880,9 @@ def main():
     p.add_argument("--play", default=None,
                    help="simulated play per joint, JSON (cartesian x/y/z, "
                    "corexy a/b/z), e.g. '{\"x\": 0.08}'")
+    p.add_argument("--dual-carriage", action="store_true",
+                   help="cartesian only: a second X carriage "
+                   "([dual_carriage]); its play is joint x1")
     p = sub.add_parser("watchdog")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--owner-pid", type=int, required=True)

@@ -3,6 +3,7 @@
 #   [klipcal_backlash_sim]
 #   state_file: /abs/comms/nozzle_true.json
 #   x: 0.08   # mm of play per joint: cartesian x, y, z; corexy a, b, z
+#   x1: 0.03  # with [dual_carriage] (axis x): the second carriage's X play
 #
 # Each joint (axis, or CoreXY motor A = X+Y, B = X-Y) has a play operator of
 # width b: the nozzle stays put until the motor has taken up the play, so
@@ -13,7 +14,9 @@
 # direction of travel and returning. Homing resets each joint as after travel
 # in -. After every move the true nozzle position is written to state_file
 # (a JSON object), which only tests read: it is what a person sees through
-# the nozzle camera. Must not touch anything Klipper reports.
+# the nozzle camera, with the carriage it belongs to. Selecting the other
+# dual carriage re-seats the joint (set_position) as homing does. Must not
+# touch anything Klipper reports.
 #
 # This file may be distributed under the terms of the GNU GPLv3 license.
 import json
@@ -29,6 +32,8 @@ class BacklashSim:
         names = ('a', 'b', 'z') if self.corexy else ('x', 'y', 'z')
         self.names = names
         self.play = [config.getfloat(n, 0.0, minval=0.0) for n in names]
+        self.play_x1 = config.getfloat('x1', 0.0, minval=0.0)
+        self.carriage = 0
         self.motor = [0.0, 0.0, 0.0]
         self.nozzle = [0.0, 0.0, 0.0]  # joint space
         self.moves = 0
@@ -68,14 +73,29 @@ class BacklashSim:
         off = [0.5 * vals[a] * d for a, d in zip('xyz', dirs_xyz)]
         return self._joints(off)
 
+    def _active_carriage(self):
+        dc = self.printer.lookup_object('dual_carriage', None)
+        if dc is None:
+            return 0
+        for i, c in enumerate(dc.get_rails()):
+            if c.is_active():
+                return i
+        return 0
+
+    def _plays(self):
+        if self.carriage == 1 and not self.corexy:
+            return [self.play_x1] + self.play[1:]
+        return self.play
+
     def _take(self, i, m):
-        h = 0.5 * self.play[i]
+        h = 0.5 * self._plays()[i]
         self.nozzle[i] = min(max(self.nozzle[i], m - h), m + h)
         self.motor[i] = m
 
     def _reset(self, pos):
+        self.carriage = self._active_carriage()
         self.motor = self._joints(pos)
-        self.nozzle = [m + 0.5 * b for m, b in zip(self.motor, self.play)]
+        self.nozzle = [m + 0.5 * b for m, b in zip(self.motor, self._plays())]
         self._write()
 
     def _moved(self, start, end):
@@ -93,8 +113,8 @@ class BacklashSim:
     def _write(self):
         xyz = self._cartesian(self.nozzle)
         state = {'nozzle': xyz, 'commanded': self._cartesian(self.motor),
-                 'joints': list(self.names), 'play_mm': self.play,
-                 'moves': self.moves}
+                 'joints': list(self.names), 'play_mm': self._plays(),
+                 'carriage': self.carriage, 'moves': self.moves}
         tmp = self.path + '.tmp'
         with open(tmp, 'w') as f:
             json.dump(state, f)

@@ -103,9 +103,40 @@ class FileTemperatureSensor:
         return {'temperature': round(self.temp_c, 2)}
 
 
+def shim_dual_carriage():
+    """The PyPI klippy's prebuilt c_helper.so lacks kin_dual_carriage.c
+    (no dual_carriage_alloc), so a [dual_carriage] fails to load. On the
+    bench (file output, no MCU) that C wrapper only scales and offsets the
+    carriages' generated steps; everything Klipper reports (active carriage,
+    positions, limits, SET_DUAL_CARRIAGE) is the Python in idex_modes. This
+    keeps that Python and leaves the stepper kinematics unwrapped. Used only
+    when the library lacks the function; must not run on a real printer."""
+    from .. import chelper
+    from ..kinematics import idex_modes
+    _, lib = chelper.get_ffi()
+    if hasattr(lib, 'dual_carriage_alloc'):
+        return
+    rail_cls = idex_modes.DualCarriagesRail
+
+    def init(self, rail, axis, active):
+        self.rail = rail
+        self.axis = axis
+        self.mode = (idex_modes.INACTIVE, idex_modes.PRIMARY)[active]
+        self.offset = 0.
+        self.scale = 1. if active else 0.
+        self.dc_stepper_kinematics = []
+        self.orig_stepper_kinematics = [
+            s.get_stepper_kinematics() for s in rail.get_steppers()]
+
+    rail_cls.__init__ = init
+    rail_cls.apply_transform = lambda self: None
+
+
 class KlipcalBench:
     def __init__(self, config):
         self.printer = config.get_printer()
+        if config.has_section('dual_carriage'):
+            shim_dual_carriage()
         self.reactor = self.printer.get_reactor()
         self.t0 = self.reactor.monotonic()
         # (print file, position) of a BENCH_SLEEP cut short, and its rest;
@@ -122,6 +153,23 @@ class KlipcalBench:
                 raise config.error(
                     "klipcal_bench: stepper_x rotation_distance %.6f is above"
                     " reject_rotation_distance_above %.6f" % (rd, limit))
+        # The same for backlash values (any branch's section): a config with a
+        # value above this is refused at start.
+        blimit = config.getfloat('reject_backlash_above', None)
+        if blimit is not None:
+            for sec, keys in (('backlash_compensation',
+                               ('x_backlash', 'y_backlash', 'z_backlash')),
+                              ('backlash', ('x', 'y', 'z', 'a', 'b'))):
+                if not config.has_section(sec):
+                    continue
+                bc = config.getsection(sec)
+                for k in keys:
+                    v = bc.getfloat(k, 0.0, note_valid=False)
+                    if v > blimit:
+                        raise config.error(
+                            "klipcal_bench: [%s] %s %.6f is above"
+                            " reject_backlash_above %.6f"
+                            % (sec, k, v, blimit))
         pheaters = self.printer.load_object(config, 'heaters')
         pheaters.add_sensor_factory(
             'klipcal_file', lambda cfg: FileTemperatureSensor(cfg, self))
