@@ -39,7 +39,8 @@ impl GuideAxis {
             "A" => Ok(GuideAxis::A),
             "B" => Ok(GuideAxis::B),
             _ => Err(Error::BacklashGuide(format!(
-                "AXIS={text:?}; expected X, Y, Z, or A or B (CoreXY motors)"
+                "AXIS={}: expected X, Y, Z, or A or B (CoreXY motors)",
+                text.trim()
             ))),
         }
     }
@@ -130,7 +131,7 @@ impl GuideParams {
     pub fn validate(&self) -> Result<(), Error> {
         let bad = |m: String| Err(Error::BacklashGuide(m));
         if !(1..=50).contains(&self.cycles) {
-            return bad(format!("CYCLES={}; expected 1..50", self.cycles));
+            return bad(format!("CYCLES={}: expected 1..50", self.cycles));
         }
         let ok = |v: f64, lo: f64, hi: f64| v.is_finite() && v >= lo && v <= hi;
         if !ok(self.fine_mm, 0.001, 0.1) {
@@ -209,7 +210,8 @@ impl Press {
             "centred" | "centered" => Ok(Press::Centred),
             "overshot" => Ok(Press::Overshot),
             _ => Err(Error::BacklashGuide(format!(
-                "PRESS={text:?}; expected coarse, fine, centred or overshot"
+                "PRESS={}: expected coarse, fine, centred or overshot",
+                text.trim()
             ))),
         }
     }
@@ -532,11 +534,11 @@ mod tests {
         assert!(GuideAxis::parse("w")
             .unwrap_err()
             .to_string()
-            .contains("AXIS=\"w\""));
+            .contains("AXIS=w: expected"));
         assert!(Press::parse("back")
             .unwrap_err()
             .to_string()
-            .contains("PRESS=\"back\""));
+            .contains("PRESS=back: expected"));
         let p = GuideParams {
             cycles: 0,
             ..GuideParams::default()

@@ -345,7 +345,8 @@ impl Backlash {
         let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
         let mut params = self.settings.guide();
         if let Some(c) = a.int("cycles", "5")? {
-            params.cycles = usize::try_from(c).unwrap_or(0);
+            params.cycles =
+                usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50")))?;
         }
         params.validate().map_err(|e| user(e.to_string()))?;
         self.core.refuse_other_kind(KIND)?;

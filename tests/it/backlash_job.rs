@@ -7,6 +7,8 @@
 
 use std::time::Duration;
 
+use klipcal::calib::backlash_guide::GuideAxis;
+use klipcal::moonraker::Moonraker;
 use serde_json::{json, Value};
 
 use crate::backlash::{connect, nozzle, set_point};
@@ -155,4 +157,481 @@ async fn a_guided_x_measurement_survives_kill_9_matches_the_play_and_is_applied(
         cf["settings"]["backlash_compensation"]
     );
     drop(d);
+}
+
+/// Plays the axis in progress through the prompt's buttons: looks at the bench's true nozzle
+/// along `axis` (as a person through the camera, ±1.5 µm of sub-pixel noise) and presses what
+/// they would, until the daemon answers "measured".
+async fn play_axis(
+    bench: &Bench,
+    d: &Daemon,
+    axis: GuideAxis,
+    mark: [f64; 3],
+    rng: &mut fastrand::Rng,
+) -> Value {
+    let files = bench.files();
+    let mut phase = "Plus".to_string();
+    for _ in 0..400 {
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let dir = if phase == "Plus" { 1.0 } else { -1.0 };
+        let noise = (rng.f64() * 2.0 - 1.0) * 0.0015;
+        let seen = dir * (axis.coord(nozzle(bench)) - axis.coord(mark)) + noise;
+        let r = extension_request(
+            &files,
+            "klipcal_backlash_jog",
+            json!({"press": choose(seen)}),
+        )
+        .await
+        .unwrap_or_else(|e| panic!("press {}: {e}\n{}", choose(seen), d.log_text()));
+        if r["state"] == "measured" {
+            return r;
+        }
+        phase = r["phase"].as_str().unwrap_or("Plus").to_string();
+    }
+    panic!("the procedure does not converge on {axis:?}");
+}
+
+async fn start_axis(bench: &Bench, args: Value) {
+    let r = extension_request(&bench.files(), "klipcal_backlash_start", args.clone())
+        .await
+        .unwrap_or_else(|e| panic!("start {args}: {e}"));
+    assert_eq!(r["state"], "measuring", "{r}");
+}
+
+/// The measured value of `key` agrees with the simulated play within its uncertainty.
+fn assert_found(measured: &Value, key: &str, truth_mm: f64) -> f64 {
+    let r = &measured["results"][key];
+    let b = r["backlash_mm"]
+        .as_f64()
+        .unwrap_or_else(|| panic!("no result {key}: {measured}"));
+    let u = r["uncertainty_mm"].as_f64().unwrap();
+    assert!(
+        (b - truth_mm).abs() <= 3.0 * u + 0.003,
+        "{key}: measured {b} ± {u}, simulated {truth_mm}"
+    );
+    b
+}
+
+/// What `SET_BACKLASH_COMPENSATION` reports for dual carriage `n` (selected for the query).
+async fn carriage_reply(m: &Moonraker, n: u32) -> klipcal::klipper::backlash::BacklashReply {
+    m.gcode(&format!("SET_DUAL_CARRIAGE CARRIAGE={n}"))
+        .await
+        .unwrap();
+    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
+    let store = m
+        .call("server.gcode_store", json!({"count": 5}))
+        .await
+        .unwrap();
+    let text: Vec<&str> = store["gcode_store"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|e| e["message"].as_str())
+        .collect();
+    klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap()
+}
+
+#[tokio::test]
+async fn dual_carriage_x_per_carriage_and_the_shared_y_go_into_the_seeds_delayed_gcode() {
+    const X0: f64 = 0.06;
+    const X1: f64 = 0.05;
+    // Below the seed's "no compensation needed" (0.02 mm): left as Klipper runs it.
+    const Y: f64 = 0.015;
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "seed",
+            "--dual-carriage",
+            "--play",
+            &format!(r#"{{"x": {X0}, "x1": {X1}, "y": {Y}}}"#),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    let mark = set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    // CARRIAGE is refused by name where it does not apply.
+    let e = extension_request(
+        &files,
+        "klipcal_backlash_start",
+        json!({"axis": "Y", "carriage": 1}),
+    )
+    .await
+    .unwrap_err();
+    assert!(e.contains("CARRIAGE=1: only X has two carriages"), "{e}");
+    let e = extension_request(
+        &files,
+        "klipcal_backlash_start",
+        json!({"axis": "X", "carriage": 2}),
+    )
+    .await
+    .unwrap_err();
+    assert!(e.contains("CARRIAGE=2: expected 0 or 1"), "{e}");
+
+    let mut rng = fastrand::Rng::with_seed(11);
+    start_axis(&bench, json!({"axis": "X", "carriage": 0})).await;
+    play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    start_axis(&bench, json!({"axis": "X", "carriage": 1})).await;
+    let seen = std::fs::read_to_string(bench.dir.path().join("comms/nozzle_true.json")).unwrap();
+    assert!(seen.contains("\"carriage\": 1"), "{seen}");
+    play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    start_axis(&bench, json!({"axis": "Y"})).await;
+    let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
+    assert_found(&measured, "x@0", X0);
+    assert_found(&measured, "x@1", X1);
+    assert_found(&measured, "y", Y);
+
+    let cfg = bench.dir.path().join("config");
+    let before = std::fs::read(cfg.join("printer.cfg")).unwrap();
+    let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
+    assert_eq!(r["state"], "done", "{r}");
+    let v = |k: &str| r["values"][k].as_f64().unwrap();
+    // The seed's recipe, in klipcal's include, included from printer.cfg.
+    let include = std::fs::read_to_string(cfg.join("klipcal_backlash.cfg")).unwrap();
+    let lines: Vec<&str> = include
+        .lines()
+        .skip_while(|l| *l != "gcode:")
+        .skip(1)
+        .map(str::trim)
+        .collect();
+    assert_eq!(lines.len(), 4, "{include}");
+    assert_eq!(lines[0], "SET_DUAL_CARRIAGE CARRIAGE=1");
+    assert_eq!(lines[2], "SET_DUAL_CARRIAGE CARRIAGE=0");
+    let printer = std::fs::read_to_string(cfg.join("printer.cfg")).unwrap();
+    assert!(
+        printer.contains("[include klipcal_backlash.cfg]"),
+        "{printer}"
+    );
+    let backups: Vec<_> = std::fs::read_dir(cfg.join("klipcal_backups"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(backups.len(), 1, "{backups:?}");
+    assert_eq!(
+        std::fs::read(backups[0].join("printer.cfg")).unwrap(),
+        before
+    );
+    // After the restart each carriage runs its own X and the shared Y; the section itself
+    // holds none (PR 7259 refuses non-zero values there with dual_carriage).
+    let c1 = carriage_reply(&m, 1).await;
+    let c0 = carriage_reply(&m, 0).await;
+    assert!((c0.x_mm - v("x@0")).abs() < 1e-6, "{c0:?} {r}");
+    assert!((c1.x_mm - v("x@1")).abs() < 1e-6, "{c1:?} {r}");
+    assert!(r["values"]["y"].is_null(), "{r}");
+    assert!(c0.y_mm == 0.0 && c1.y_mm == 0.0, "{c0:?} {c1:?}");
+    assert!(lines[1].contains("Y_BACKLASH=0 "), "{include}");
+    let cf = m.configfile().await.unwrap();
+    assert_eq!(
+        cf["settings"]["backlash_compensation"]["x_backlash"].as_f64(),
+        Some(0.0)
+    );
+    // Compensated: a re-measurement of carriage 1 finds (almost) no play left.
+    m.gcode("G28").await.unwrap();
+    start_axis(&bench, json!({"axis": "X", "carriage": 1})).await;
+    let again = play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    let left = again["results"]["x@1"]["backlash_mm"].as_f64().unwrap();
+    assert!(left < 0.01, "{again}");
+}
+
+#[tokio::test]
+async fn pr_7157_a_and_b_measured_through_the_prompts_are_written_to_backlash() {
+    const A: f64 = 0.06;
+    const B: f64 = 0.05;
+    let bench = Bench::start_args(
+        "corexy",
+        &[
+            "--backlash-module",
+            "pr7157",
+            "--play",
+            &format!(r#"{{"a": {A}, "b": {B}}}"#),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    let mark = set_point(&bench, &m, [150.0, 150.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    let mut rng = fastrand::Rng::with_seed(3);
+    start_axis(&bench, json!({"axis": "A"})).await;
+    play_axis(&bench, &d, GuideAxis::A, mark, &mut rng).await;
+    start_axis(&bench, json!({"axis": "B"})).await;
+    let measured = play_axis(&bench, &d, GuideAxis::B, mark, &mut rng).await;
+    assert_found(&measured, "a", A);
+    assert_found(&measured, "b", B);
+    let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
+    assert_eq!(r["state"], "done", "{r}");
+    let cf = m.configfile().await.unwrap();
+    for k in ["a", "b"] {
+        let written = cf["settings"]["backlash"][k].as_f64();
+        let want = r["values"][k].as_f64().unwrap();
+        assert!(
+            written.is_some_and(|w| (w - want).abs() < 1e-6),
+            "[backlash] {k}: {} against {want}",
+            cf["settings"]["backlash"]
+        );
+    }
+}
+
+#[tokio::test]
+async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
+    let bench = Bench::start_args(
+        "cartesian",
+        &["--backlash-module", "seed", "--play", r#"{"x": 0.08}"#],
+    );
+    // The bench's klippy refuses a backlash above 0.05 mm in the config; the play is 0.08.
+    crate::session::reconfigure(&bench, |t| {
+        t.replacen(
+            "[klipcal_bench]\n",
+            "[klipcal_bench]\nreject_backlash_above: 0.05\n",
+            1,
+        )
+    })
+    .await;
+    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    let mark = set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    let mut rng = fastrand::Rng::with_seed(5);
+    start_axis(&bench, json!({"axis": "X"})).await;
+    play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    let cfg = bench.dir.path().join("config");
+    let snapshot = || -> Vec<(String, Vec<u8>)> {
+        let mut v: Vec<_> = std::fs::read_dir(&cfg)
+            .unwrap()
+            .filter_map(|e| {
+                let p = e.ok()?.path();
+                p.is_file().then(|| {
+                    (
+                        p.file_name().unwrap().to_string_lossy().into_owned(),
+                        std::fs::read(&p).unwrap(),
+                    )
+                })
+            })
+            .collect();
+        v.sort();
+        v
+    };
+    let before = snapshot();
+    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("rolled back"), "{e}");
+    assert!(e.contains("reject_backlash_above"), "Klipper's words: {e}");
+    assert!(e.contains("Klipper is ready again"), "{e}");
+    assert_eq!(
+        snapshot(),
+        before,
+        "a config file differs after the rollback"
+    );
+    // The run-time value went with the restart: Klipper runs the config as it was.
+    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
+    let store = m
+        .call("server.gcode_store", json!({"count": 5}))
+        .await
+        .unwrap();
+    let text: Vec<&str> = store["gcode_store"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|e| e["message"].as_str())
+        .collect();
+    let reply = klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap();
+    assert_eq!(reply.x_mm, 0.0, "{reply:?}");
+    // The measurement is kept: apply may be tried again once the config allows it.
+    let st = crate::session::session(&bench).await;
+    assert_eq!(st["state"], "measured", "{st}");
+}
+
+#[tokio::test]
+async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_argument() {
+    use klipcal::moonraker::Event;
+    let bench = Bench::start_args("cartesian", &["--play", r#"{"x": 0.07}"#]);
+    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let files = bench.files();
+    let base = d.page_url().await;
+    let http = reqwest::Client::new();
+    let (m, _c) = connect(&bench).await;
+    // No camera point yet.
+    m.gcode("G28").await.unwrap();
+    let e = extension_request(&files, "klipcal_backlash_start", json!({"axis": "X"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("no camera point saved"), "{e}");
+    let mark = set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    // (operation, arguments, what the refusal names, the same through its macro).
+    let cases: &[(&str, Value, &str, Option<&str>)] = &[
+        (
+            "set_point",
+            json!({"x": 1}),
+            "unknown argument X; it takes no arguments",
+            Some("KLIPCAL_BACKLASH_SET_POINT X=1"),
+        ),
+        (
+            "start",
+            json!({}),
+            "AXIS is required",
+            Some("KLIPCAL_BACKLASH_START"),
+        ),
+        (
+            "start",
+            json!({"axis": "Q"}),
+            "AXIS=Q: expected X, Y, Z, or A or B",
+            Some("KLIPCAL_BACKLASH_START AXIS=Q"),
+        ),
+        (
+            "start",
+            json!({"axis": "A"}),
+            "AXIS=A is a CoreXY motor direction",
+            Some("KLIPCAL_BACKLASH_START AXIS=A"),
+        ),
+        (
+            "start",
+            json!({"axis": "X", "cycles": "many"}),
+            "CYCLES=many is not a number",
+            Some("KLIPCAL_BACKLASH_START AXIS=X CYCLES=many"),
+        ),
+        (
+            "start",
+            json!({"axis": "X", "cycles": 0}),
+            "CYCLES=0: expected 1..50",
+            Some("KLIPCAL_BACKLASH_START AXIS=X CYCLES=0"),
+        ),
+        (
+            "start",
+            json!({"axis": "X", "cycles": -3}),
+            "CYCLES=-3: expected 1..50",
+            None,
+        ),
+        (
+            "start",
+            json!({"axis": "X", "cycles": 2.5}),
+            "CYCLES=2.5 is not a whole number",
+            None,
+        ),
+        (
+            "start",
+            json!({"axis": "X", "carriage": 1}),
+            "CARRIAGE=1: this printer's config has no [dual_carriage]",
+            Some("KLIPCAL_BACKLASH_START AXIS=X CARRIAGE=1"),
+        ),
+        (
+            "start",
+            json!({"axis": "X", "speed": 5}),
+            "unknown argument SPEED",
+            Some("KLIPCAL_BACKLASH_START AXIS=X SPEED=5"),
+        ),
+        (
+            "start",
+            json!({"axis": "X", "AXIS": "Y"}),
+            "argument AXIS given twice",
+            None,
+        ),
+        (
+            "jog",
+            json!({"press": "sideways"}),
+            "PRESS=sideways: expected coarse, fine, centred or overshot",
+            Some("KLIPCAL_BACKLASH_JOG PRESS=sideways"),
+        ),
+        (
+            "jog",
+            json!({"press": "fine", "mm": 0.1}),
+            "unknown argument MM",
+            Some("KLIPCAL_BACKLASH_JOG PRESS=fine MM=0.1"),
+        ),
+        (
+            "jog",
+            json!({"press": "fine"}),
+            "no backlash axis is being measured",
+            None,
+        ),
+        (
+            "apply",
+            json!({"force": 1}),
+            "unknown argument FORCE",
+            Some("KLIPCAL_BACKLASH_APPLY FORCE=1"),
+        ),
+        (
+            "apply",
+            json!({}),
+            "nothing measured to apply",
+            Some("KLIPCAL_BACKLASH_APPLY"),
+        ),
+    ];
+    for (op, args, want, mac) in cases {
+        let method = format!("klipcal_backlash_{op}");
+        let e = extension_request(&files, &method, args.clone())
+            .await
+            .expect_err(&format!("{method} {args} was accepted"));
+        assert!(e.contains(want), "{method} {args}: {e}");
+        // The daemon's own API: the same refusal, a 400.
+        let r = http
+            .post(format!("{base}/api/backlash/{op}"))
+            .header("content-type", "application/json")
+            .body(args.to_string())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 400, "{op} {args}");
+        let v: Value = r.json().await.unwrap();
+        assert_eq!(v["error"]["message"], json!(e), "{op} {args}");
+        if let Some(line) = mac {
+            let said_want = want.replace(';', ",");
+            let mut rx = m.events();
+            m.gcode(line).await.unwrap();
+            let said = crate::bench::wait_event(
+                &mut rx,
+                Duration::from_secs(15),
+                |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(&said_want)),
+            )
+            .await;
+            assert!(
+                said.is_some(),
+                "{line}: no console line with {said_want:?}\n{}",
+                d.log_text()
+            );
+        }
+    }
+    // Nothing started.
+    assert!(crate::session::session(&bench).await.is_null());
+
+    // Neither branch: measured and reported all the same, apply refused with what is missing.
+    let mut rng = fastrand::Rng::with_seed(9);
+    start_axis(&bench, json!({"axis": "X"})).await;
+    let measured = play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    assert_found(&measured, "x", 0.07);
+    assert!(
+        measured["results"]["x"]["compensate"] == json!(true),
+        "{measured}"
+    );
+    let st = crate::session::session(&bench).await;
+    assert_eq!(st["branch"]["branch"], "neither", "{st}");
+    let printer_before = std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap();
+    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("cannot apply") && e.contains("no SET_BACKLASH_COMPENSATION command"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap(),
+        printer_before
+    );
+    assert_eq!(crate::session::session(&bench).await["state"], "measured");
 }

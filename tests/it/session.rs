@@ -362,7 +362,7 @@ fn futures_lite(bench: &Bench) -> String {
 }
 
 /// Rewrites the bench's printer.cfg and restarts Klipper on it.
-async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
+pub async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
     let path = bench.dir.path().join("config/printer.cfg");
     let text = std::fs::read_to_string(&path).unwrap();
     let new = edit(&text);
