@@ -441,9 +441,129 @@ pub fn common_smooth_time_s<'a>(results: impl IntoIterator<Item = &'a AxisResult
         .fold(SEED_SMOOTH_TIME_S, f64::max)
 }
 
+/// The seed's open question on CoreXY (004: "whether just setting x_backlash == y_backlash
+/// would suffice"), answered from what was measured. Play in the motors and belts (motor A
+/// moves X + Y, B moves X − Y; `a`, `b` measured along them, in motor mm) makes every
+/// reversal along X or Y lose (a + b)/2, so X = Y, while a reversal that turns only one motor
+/// (a move along a diagonal) loses a/2 (or b/2) on each of X and Y. Two results agree when
+/// they differ by at most twice their combined uncertainty. `None` when fewer than two of the
+/// four directions were measured.
+pub fn corexy_xy_answer(results: &BTreeMap<String, AxisResult>) -> Option<String> {
+    let get = |k: &str| results.get(k);
+    let agree = |p: &AxisResult, q: &AxisResult| {
+        (p.backlash_mm - q.backlash_mm).abs() <= 2.0 * p.uncertainty_mm.hypot(q.uncertainty_mm)
+    };
+    let mut out = Vec::new();
+    if let (Some(x), Some(y)) = (get("x"), get("y")) {
+        if agree(x, y) {
+            out.push(format!(
+                "X and Y agree ({:.4} and {:.4} mm): x_backlash = y_backlash = {:.4} mm fits \
+                 reversals along X and Y",
+                x.backlash_mm,
+                y.backlash_mm,
+                0.5 * (x.backlash_mm + y.backlash_mm)
+            ));
+        } else {
+            out.push(format!(
+                "X and Y differ ({:.4} against {:.4} mm, beyond their uncertainty): part of the \
+                 play is not in the motors and belts (a rail, the carriage, the gantry); set \
+                 each axis on its own, x_backlash = y_backlash would not suffice",
+                x.backlash_mm, y.backlash_mm
+            ));
+        }
+    }
+    if let (Some(a), Some(b)) = (get("a"), get("b")) {
+        let xy = 0.5 * (a.backlash_mm + b.backlash_mm);
+        let u = 0.5 * a.uncertainty_mm.hypot(b.uncertainty_mm);
+        out.push(format!(
+            "motors A {:.4} and B {:.4} mm: play in the motors and belts alone would make X = Y \
+             = {xy:.4} mm; a reversal along a diagonal turns one motor and loses {:.4} (A) or \
+             {:.4} mm (B) on each of X and Y, {} compensation sized for X and Y",
+            a.backlash_mm,
+            b.backlash_mm,
+            0.5 * a.backlash_mm,
+            0.5 * b.backlash_mm,
+            if xy > 0.0 {
+                format!(
+                    "{:.0} % / {:.0} % of the",
+                    100.0 * 0.5 * a.backlash_mm / xy,
+                    100.0 * 0.5 * b.backlash_mm / xy
+                )
+            } else {
+                "none of the".to_string()
+            }
+        ));
+        for (name, r) in [("X", get("x")), ("Y", get("y"))] {
+            let Some(r) = r else { continue };
+            let close = (r.backlash_mm - xy).abs() <= 2.0 * r.uncertainty_mm.hypot(u);
+            out.push(if close {
+                format!(
+                    "{name} {:.4} mm matches (A + B)/2: the play is in the motors and belts; \
+                     [backlash] a/b (Klipper PR 7157) compensates diagonals exactly, \
+                     x_backlash = y_backlash (PR 7259) only reversals along X and Y",
+                    r.backlash_mm
+                )
+            } else {
+                format!(
+                    "{name} {:.4} mm is not (A + B)/2 = {xy:.4} mm: part of the play is \
+                     elsewhere than the motors; compensate the axes as measured",
+                    r.backlash_mm
+                )
+            });
+        }
+    }
+    (!out.is_empty()).then(|| out.join("; "))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn result(b: f64, u: f64) -> AxisResult {
+        AxisResult {
+            backlash_mm: b,
+            spread_mm: 0.0,
+            uncertainty_mm: u,
+            cycles: 5,
+            outliers: Vec::new(),
+            compensate: b > 0.035,
+            smooth_time_s: SEED_SMOOTH_TIME_S,
+            extra_accel_mm_s2: 0.0,
+            verdict: Verdict::Needed,
+            jog_share: 0.0,
+            smooth_time_raised: false,
+        }
+    }
+
+    #[test]
+    fn the_corexy_answer_tells_motor_play_from_play_elsewhere() {
+        let map = |v: &[(&str, f64)]| -> BTreeMap<String, AxisResult> {
+            v.iter()
+                .map(|(k, b)| (k.to_string(), result(*b, 0.002)))
+                .collect()
+        };
+        // Motor play a = b = 0.06: X = Y = 0.06, diagonals lose 0.03 per axis.
+        let t = corexy_xy_answer(&map(&[
+            ("x", 0.061),
+            ("y", 0.059),
+            ("a", 0.06),
+            ("b", 0.06),
+        ]))
+        .unwrap();
+        assert!(t.contains("X and Y agree"), "{t}");
+        assert!(t.contains("X 0.0610 mm matches (A + B)/2"), "{t}");
+        assert!(t.contains("loses 0.0300 (A)"), "{t}");
+        assert!(t.contains("50 % / 50 %"), "{t}");
+        // Y carries extra play of its own: the axes differ, Y is not (A + B)/2.
+        let t =
+            corexy_xy_answer(&map(&[("x", 0.03), ("y", 0.07), ("a", 0.03), ("b", 0.03)])).unwrap();
+        assert!(t.contains("X and Y differ"), "{t}");
+        assert!(t.contains("would not suffice"), "{t}");
+        assert!(t.contains("Y 0.0700 mm is not (A + B)/2 = 0.0300"), "{t}");
+        // One direction alone answers nothing.
+        assert!(corexy_xy_answer(&map(&[("x", 0.05)])).is_none());
+        assert!(corexy_xy_answer(&map(&[("x", 0.05), ("a", 0.05)])).is_none());
+    }
 
     fn cycles(d: &[f64]) -> Vec<Cycle> {
         d.iter()

@@ -87,6 +87,12 @@ fn render(
             ));
         }
     }
+    // Motor directions measured: a CoreXY printer, and the seed's open question answered.
+    if results.contains_key("a") || results.contains_key("b") {
+        if let Some(t) = backlash::corexy_xy_answer(results) {
+            out.push_str(&format!("  CoreXY, x_backlash = y_backlash? {t}\n"));
+        }
+    }
     out
 }
 

@@ -102,6 +102,9 @@ pub struct Session {
     /// its results are kept as `<axis>@<carriage>`, e.g. `x@1`.
     #[serde(default)]
     pub carriage: Option<u32>,
+    /// `[printer] kinematics`, for the CoreXY answer.
+    #[serde(default)]
+    pub kinematics: String,
     /// Things the user should know.
     pub notes: Vec<String>,
 }
@@ -263,7 +266,9 @@ impl Backlash {
 
     fn result_lines(&self, s: &Session) -> anyhow::Result<Vec<String>> {
         let mut out = Vec::new();
-        for (axis, r) in self.results(s)? {
+        let results = self.results(s)?;
+        let corexy = Self::corexy_answer(s, &results);
+        for (axis, r) in results {
             let active = s.active_mm.get(&axis).copied().unwrap_or(0.0);
             out.push(format!(
                 "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
@@ -291,7 +296,17 @@ impl Backlash {
                 }
             ));
         }
+        if let Some(t) = corexy {
+            out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
+        }
         Ok(out)
+    }
+
+    /// The seed's CoreXY question answered from the results (CoreXY printers only).
+    fn corexy_answer(s: &Session, results: &BTreeMap<String, AxisResult>) -> Option<String> {
+        (s.kinematics == "corexy")
+            .then(|| crate::calib::backlash::corexy_xy_answer(results))
+            .flatten()
     }
 
     /// `klipcal_backlash_set_point`: the current toolhead position becomes the camera point.
@@ -416,6 +431,7 @@ impl Backlash {
                     s.detection = detection.clone();
                     s.active_mm.extend(active_mm.clone());
                     s.carriage = carriage;
+                    s.kinematics = kin.to_string();
                     self.core.save(s.id, &s)?;
                     Some(s)
                 }
@@ -445,6 +461,7 @@ impl Backlash {
                     max_accel_mm_s2: max_accel,
                     notes: Vec::new(),
                     carriage,
+                    kinematics: kin.to_string(),
                 };
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
                 s
@@ -1109,6 +1126,7 @@ impl Calibration for Backlash {
             "axis": s.guide.as_ref().map(|g| g.axis.name()),
             "cycle": s.guide.as_ref().map(|g| g.cycles.len() + 1),
             "cycles": s.cycles,
+            "corexy_answer": Self::corexy_answer(&s, &results),
             "results": results,
             "active_mm": s.active_mm,
             "notes": s.notes,

@@ -366,6 +366,12 @@ async fn pr_7157_a_and_b_measured_through_the_prompts_are_written_to_backlash() 
     let measured = play_axis(&bench, &d, GuideAxis::B, mark, &mut rng).await;
     assert_found(&measured, "a", A);
     assert_found(&measured, "b", B);
+    // The seed's CoreXY question, answered on the console from A and B.
+    let said = measured["message"].as_str().unwrap_or("");
+    assert!(
+        said.contains("x_backlash = y_backlash?") && said.contains("motors A"),
+        "{said}"
+    );
     let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
         .await
         .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
