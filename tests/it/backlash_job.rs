@@ -1,9 +1,10 @@
-//! The daemon's guided backlash session (issue 12) on the bench with the seed branch's module
-//! and a simulated play: a test plays the person at the camera (the bench's true nozzle
-//! position, a human's sub-pixel noise) and presses the prompt's jog buttons through the
-//! remote methods; the daemon is killed (-9) mid-measurement and picks up where it was; the
-//! measured backlash matches the simulated one within its uncertainty; apply sets it with
-//! SET_BACKLASH_COMPENSATION and writes it into the config.
+//! The daemon's guided backlash session (issue 12) on the bench: a test plays the person at
+//! the camera (the bench's true nozzle position, a human's sub-pixel noise) and presses the
+//! prompt's jog buttons through the remote methods. PR 7259 (X and Y, kill -9 mid-measurement,
+//! apply refused while printing, the reply and the config after apply), dual carriage (X per
+//! carriage into the seed's [delayed_gcode]), PR 7157 a/b on CoreXY, a write Klipper rejects
+//! rolled back byte for byte, no module at all (measured, apply refused), and every bad
+//! argument refused by name.
 
 use std::time::Duration;
 
@@ -15,6 +16,7 @@ use crate::backlash::{connect, nozzle, set_point};
 use crate::bench::{extension_request, Bench, Daemon};
 
 const TRUE_X_MM: f64 = 0.08;
+const TRUE_Y_MM: f64 = 0.05;
 
 /// One press as a person at the camera would choose it.
 fn choose(seen_mm: f64) -> &'static str {
@@ -28,14 +30,14 @@ fn choose(seen_mm: f64) -> &'static str {
 }
 
 #[tokio::test]
-async fn a_guided_x_measurement_survives_kill_9_matches_the_play_and_is_applied() {
+async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_applied() {
     let bench = Bench::start_args(
         "cartesian",
         &[
             "--backlash-module",
             "seed",
             "--play",
-            &format!(r#"{{"x": {TRUE_X_MM}}}"#),
+            &format!(r#"{{"x": {TRUE_X_MM}, "y": {TRUE_Y_MM}}}"#),
         ],
     );
     let mut d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
@@ -107,6 +109,11 @@ async fn a_guided_x_measurement_survives_kill_9_matches_the_play_and_is_applied(
         "measured {b} ± {u}, simulated {TRUE_X_MM}: {measured}"
     );
     assert_eq!(x["cycles"].as_u64(), Some(3), "{measured}");
+    // Then Y, in the same session.
+    start_axis(&bench, json!({"axis": "Y"})).await;
+    let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
+    let by = assert_found(&measured, "y", TRUE_Y_MM);
+    assert_found(&measured, "x", TRUE_X_MM);
 
     // While a print runs, apply is refused and nothing changes.
     files
@@ -149,12 +156,37 @@ async fn a_guided_x_measurement_survives_kill_9_matches_the_play_and_is_applied(
     assert_eq!(r["state"], "done", "{r}");
     let applied = r["values"]["x"].as_f64().unwrap();
     assert!((applied - b).abs() < 1e-3, "{r}");
+    let applied_y = r["values"]["y"].as_f64().unwrap();
+    assert!((applied_y - by).abs() < 1e-3, "{r}");
     let cf = m.configfile().await.unwrap();
-    let written = cf["settings"]["backlash_compensation"]["x_backlash"].as_f64();
+    for (key, want) in [("x_backlash", applied), ("y_backlash", applied_y)] {
+        let written = cf["settings"]["backlash_compensation"][key].as_f64();
+        assert!(
+            written.is_some_and(|w| (w - want).abs() < 1e-3),
+            "config after restart: {}",
+            cf["settings"]["backlash_compensation"]
+        );
+    }
+    // The command's reply after the restart: what the config says, and the simulated play
+    // within the reported uncertainty.
+    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
+    let store = m
+        .call("server.gcode_store", json!({"count": 5}))
+        .await
+        .unwrap();
+    let text: Vec<&str> = store["gcode_store"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter_map(|e| e["message"].as_str())
+        .collect();
+    let reply = klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap();
+    assert!((reply.x_mm - applied).abs() < 1e-6 && (reply.y_mm - applied_y).abs() < 1e-6);
+    let uy = measured["results"]["y"]["uncertainty_mm"].as_f64().unwrap();
     assert!(
-        written.is_some_and(|w| (w - applied).abs() < 1e-3),
-        "config after restart: {}",
-        cf["settings"]["backlash_compensation"]
+        (reply.x_mm - TRUE_X_MM).abs() <= 3.0 * u + 0.003
+            && (reply.y_mm - TRUE_Y_MM).abs() <= 3.0 * uy + 0.003,
+        "{reply:?}"
     );
     drop(d);
 }
