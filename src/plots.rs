@@ -386,3 +386,122 @@ mod tests {
         assert!(svg.contains("stepper_x") && svg.contains("µm per 100 mm"));
     }
 }
+
+/// The font PNG text is drawn with: a subset of DejaVu Sans (assets/fonts/LICENSE), embedded so
+/// a picture looks the same on a printer host without fonts.
+const PNG_FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans-klipcal-subset.ttf");
+const PNG_FONT_FAMILY: &str = "DejaVu Sans";
+
+/// Width of the PNG twins of klipcal's pictures, px: readable on a phone, a few MB while drawn.
+pub const PNG_WIDTH_PX: u32 = 900;
+
+/// An SVG picture (one of klipcal's) drawn as PNG, `width_px` wide, the height from the
+/// picture's aspect ratio, on white; text in the embedded font whatever family it names.
+///
+/// # Errors
+/// SVG text resvg cannot read, a width of 0 or above 8000 px, or a picture that would be taller
+/// than 8000 px.
+pub fn svg_to_png(svg: &str, width_px: u32) -> anyhow::Result<Vec<u8>> {
+    use resvg::{tiny_skia, usvg};
+    if !(1..=8000).contains(&width_px) {
+        anyhow::bail!("PNG width {width_px} px; expected 1..8000");
+    }
+    let mut opt = usvg::Options::default();
+    {
+        let db = opt.fontdb_mut();
+        db.load_font_data(PNG_FONT.to_vec());
+        db.set_sans_serif_family(PNG_FONT_FAMILY);
+        db.set_serif_family(PNG_FONT_FAMILY);
+        db.set_monospace_family(PNG_FONT_FAMILY);
+    }
+    opt.font_family = PNG_FONT_FAMILY.to_string();
+    let tree = usvg::Tree::from_str(svg, &opt)
+        .map_err(|e| anyhow::anyhow!("the picture's SVG does not read: {e}"))?;
+    let size = tree.size();
+    let scale = width_px as f32 / size.width();
+    let height = (size.height() * scale).ceil();
+    if !(height.is_finite() && (1.0..=8000.0).contains(&height)) {
+        anyhow::bail!("the picture would be {height} px tall at {width_px} px wide");
+    }
+    let mut pixmap = tiny_skia::Pixmap::new(width_px, height as u32)
+        .ok_or_else(|| anyhow::anyhow!("no {width_px}×{height} px image"))?;
+    pixmap.fill(tiny_skia::Color::WHITE);
+    resvg::render(
+        &tree,
+        tiny_skia::Transform::from_scale(scale, scale),
+        &mut pixmap.as_mut(),
+    );
+    pixmap
+        .encode_png()
+        .map_err(|e| anyhow::anyhow!("encoding the PNG: {e}"))
+}
+
+#[cfg(test)]
+mod png_tests {
+    use super::*;
+    use resvg::tiny_skia::Pixmap;
+
+    fn dark_pixels(png: &[u8]) -> (u32, u32, usize) {
+        let p = Pixmap::decode_png(png).expect("a PNG");
+        let dark = p
+            .pixels()
+            .iter()
+            .filter(|c| u32::from(c.red()) + u32::from(c.green()) + u32::from(c.blue()) < 300)
+            .count();
+        (p.width(), p.height(), dark)
+    }
+
+    #[test]
+    fn text_is_drawn_with_the_embedded_font_whatever_family_the_svg_names() {
+        let blank = r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 100 50"></svg>"#;
+        let (w, h, dark) = dark_pixels(&svg_to_png(blank, 400).unwrap());
+        assert_eq!((w, h, dark), (400, 200, 0));
+        for family in ["sans-serif", "Helvetica, Arial", "monospace", "NoSuchFont"] {
+            let svg = format!(
+                r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 100 50"><text x="5" y="30" font-size="20" font-family="{family}" fill="black">A1 ✓ τ</text></svg>"#
+            );
+            let (_, _, dark) = dark_pixels(&svg_to_png(&svg, 400).unwrap());
+            assert!(
+                dark > 500,
+                "{family}: {dark} dark pixels, the text is missing"
+            );
+        }
+    }
+
+    #[test]
+    fn the_pylon_layout_renders_at_the_picture_width_and_its_aspect_ratio() {
+        use crate::gcode::{generate, Kinematics, Machine, Options};
+        let m = Machine {
+            z_max_mm: Some(250.0),
+            ..Machine::square_bed(Kinematics::CoreXy, 300.0)
+        };
+        let job = generate(&m, &Options::default()).unwrap();
+        let png = svg_to_png(&job.svg, PNG_WIDTH_PX).unwrap();
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+        let (w, h, dark) = dark_pixels(&png);
+        assert_eq!(w, PNG_WIDTH_PX);
+        let vb: Vec<f32> = job
+            .svg
+            .split("viewBox=\"")
+            .nth(1)
+            .and_then(|r| r.split('"').next())
+            .unwrap()
+            .split_whitespace()
+            .map(|v| v.parse().unwrap())
+            .collect();
+        let want_h = (vb[3] / vb[2] * PNG_WIDTH_PX as f32).ceil() as u32;
+        assert_eq!(h, want_h);
+        assert!(dark > 2000, "labels and outlines drawn: {dark}");
+    }
+
+    #[test]
+    fn bad_svg_and_sizes_are_refused_not_panicked_on() {
+        assert!(svg_to_png("<svg", 400).is_err());
+        assert!(svg_to_png("not xml at all", 400).is_err());
+        let ok = r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 10 10"></svg>"#;
+        assert!(svg_to_png(ok, 0).is_err());
+        assert!(svg_to_png(ok, 9000).is_err());
+        let tall = r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 1 100"></svg>"#;
+        assert!(svg_to_png(tall, 400).is_err());
+    }
+}

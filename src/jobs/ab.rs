@@ -148,6 +148,10 @@ pub struct Round {
     /// it), when it was uploaded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub diagram: Option<String>,
+    /// How the prompt names the diagram to a user: its PNG twin (`config/klipcal/….png`), or
+    /// the SVG when no PNG could be made.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub picture: Option<String>,
 }
 
 /// The whole session document, stored as JSON.
@@ -590,6 +594,7 @@ impl Ab {
             solution: None,
             applied: None,
             diagram: None,
+            picture: None,
         };
         self.core
             .files()
@@ -598,8 +603,9 @@ impl Ab {
             .context("uploading the pylon job")?;
         let diagram = format!("klipcal/ab-s{id}-r{n}.svg");
         let round = match self.core.save_picture(&diagram, job.svg).await {
-            Some(_) => Round {
+            Some(shown) => Round {
                 diagram: Some(diagram),
+                picture: Some(shown),
                 ..round
             },
             None => round,
@@ -1613,9 +1619,13 @@ fn measuring_guide(s: &Session) -> Vec<String> {
             entry::example(p.nominal_mm)
         ));
     }
-    if let Some(d) = &round.diagram {
+    let shown = round
+        .picture
+        .clone()
+        .or_else(|| round.diagram.as_ref().map(|d| format!("config/{d}")));
+    if let Some(p) = shown {
         lines.push(format!(
-            "diagram of the pylons and pairs: config/{d} (Mainsail/Fluidd: Machine → config files)"
+            "picture of the pylons and pairs: {p} (Mainsail/Fluidd: Machine → config files → klipcal)"
         ));
     }
     lines.push(

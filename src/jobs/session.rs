@@ -90,17 +90,41 @@ impl Core {
         &self.inner.store
     }
 
-    /// Saves a picture (SVG text) under Moonraker's config root, where Mainsail/Fluidd's file
-    /// browser shows it; returns how to name it to a user (`config/klipcal/…`), or `None` when
-    /// the upload failed (logged: a picture never fails a calibration).
+    /// Saves a picture (SVG text, `path` ending in `.svg`) under Moonraker's config root, and
+    /// beside it the same picture as PNG (`.png`, drawn by [`crate::plots::svg_to_png`]), which
+    /// Mainsail's and Fluidd's file browsers show as an image. Returns how to name it to a user
+    /// (`config/klipcal/….png`, or the `.svg` when the PNG could not be made), or `None` when
+    /// nothing could be saved (logged: a picture never fails a calibration).
     pub async fn save_picture(&self, path: &str, svg: String) -> Option<String> {
-        match self.files().upload("config", path, svg.into_bytes()).await {
+        let png_path = path.strip_suffix(".svg").map(|stem| format!("{stem}.png"));
+        let png = match &png_path {
+            Some(_) => {
+                let text = svg.clone();
+                tokio::task::spawn_blocking(move || {
+                    crate::plots::svg_to_png(&text, crate::plots::PNG_WIDTH_PX)
+                })
+                .await
+                .map_err(anyhow::Error::from)
+                .and_then(|r| r)
+                .map_err(|e| tracing::warn!(error = %e, %path, "no PNG of the picture"))
+                .ok()
+            }
+            None => None,
+        };
+        let svg_saved = match self.files().upload("config", path, svg.into_bytes()).await {
             Ok(_) => Some(format!("config/{path}")),
             Err(e) => {
                 tracing::warn!(error = %e, %path, "the picture was not saved");
                 None
             }
+        };
+        if let (Some(png_path), Some(png)) = (png_path, png) {
+            match self.files().upload("config", &png_path, png).await {
+                Ok(_) => return Some(format!("config/{png_path}")),
+                Err(e) => tracing::warn!(error = %e, path = %png_path, "the PNG was not saved"),
+            }
         }
+        svg_saved
     }
 
     /// The daemon's shutdown token.

@@ -128,9 +128,29 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         "{}",
         soak_svg.display()
     );
-    // The bed is still hot for the readings.
+    // Each picture has a PNG twin (Mainsail's and Fluidd's file browsers show PNG), and the
+    // measuring step links the layout's.
+    let id = &s["id"];
+    for name in [format!("ab-s{id}-r1-soak.png"), format!("ab-s{id}-r1.png")] {
+        let png =
+            std::fs::read(bench.dir.path().join("config/klipcal").join(&name)).unwrap_or_default();
+        assert!(
+            png.starts_with(b"\x89PNG\r\n\x1a\n") && png.len() > 5000,
+            "{name}"
+        );
+    }
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let store = m
+        .call("server.gcode_store", json!({"count": 200}))
+        .await
+        .unwrap();
+    let console = store.to_string();
+    assert!(
+        console.contains(&format!("config/klipcal/ab-s{id}-r1.png")),
+        "the measuring step does not link the picture"
+    );
+    // The bed is still hot for the readings.
     let hb = m
         .objects_query(json!({"heater_bed": ["target"]}))
         .await
