@@ -101,6 +101,8 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         }
     };
     assert!(killed, "the measurement ended before the second cycle");
+    // The axis is done: a page reload shows no jog dialog any more.
+    assert_eq!(crate::mainsail::after_reload(&m).await, None);
     let x = &measured["results"]["x"];
     let b = x["backlash_mm"].as_f64().unwrap();
     let u = x["uncertainty_mm"].as_f64().unwrap();
@@ -109,8 +111,18 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         "measured {b} ± {u}, simulated {TRUE_X_MM}: {measured}"
     );
     assert_eq!(x["cycles"].as_u64(), Some(3), "{measured}");
-    // Then Y, in the same session.
+    // Then Y, in the same session; a reload mid-axis shows its jog dialog.
     start_axis(&bench, json!({"axis": "Y"})).await;
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(
+        shown
+            .as_ref()
+            .is_some_and(|d| d.title.contains("backlash Y")
+                && d.buttons
+                    .iter()
+                    .any(|b| b.1 == "KLIPCAL_BACKLASH_JOG PRESS=centred")),
+        "{shown:?}"
+    );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
     let by = assert_found(&measured, "y", TRUE_Y_MM);
     assert_found(&measured, "x", TRUE_X_MM);

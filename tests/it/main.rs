@@ -10,6 +10,7 @@ mod daemon;
 mod fake;
 mod http;
 mod install;
+mod mainsail;
 mod mesh;
 mod mesh_job;
 mod pylons;

@@ -349,8 +349,26 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         "readings via macros: {}",
         session(&bench).await
     );
+    // A page reload (Mainsail rebuilds its dialog from the console history) shows the one
+    // decision that is true now: Solve.
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(
+        shown
+            .as_ref()
+            .is_some_and(|d| d.title.contains("all pairs measured")
+                && d.buttons.iter().any(|b| b.1 == "KLIPCAL_AB_SOLVE")),
+        "{shown:?}"
+    );
     m.gcode("KLIPCAL_AB_SOLVE").await.unwrap();
     wait_state(&bench, "solved", Duration::from_secs(20)).await;
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(
+        shown
+            .as_ref()
+            .is_some_and(|d| d.title.contains("new rotation distances")
+                && d.buttons.iter().any(|b| b.1 == "KLIPCAL_AB_APPLY")),
+        "{shown:?}"
+    );
     m.gcode("KLIPCAL_AB_APPLY").await.unwrap();
     let s = poll(Duration::from_secs(90), || async {
         let s = session(&bench).await;
@@ -361,6 +379,15 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     .await
     .unwrap_or_else(|| panic!("not applied: {}\n{}", futures_lite(&bench), d.log_text()));
     assert_eq!(s["rounds"][0]["applied"]["files"], json!(["steppers.cfg"]));
+    // Applied: a reload shows no dialog with buttons that would only answer errors now.
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(
+        shown.as_ref().is_none_or(|d| !d
+            .buttons
+            .iter()
+            .any(|b| b.1 == "KLIPCAL_AB_APPLY" || b.1 == "KLIPCAL_AB_SOLVE")),
+        "{shown:?}"
+    );
     // The daemon's answers reached the console.
     let mut lines = Vec::new();
     while let Ok(e) = rx.try_recv() {
