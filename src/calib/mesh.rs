@@ -343,6 +343,17 @@ pub fn judge(fit: &Fit, c: &Capture) -> ErrorStats {
 #[must_use]
 pub fn lomo(caps: &[&Capture], kind: ModelKind) -> Option<ErrorStats> {
     let mut errors = Vec::new();
+    for (held, f) in held_out(caps, kind) {
+        errors
+            .extend((0..f.len()).map(|i| f.predict_point(i, held.temps_c[i]) - held.points_mm[i]));
+    }
+    (!errors.is_empty()).then(|| ErrorStats::of(&errors))
+}
+
+/// Each capture inside the others' range, with the model of `kind` fitted to the others
+/// (leave-one-mesh-out; a capture at either end is left out, predicting it would extrapolate).
+fn held_out<'a>(caps: &[&'a Capture], kind: ModelKind) -> Vec<(&'a Capture, Fit)> {
+    let mut out = Vec::new();
     for (k, held) in caps.iter().enumerate() {
         let rest: Vec<&Capture> = caps
             .iter()
@@ -355,10 +366,9 @@ pub fn lomo(caps: &[&Capture], kind: ModelKind) -> Option<ErrorStats> {
         if lo < f.range_c.0 || hi > f.range_c.1 {
             continue;
         }
-        errors
-            .extend((0..f.len()).map(|i| f.predict_point(i, held.temps_c[i]) - held.points_mm[i]));
+        out.push((*held, f));
     }
-    (!errors.is_empty()).then(|| ErrorStats::of(&errors))
+    out
 }
 
 /// VGB's method: a line per point through the coldest and the hottest mesh, each at its one
@@ -492,18 +502,7 @@ fn lomo_bias_um(caps: &[&Capture], kind: ModelKind) -> Option<f64> {
     let n = caps.first()?.points_mm.len();
     let mut sums = vec![0.0; n];
     let mut count = 0usize;
-    for (k, held) in caps.iter().enumerate() {
-        let rest: Vec<&Capture> = caps
-            .iter()
-            .enumerate()
-            .filter(|(j, _)| *j != k)
-            .map(|(_, c)| *c)
-            .collect();
-        let Ok(f) = fit(&rest, kind) else { continue };
-        let (lo, hi) = held.span_c();
-        if lo < f.range_c.0 || hi > f.range_c.1 {
-            continue;
-        }
+    for (held, f) in held_out(caps, kind) {
         for (i, s) in sums.iter_mut().enumerate() {
             *s += f.predict_point(i, held.temps_c[i]) - held.points_mm[i];
         }

@@ -644,16 +644,7 @@ impl Backlash {
             smooth_time_s: smooth,
         };
         if detection.branch == Branch::Seed {
-            let cmd = kb::set_backlash_command(&want)?;
-            self.core
-                .m()
-                .gcode(&cmd)
-                .await
-                .context("SET_BACKLASH_COMPENSATION")?;
-            let reply = kb::parse_reply(&self.console_tail().await?)?;
-            if !reply.agrees_with(&want) {
-                return Err(anyhow!("Klipper answered {reply:?} to {cmd}"));
-            }
+            self.set_checked(&want).await?;
         }
         let pc = printer_config::fetch(self.core.m(), self.core.files()).await?;
         let sets: Vec<ValueSet> = triples
@@ -789,6 +780,21 @@ impl Backlash {
         self.select_carriage(n).await
     }
 
+    /// `SET_BACKLASH_COMPENSATION` with `want`, refused unless Klipper's reply agrees.
+    async fn set_checked(&self, want: &SetBacklash) -> anyhow::Result<()> {
+        let cmd = kb::set_backlash_command(want)?;
+        self.core
+            .m()
+            .gcode(&cmd)
+            .await
+            .context("SET_BACKLASH_COMPENSATION")?;
+        let reply = kb::parse_reply(&self.console_tail().await?)?;
+        if !reply.agrees_with(want) {
+            return Err(anyhow!("Klipper answered {reply:?} to {cmd}"));
+        }
+        Ok(())
+    }
+
     /// Each carriage's values as PR 7259 reports them (the active carriage selected again).
     async fn carriage_values(&self) -> anyhow::Result<[kb::BacklashReply; 2]> {
         let was = self.active_carriage().await?;
@@ -866,19 +872,9 @@ impl Backlash {
         let was = self.active_carriage().await?;
         for c in &wanted {
             self.select_carriage(c.carriage.parse()?).await?;
-            let cmd = kb::set_backlash_command(&c.values)?;
-            self.core
-                .m()
-                .gcode(&cmd)
+            self.set_checked(&c.values)
                 .await
-                .context("SET_BACKLASH_COMPENSATION")?;
-            let reply = kb::parse_reply(&self.console_tail().await?)?;
-            if !reply.agrees_with(&c.values) {
-                return Err(anyhow!(
-                    "carriage {}: Klipper answered {reply:?} to {cmd}",
-                    c.carriage
-                ));
-            }
+                .with_context(|| format!("carriage {}", c.carriage))?;
         }
         self.select_carriage(was).await?;
         // Then the include, through the config transaction.

@@ -92,7 +92,13 @@ pub async fn set_point(bench: &Bench, m: &Moonraker, point: [f64; 3]) -> [f64; 3
     nozzle(bench)
 }
 
-async fn last_reply(m: &Moonraker) -> String {
+/// What PR 7259's `SET_BACKLASH_COMPENSATION` reports now (the bare command's reply).
+pub async fn reply_now(m: &Moonraker) -> klipcal::klipper::backlash::BacklashReply {
+    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
+    parse_reply(&last_reply(m).await).unwrap()
+}
+
+pub async fn last_reply(m: &Moonraker) -> String {
     let store = m
         .call("server.gcode_store", json!({"count": 20}))
         .await

@@ -181,18 +181,7 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     }
     // The command's reply after the restart: what the config says, and the simulated play
     // within the reported uncertainty.
-    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
-    let store = m
-        .call("server.gcode_store", json!({"count": 5}))
-        .await
-        .unwrap();
-    let text: Vec<&str> = store["gcode_store"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|e| e["message"].as_str())
-        .collect();
-    let reply = klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap();
+    let reply = crate::backlash::reply_now(&m).await;
     assert!((reply.x_mm - applied).abs() < 1e-6 && (reply.y_mm - applied_y).abs() < 1e-6);
     let uy = measured["results"]["y"]["uncertainty_mm"].as_f64().unwrap();
     assert!(
@@ -201,6 +190,26 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         "{reply:?}"
     );
     drop(d);
+}
+
+/// The daemon on `bench` (3 cycles per axis), the printer homed and the camera point saved at
+/// `point`; returns the daemon, a client and the mark the person sees there.
+async fn at_the_camera(
+    bench: &Bench,
+    point: [f64; 3],
+) -> (
+    Daemon,
+    Moonraker,
+    tokio_util::sync::CancellationToken,
+    [f64; 3],
+) {
+    let d = Daemon::ready(bench, "[backlash]\ncycles = 3\n").await;
+    let (m, c) = connect(bench).await;
+    let mark = set_point(bench, &m, point).await;
+    extension_request(&bench.files(), "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    (d, m, c, mark)
 }
 
 /// Plays the axis in progress through the prompt's buttons: looks at the bench's true nozzle
@@ -261,18 +270,7 @@ async fn carriage_reply(m: &Moonraker, n: u32) -> klipcal::klipper::backlash::Ba
     m.gcode(&format!("SET_DUAL_CARRIAGE CARRIAGE={n}"))
         .await
         .unwrap();
-    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
-    let store = m
-        .call("server.gcode_store", json!({"count": 5}))
-        .await
-        .unwrap();
-    let text: Vec<&str> = store["gcode_store"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|e| e["message"].as_str())
-        .collect();
-    klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap()
+    crate::backlash::reply_now(m).await
 }
 
 #[tokio::test]
@@ -291,13 +289,8 @@ async fn dual_carriage_x_per_carriage_and_the_shared_y_go_into_the_seeds_delayed
             &format!(r#"{{"x": {X0}, "x1": {X1}, "y": {Y}}}"#),
         ],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let (d, m, _c, mark) = at_the_camera(&bench, [100.0, 100.0, 0.0]).await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    let mark = set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     // CARRIAGE is refused by name where it does not apply.
     let e = extension_request(
         &files,
@@ -396,13 +389,8 @@ async fn pr_7157_a_and_b_measured_through_the_prompts_are_written_to_backlash() 
             &format!(r#"{{"a": {A}, "b": {B}}}"#),
         ],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let (d, m, _c, mark) = at_the_camera(&bench, [150.0, 150.0, 0.0]).await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    let mark = set_point(&bench, &m, [150.0, 150.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     let mut rng = fastrand::Rng::with_seed(3);
     start_axis(&bench, json!({"axis": "A"})).await;
     play_axis(&bench, &d, GuideAxis::A, mark, &mut rng).await;
@@ -447,13 +435,8 @@ async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
         )
     })
     .await;
-    let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
+    let (d, m, _c, mark) = at_the_camera(&bench, [100.0, 100.0, 0.0]).await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    let mark = set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     let mut rng = fastrand::Rng::with_seed(5);
     start_axis(&bench, json!({"axis": "X"})).await;
     play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
@@ -487,18 +470,7 @@ async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
         "a config file differs after the rollback"
     );
     // The run-time value went with the restart: Klipper runs the config as it was.
-    m.gcode("SET_BACKLASH_COMPENSATION").await.unwrap();
-    let store = m
-        .call("server.gcode_store", json!({"count": 5}))
-        .await
-        .unwrap();
-    let text: Vec<&str> = store["gcode_store"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter_map(|e| e["message"].as_str())
-        .collect();
-    let reply = klipcal::klipper::backlash::parse_reply(&text.join("\n")).unwrap();
+    let reply = crate::backlash::reply_now(&m).await;
     assert_eq!(reply.x_mm, 0.0, "{reply:?}");
     // The measurement is kept: apply may be tried again once the config allows it.
     let st = crate::session::session(&bench).await;
@@ -507,12 +479,9 @@ async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
 
 #[tokio::test]
 async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_argument() {
-    use klipcal::moonraker::Event;
     let bench = Bench::start_args("cartesian", &["--play", r#"{"x": 0.07}"#]);
     let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
     let files = bench.files();
-    let base = d.page_url().await;
-    let http = reqwest::Client::new();
     let (m, _c) = connect(&bench).await;
     // No camera point yet.
     m.gcode("G28").await.unwrap();
@@ -525,7 +494,7 @@ async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_ar
         .await
         .unwrap();
     // (operation, arguments, what the refusal names, the same through its macro).
-    let cases: &[(&str, Value, &str, Option<&str>)] = &[
+    let cases: &[crate::bench::BadCall] = &[
         (
             "set_point",
             json!({"x": 1}),
@@ -623,40 +592,7 @@ async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_ar
             Some("KLIPCAL_BACKLASH_APPLY"),
         ),
     ];
-    for (op, args, want, mac) in cases {
-        let method = format!("klipcal_backlash_{op}");
-        let e = extension_request(&files, &method, args.clone())
-            .await
-            .expect_err(&format!("{method} {args} was accepted"));
-        assert!(e.contains(want), "{method} {args}: {e}");
-        // The daemon's own API: the same refusal, a 400.
-        let r = http
-            .post(format!("{base}/api/backlash/{op}"))
-            .header("content-type", "application/json")
-            .body(args.to_string())
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 400, "{op} {args}");
-        let v: Value = r.json().await.unwrap();
-        assert_eq!(v["error"]["message"], json!(e), "{op} {args}");
-        if let Some(line) = mac {
-            let said_want = want.replace(';', ",");
-            let mut rx = m.events();
-            m.gcode(line).await.unwrap();
-            let said = crate::bench::wait_event(
-                &mut rx,
-                Duration::from_secs(15),
-                |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(&said_want)),
-            )
-            .await;
-            assert!(
-                said.is_some(),
-                "{line}: no console line with {said_want:?}\n{}",
-                d.log_text()
-            );
-        }
-    }
+    crate::bench::assert_refused_everywhere(&bench, &d, &m, "backlash", cases).await;
     // Nothing started.
     assert!(crate::session::session(&bench).await.is_null());
 

@@ -96,6 +96,20 @@ impl Bench {
         bench_py(&["start-one", name, "--run-dir", &self.run_dir()]).unwrap();
     }
 
+    /// Restarts klippy (its config re-read from disk) and waits until Moonraker reports it
+    /// ready; panics after 60 s.
+    pub async fn restart_klippy(&self) {
+        self.stop_one("klippy");
+        self.start_one("klippy");
+        let files = self.files();
+        let ready = poll(Duration::from_secs(60), || async {
+            let v = files.get("/server/info").await.ok()?;
+            (v["klippy_state"] == "ready").then_some(())
+        })
+        .await;
+        assert!(ready.is_some(), "klippy did not come back ready");
+    }
+
     pub fn files(&self) -> Files {
         Files::new(&self.http_url(), None, Duration::from_secs(30)).unwrap()
     }
@@ -297,4 +311,57 @@ pub async fn extension_request(
         return Err(v["error"]["message"].as_str().unwrap_or("").to_string());
     }
     Ok(v)
+}
+
+/// One bad call: the operation (`/api/<group>/<op>`, remote method `klipcal_<group>_<op>`), its
+/// arguments, what the refusal must name, and the same call typed as a macro (or `None`).
+pub type BadCall<'a> = (&'a str, Value, &'a str, Option<&'a str>);
+
+/// Every bad call is refused by name the same way on each road in: through Moonraker as an
+/// HTTP caller of the remote method, by the daemon's own API (400, the same message), and typed
+/// as a macro (the console says it; a console line has ',' for ';').
+pub async fn assert_refused_everywhere(
+    bench: &Bench,
+    d: &Daemon,
+    m: &Moonraker,
+    group: &str,
+    cases: &[BadCall<'_>],
+) {
+    let files = bench.files();
+    let base = d.page_url().await;
+    let http = reqwest::Client::new();
+    for (op, args, want, mac) in cases {
+        let method = format!("klipcal_{group}_{op}");
+        let e = extension_request(&files, &method, args.clone())
+            .await
+            .expect_err(&format!("{method} {args} was accepted"));
+        assert!(e.contains(want), "{method} {args}: {e}");
+        assert!(!e.contains("panicked"), "{e}");
+        let r = http
+            .post(format!("{base}/api/{group}/{op}"))
+            .header("content-type", "application/json")
+            .body(args.to_string())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 400, "{op} {args}");
+        let v: Value = r.json().await.unwrap();
+        assert_eq!(v["error"]["message"], json!(e), "{op} {args}");
+        if let Some(line) = mac {
+            let said_want = want.replace(';', ",");
+            let mut rx = m.events();
+            m.gcode(line).await.unwrap();
+            let said = wait_event(
+                &mut rx,
+                Duration::from_secs(15),
+                |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(&said_want)),
+            )
+            .await;
+            assert!(
+                said.is_some(),
+                "{line}: no console line with {said_want:?}\n{}",
+                d.log_text()
+            );
+        }
+    }
 }

@@ -157,14 +157,7 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     let mut sp: Value = serde_json::from_str(&std::fs::read_to_string(&surface).unwrap()).unwrap();
     sp["tilt_x_um"] = json!(900.0);
     std::fs::write(&surface, sp.to_string()).unwrap();
-    bench.stop_one("klippy");
-    bench.start_one("klippy");
-    poll(Duration::from_secs(60), || async {
-        let v = files.get("/server/info").await.ok()?;
-        (v["klippy_state"] == "ready").then_some(())
-    })
-    .await
-    .expect("klippy back");
+    bench.restart_klippy().await;
     let e = extension_request(&files, "klipcal_mesh_check", json!({}))
         .await
         .unwrap_err();
@@ -238,14 +231,7 @@ async fn a_capture_started_over_http_survives_kill_9_and_following_refuses_a_fad
         ),
     )
     .unwrap();
-    bench.stop_one("klippy");
-    bench.start_one("klippy");
-    let ready = poll(Duration::from_secs(60), || async {
-        let v = files.get("/server/info").await.ok()?;
-        (v["klippy_state"] == "ready").then_some(())
-    })
-    .await;
-    assert!(ready.is_some());
+    bench.restart_klippy().await;
     let e = extension_request(&files, "klipcal_mesh_follow", json!({"enable": "1"}))
         .await
         .unwrap_err();
@@ -310,14 +296,7 @@ async fn vgb_profiles_in_the_config_are_imported_fitted_and_written_as_klipcal_p
     let mut odd = mk("HOT40.0", 40.0);
     odd.params.max_x -= 10.0;
     std::fs::write(&path, format!("{after}{}#*#\n", format_profile(&odd))).unwrap();
-    bench.stop_one("klippy");
-    bench.start_one("klippy");
-    let ready = poll(Duration::from_secs(60), || async {
-        let v = files.get("/server/info").await.ok()?;
-        (v["klippy_state"] == "ready").then_some(())
-    })
-    .await;
-    assert!(ready.is_some());
+    bench.restart_klippy().await;
     let e = extension_request(&files, "klipcal_mesh_import", json!({}))
         .await
         .unwrap_err();
@@ -465,14 +444,7 @@ async fn following_sets_the_kept_bed_mesh_offset_again_after_each_load() {
     let path = bench.dir.path().join("config/printer.cfg");
     let text = std::fs::read_to_string(&path).unwrap();
     std::fs::write(&path, format!("{text}{}", vgb_block(&bench))).unwrap();
-    bench.stop_one("klippy");
-    bench.start_one("klippy");
-    let ready = poll(Duration::from_secs(60), || async {
-        let v = files.get("/server/info").await.ok()?;
-        (v["klippy_state"] == "ready").then_some(())
-    })
-    .await;
-    assert!(ready.is_some());
+    bench.restart_klippy().await;
     let d = Daemon::ready(
         &bench,
         "[mesh]\nfollow_interval_s = 1.0\njump_limit_um = 1000.0\n",
@@ -571,16 +543,13 @@ async fn following_sets_the_kept_bed_mesh_offset_again_after_each_load() {
 
 #[tokio::test]
 async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
-    use klipcal::moonraker::Event;
     let bench = Bench::start("corexy");
     let d = Daemon::ready(&bench, "").await;
     let files = bench.files();
-    let base = d.page_url().await;
-    let http = reqwest::Client::new();
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     // (remote method, arguments, what the refusal names, the same through its macro).
-    let cases: &[(&str, Value, &str, Option<&str>)] = &[
+    let cases: &[crate::bench::BadCall] = &[
         (
             "capture",
             json!({"bde": 60}),
@@ -690,43 +659,7 @@ async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
             Some("KLIPCAL_MESH_CHECK X=1"),
         ),
     ];
-    for (op, args, want, mac) in cases {
-        let method = format!("klipcal_mesh_{op}");
-        // Through Moonraker, as an HTTP caller of the remote method.
-        let e = extension_request(&files, &method, args.clone())
-            .await
-            .expect_err(&format!("{method} {args} was accepted"));
-        assert!(e.contains(want), "{method} {args}: {e}");
-        assert!(!e.contains("panicked"), "{e}");
-        // The daemon's own API: the same refusal, a 400.
-        let r = http
-            .post(format!("{base}/api/mesh/{op}"))
-            .header("content-type", "application/json")
-            .body(args.to_string())
-            .send()
-            .await
-            .unwrap();
-        assert_eq!(r.status().as_u16(), 400, "{op} {args}");
-        let v: Value = r.json().await.unwrap();
-        assert_eq!(v["error"]["message"], json!(e), "{op} {args}");
-        // From the macro: the console says it (a console line has ',' for ';').
-        if let Some(line) = mac {
-            let said_want = want.replace(';', ",");
-            let mut rx = m.events();
-            m.gcode(line).await.unwrap();
-            let said = crate::bench::wait_event(
-                &mut rx,
-                Duration::from_secs(15),
-                |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(&said_want)),
-            )
-            .await;
-            assert!(
-                said.is_some(),
-                "{line}: no console line with {said_want:?}\n{}",
-                d.log_text()
-            );
-        }
-    }
+    crate::bench::assert_refused_everywhere(&bench, &d, &m, "mesh", cases).await;
     // Positional arguments name the command and say what is expected.
     let e = extension_request(&files, "klipcal_mesh_capture", json!([60]))
         .await
