@@ -5,7 +5,7 @@
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
-use crate::jobs::console::answer_script;
+use crate::jobs::console::{self, answer_script, holding_prompts};
 use crate::jobs::{is_user_error, Calibrations};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
@@ -37,6 +37,20 @@ fn rpc_error(e: &anyhow::Error) -> RpcError {
 /// Unknown method (-32601), no session database (503), a user's mistake (400, the message
 /// says what was wrong and what is expected), or the daemon's failure (500).
 pub async fn dispatch(
+    m: &Moonraker,
+    cals: Option<&Calibrations>,
+    method: &str,
+    args: &Value,
+) -> Result<Value, RpcError> {
+    let (outcome, change) = holding_prompts(answer(m, cals, method, args)).await;
+    if let Some(c) = change {
+        console::send_script(m, &c.script()).await;
+    }
+    outcome
+}
+
+/// A call's outcome; its dialog changes are held by the caller (see [`holding_prompts`]).
+async fn answer(
     m: &Moonraker,
     cals: Option<&Calibrations>,
     method: &str,
@@ -79,21 +93,26 @@ pub fn result_json(outcome: Result<Value, RpcError>) -> Value {
 
 async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
-    let outcome = dispatch(m, cals, &call.method, &call.params).await;
-    match call.responder {
+    let (outcome, change) = holding_prompts(answer(m, cals, &call.method, &call.params)).await;
+    let script = match call.responder {
         // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
         // klipcal RPC error"), so failures travel as a JSON result the caller can read.
-        Some(r) => r.send(Ok(result_json(outcome))),
+        Some(r) => {
+            r.send(Ok(result_json(outcome)));
+            change.map(|c| c.script()).unwrap_or_default()
+        }
+        // A macro's caller reads the console: the answer first, then the dialog, one script.
         None => {
-            let script = match &outcome {
+            let text = match &outcome {
                 Ok(v) => answer_script(&console_text(&call.method, v), false),
                 Err(e) => answer_script(&e.message, true),
             };
-            if !script.is_empty() {
-                if let Err(e) = m.gcode(&script).await {
-                    warn!(error = %e, "could not answer on the console");
-                }
-            }
+            console::answer_then_prompt(&text, change.as_ref())
+        }
+    };
+    if !script.is_empty() {
+        if let Err(e) = m.gcode(&script).await {
+            warn!(error = %e, "could not answer on the console");
         }
     }
 }

@@ -710,22 +710,24 @@ impl Ab {
             Ok(())
         })
         .await?;
-        self.core.console(&format!("{TITLE}: {line}")).await;
         self.core
-            .prompt(&Prompt {
-                title: "klipcal: the bed has not settled".into(),
-                lines: vec![
-                    line.clone(),
-                    "Print now: the readings may carry some thermal drift. Wait: 10 more \
+            .say_and_prompt(
+                &format!("{TITLE}: {line}"),
+                &Prompt {
+                    title: "klipcal: the bed has not settled".into(),
+                    lines: vec![
+                        line.clone(),
+                        "Print now: the readings may carry some thermal drift. Wait: 10 more \
                      minutes. Cancel: heaters off."
-                        .into(),
-                ],
-                buttons: vec![
-                    Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
-                    Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
-                ],
-                footer: vec![Button::new("Cancel session", "KLIPCAL_CANCEL", "error")],
-            })
+                            .into(),
+                    ],
+                    buttons: vec![
+                        Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                        Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+                    ],
+                    footer: vec![Button::new("Cancel session", "KLIPCAL_CANCEL", "error")],
+                },
+            )
             .await;
         let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(SOAK_ANSWER_S);
         while tokio::time::Instant::now() < deadline {
@@ -897,19 +899,23 @@ impl Ab {
         self.set_state(id, State::Measuring, "waiting for caliper readings")
             .await?;
         let s = self.load(id)?;
+        // The console carries the whole guide; the dialog only what to do and where to look,
+        // so the console does not read the guide twice.
         let guide = measuring_guide(&s);
-        self.core.console(&guide.join("\n")).await;
         self.core
-            .prompt(&Prompt {
-                title: format!("klipcal: measure the pylons (round {})", s.rounds.len()),
-                lines: guide,
-                buttons: vec![Button::new(
-                    "Close and type readings",
-                    "KLIPCAL_PROMPT_CLOSE",
-                    "primary",
-                )],
-                footer: Vec::new(),
-            })
+            .say_and_prompt(
+                &guide.join("\n"),
+                &Prompt {
+                    title: format!("klipcal: measure the pylons (round {})", s.rounds.len()),
+                    lines: measuring_dialog(&s),
+                    buttons: vec![Button::new(
+                        "Close and type readings",
+                        "KLIPCAL_PROMPT_CLOSE",
+                        "primary",
+                    )],
+                    footer: Vec::new(),
+                },
+            )
             .await;
         Ok(())
     }
@@ -1216,7 +1222,8 @@ impl Ab {
         }
         let solution =
             solve(&round.layout, &raw, &facts, &opts).map_err(|e| user(e.to_string()))?;
-        let mut message = solution_text(&solution);
+        let decision = solution_text(&solution);
+        let mut message = decision.clone();
         let sol = serde_json::to_value(&solution)?;
         self.update(s.id, |s| {
             if let Some(r) = s.rounds.last_mut() {
@@ -1238,7 +1245,7 @@ impl Ab {
         self.core
             .prompt(&Prompt {
                 title: "klipcal: new rotation distances".into(),
-                lines: message.lines().map(str::to_string).collect(),
+                lines: decision.lines().map(str::to_string).collect(),
                 buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
                 footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
             })
@@ -1294,7 +1301,8 @@ impl Ab {
         .all(|(new, old)| {
             format_rd(new.rotation_distance_new) == format_rd(old.rotation_distance_mm)
         });
-        self.core.prompt_end().await;
+        // Closed at once: applying takes a Klipper restart, and Apply must not be pressed twice.
+        self.core.prompt_end_now().await;
         if unchanged {
             let msg = format!(
                 "already calibrated: stepper_x {} and stepper_y {} mm are what Klipper runs; \
@@ -1594,6 +1602,25 @@ fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair,
 }
 
 /// What to measure and how, for the console and the measuring prompt.
+/// The measuring dialog's text: what to do and where the details are (the console has the
+/// pairs and the commands; the dialog does not repeat them).
+fn measuring_dialog(s: &Session) -> Vec<String> {
+    let on = if s.options.bed_temp_c > 0.0 {
+        "on the hot bed"
+    } else {
+        "on the bed"
+    };
+    let mut lines = vec![format!(
+        "Calipers, part still {on}: {} readings per pair, outer face to outer face just below \
+         the top chamfer. The pairs and what to type are on the console.",
+        s.options.readings_per_pair
+    )];
+    if let Some(p) = s.rounds.last().and_then(|r| r.picture.clone()) {
+        lines.push(format!("picture: {p}"));
+    }
+    lines
+}
+
 fn measuring_guide(s: &Session) -> Vec<String> {
     let Some(round) = s.rounds.last() else {
         return Vec::new();

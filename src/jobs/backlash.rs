@@ -337,7 +337,6 @@ impl Backlash {
             "camera point saved: X{:.3} Y{:.3} Z{:.3}; KLIPCAL_BACKLASH_START AXIS=X begins",
             p[0], p[1], p[2]
         );
-        self.core.console(&msg).await;
         Ok(json!({"point": p, "message": msg}))
     }
 
@@ -475,7 +474,6 @@ impl Backlash {
             key_words(&key),
             s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
         );
-        self.core.console(&msg).await;
         Ok(
             json!({"session": s.id, "state": "measuring", "axis": axis.name(), "carriage": carriage, "message": msg}),
         )
@@ -526,16 +524,33 @@ impl Backlash {
                 "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_START AXIS=… for another axis, or KLIPCAL_BACKLASH_APPLY",
                 lines.join("\n")
             );
-            self.core.console(&text).await;
             return Ok(
                 json!({"session": s.id, "state": "measured", "results": self.results(&s)?, "message": text}),
             );
         }
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        // A jog answers nothing on the console (the camera shows it); a recorded position and a
+        // new approach are said in one line.
+        let message = match (step.recorded, press) {
+            (Some(v), _) => format!(
+                "{TITLE}: {v:.4} mm recorded; now cycle {}, moving only {}",
+                step.cycle,
+                if step.phase == Phase::Minus {
+                    "−"
+                } else {
+                    "+"
+                }
+            ),
+            (None, Press::Overshot) => format!(
+                "{TITLE}: approaching again from {} mm back",
+                s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
+            ),
+            (None, _) => String::new(),
+        };
         Ok(
             json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
-                  "phase": format!("{:?}", step.phase), "cycle": step.cycle}),
+                  "phase": format!("{:?}", step.phase), "cycle": step.cycle, "message": message}),
         )
     }
 

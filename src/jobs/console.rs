@@ -3,6 +3,9 @@
 //! prompt dialogs (`action:prompt_*`). The only builder of RESPOND lines; every text is made
 //! safe for Klipper's parser, never pasted raw.
 
+use std::cell::RefCell;
+use std::future::Future;
+
 use tracing::warn;
 
 use crate::klipper::gcode_cmd::{self, GcodeCmd};
@@ -108,6 +111,73 @@ impl Prompt {
     }
 }
 
+/// A change to klipcal's dialog.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum PromptChange {
+    /// Show this dialog script (it begins a new dialog, replacing any open one).
+    Show(String),
+    /// Close the dialog.
+    End,
+}
+
+impl PromptChange {
+    /// The console script that makes the change.
+    #[must_use]
+    pub fn script(&self) -> String {
+        match self {
+            Self::Show(s) => s.clone(),
+            Self::End => PROMPT_END.to_string(),
+        }
+    }
+}
+
+tokio::task_local! {
+    static HELD: RefCell<Option<PromptChange>>;
+}
+
+/// Runs one call holding back its dialog changes, so that the console reads the call's answer
+/// first and the dialog after it, in one script (Mainsail and Fluidd show every script klipcal
+/// sends as a command line after a reload). Only the last change survives: it is the dialog's
+/// state when the call ends (a `prompt_begin` replaces whatever was open).
+pub async fn holding_prompts<F: Future>(f: F) -> (F::Output, Option<PromptChange>) {
+    HELD.scope(RefCell::new(None), async move {
+        let out = f.await;
+        let change = HELD.with(|h| h.borrow_mut().take());
+        (out, change)
+    })
+    .await
+}
+
+/// Holds `change` back for the call running now; false outside a call (send it now).
+#[must_use]
+pub fn hold(change: PromptChange) -> bool {
+    HELD.try_with(|h| *h.borrow_mut() = Some(change)).is_ok()
+}
+
+/// Drops a held change (a dialog closed at once, e.g. before a long operation).
+pub fn drop_held() {
+    let _ = HELD.try_with(|h| h.borrow_mut().take());
+}
+
+/// An answer's lines, then the dialog change, as one console script.
+#[must_use]
+pub fn answer_then_prompt(answer: &str, change: Option<&PromptChange>) -> String {
+    [
+        answer.to_string(),
+        change.map(PromptChange::script).unwrap_or_default(),
+    ]
+    .into_iter()
+    .filter(|s| !s.is_empty())
+    .collect::<Vec<_>>()
+    .join("\n")
+}
+
+/// Sends a console script (answers, dialog changes); a failure is logged, not raised: the
+/// console is a courtesy, the session goes on.
+pub async fn send_script(m: &Moonraker, script: &str) {
+    send(m, script, "console script not shown").await;
+}
+
 /// Says `msg` on the console.
 pub async fn say(m: &Moonraker, msg: &str) {
     send(m, &answer_script(msg, false), "console message not shown").await;
@@ -178,5 +248,38 @@ mod tests {
         assert!(lines[2].contains("prompt_button Apply|KLIPCAL_AB_APPLY|primary"));
         assert!(lines[3].contains("prompt_footer_button Close|KLIPCAL_PROMPT_CLOSE|secondary"));
         assert!(lines[4].contains("action:prompt_show"));
+    }
+
+    #[tokio::test]
+    async fn a_call_holds_back_its_dialog_changes_and_keeps_only_the_last() {
+        let show = PromptChange::Show(
+            Prompt {
+                title: "klipcal: t".into(),
+                lines: vec!["x".into()],
+                ..Prompt::default()
+            }
+            .script(),
+        );
+        let (out, held) = holding_prompts(async {
+            assert!(hold(PromptChange::End));
+            assert!(hold(show.clone()));
+            7
+        })
+        .await;
+        assert_eq!((out, held.clone()), (7, Some(show.clone())));
+        let (_, held) = holding_prompts(async {
+            assert!(hold(show.clone()));
+            assert!(hold(PromptChange::End));
+        })
+        .await;
+        assert_eq!(held, Some(PromptChange::End));
+        // Outside a call nothing is held: the caller sends at once.
+        assert!(!hold(PromptChange::End));
+        // The answer comes first, the dialog after it, in one script.
+        let s = answer_then_prompt(&answer_script("saved", false), Some(&show));
+        let lines: Vec<&str> = s.lines().collect();
+        assert!(lines[0].starts_with("RESPOND PREFIX=klipcal"), "{s}");
+        assert!(lines[1].contains("action:prompt_begin"), "{s}");
+        assert_eq!(answer_then_prompt("", None), "");
     }
 }

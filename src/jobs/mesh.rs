@@ -457,7 +457,6 @@ impl Mesh {
             doc.options.step_c,
             doc.options.interval_s / 60.0
         );
-        self.core.console(&msg).await;
         Ok(json!({"session": id, "state": "preflight", "message": msg}))
     }
 
@@ -542,7 +541,6 @@ impl Mesh {
             names.len(),
             names.join(", ")
         );
-        self.core.console(&msg).await;
         Ok(json!({"session": id, "state": "writing", "imported": names, "message": msg}))
     }
 
@@ -1059,7 +1057,6 @@ impl Mesh {
             "{TITLE}: following the frame temperature with the profiles of session {}{directions}{offset_note}",
             s.id
         );
-        self.core.console(&msg).await;
         Ok(json!({"following": true, "session": s.id, "message": msg}))
     }
 

@@ -57,6 +57,9 @@ struct Inner {
     runner: std::sync::Mutex<Option<CancellationToken>>,
     /// Kind → how a user calls it ("an A/B calibration"), for refusals.
     titles: std::sync::RwLock<BTreeMap<String, String>>,
+    /// What klipcal's dialog shows, as far as klipcal knows: `None` after a start (unknown),
+    /// `Some(None)` closed, `Some(Some(script))` showing that script.
+    shown: std::sync::Mutex<Option<Option<String>>>,
 }
 
 impl Core {
@@ -71,6 +74,7 @@ impl Core {
                 lock: tokio::sync::Mutex::new(()),
                 runner: std::sync::Mutex::new(None),
                 titles: std::sync::RwLock::new(BTreeMap::new()),
+                shown: std::sync::Mutex::new(None),
             }),
         }
     }
@@ -367,14 +371,84 @@ impl Core {
         console::error(&self.inner.m, msg).await;
     }
 
-    /// Opens (or replaces) the prompt dialog.
+    /// Opens (or replaces) the prompt dialog. Within a call it goes to the console after the
+    /// call's answer; the same dialog as the one showing is not sent again (a jog press does not
+    /// repeat the whole dialog on the console).
     pub async fn prompt(&self, p: &Prompt) {
-        console::show(&self.inner.m, p).await;
+        let script = p.script();
+        {
+            let mut shown = self.shown();
+            if shown
+                .as_ref()
+                .is_some_and(|s| s.as_deref() == Some(script.as_str()))
+            {
+                return;
+            }
+            *shown = Some(Some(script.clone()));
+        }
+        let change = console::PromptChange::Show(script);
+        if !console::hold(change.clone()) {
+            console::send_script(&self.inner.m, &change.script()).await;
+        }
     }
 
-    /// Closes any prompt dialog (the flow moved on).
+    /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
+    /// sent when klipcal's dialog is known to be closed already.
     pub async fn prompt_end(&self) {
-        console::end(&self.inner.m).await;
+        if !self.mark_closed() {
+            return;
+        }
+        if !console::hold(console::PromptChange::End) {
+            console::send_script(&self.inner.m, console::PROMPT_END).await;
+        }
+    }
+
+    /// Closes klipcal's dialog now, even within a call (before a long operation, so that its
+    /// buttons cannot be pressed again meanwhile).
+    pub async fn prompt_end_now(&self) {
+        console::drop_held();
+        if self.mark_closed() {
+            console::send_script(&self.inner.m, console::PROMPT_END).await;
+        }
+    }
+
+    /// Says `msg` on the console and opens a dialog, as one console script.
+    pub async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
+        let script = p.script();
+        let fresh = {
+            let mut shown = self.shown();
+            let fresh = !shown
+                .as_ref()
+                .is_some_and(|s| s.as_deref() == Some(script.as_str()));
+            *shown = Some(Some(script.clone()));
+            fresh
+        };
+        let change = console::PromptChange::Show(script);
+        let change = fresh.then_some(change);
+        if let Some(c) = &change {
+            if console::hold(c.clone()) {
+                self.console(msg).await;
+                return;
+            }
+        }
+        let script =
+            console::answer_then_prompt(&console::answer_script(msg, false), change.as_ref());
+        console::send_script(&self.inner.m, &script).await;
+    }
+
+    /// Marks klipcal's dialog closed; false when it was known to be closed already.
+    fn mark_closed(&self) -> bool {
+        let mut shown = self.shown();
+        let was_closed = matches!(*shown, Some(None));
+        *shown = Some(None);
+        !was_closed
+    }
+
+    fn shown(&self) -> std::sync::MutexGuard<'_, Option<Option<String>>> {
+        self.inner
+            .shown
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 }
 

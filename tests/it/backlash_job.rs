@@ -124,6 +124,23 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         "{shown:?}"
     );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
+    // A jog press does not repeat the dialog on the console (issue 9 item 23): one dialog per
+    // approach (2 per cycle, 3 cycles, the first shown by the start), not one per press.
+    let h = crate::mainsail::history(&m).await;
+    let dialogs = h
+        .iter()
+        .filter(|(k, msg)| {
+            k == "response" && msg.starts_with("// action:prompt_begin klipcal: backlash Y")
+        })
+        .count();
+    assert!(
+        (1..=6).contains(&dialogs),
+        "{dialogs} jog dialogs for Y: {h:#?}"
+    );
+    assert!(
+        !h.iter().any(|(_, msg)| msg.starts_with("klipcal {")),
+        "raw JSON on the console: {h:#?}"
+    );
     let by = assert_found(&measured, "y", TRUE_Y_MM);
     assert_found(&measured, "x", TRUE_X_MM);
 

@@ -388,6 +388,86 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
             .any(|b| b.1 == "KLIPCAL_AB_APPLY" || b.1 == "KLIPCAL_AB_SOLVE")),
         "{shown:?}"
     );
+    // The console reads well after a reload (issue 9 item 23): each answer before its dialog,
+    // one script per call, dialogs that do not repeat the console, no redundant closes.
+    let h = crate::mainsail::history(&m).await;
+    let pos = |pred: &dyn Fn(&(String, String)) -> bool, what: &str| -> usize {
+        h.iter()
+            .position(pred)
+            .unwrap_or_else(|| panic!("no {what} in the console: {h:#?}"))
+    };
+    let response = |needle: &'static str| {
+        move |(k, msg): &(String, String)| k == "response" && msg.contains(needle)
+    };
+    let last_saved = h
+        .iter()
+        .rposition(|(k, msg)| k == "response" && msg.contains("5 reading(s) saved"))
+        .expect("readings saved");
+    let measured = pos(
+        &response("prompt_begin klipcal: all pairs measured"),
+        "Solve dialog",
+    );
+    assert!(
+        last_saved < measured,
+        "the last reading's answer comes after its dialog: {h:#?}"
+    );
+    let answer = pos(
+        &response("klipcal stepper_x: rotation_distance"),
+        "solve answer",
+    );
+    let dialog = pos(
+        &response("prompt_begin klipcal: new rotation distances"),
+        "Apply dialog",
+    );
+    assert!(
+        answer < dialog,
+        "the solve answer comes after its dialog: {h:#?}"
+    );
+    let solve = pos(
+        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_SOLVE",
+        "solve",
+    );
+    let apply = pos(
+        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_APPLY",
+        "apply",
+    );
+    let scripts = h[solve + 1..apply]
+        .iter()
+        .filter(|(k, _)| k == "command")
+        .count();
+    assert_eq!(scripts, 1, "one console script for the solve call: {h:#?}");
+    let texts: Vec<&String> = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_text"))
+        .map(|(_, msg)| msg)
+        .collect();
+    assert!(
+        texts
+            .iter()
+            .all(|t| !t.contains("KLIPCAL_MEASURE PAIR=") && !t.contains("plot of the rounds")),
+        "a dialog repeats what the console says: {texts:#?}"
+    );
+    let prompt_lines = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_"))
+        .count();
+    let answer_lines = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("klipcal "))
+        .count();
+    assert!(
+        prompt_lines < answer_lines,
+        "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"
+    );
+    let mut closed = false;
+    for (k, msg) in &h {
+        if k == "response" && msg == "// action:prompt_end" {
+            assert!(!closed, "a dialog closed twice: {h:#?}");
+            closed = true;
+        } else if k == "response" && msg.starts_with("// action:prompt_begin") {
+            closed = false;
+        }
+    }
     // The daemon's answers reached the console.
     let mut lines = Vec::new();
     while let Ok(e) = rx.try_recv() {
