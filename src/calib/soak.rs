@@ -19,7 +19,10 @@
 //! noise and bang-bang cycling widen the test instead of fooling it.
 //!
 //! A long temperature excursion restarts the soak clock (with twice the settling) but keeps the
-//! power history; a new target forgets everything.
+//! power history; a new target forgets everything. After an overshoot (out of the band, or
+//! `OVERSHOOT_C` over the target inside it) the controller's integral winds back and lifts the
+//! power for a while before the slow decay goes on: decays up to the overshoot's length may then
+//! take either sign, so the rise cannot pass for "nothing left to fall".
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -222,6 +225,8 @@ const MAX_POINTS: usize = 20_000;
 const MAX_HOLD_S: f64 = 30.0;
 /// Saturation is judged on the mean power over this long.
 const SATURATION_WINDOW_S: f64 = 60.0;
+/// A temperature this far over the target counts as an overshoot, °C.
+const OVERSHOOT_C: f64 = 0.5;
 
 #[derive(Debug, Clone, Copy)]
 struct Point {
@@ -278,6 +283,11 @@ pub struct SoakDetector {
     fit: Option<DecayFit>,
     /// The progress reported last in this soak (it never goes back).
     progress_floor: f64,
+    /// The last bin within the band, and the longest excursion out of it so far.
+    last_in_band_s: Option<f64>,
+    excursion_len_s: f64,
+    /// Since when the temperature has been over the target by more than `OVERSHOOT_C`.
+    over_since_s: Option<f64>,
 }
 
 impl SoakDetector {
@@ -319,6 +329,9 @@ impl SoakDetector {
             explanation: "no samples yet".into(),
             fit: None,
             progress_floor: 0.0,
+            last_in_band_s: None,
+            excursion_len_s: 0.0,
+            over_since_s: None,
         }
     }
 
@@ -501,6 +514,19 @@ impl SoakDetector {
             return;
         }
         self.out_of_band_bins = 0;
+        if self.excursions > 0 && self.band_since_s.is_none() {
+            if let Some(last) = self.last_in_band_s {
+                self.excursion_len_s = self.excursion_len_s.max(t_s - last);
+            }
+        }
+        self.last_in_band_s = Some(t_s);
+        // An overshoot inside the band has the same aftermath on its own time scale.
+        if temp_c > target + OVERSHOOT_C {
+            let since = *self.over_since_s.get_or_insert(t_s);
+            self.excursion_len_s = self.excursion_len_s.max(t_s - since);
+        } else {
+            self.over_since_s = None;
+        }
         let minute = self.recent.iter().map(|(_, p)| p).sum::<f64>() / self.recent.len() as f64;
         if minute >= self.params.saturated_power * self.max_power {
             if self.band_since_s.is_none() {
@@ -559,11 +585,13 @@ impl SoakDetector {
     /// Which coefficients may take either sign: the constant and the controller's fast decays.
     fn free(&self) -> Vec<bool> {
         std::iter::once(true)
-            .chain(
-                self.taus
-                    .iter()
-                    .map(|tau| *tau < FREE_TAUS * grid_min_s(&self.params)),
-            )
+            .chain(self.taus.iter().map(|tau| {
+                *tau < FREE_TAUS * grid_min_s(&self.params)
+                            // An excursion's aftermath (the controller's integral winding back
+                            // after an overshoot lifts the power) may go either way, on the
+                            // excursion's own time scale.
+                            || *tau <= self.excursion_len_s
+            }))
             .collect()
     }
 

@@ -527,4 +527,27 @@ mod tests {
             .all(|s| s[1] == 0.0 || (s[1] - run.max_power).abs() < 1e-12));
         assert!(run.t_one_s > 0.0);
     }
+
+    #[test]
+    fn beds_whose_power_rises_back_after_an_overshoot_are_not_declared_early() {
+        // Seed 101 is `klipcal bench soak --seed 1`'s three_node family. Beds 210, 320, 363 and
+        // 369 overshoot (out of the band, or 1 °C over the target within it); the controller's
+        // integral winding back then lifts the power for 10–20 min while the enclosure's slow
+        // decay goes on. A decay-only model read that rise as "nothing left to fall" and
+        // declared 4–40 min before the 1 % moment.
+        let mut rng = fastrand::Rng::with_seed(101);
+        let params = SoakParams::default();
+        for k in 0..=369 {
+            let run = three_node(&mut rng);
+            if ![210, 320, 363, 369].contains(&k) {
+                continue;
+            }
+            let (declared, why) = declare(&run, &params);
+            assert!(
+                declared.map_or(true, |d| d >= run.t_one_s),
+                "bed {k}: declared {declared:?} s before the 1 % moment {} s: {why}",
+                run.t_one_s
+            );
+        }
+    }
 }
