@@ -23,6 +23,12 @@
 //! `OVERSHOOT_C` over the target inside it) the controller's integral winds back and lifts the
 //! power for a while before the slow decay goes on: decays up to the overshoot's length may then
 //! take either sign, so the rise cannot pass for "nothing left to fall".
+//!
+//! After a step down (the temperature came into the band from above) the surroundings may be
+//! warmer than they will be at the new target (the power rises while they cool) or still
+//! colder (it falls): the same test is run on the negated power too, and both a rise and a fall
+//! of `max_remaining` must be ruled out; so for a bed first seen inside the band. A heater off
+//! over the last minute after a step down means the bed is still cooling.
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -179,14 +185,18 @@ pub struct DecayFit {
     pub tau_s: f64,
     /// The power the decay tends to, P∞ (fraction of full power).
     pub final_power: f64,
-    /// The power still to fall from now to P∞ in the best fit (fraction of full power, ≥ 0).
+    /// The power still to fall from now to P∞ in the best fit (fraction of full power, ≥ 0);
+    /// after a step down, the power still to rise.
     pub remaining: f64,
-    /// The largest power still to fall that the data cannot rule out (about three standard
-    /// errors), over every decay up to `tau_max_s`: the bed is stable once this is below
-    /// `max_remaining`.
+    /// The largest power still to fall (after a step down: to rise) that the data cannot rule
+    /// out (about three standard errors), over every decay up to `tau_max_s`: the bed is
+    /// stable once this is below `max_remaining`.
     pub remaining_upper: f64,
     /// The fitted fall from the start of the soak to P∞ (negative when the power rises).
     pub amplitude: f64,
+    /// The soak follows a step down to a lower target: the power rises while the
+    /// surroundings cool, and `remaining` is a rise.
+    pub rising: bool,
     /// Most of what is left sits in the slowest decay allowed: the end is not in sight yet.
     pub tau_unbounded: bool,
     /// Scatter (standard deviation) of the binned power about the fit.
@@ -245,6 +255,19 @@ struct Bin {
     temp_n: u32,
 }
 
+/// One direction's test (see `SoakDetector::test`).
+#[derive(Debug, Clone)]
+struct DirectionTest {
+    /// +1: the power's fall is tested; −1: its rise (the model sees the negated power).
+    sign: f64,
+    best: Solution,
+    white: f64,
+    sigma2: f64,
+    remaining: f64,
+    remaining_upper: f64,
+    ruled_out: bool,
+}
+
 /// The model fitted by least squares with its sign constraints.
 #[derive(Debug, Clone)]
 struct Solution {
@@ -288,6 +311,9 @@ pub struct SoakDetector {
     excursion_len_s: f64,
     /// Since when the temperature has been over the target by more than `OVERSHOOT_C`.
     over_since_s: Option<f64>,
+    /// The side the temperature last was on, out of the band, before the soak first began:
+    /// `Some(true)` above (a step down), `Some(false)` below (a heat-up).
+    approach_above: Option<bool>,
 }
 
 impl SoakDetector {
@@ -332,6 +358,7 @@ impl SoakDetector {
             last_in_band_s: None,
             excursion_len_s: 0.0,
             over_since_s: None,
+            approach_above: None,
         }
     }
 
@@ -493,6 +520,9 @@ impl SoakDetector {
         let band = self.params.temp_band_c;
         if !temp_c.is_finite() || (temp_c - target).abs() > band {
             self.out_of_band_bins += 1;
+            if self.last_in_band_s.is_none() && temp_c.is_finite() {
+                self.approach_above = Some(temp_c > target);
+            }
             // A short excursion (noise, a draught) is skipped. A longer one restarts the soak
             // clock (settling, minimum soak) but keeps the power history: the plate's decay
             // went on meanwhile, and forgetting it would only hide how far it still has to go.
@@ -544,6 +574,18 @@ impl SoakDetector {
             self.last_saturated_s = Some(t_s);
             return;
         }
+        if self.approach_above == Some(true)
+            && self.band_since_s.is_none()
+            && minute <= (1.0 - self.params.saturated_power) * self.max_power
+        {
+            self.status = SoakStatus::Heating;
+            self.explanation = format!(
+                "heater off over the last minute ({:.1} % of full power) after a step down to \
+                 {target:.1} °C: the bed is still cooling",
+                minute * 100.0
+            );
+            return;
+        }
         let since = *self.band_since_s.get_or_insert(t_s);
         // After an excursion the controller recovers from its own overshoot: twice the settling.
         let settle_s = if self.excursions > 0 {
@@ -582,6 +624,20 @@ impl SoakDetector {
         self.decide(t_s, soak_t0);
     }
 
+    /// The directions the power may still go, as the sign the model sees it with: after a
+    /// heat-up (the temperature came up into the band) its surroundings only warm and the
+    /// power only falls (+1). After a step down they may be warmer than they will be (the bed
+    /// was held long at the higher target: the power rises while they cool) or still colder
+    /// (it was not: the power falls), and so may a bed first seen already in the band: both
+    /// are tested, the rise on the negated power (−1), and both must be ruled out.
+    fn directions(&self) -> &'static [f64] {
+        if self.approach_above == Some(false) {
+            &[1.0]
+        } else {
+            &[1.0, -1.0]
+        }
+    }
+
     /// Which coefficients may take either sign: the constant and the controller's fast decays.
     fn free(&self) -> Vec<bool> {
         std::iter::once(true)
@@ -595,10 +651,12 @@ impl SoakDetector {
             .collect()
     }
 
-    /// Least squares with the decays' sign constraints; with `pin` = (g, θ), also g·c = θ.
-    fn solve(&self, pin: Option<(&DVector<f64>, f64)>) -> Option<Solution> {
-        let coef = nnls(&self.xtx, &self.xty, &self.free(), pin)?;
-        let sse = (self.yty - 2.0 * coef.dot(&self.xty) + coef.dot(&(&self.xtx * &coef))).max(0.0);
+    /// Least squares on `sign`·power with the decays' sign constraints; with `pin` = (g, θ),
+    /// also g·c = θ.
+    fn solve(&self, sign: f64, pin: Option<(&DVector<f64>, f64)>) -> Option<Solution> {
+        let xty = &self.xty * sign;
+        let coef = nnls(&self.xtx, &xty, &self.free(), pin)?;
+        let sse = (self.yty - 2.0 * coef.dot(&xty) + coef.dot(&(&self.xtx * &coef))).max(0.0);
         (sse.is_finite() && coef.iter().all(|c| c.is_finite())).then_some(Solution { coef, sse })
     }
 
@@ -608,11 +666,11 @@ impl SoakDetector {
     /// allow with at least `MIN_BLOCKS` of them, and the variance of those means is scaled back
     /// to one bin. A PID loop suppresses slow power noise (that is lower), a wandering or
     /// cycling heater has more of it (that is higher).
-    fn noise(&self, coef: &DVector<f64>) -> (f64, f64, usize) {
+    fn noise(&self, sign: f64, coef: &DVector<f64>) -> (f64, f64, usize) {
         let residuals: Vec<f64> = self
             .points
             .iter()
-            .map(|p| p.power - self.row(p.t_s).dot(coef))
+            .map(|p| sign * p.power - self.row(p.t_s).dot(coef))
             .collect();
         let n = residuals.len();
         let used = coef.iter().filter(|c| **c != 0.0).count();
@@ -640,6 +698,47 @@ impl SoakDetector {
         g
     }
 
+    /// The likelihood-ratio test in one direction (`sign` +1: what is still to fall; −1: what
+    /// is still to rise): the best model, and how much worse the best one is that still has
+    /// `max_remaining` to go now.
+    fn test(&self, sign: f64, now_s: f64) -> Option<DirectionTest> {
+        let best = self.solve(sign, None)?;
+        let (white, long, blocks) = self.noise(sign, &best.coef);
+        // Few blocks make the one-minute scatter itself uncertain: widen it while they are few.
+        let sigma2 = long * (1.0 + 2.0 / (blocks.max(1) as f64).sqrt());
+        let g = self.decays_at(now_s);
+        let r_hat = g.dot(&best.coef);
+        let theta = self.params.max_remaining;
+        let cost = if r_hat >= theta {
+            0.0
+        } else {
+            self.solve(sign, Some((&g, theta)))
+                .map_or(0.0, |s| (s.sse - best.sse).max(0.0))
+        };
+        // The upper bound, from the cost of θ (exact for a linear model without active
+        // constraints: cost = (θ − R̂)² / var R̂).
+        let sd_r = if cost > 0.0 {
+            (theta - r_hat) * sigma2.sqrt() / cost.sqrt()
+        } else {
+            f64::INFINITY
+        };
+        let remaining = r_hat.max(0.0);
+        let remaining_upper = if r_hat >= theta {
+            r_hat
+        } else {
+            (r_hat + Z * sd_r).max(remaining)
+        };
+        Some(DirectionTest {
+            sign,
+            best,
+            white,
+            sigma2,
+            remaining,
+            remaining_upper,
+            ruled_out: cost > Z * Z * sigma2,
+        })
+    }
+
     fn decide(&mut self, now_s: f64, t0: f64) {
         let p = self.params.clone();
         let span = now_s - t0;
@@ -656,7 +755,12 @@ impl SoakDetector {
             self.explanation = status_reason(&self.status);
             return;
         }
-        let Some(best) = self.solve(None) else {
+        let tests: Option<Vec<DirectionTest>> = self
+            .directions()
+            .iter()
+            .map(|sign| self.test(*sign, now_s))
+            .collect();
+        let Some(tests) = tests else {
             self.status = SoakStatus::Soaking {
                 progress: 0.0,
                 eta_s: None,
@@ -665,33 +769,27 @@ impl SoakDetector {
             self.explanation = status_reason(&self.status);
             return;
         };
-        let (white, long, blocks) = self.noise(&best.coef);
-        // Few blocks make the one-minute scatter itself uncertain: widen it while they are few.
-        let sigma2 = long * (1.0 + 2.0 / (blocks.max(1) as f64).sqrt());
-        let g = self.decays_at(now_s);
-        let r_hat = g.dot(&best.coef);
+        let ruled_out = tests.iter().all(|t| t.ruled_out);
+        // What is reported: a direction still waited for, and of those (or of all, once
+        // both are ruled out) the one that fits the data better.
+        let Some(t) = tests.into_iter().max_by(|a, b| {
+            (!a.ruled_out)
+                .cmp(&!b.ruled_out)
+                .then(b.best.sse.total_cmp(&a.best.sse))
+        }) else {
+            return;
+        };
+        let DirectionTest {
+            sign,
+            best,
+            white,
+            sigma2,
+            remaining,
+            remaining_upper,
+            ..
+        } = t;
         let theta = p.max_remaining;
-        // How much worse the best model is that still has θ to fall now.
-        let cost = if r_hat >= theta {
-            0.0
-        } else {
-            self.solve(Some((&g, theta)))
-                .map_or(0.0, |s| (s.sse - best.sse).max(0.0))
-        };
-        let ruled_out = cost > Z * Z * sigma2;
-        // The upper bound, from the cost of θ (exact for a linear model without active
-        // constraints: cost = (θ − R̂)² / var R̂).
-        let sd_r = if cost > 0.0 {
-            (theta - r_hat) * sigma2.sqrt() / cost.sqrt()
-        } else {
-            f64::INFINITY
-        };
-        let remaining = r_hat.max(0.0);
-        let remaining_upper = if r_hat >= theta {
-            r_hat
-        } else {
-            (r_hat + Z * sd_r).max(remaining)
-        };
+        let g = self.decays_at(now_s);
         let contrib: Vec<(f64, f64)> = self
             .taus
             .iter()
@@ -710,12 +808,19 @@ impl SoakDetector {
                 .map_or(grid_min_s(&self.params), |(tau, _)| *tau)
         };
         let slowest = contrib.last().map_or(0.0, |(_, c)| *c);
+        let rising = sign < 0.0;
+        let (fall, falling) = if rising {
+            ("rise", "rising")
+        } else {
+            ("fall", "falling")
+        };
         let fit = DecayFit {
             tau_s,
-            final_power: best.coef[0],
+            final_power: sign * best.coef[0],
             remaining,
             remaining_upper,
-            amplitude: best.coef.iter().skip(1).sum(),
+            amplitude: sign * best.coef.iter().skip(1).sum::<f64>(),
+            rising,
             tau_unbounded: slowest > 0.5 * remaining.max(theta),
             noise_sd: white.sqrt(),
             noise_inflation: (sigma2 / white.max(1e-18)).sqrt().max(1.0),
@@ -726,7 +831,7 @@ impl SoakDetector {
             .last_saturated_s
             .is_some_and(|t| now_s - t < p.min_soak_s);
         let fit_words = format!(
-            "best fit {:.2} % still to fall (τ {:.1} min, towards {:.1} %), at most {:.2} % \
+            "best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most {:.2} % \
              (stable below {:.2} %; power noise {:.2} %)",
             remaining * 100.0,
             tau_s / 60.0,
@@ -738,7 +843,7 @@ impl SoakDetector {
         if span_ok && ruled_out && !saturated_recently {
             self.status = SoakStatus::Stable { at_s: now_s };
             self.explanation = format!(
-                "power stopped falling: temperature within ±{:.1} °C of {:.1} °C, soaked {:.1} \
+                "power stopped {falling}: temperature within ±{:.1} °C of {:.1} °C, soaked {:.1} \
                  min; {fit_words}",
                 p.temp_band_c,
                 self.target_c.unwrap_or(f64::NAN),
@@ -750,12 +855,12 @@ impl SoakDetector {
         if !ruled_out {
             if fit.tau_unbounded && remaining > theta {
                 waits.push(format!(
-                    "power still falling steadily ({:.3} %/min); the end of the decay is not in \
-                     sight yet ({fit_words})",
+                    "power still {falling} steadily ({:.3} %/min); the end of the decay is not \
+                     in sight yet ({fit_words})",
                     remaining / tau_s * 6000.0
                 ));
             } else {
-                waits.push(format!("power may still fall: {fit_words}"));
+                waits.push(format!("power may still {fall}: {fit_words}"));
             }
         }
         if span < p.min_soak_s {
@@ -1336,6 +1441,61 @@ mod tests {
         let status = d.push(last_t + 1.0, 1.0, TARGET_C, TARGET_C + 20.0);
         assert_eq!(status, SoakStatus::Heating);
         assert!(d.fit().is_none());
+    }
+
+    /// A step down from 100 °C to the target: 10 min coming down with the heater off, then
+    /// the power goes towards 0.3 by `change` (positive: it falls, the surroundings still
+    /// warming; negative: it rises, they cool) with a 20-min time constant, 1 % noise, 1 Hz.
+    /// Returns the declaration and the explanation at the end.
+    fn after_a_step_down(change: f64, seed: u64) -> (Option<f64>, String) {
+        let mut rng = fastrand::Rng::with_seed(seed);
+        let mut gauss = move || {
+            let u = 1.0 - rng.f64();
+            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * rng.f64()).cos()
+        };
+        let mut d = SoakDetector::new(SoakParams::default());
+        for i in 0..=6 * 3600 {
+            let t = f64::from(i);
+            let (p, temp) = if t < 600.0 {
+                (0.0, 100.0 - (100.0 - TARGET_C) * t / 600.0)
+            } else {
+                let clean = 0.3 + change * (-(t - 600.0) / 1200.0).exp();
+                (
+                    (clean + 0.01 * gauss()).clamp(0.0, 1.0),
+                    TARGET_C + 0.1 * gauss(),
+                )
+            };
+            if let SoakStatus::Stable { at_s } = d.push(t, p, temp, TARGET_C) {
+                return (Some(at_s), d.explanation().to_string());
+            }
+        }
+        (None, d.explanation().to_string())
+    }
+
+    #[test]
+    fn after_a_step_down_the_power_is_waited_for_whichever_way_it_goes() {
+        for change in [-0.1, 0.1] {
+            // The last moment the noise-free power is 1 % of full power from its end.
+            let moment = 600.0 + 1200.0 * (0.1f64 / 0.01).ln();
+            for seed in 1..=3 {
+                let (at, why) = after_a_step_down(change, seed);
+                let at = at.unwrap_or_else(|| panic!("change {change}: never declared: {why}"));
+                assert!(
+                    at >= moment,
+                    "change {change}: declared at {at} s, before {moment} s: {why}"
+                );
+                assert!(
+                    at < 3.0 * moment,
+                    "change {change}: declared at {at} s: {why}"
+                );
+                let word = if change < 0.0 {
+                    "stopped rising"
+                } else {
+                    "stopped falling"
+                };
+                assert!(why.contains(word), "change {change}: {why}");
+            }
+        }
     }
 
     #[test]

@@ -599,6 +599,8 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
           thermistor; 40 % of beds pwm-capped at max_power 0.6–0.75; 1–4 Hz with gaps)",
          crate::cmd::soak_families::three_node as fn(&mut fastrand::Rng) -> crate::cmd::soak_families::Run),
         ("bang_bang (watermark control, power reported 0 or max_power)", crate::cmd::soak_families::bang_bang),
+        ("target_steps (three_node beds held 20–120 min at one target, then stepped down 15–40 °C \
+          (70 %) or up 10–30 °C; judged from the step)", crate::cmd::soak_families::target_steps),
     ]
     .into_iter()
     .enumerate()

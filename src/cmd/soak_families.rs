@@ -7,6 +7,9 @@
 //!   loop, beds whose `max_power` caps the pwm at 0.6–0.75, 1–4 Hz reports with gaps.
 //! - `bang_bang`: Klipper's watermark control (full `max_power` below target − max_delta, off
 //!   above target + max_delta); the power reported is the instantaneous 0 or max_power.
+//! - `target_steps`: `three_node` beds held at one target for 20–120 min, then stepped down
+//!   (their power then rises as the enclosure cools, or still falls if it had not warmed yet)
+//!   or up, judged from the step.
 //!
 //! Each run gives the samples the detector sees and the true moment: the last time the
 //! noise-free power (for bang-bang its duty over the whole on/off cycles of 10 minutes) was more
@@ -73,6 +76,8 @@ struct ThreeNode {
     tau_d: f64,
     max_power: f64,
     tau_slow: f64,
+    /// An earlier target held until a time: (target, until_s).
+    before: Option<(f64, f64)>,
 }
 
 impl ThreeNode {
@@ -118,6 +123,7 @@ impl ThreeNode {
             tau_d: uniform(rng, 1.0, 4.0),
             max_power,
             tau_slow: tau_p.max(tau_e),
+            before: None,
         }
     }
 
@@ -139,7 +145,11 @@ impl ThreeNode {
         while t <= until_s {
             ts += DT * (th - ts) / self.tau_sensor;
             let meas = ts + noise_c * gauss(rng);
-            let err = self.target - meas;
+            let target = match self.before {
+                Some((earlier, until)) if t < until => earlier,
+                _ => self.target,
+            };
+            let err = target - meas;
             // Derivative on the measurement, low-pass filtered.
             let raw_d = (meas - prev) / DT;
             prev = meas;
@@ -198,6 +208,58 @@ pub fn three_node(rng: &mut fastrand::Rng) -> Run {
     }
     Run {
         samples,
+        t_one_s: t_one,
+        t_reach_s: t_reach,
+        max_power: bed.max_power,
+        tau_s: bed.tau_slow,
+    }
+}
+
+/// A `target_steps` bed run: a `three_node` bed held at one target for 20–120 min (its
+/// enclosure partly or fully warmed), then stepped down by 15–40 °C (70 % of beds) or up by
+/// 10–30 °C. The detector sees the run from the step on (time 0 at the step); after a step
+/// down the power rises while the enclosure cools, and the true moment is when it is within
+/// 1 % of its final value.
+#[must_use]
+pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
+    let mut bed = ThreeNode::random(rng);
+    let down = rng.f64() < 0.7;
+    let (earlier, later) = if down {
+        let later = uniform(rng, 50.0, 80.0);
+        (later + uniform(rng, 15.0, 40.0), later)
+    } else {
+        let earlier = uniform(rng, 50.0, 80.0);
+        (earlier, earlier + uniform(rng, 10.0, 30.0))
+    };
+    // The gains were drawn for the later target's loop; the heat-up at full power is the same.
+    bed.target = later;
+    let switch = uniform(rng, 1200.0, 7200.0);
+    bed.before = Some((earlier, switch));
+    let horizon = switch + 12.0 * bed.tau_slow + 3600.0;
+    let after = |run: Vec<[f64; 3]>| -> Vec<[f64; 3]> {
+        run.into_iter()
+            .filter(|s| s[0] >= switch)
+            .map(|s| [s[0] - switch, s[1], s[2]])
+            .collect()
+    };
+    let clean = after(bed.run(rng, horizon, 0.0, 1.0));
+    let t: Vec<f64> = clean.iter().map(|s| s[0]).collect();
+    let p: Vec<f64> = clean.iter().map(|s| s[1]).collect();
+    let t_one = one_pct_moment(&t, &p);
+    let every = 1.0 / [1.0, 2.0, 4.0][rng.usize(0..3)];
+    let noise_c = uniform(rng, 0.02, 0.1);
+    let noisy = after(bed.run(
+        rng,
+        (switch + 3.0 * t_one + 3600.0).min(horizon),
+        noise_c,
+        every,
+    ));
+    let t_reach = noisy
+        .iter()
+        .find(|s| (s[2] - later).abs() <= 2.0)
+        .map_or(f64::NAN, |s| s[0]);
+    Run {
+        samples: noisy.iter().map(|s| [s[0], s[1], s[2], later]).collect(),
         t_one_s: t_one,
         t_reach_s: t_reach,
         max_power: bed.max_power,
@@ -497,6 +559,38 @@ mod tests {
             assert!((last[2] - last[3]).abs() < 1.0, "{last:?}");
             assert!(run.t_one_s > run.t_reach_s);
         }
+    }
+
+    #[test]
+    fn target_steps_come_down_or_up_to_their_new_target_and_steps_down_can_rise() {
+        let mut rng = fastrand::Rng::with_seed(7);
+        let (mut down, mut rising) = (0, 0);
+        for _ in 0..6 {
+            let run = target_steps(&mut rng);
+            let (first, last) = (run.samples[0], *run.samples.last().unwrap());
+            assert!((last[2] - last[3]).abs() < 1.0, "{last:?}");
+            assert!(run.t_one_s > 0.0);
+            if first[2] > first[3] + 2.0 {
+                down += 1;
+                // After the step, once the bed holds its new target: does the power rise?
+                let mean = |from: f64| {
+                    let w: Vec<f64> = run
+                        .samples
+                        .iter()
+                        .filter(|s| s[0] >= from && s[0] < from + 300.0)
+                        .map(|s| s[1])
+                        .collect();
+                    w.iter().sum::<f64>() / w.len().max(1) as f64
+                };
+                if mean(last[0] - 300.0) > mean(run.t_reach_s + 600.0) + 0.01 {
+                    rising += 1;
+                }
+            }
+        }
+        assert!(
+            down >= 2 && rising >= 1,
+            "{down} steps down, {rising} rising"
+        );
     }
 
     #[test]

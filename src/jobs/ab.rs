@@ -698,7 +698,9 @@ impl Ab {
     ) -> anyhow::Result<bool> {
         let line = match falling {
             Some(f) => format!(
-                "bed power still falling by {f:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)"
+                "bed power still {} by {:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)",
+                if f < 0.0 { "rising" } else { "falling" },
+                f.abs()
             ),
             None => format!("the bed has not settled after {minutes:.0} min (ab.soak_max_s)"),
         };

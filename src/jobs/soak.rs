@@ -32,7 +32,8 @@ pub enum SoakUpdate {
     TooLong {
         /// Minutes since the target was set.
         minutes: f64,
-        /// How fast the power still falls, % of full power per 10 min, when the fit can tell.
+        /// How fast the power still falls, % of full power per 10 min, when the fit can tell
+        /// (negative: it still rises, after a step down to a lower target).
         falling_pct_per_10min: Option<f64>,
     },
     /// Stable (or skipped: unheated bed); `why` is the detector's explanation.
@@ -181,11 +182,14 @@ impl BedSoak {
             }
             return Ok(SoakUpdate::TooLong {
                 minutes: t_s / 60.0,
-                falling_pct_per_10min: self
-                    .detector
-                    .fit()
-                    .filter(|f| f.tau_s > 0.0)
-                    .map(|f| f.remaining / f.tau_s * 600.0 * 100.0),
+                falling_pct_per_10min: self.detector.fit().filter(|f| f.tau_s > 0.0).map(|f| {
+                    let rate = f.remaining / f.tau_s * 600.0 * 100.0;
+                    if f.rising {
+                        -rate
+                    } else {
+                        rate
+                    }
+                }),
             });
         }
         let st = core
@@ -218,7 +222,7 @@ impl BedSoak {
                 if self.soaking_since_s.is_none() {
                     self.soaking_since_s = Some(t_s);
                     core.console(&format!(
-                        "{title}: the bed is at {:.0} °C; waiting for its power to stop falling \
+                        "{title}: the bed is at {:.0} °C; waiting for its power to settle \
                          (thermal equilibrium) before printing",
                         self.target_c
                     ))
