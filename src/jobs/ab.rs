@@ -727,7 +727,7 @@ impl Ab {
                         Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
                         Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
                     ],
-                    footer: vec![Button::new("Cancel session", "KLIPCAL_CANCEL", "error")],
+                    footer: vec![Button::cancel_asking()],
                 },
             )
             .await;

@@ -252,7 +252,7 @@ impl Backlash {
                     "warning",
                 ),
             ],
-            footer: vec![Button::new("Cancel", "KLIPCAL_CANCEL", "error")],
+            footer: vec![Button::cancel_asking()],
         }
     }
 

@@ -72,6 +72,14 @@ impl Button {
             style: style.into(),
         }
     }
+
+    /// The footer's Cancel of a session dialog: it asks first (`KLIPCAL_CANCEL_ASK`, a macro in
+    /// klipcal.cfg, shows "end the session?" with Yes → `KLIPCAL_CANCEL` and Back →
+    /// `KLIPCAL_PROMPT_BACK`), so one tap beside the other buttons ends nothing.
+    #[must_use]
+    pub fn cancel_asking() -> Self {
+        Self::new("Cancel session…", "KLIPCAL_CANCEL_ASK", "error")
+    }
 }
 
 /// A Mainsail/Fluidd prompt dialog.

@@ -60,7 +60,7 @@ pub trait Calibration: Send + Sync {
 }
 
 /// The methods every daemon answers besides the calibrations' own.
-pub const COMMON_METHODS: &[&str] = &["klipcal_status", "klipcal_cancel"];
+pub const COMMON_METHODS: &[&str] = &["klipcal_status", "klipcal_cancel", "klipcal_prompt_back"];
 
 /// Every remote method the daemon registers with Moonraker.
 #[must_use]
@@ -138,6 +138,15 @@ impl Calibrations {
                     .text("reason")
                     .unwrap_or_else(|| "cancelled by the user".into());
                 self.cancel(&reason).await
+            }
+            "klipcal_prompt_back" => {
+                Args::parse(args, "KLIPCAL_PROMPT_BACK", &[])?;
+                Ok(if self.core.prompt_again().await {
+                    json!({"message": ""})
+                } else {
+                    self.core.prompt_end().await;
+                    json!({"message": "no klipcal dialog to go back to"})
+                })
             }
             "klipcal_prompt_close" => {
                 self.core.prompt_end().await;

@@ -436,6 +436,20 @@ impl Core {
         console::send_script(&self.inner.m, &script).await;
     }
 
+    /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
+    /// false when klipcal has no dialog open.
+    pub async fn prompt_again(&self) -> bool {
+        let script = match &*self.shown() {
+            Some(Some(script)) => script.clone(),
+            _ => return false,
+        };
+        let change = console::PromptChange::Show(script);
+        if !console::hold(change.clone()) {
+            console::send_script(&self.inner.m, &change.script()).await;
+        }
+        true
+    }
+
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
     fn mark_closed(&self) -> bool {
         let mut shown = self.shown();

@@ -914,6 +914,49 @@ async fn a_soak_past_its_limit_asks_print_now_or_wait_instead_of_failing() {
     .await
     .expect("no choice asked (soak_max_s passed without a prompt)");
     assert_eq!(asking["state"], "soaking", "{asking}");
+    // The dialog's Cancel asks first (issue 9 item 21): one tap ends nothing, Back returns.
+    let choice = crate::mainsail::after_reload(&m)
+        .await
+        .expect("no soak dialog");
+    let cancel = choice
+        .buttons
+        .iter()
+        .find(|b| b.0.starts_with("Cancel"))
+        .unwrap_or_else(|| panic!("no Cancel in {choice:?}"));
+    assert_ne!(
+        cancel.1, "KLIPCAL_CANCEL",
+        "Cancel ends the session with one tap"
+    );
+    m.gcode(&cancel.1).await.unwrap();
+    let confirm = crate::mainsail::after_reload(&m)
+        .await
+        .expect("no confirmation");
+    assert!(confirm.title.contains("end the session"), "{confirm:?}");
+    assert!(
+        confirm
+            .buttons
+            .contains(&("Yes, end the session".into(), "KLIPCAL_CANCEL".into())),
+        "{confirm:?}"
+    );
+    let back = confirm
+        .buttons
+        .iter()
+        .find(|b| b.0 == "Back")
+        .expect("no Back");
+    assert_eq!(
+        session(&bench).await["state"],
+        "soaking",
+        "asking cancelled"
+    );
+    m.gcode(&back.1).await.unwrap();
+    let again = poll(Duration::from_secs(10), || async {
+        crate::mainsail::after_reload(&m)
+            .await
+            .filter(|d| d.title == choice.title)
+    })
+    .await
+    .expect("Back did not bring the soak dialog back");
+    assert_eq!(again, choice);
     let e = extension_request(&files, "klipcal_soak_choice", json!({"choice": "maybe"}))
         .await
         .unwrap_err();
