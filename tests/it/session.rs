@@ -321,7 +321,48 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     let mut rx = m.events();
     m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
     let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
-    for p in s["pairs"].as_array().unwrap() {
+    // The measuring step says what to measure and how (issue 9 items 5, 7), on an unheated
+    // bed without "hot bed".
+    let guide: Vec<String> = crate::mainsail::history(&m)
+        .await
+        .into_iter()
+        .map(|(_, msg)| msg)
+        .collect();
+    let guide = guide.join("\n");
+    for words in [
+        "round 1: measure the pylons now, with the part still on the bed",
+        "5 readings",
+        "outer face to outer face, just below the top chamfer",
+        "A-D1: pylon A",
+        "KLIPCAL_MEASURE PAIR=A-D1 VALUES=",
+        "config/klipcal/ab-s",
+    ] {
+        assert!(
+            guide.contains(words),
+            "the guide does not say {words:?}: {guide}"
+        );
+    }
+    // A dialog never waits on input only the console can give (item 18): the measuring
+    // dialog's button closes it and says where to type, and readings do not reopen it.
+    let measuring = crate::mainsail::after_reload(&m)
+        .await
+        .expect("no measuring dialog");
+    assert!(
+        measuring
+            .buttons
+            .iter()
+            .any(|b| b.1 == "KLIPCAL_PROMPT_CLOSE"),
+        "{measuring:?}"
+    );
+    m.gcode("KLIPCAL_PROMPT_CLOSE").await.unwrap();
+    assert_eq!(crate::mainsail::after_reload(&m).await, None);
+    let told = crate::mainsail::history(&m).await;
+    assert!(
+        told.last()
+            .is_some_and(|(_, msg)| msg.contains("type readings on the console: KLIPCAL_MEASURE")),
+        "{told:?}"
+    );
+    for (k, p) in s["pairs"].as_array().unwrap().iter().enumerate() {
         let vals: Vec<String> = simulated_readings(p)
             .iter()
             .map(|v| format!("{v}"))
@@ -333,6 +374,13 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         ))
         .await
         .unwrap();
+        if k == 0 {
+            assert_eq!(
+                crate::mainsail::after_reload(&m).await,
+                None,
+                "a reading reopened the dialog the user closed to type"
+            );
+        }
     }
     let all = poll(Duration::from_secs(10), || async {
         let s = session(&bench).await;
@@ -459,6 +507,18 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         prompt_lines < answer_lines,
         "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"
     );
+    assert!(
+        h.iter().all(|(_, msg)| !msg.contains("hot bed")),
+        "BED=0 but the console speaks of a hot bed: {h:#?}"
+    );
+    // The apply answer appears once (item 7).
+    let applied = h
+        .iter()
+        .filter(|(k, msg)| {
+            k == "response" && msg.contains("rotation_distance") && msg.contains("applied")
+        })
+        .count();
+    assert_eq!(applied, 1, "{h:#?}");
     let mut closed = false;
     for (k, msg) in &h {
         if k == "response" && msg == "// action:prompt_end" {
