@@ -115,6 +115,39 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         log.contains("bed soaking") || log.contains("bed stable"),
         "{log}"
     );
+    // The soak reaches the console (issue 9 item 6): a line when it starts, progress that
+    // never goes back, and how long it took.
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let console: Vec<String> = crate::mainsail::history(&m)
+        .await
+        .into_iter()
+        .map(|(_, msg)| msg)
+        .collect();
+    let at = |needle: &str| {
+        console
+            .iter()
+            .position(|l| l.contains(needle))
+            .unwrap_or_else(|| panic!("no {needle:?} on the console: {console:#?}"))
+    };
+    let started_at = at("the bed is at 60 °C, waiting for its power to settle");
+    let stable_at = at("bed stable after");
+    assert!(started_at < stable_at, "{console:#?}");
+    let percents: Vec<f64> = console
+        .iter()
+        .filter_map(|l| {
+            l.split("bed soaking: ")
+                .nth(1)?
+                .split(" % done")
+                .next()?
+                .parse()
+                .ok()
+        })
+        .collect();
+    assert!(
+        percents.windows(2).all(|w| w[1] >= w[0]),
+        "the soak's progress went back: {percents:?}"
+    );
     let pairs = s["pairs"].as_array().unwrap().clone();
     assert_eq!(pairs.len(), 4, "{s}");
     // The soak was saved as a picture where Mainsail's file browser shows it.
