@@ -167,6 +167,16 @@ pub fn fmt_mm(v: f64) -> String {
     s.trim_end_matches('.').to_string()
 }
 
+/// A rotation distance as klipcal shows and writes it everywhere (console, page, config):
+/// to the micron of a 40 mm pulley's travel and more (6 decimals), trailing zeros dropped
+/// (`40`, `40.102895`).
+#[must_use]
+pub fn fmt_rd(v: f64) -> String {
+    let s = format!("{v:.6}");
+    let s = s.trim_end_matches('0');
+    s.trim_end_matches('.').to_string()
+}
+
 /// An example entry that fits a pair (`10.02,10.03,10.01`).
 #[must_use]
 pub fn example(nominal_mm: f64) -> String {

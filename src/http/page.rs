@@ -511,10 +511,10 @@ fn solution(h: &mut String, s: &Value) {
             h,
             "<tr><td>{name}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
             f("rotation_distance")
-                .map(|v| format!("{v:.6}"))
+                .map(crate::calib::entry::fmt_rd)
                 .unwrap_or_default(),
             f("rotation_distance_new")
-                .map(|v| format!("{v:.6}"))
+                .map(crate::calib::entry::fmt_rd)
                 .unwrap_or_default(),
             match (f("scale"), f("uncertainty")) {
                 (Some(sc), Some(u)) => format!("{sc:.5} ± {u:.5}"),
@@ -690,7 +690,10 @@ mod tests {
             "error_um_per_100mm": 200.0, "converged": false, "applied": null}]);
         let page = render(&st, None);
         assert!(
-            page.contains("40.080000") && page.contains("1.00200 ± 0.00010"),
+            // One precision everywhere (issue 9 item 22): as the console and the config say it.
+            page.contains("<td>40</td><td>40.08</td>")
+                && !page.contains("40.000000")
+                && page.contains("1.00200 ± 0.00010"),
             "{page}"
         );
         assert!(page.contains("data-op=\"ab/apply\""));

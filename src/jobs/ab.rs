@@ -1292,7 +1292,7 @@ impl Ab {
             values.push(ValueSet {
                 section: name.into(),
                 key: "rotation_distance".into(),
-                value: format_rd(st.rotation_distance_new),
+                value: entry::fmt_rd(st.rotation_distance_new),
             });
         }
         let unchanged = [
@@ -1301,7 +1301,7 @@ impl Ab {
         ]
         .iter()
         .all(|(new, old)| {
-            format_rd(new.rotation_distance_new) == format_rd(old.rotation_distance_mm)
+            entry::fmt_rd(new.rotation_distance_new) == entry::fmt_rd(old.rotation_distance_mm)
         });
         // Closed at once: applying takes a Klipper restart, and Apply must not be pressed twice.
         self.core.prompt_end_now().await;
@@ -1309,8 +1309,8 @@ impl Ab {
             let msg = format!(
                 "already calibrated: stepper_x {} and stepper_y {} mm are what Klipper runs; \
                  nothing written, Klipper not restarted",
-                format_rd(round.stepper_x.rotation_distance_mm),
-                format_rd(round.stepper_y.rotation_distance_mm)
+                entry::fmt_rd(round.stepper_x.rotation_distance_mm),
+                entry::fmt_rd(round.stepper_y.rotation_distance_mm)
             );
             self.update(s.id, |s| {
                 s.state = State::Converged;
@@ -1665,20 +1665,14 @@ fn measuring_guide(s: &Session) -> Vec<String> {
     lines
 }
 
-fn format_rd(v: f64) -> String {
-    let s = format!("{v:.6}");
-    let s = s.trim_end_matches('0');
-    s.trim_end_matches('.').to_string()
-}
-
 /// The solver's result in a few console lines.
 fn solution_text(sol: &Solution) -> String {
     let mut t = String::new();
     for (name, s) in [("stepper_x", &sol.stepper_x), ("stepper_y", &sol.stepper_y)] {
         t.push_str(&format!(
             "{name}: rotation_distance {} → {} (scale {:.5} ± {:.5})\n",
-            format_rd(s.rotation_distance_old),
-            format_rd(s.rotation_distance_new),
+            entry::fmt_rd(s.rotation_distance_old),
+            entry::fmt_rd(s.rotation_distance_new),
             s.scale,
             s.uncertainty,
         ));
@@ -1719,9 +1713,9 @@ mod tests {
 
     #[test]
     fn rotation_distances_are_written_without_trailing_zeros() {
-        assert_eq!(format_rd(40.0), "40");
-        assert_eq!(format_rd(40.1028949), "40.102895");
-        assert_eq!(format_rd(39.94284), "39.94284");
+        assert_eq!(entry::fmt_rd(40.0), "40");
+        assert_eq!(entry::fmt_rd(40.1028949), "40.102895");
+        assert_eq!(entry::fmt_rd(39.94284), "39.94284");
     }
 
     #[test]
