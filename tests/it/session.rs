@@ -318,6 +318,61 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
         notes.contains("removed by CLEAR=1") && notes.contains(&format!("{}", good[0])),
         "{notes}"
     );
+    // The same over the daemon's own API and through the macro, as Mainsail sends it.
+    let base = d.page_url().await;
+    let http = reqwest::Client::new();
+    let post = |op: &str, body: Value| {
+        http.post(format!("{base}/api/{op}"))
+            .header("content-type", "application/json")
+            .body(body.to_string())
+            .send()
+    };
+    let cleared = |st: &Value| st["readings"][&id].is_null();
+    post(
+        "ab/measure",
+        json!({"pair": id, "values": [good[0], good[1]]}),
+    )
+    .await
+    .unwrap();
+    assert!(!cleared(&session(&bench).await));
+    let r: Value = post("ab/clear", json!({"pair": id}))
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(r.to_string().contains("removed"), "{r}");
+    assert!(cleared(&session(&bench).await), "HTTP clear left readings");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    m.gcode(&format!(
+        "KLIPCAL_MEASURE PAIR={id} VALUES={},{}",
+        good[0], good[1]
+    ))
+    .await
+    .unwrap();
+    poll(Duration::from_secs(10), || async {
+        (!cleared(&session(&bench).await)).then_some(())
+    })
+    .await
+    .expect("the macro's readings were not saved");
+    m.gcode(&format!("KLIPCAL_MEASURE PAIR={id} CLEAR=1"))
+        .await
+        .unwrap();
+    let st = poll(Duration::from_secs(10), || async {
+        let st = session(&bench).await;
+        cleared(&st).then_some(st)
+    })
+    .await
+    .expect("the macro's CLEAR=1 left readings");
+    assert_eq!(
+        st["notes"]
+            .to_string()
+            .matches("removed by CLEAR=1")
+            .count(),
+        3,
+        "each removal is logged: {st}"
+    );
     // Every pair measured, solved; then one more reading returns the session to measuring.
     for p in s["pairs"].as_array().unwrap() {
         measure(json!({"pair": p["id"], "values": simulated_readings(p)}))
