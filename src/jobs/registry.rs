@@ -351,12 +351,29 @@ mod tests {
             if let Some(call) = gcode.split("action_call_remote_method(\"").nth(1) {
                 let method: String = call.chars().take_while(|c| *c != '"').collect();
                 assert!(methods.contains(&method), "{name} calls {method}");
+                // Said by Klipper itself, before the call goes out (issue 9 item 9).
+                let asked = gcode.lines().position(|l| {
+                    l.trim_start().starts_with("RESPOND ")
+                        && l.contains("MSG=\"asking the klipcal service...\"")
+                });
+                let calls = gcode
+                    .lines()
+                    .position(|l| l.contains("action_call_remote_method("));
                 assert!(
-                    gcode.contains("asking the klipcal service"),
+                    asked.is_some() && asked < calls,
                     "{name} gives no feedback when the service is down"
                 );
             }
         }
+        let readme = include_str!("../../README.md");
+        let trouble = readme
+            .split("## Troubleshooting")
+            .nth(1)
+            .expect("README has no Troubleshooting section");
+        assert!(
+            trouble.contains("asking the klipcal service...") && trouble.contains("Unknown method"),
+            "README's troubleshooting does not name a macro without the service"
+        );
         for m in &methods {
             assert!(MACROS.contains(&format!("\"{m}\"")), "no macro calls {m}");
         }

@@ -630,6 +630,16 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     // Each answer shows every pair's count; the last one offers Solve as a decision.
     assert!(text.contains("5/5 ✓"), "{text}");
     assert!(text.contains("all pairs measured"), "{text}");
+    // With the service gone a macro still says it asked (issue 9 item 9), from Klipper.
+    drop(d);
+    m.gcode("KLIPCAL_STATUS").await.unwrap();
+    let h = crate::mainsail::history(&m).await;
+    let tail: Vec<&String> = h.iter().rev().take(3).map(|(_, msg)| msg).collect();
+    assert!(
+        tail.iter()
+            .any(|msg| msg.contains("klipcal asking the klipcal service...")),
+        "{tail:?}"
+    );
 }
 
 fn futures_lite(bench: &Bench) -> String {
