@@ -362,6 +362,14 @@ pub async fn assert_refused_everywhere(
                 "{line}: no console line with {said_want:?}\n{}",
                 d.log_text()
             );
+            // Sent as an error (RESPOND TYPE=error), which Mainsail and Fluidd colour
+            // (issue 9 item 21): Klipper writes it as "!! …".
+            assert!(
+                said.as_ref().is_some_and(
+                    |ev| matches!(ev, Event::GcodeResponse(l) if l.starts_with("!! "))
+                ),
+                "{line}: the refusal is not an error line: {said:?}"
+            );
         }
     }
 }
