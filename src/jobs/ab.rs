@@ -610,10 +610,14 @@ impl Ab {
             },
             None => round,
         };
+        let bed = if s.options.bed_temp_c > 0.0 {
+            format!("heating the bed to {} °C", s.options.bed_temp_c)
+        } else {
+            "the bed stays unheated (BED=0)".to_string()
+        };
         let msg = format!(
-            "round {n}: {} pylons uploaded as {file}; heating the bed to {} °C",
-            job.layout.pylons.len(),
-            s.options.bed_temp_c
+            "round {n}: {} pylons uploaded as {file}; {bed}",
+            job.layout.pylons.len()
         );
         self.update(id, |s| {
             s.rounds.push(round);

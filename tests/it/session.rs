@@ -383,9 +383,18 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
         .await
         .unwrap();
     assert_eq!(session(&bench).await["state"], "solved");
+    let apply_shown = |d: &Option<crate::mainsail::Dialog>| {
+        d.as_ref()
+            .is_some_and(|d| d.buttons.iter().any(|b| b.1 == "KLIPCAL_AB_APPLY"))
+    };
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(apply_shown(&shown), "{shown:?}");
     measure(json!({"pair": id, "value": good[2]}))
         .await
         .unwrap();
+    // The Apply dialog went with the solution (item 20): a reload does not bring it back.
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(!apply_shown(&shown), "a stale Apply dialog: {shown:?}");
     let st = session(&bench).await;
     assert_eq!(st["state"], "measuring", "{st}");
     assert!(st["rounds"][0]["scale"].is_null(), "{st}");
@@ -596,8 +605,9 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"
     );
     assert!(
-        h.iter().all(|(_, msg)| !msg.contains("hot bed")),
-        "BED=0 but the console speaks of a hot bed: {h:#?}"
+        h.iter()
+            .all(|(_, msg)| !msg.contains("hot bed") && !msg.contains("heating the bed")),
+        "BED=0 but the console speaks of heating: {h:#?}"
     );
     // The apply answer appears once (item 7).
     let applied = h
@@ -630,6 +640,23 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     // Each answer shows every pair's count; the last one offers Solve as a decision.
     assert!(text.contains("5/5 ✓"), "{text}");
     assert!(text.contains("all pairs measured"), "{text}");
+    // The next round is announced as round 2 (item 7), on the console and in its dialog.
+    assert_eq!(s["state"], "applied", "{s}");
+    m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
+    wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    let h = crate::mainsail::history(&m).await;
+    assert!(
+        h.iter()
+            .any(|(_, msg)| msg.contains("round 2: measure the pylons now")),
+        "{h:#?}"
+    );
+    let shown = crate::mainsail::after_reload(&m).await;
+    assert!(
+        shown
+            .as_ref()
+            .is_some_and(|d| d.title.contains("(round 2)")),
+        "{shown:?}"
+    );
     // With the service gone a macro still says it asked (issue 9 item 9), from Klipper.
     drop(d);
     m.gcode("KLIPCAL_STATUS").await.unwrap();
