@@ -373,6 +373,21 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
         3,
         "each removal is logged: {st}"
     );
+    // The plausibility window follows the pair's nominal and the change limit (item 4): 2.5 %
+    // off the 150 mm pair (3.75 mm, beyond the absolute 2 mm tolerance) is within the 3 %
+    // max_change_pct and taken; 5 % is not.
+    let nominal = far["nominal_mm"].as_f64().unwrap();
+    let r = measure(json!({"pair": far_id, "value": nominal * 1.025}))
+        .await
+        .unwrap();
+    assert!(r["message"].to_string().contains("saved"), "{r}");
+    let e = measure(json!({"pair": far_id, "value": nominal * 1.05}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("nothing saved"), "{e}");
+    measure(json!({"pair": far_id, "clear": "1"}))
+        .await
+        .unwrap();
     // Every pair measured, solved; then one more reading returns the session to measuring.
     for p in s["pairs"].as_array().unwrap() {
         measure(json!({"pair": p["id"], "values": simulated_readings(p)}))
