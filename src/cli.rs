@@ -296,8 +296,8 @@ pub struct PylonsArgs {
     /// Pylon length, mm (shorter pylons let a full layout fit a small bed).
     #[arg(long, default_value_t = 53.6, value_name = "MM")]
     pub pylon_length: f64,
-    /// Start command used when the config has a PRINT_START macro; placeholders
-    /// {bed_temp_c} and {nozzle_temp_c}.
+    /// Start command used when the config has a start macro (PRINT_START or START_PRINT);
+    /// placeholders {start_macro} (its name), {bed_temp_c} and {nozzle_temp_c}.
     #[arg(long, value_name = "TEXT")]
     pub start_template: Option<String>,
     /// Extra G-code after the built-in end (e.g. PRINT_END, which usually turns the bed off).

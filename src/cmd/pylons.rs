@@ -27,6 +27,7 @@ pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machin
         kinematics,
         args.nozzle_diameter,
         args.filament_diameter,
+        None,
     )?)
 }
 
@@ -164,8 +165,46 @@ mod tests {
         );
         assert_eq!(m.z_max_mm, Some(230.0));
         assert_eq!(m.filament_diameter_mm, 1.75);
-        assert!(m.has_print_start);
+        assert_eq!(m.start_macro.as_deref(), Some("PRINT_START"));
         assert_eq!(m.max_accel_mm_s2, Some(3000.0));
+    }
+
+    #[test]
+    fn the_start_macro_the_printer_has_is_the_one_the_job_calls() {
+        let load = |macros: &str| {
+            let mut files = MemFiles::default();
+            let cfg = CFG.replace("[gcode_macro PRINT_START]\ngcode:\n  G28\n", macros);
+            files.insert(PathBuf::from("/cfg/printer.cfg"), &cfg);
+            files.insert(PathBuf::from("/cfg/hw.cfg"), HW);
+            Config::load(&files, Path::new("/cfg/printer.cfg")).expect("test config loads")
+        };
+        let start = "[gcode_macro start_print]\ngcode:\n  G28\n";
+        let both = format!("{start}[gcode_macro PRINT_START]\ngcode:\n  G28\n");
+        // A START_PRINT printer (issue 9 item 15), named as Klipper registers it.
+        let m = Machine::from_config(&load(start), None, None, None, None).expect("facts");
+        assert_eq!(m.start_macro.as_deref(), Some("START_PRINT"));
+        let job = gcode::generate(&m, &Options::default()).expect("fits");
+        assert!(job.gcode.contains("\nSTART_PRINT BED=80 EXTRUDER=240\n"));
+        assert!(!job.gcode.contains("PRINT_START"));
+        // Both defined: the configured one wins; none configured, the job refuses to guess.
+        let m = Machine::from_config(&load(&both), None, None, None, Some("print_start"))
+            .expect("configured");
+        assert_eq!(m.start_macro.as_deref(), Some("PRINT_START"));
+        let e = Machine::from_config(&load(&both), None, None, None, Some(""))
+            .expect_err("ambiguous")
+            .to_string();
+        assert!(
+            e.contains("PRINT_START and START_PRINT") && e.contains("ab.start_macro"),
+            "{e}"
+        );
+        // A configured macro the config lacks is named.
+        let e = Machine::from_config(&load(start), None, None, None, Some("MY_START"))
+            .expect_err("missing")
+            .to_string();
+        assert!(e.contains("MY_START"), "{e}");
+        // None at all: the job heats and homes itself.
+        let m = Machine::from_config(&load(""), None, None, None, None).expect("facts");
+        assert_eq!(m.start_macro, None);
     }
 
     #[test]

@@ -98,6 +98,7 @@ pub(crate) fn expand_template(
     which: &'static str,
     template: &str,
     o: &Options,
+    start_macro: &str,
 ) -> Result<Vec<String>, Error> {
     let bad = |reason: String| Error::Template {
         which,
@@ -114,9 +115,11 @@ pub(crate) fn expand_template(
             match &rest[1..end] {
                 "bed_temp_c" => out.push_str(&num(o.bed_temp_c, 1)),
                 "nozzle_temp_c" => out.push_str(&num(o.nozzle_temp_c, 1)),
+                "start_macro" if !start_macro.is_empty() => out.push_str(start_macro),
                 other => {
                     return Err(bad(format!(
-                    "unknown placeholder {{{other}}}; expected {{bed_temp_c}} or {{nozzle_temp_c}}"
+                    "unknown placeholder {{{other}}}; expected {{start_macro}}, {{bed_temp_c}} or \
+                     {{nozzle_temp_c}}"
                 )))
                 }
             }
@@ -312,13 +315,12 @@ pub(crate) fn emit(
     layers: &[Layer],
     line_width_mm: f64,
 ) -> Result<Emitted, Error> {
-    let start_lines = if m.has_print_start {
-        Some(expand_template("start", &o.print_start_template, o)?)
-    } else {
-        None
+    let start_lines = match &m.start_macro {
+        Some(name) => Some(expand_template("start", &o.print_start_template, o, name)?),
+        None => None,
     };
     let end_lines = match &o.end_template {
-        Some(t) => expand_template("end", t, o)?,
+        Some(t) => expand_template("end", t, o, "")?,
         None => Vec::new(),
     };
     let travel_mm_s = m
@@ -362,9 +364,11 @@ pub(crate) fn emit(
         num(line_width_mm, 3),
         num(o.flow, 3)
     ));
-    w.line(
-        "; measure each pair just below the chamfer with the part on the hot bed; the bed stays on",
-    );
+    w.line(if o.bed_temp_c > 0.0 {
+        "; measure each pair just below the chamfer with the part on the hot bed; the bed stays on"
+    } else {
+        "; measure each pair just below the chamfer with the part on the bed"
+    });
     w.line("");
     for p in &placed.pylons {
         let poly: Vec<String> = polygon(p, o)
@@ -457,7 +461,11 @@ pub(crate) fn emit(
     }
 
     // end: retract, lift, park away from the pylons, nozzle off, bed left on
-    w.line("; end: the bed stays on, readings are taken on the hot bed");
+    w.line(if o.bed_temp_c > 0.0 {
+        "; end: the bed stays on, readings are taken on the hot bed"
+    } else {
+        "; end: readings are taken with the part on the bed"
+    });
     w.retract();
     let mut lift = o.pylon_height_mm + 10.0;
     if let Some(zmax) = m.z_max_mm {
@@ -581,19 +589,20 @@ mod tests {
             "start",
             "PRINT_START BED={bed_temp_c} EXTRUDER={nozzle_temp_c}",
             &o,
+            "PRINT_START",
         )
         .expect("valid");
         assert_eq!(lines, ["PRINT_START BED=80 EXTRUDER=240"]);
         assert!(matches!(
-            expand_template("start", "PRINT_START BED={bed}", &o),
+            expand_template("start", "PRINT_START BED={bed}", &o, "PRINT_START"),
             Err(Error::Template { .. })
         ));
         assert!(matches!(
-            expand_template("end", "PRINT_END; M140 S0", &o),
+            expand_template("end", "PRINT_END; M140 S0", &o, "PRINT_START"),
             Err(Error::Template { .. })
         ));
         assert!(matches!(
-            expand_template("end", "{x", &o),
+            expand_template("end", "{x", &o, "PRINT_START"),
             Err(Error::Template { .. })
         ));
     }

@@ -144,8 +144,9 @@ pub struct Machine {
     pub nozzle_diameter_mm: f64,
     /// Filament diameter, mm.
     pub filament_diameter_mm: f64,
-    /// Whether the config defines a `PRINT_START` macro.
-    pub has_print_start: bool,
+    /// The start macro the slicer calls (`PRINT_START`, `START_PRINT` or the one configured
+    /// as `ab.start_macro`), upper case as Klipper registers it; `None` without one.
+    pub start_macro: Option<String>,
     /// `[printer] max_velocity`, restored at the end when known.
     pub max_velocity_mm_s: Option<f64>,
     /// `[printer] max_accel`, restored at the end when known.
@@ -166,6 +167,7 @@ impl Machine {
         kinematics: Option<Kinematics>,
         nozzle_diameter_mm: Option<f64>,
         filament_diameter_mm: Option<f64>,
+        start_macro: Option<&str>,
     ) -> Result<Machine, Error> {
         use crate::klipper;
         let number = |section: &str, key: &str| -> Result<Option<f64>, Error> {
@@ -209,7 +211,18 @@ impl Machine {
             z_max_mm: number("stepper_z", "position_max")?,
             nozzle_diameter_mm,
             filament_diameter_mm,
-            has_print_start: facts.has_print_start,
+            start_macro: match klipper::find_start_macro(config, start_macro) {
+                Ok(klipper::StartMacro::Found { command, .. }) => Some(command),
+                Ok(klipper::StartMacro::NotFound) => None,
+                Ok(klipper::StartMacro::Ambiguous(both)) => {
+                    return Err(Error::Config(format!(
+                        "the config defines {}: set ab.start_macro in klipcal.toml to the one \
+                         your slicer calls",
+                        both.join(" and ")
+                    )))
+                }
+                Err(e) => return Err(Error::Config(e.to_string())),
+            },
             max_velocity_mm_s: number("printer", "max_velocity")?,
             max_accel_mm_s2: number("printer", "max_accel")?,
             square_corner_velocity_mm_s: number("printer", "square_corner_velocity")?,
@@ -228,7 +241,7 @@ impl Machine {
             z_max_mm: None,
             nozzle_diameter_mm: 0.4,
             filament_diameter_mm: 1.75,
-            has_print_start: false,
+            start_macro: None,
             max_velocity_mm_s: None,
             max_accel_mm_s2: None,
             square_corner_velocity_mm_s: None,
@@ -292,8 +305,8 @@ pub struct Options {
     pub edge_margin_mm: f64,
     /// Smallest gap between pylons of different groups, mm.
     pub group_gap_mm: f64,
-    /// Start when the printer has a `PRINT_START` macro; placeholders `{bed_temp_c}` and
-    /// `{nozzle_temp_c}`.
+    /// Start when the printer has a start macro; placeholders `{start_macro}` (its name:
+    /// `PRINT_START`, `START_PRINT`, or `ab.start_macro`), `{bed_temp_c}` and `{nozzle_temp_c}`.
     pub print_start_template: String,
     /// Extra end G-code after the built-in end (e.g. `PRINT_END`); `None` keeps the bed on.
     pub end_template: Option<String>,
@@ -332,7 +345,7 @@ impl Default for Options {
             filament_density_g_cm3: 1.27,
             edge_margin_mm: 5.0,
             group_gap_mm: 3.0,
-            print_start_template: "PRINT_START BED={bed_temp_c} EXTRUDER={nozzle_temp_c}".into(),
+            print_start_template: "{start_macro} BED={bed_temp_c} EXTRUDER={nozzle_temp_c}".into(),
             end_template: None,
             bed_soak_s: 0.0,
             generated_at_unix_s: 0,

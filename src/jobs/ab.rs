@@ -550,8 +550,14 @@ impl Ab {
         } else {
             gcode::Kinematics::Cartesian
         };
-        let machine = gcode::Machine::from_config(&pc.config, Some(gk), None, None)
-            .map_err(|e| user(e.to_string()))?;
+        let machine = gcode::Machine::from_config(
+            &pc.config,
+            Some(gk),
+            None,
+            None,
+            Some(s.options.start_macro.as_str()),
+        )
+        .map_err(|e| user(e.to_string()))?;
         let opts = gcode::Options {
             layout: if s.options.layout == "full" {
                 LayoutKind::Full
