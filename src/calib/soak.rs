@@ -22,7 +22,10 @@
 //! power history; a new target forgets everything. After an overshoot (out of the band, or
 //! `OVERSHOOT_C` over the target inside it) the controller's integral winds back and lifts the
 //! power for a while before the slow decay goes on: decays up to the overshoot's length may then
-//! take either sign, so the rise cannot pass for "nothing left to fall".
+//! take either sign, so the rise cannot pass for "nothing left to fall". Only from equilibrium
+//! are a clamped network's decays all positive: a bed first seen warm and out of the band (held
+//! at another target before, perhaps long at full power) may have its plate ahead of its
+//! surroundings, so decays up to a sixth of `tau_max_s` (the plate's) may then take either sign.
 //!
 //! After a step down (the temperature came into the band from above) the surroundings may be
 //! warmer than they will be at the new target (the power rises while they cool) or still
@@ -314,6 +317,11 @@ pub struct SoakDetector {
     /// The side the temperature last was on, out of the band, before the soak first began:
     /// `Some(true)` above (a step down), `Some(false)` below (a heat-up).
     approach_above: Option<bool>,
+    /// The first temperature seen for this target was above `skip_below_c` and out of the
+    /// band: the bed was heated before (a print, another target) and now moves to a new one,
+    /// so its plate and surroundings may be in any state. (A bed first seen at its target has
+    /// been held there: a daemon primed from Moonraker's store, a second round.)
+    warm_start: Option<bool>,
 }
 
 impl SoakDetector {
@@ -357,6 +365,7 @@ impl SoakDetector {
             progress_floor: 0.0,
             last_in_band_s: None,
             excursion_len_s: 0.0,
+            warm_start: None,
             over_since_s: None,
             approach_above: None,
         }
@@ -430,6 +439,10 @@ impl SoakDetector {
             self.accumulate(t_prev, hold_end, p_prev);
         }
         self.roll_bins(t_s);
+        self.warm_start.get_or_insert(
+            temp_c > self.params.skip_below_c
+                && (temp_c - target_c).abs() > self.params.temp_band_c,
+        );
         if let Some(bin) = self.bin.as_mut() {
             bin.temp_sum += temp_c;
             bin.temp_n += 1;
@@ -638,8 +651,17 @@ impl SoakDetector {
         }
     }
 
-    /// Which coefficients may take either sign: the constant and the controller's fast decays.
+    /// Which coefficients may take either sign: the constant and the controller's fast decays;
+    /// on a bed first seen warm also the plate's (up to a sixth of `tau_max_s`). Only from
+    /// equilibrium does a clamped RC network's power fall as a sum of decays that are all
+    /// positive; a bed heated before may start with its plate ahead of its surroundings, and
+    /// then the plate's part of the power rises while the surroundings' still falls.
     fn free(&self) -> Vec<bool> {
+        let warm_free_s = if self.warm_start == Some(true) {
+            self.params.tau_max_s / 6.0
+        } else {
+            0.0
+        };
         std::iter::once(true)
             .chain(self.taus.iter().map(|tau| {
                 *tau < FREE_TAUS * grid_min_s(&self.params)
@@ -647,6 +669,7 @@ impl SoakDetector {
                             // after an overshoot lifts the power) may go either way, on the
                             // excursion's own time scale.
                             || *tau <= self.excursion_len_s
+                            || *tau <= warm_free_s
             }))
             .collect()
     }
