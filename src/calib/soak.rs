@@ -211,7 +211,7 @@ pub struct DecayFit {
 
 /// Likelihood-ratio threshold of the test in standard errors: a remaining fall of
 /// `max_remaining` is ruled out once it costs the fit more than Z² σ².
-const Z: f64 = 3.0;
+pub(crate) const Z: f64 = 3.0;
 /// The fastest time constant of the model: 1/60 of `tau_max_s` (one minute at the default),
 /// at least two bins.
 fn grid_min_s(p: &SoakParams) -> f64 {

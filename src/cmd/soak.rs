@@ -370,6 +370,8 @@ struct Outcome {
     t_reach_s: f64,
     declared_s: Option<f64>,
     power_sd: f64,
+    /// The bin noise the detector's test used at the end of the run.
+    test_sd: f64,
     /// The detector's explanation at the end of the run.
     why: String,
 }
@@ -418,6 +420,7 @@ fn simulate_bed(bed: &Bed, rng: &mut fastrand::Rng, params: &SoakParams) -> Outc
         t_reach_s: t_reach,
         declared_s: declared,
         power_sd: var.sqrt(),
+        test_sd: det.fit().map_or(0.0, |f| f.noise_sd * f.noise_inflation),
         why: det.explanation().to_string(),
     }
 }
@@ -468,8 +471,12 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     let beds = args.beds.max(1);
     let outcomes: Vec<Outcome> = (0..beds)
         .map(|_| {
-            let bed = Bed::random(&mut rng);
-            simulate_bed(&bed, &mut rng, &params)
+            // Each bed draws from its own stream, so how long the detector keeps a bed running
+            // does not change the beds after it (the same seed gives the same beds whatever the
+            // detector does).
+            let mut bed_rng = fastrand::Rng::with_seed(rng.u64(..));
+            let bed = Bed::random(&mut bed_rng);
+            simulate_bed(&bed, &mut bed_rng, &params)
         })
         .collect();
     let total = outcomes.len() as f64;
@@ -479,13 +486,43 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
         .iter()
         .filter(|o| o.declared_s.is_some_and(|d| d < o.t_one_pct_s))
         .count();
-    let in_time = outcomes
-        .iter()
-        .filter(|o| {
-            o.declared_s
-                .is_some_and(|d| d >= o.t_one_pct_s && d <= 1.5 * o.t_one_pct_s + 60.0)
-        })
-        .count();
+    let within = |factor: f64| {
+        outcomes
+            .iter()
+            .filter(|o| {
+                o.declared_s
+                    .is_some_and(|d| d >= o.t_one_pct_s && d <= factor * o.t_one_pct_s + 60.0)
+            })
+            .count()
+    };
+    let (in_time, in_150) = (within(1.25), within(1.5));
+    // The information bound of each bed at the detector's own noise (see
+    // `soak_families::information_bound`), with tau_max_s and with it halved.
+    let bound_within = |tau_s: f64| {
+        outcomes
+            .iter()
+            .filter(|o| {
+                crate::cmd::soak_families::information_bound(o.t_reach_s, o.test_sd, tau_s, &params)
+                    <= 1.25 * o.t_one_pct_s + 60.0
+            })
+            .count()
+    };
+    let over_bound = median(
+        outcomes
+            .iter()
+            .filter_map(|o| {
+                o.declared_s.map(|d| {
+                    d / crate::cmd::soak_families::information_bound(
+                        o.t_reach_s,
+                        o.test_sd,
+                        params.tau_max_s,
+                        &params,
+                    )
+                    .max(1.0)
+                })
+            })
+            .collect(),
+    );
     let never = outcomes.iter().filter(|o| o.declared_s.is_none()).count();
     let delays: Vec<f64> = outcomes
         .iter()
@@ -507,9 +544,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     );
     println!(
         "  detector: stable once the data rule out (3 σ) a fall of {:.1} % or more still to come \
-         from any decay up to tau_max_s = {:.0} min; ruling out the slowest takes about \
-         (3·tau_max·σ·√(12·bin)/max_remaining)^(2/3) of soak at bin noise σ, so on noisy fast \
-         beds the 1.25 × target is out of reach by information, not by tuning",
+         from any positive sum of decays up to tau_max_s = {:.0} min",
         params.max_remaining * 100.0,
         params.tau_max_s / 60.0
     );
@@ -528,9 +563,20 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
         pass(early_ok)
     );
     println!(
-        "  declared within 1.5 × moment + 60 s     {in_time:4} of {beds} ({:5.1} %)   target ≥ 95 %     {}",
+        "  declared within 1.25 × moment + 60 s    {in_time:4} of {beds} ({:5.1} %)   target ≥ 95 %     {}   (1.5 ×: {:.1} %)",
         pct(in_time),
-        pass(in_time_ok)
+        pass(in_time_ok),
+        pct(in_150)
+    );
+    println!(
+        "  information bound (a 3 σ test that knew all but the final power and a τ_max decay with \
+         {:.1} % to fall, at the detector's noise, from reaching temperature): within 1.25 × + \
+         60 s on {:.1} % of beds ({:.1} % with tau_max_s halved); the detector declares at {:.2} × \
+         its bound (median)",
+        params.max_remaining * 100.0,
+        pct(bound_within(params.tau_max_s)),
+        pct(bound_within(params.tau_max_s / 2.0)),
+        over_bound
     );
     println!(
         "  never declared (run to 3 × moment + 1 h) {never:3} of {beds} ({:5.1} %)",
@@ -577,7 +623,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     if args.show_failures {
         for (k, o) in outcomes.iter().enumerate() {
             let late = o.declared_s.map_or(true, |d| {
-                d < o.t_one_pct_s || d > 1.5 * o.t_one_pct_s + 60.0
+                d < o.t_one_pct_s || d > 1.25 * o.t_one_pct_s + 60.0
             });
             if late {
                 println!(
@@ -625,6 +671,17 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
             fp(r.never)
         );
         println!(
+            "    information bound (a {:.0} σ test that knew all but the final power and a τ_max \
+             decay with {:.1} % to fall, at the detector's noise, from reaching temperature): \
+             within 1.25 × + 60 s on {:.1} % of beds ({:.1} % with tau_max_s halved); the \
+             detector declares at {:.2} × its bound (median)",
+            crate::calib::soak::Z,
+            params.max_remaining * 100.0,
+            fp(r.bound_within_125),
+            fp(r.bound_within_125_half),
+            r.median_over_bound
+        );
+        println!(
             "    median declared / true moment {:.2}; a fixed 10 / 15 min after reaching temperature \
              starts too early on {:.1} % / {:.1} % of these beds (anchor)",
             r.median_ratio,
@@ -642,7 +699,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     for (name, text) in crate::cmd::soak_families::RECORDED {
         match crate::cmd::soak_families::recorded(text) {
             Ok(run) => {
-                let (d, why) = crate::cmd::soak_families::declare(&run, &params);
+                let (d, why, _) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
                 let verdict = match d {
                     None => "never declared".to_string(),

@@ -33,18 +33,46 @@ pub struct Run {
     pub tau_s: f64,
 }
 
-/// The detector's declaration on a run (with the bed's max_power), s, and its explanation
-/// at that moment (or at the end of the run).
+/// The detector's declaration on a run (with the bed's max_power), s, its explanation at that
+/// moment (or at the end of the run), and the bin noise its test used then (0 without a fit).
 #[must_use]
-pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String) {
+pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
     let mut det = SoakDetector::new(params.clone());
     det.set_max_power(run.max_power);
+    let sigma = |det: &SoakDetector| det.fit().map_or(0.0, |f| f.noise_sd * f.noise_inflation);
     for s in &run.samples {
         if let SoakStatus::Stable { at_s } = det.push(s[0], s[1], s[2], s[3]) {
-            return (Some(at_s), det.explanation().to_string());
+            return (Some(at_s), det.explanation().to_string(), sigma(&det));
         }
     }
-    (None, det.explanation().to_string())
+    (None, det.explanation().to_string(), sigma(&det))
+}
+
+/// The information bound: the earliest moment any test at `Z` standard errors could rule out
+/// a decay of time constant `tau_s` that still holds `max_remaining` to fall, on bins of
+/// `bin_s` from `from_s` on at bin noise `sigma`, knowing everything else about the bed (its
+/// whole true curve but the final power). A detector that must rule out every decay up to
+/// `tau_max_s` before it declares (issue 10's "never early") cannot declare before this.
+///
+/// That decay adds θ·e^((t−s)/τ) to the bin at s ≤ t; what the unknown final power cannot
+/// absorb of it is its spread about its mean over the n bins, a pair of geometric sums.
+#[must_use]
+pub fn information_bound(from_s: f64, sigma: f64, tau_s: f64, params: &SoakParams) -> f64 {
+    let theta = params.max_remaining;
+    let b = params.bin_s;
+    let q = (b / tau_s).exp();
+    let need = (crate::calib::soak::Z * sigma / theta).powi(2);
+    // Past two days the answer is "never" for any bed a user would wait for.
+    let max_n = (48.0 * 3600.0 / b) as i32;
+    for n in 2..=max_n {
+        let nf = f64::from(n);
+        let s1 = (q.powi(n) - 1.0) / (q - 1.0);
+        let s2 = (q.powi(2 * n) - 1.0) / (q * q - 1.0);
+        if s2 - s1 * s1 / nf >= need {
+            return from_s + (nf - 1.0) * b;
+        }
+    }
+    f64::INFINITY
 }
 
 /// The last time `power` (at times `t`) was more than 0.01 from its final value.
@@ -465,6 +493,14 @@ pub struct FamilyReport {
     pub fixed10_early: usize,
     /// A fixed 15 min after reaching temperature would have.
     pub fixed15_early: usize,
+    /// Beds on which the information bound (see [`information_bound`], at the detector's own
+    /// noise, from reaching temperature) is within 1.25 × the moment + 60 s: the most any
+    /// detector that rules out every decay up to `tau_max_s` could get there.
+    pub bound_within_125: usize,
+    /// The same with `tau_max_s` halved (what an open-frame printer could set).
+    pub bound_within_125_half: usize,
+    /// Median declared / bound over the beds declared.
+    pub median_over_bound: f64,
     /// One line per bed that missed a target (early, later than 1.5 × + 60 s, or never):
     /// its time constant, moment, declaration and the detector's explanation.
     pub failures: Vec<String>,
@@ -489,13 +525,28 @@ pub fn evaluate(
         median_ratio: f64::NAN,
         fixed10_early: 0,
         fixed15_early: 0,
+        bound_within_125: 0,
+        bound_within_125_half: 0,
+        median_over_bound: f64::NAN,
         failures: Vec::new(),
     };
     let mut ratios = Vec::new();
+    let mut over_bound = Vec::new();
     for k in 0..beds {
         let run = make(&mut rng);
         let moment = run.t_one_s;
-        let (declared, why) = declare(&run, params);
+        let (declared, why, sigma) = declare(&run, params);
+        let bound = information_bound(run.t_reach_s, sigma, params.tau_max_s, params);
+        let half = information_bound(run.t_reach_s, sigma, params.tau_max_s / 2.0, params);
+        if bound <= 1.25 * moment + 60.0 {
+            r.bound_within_125 += 1;
+        }
+        if half <= 1.25 * moment + 60.0 {
+            r.bound_within_125_half += 1;
+        }
+        if let Some(d) = declared {
+            over_bound.push(d / bound.max(1.0));
+        }
         if declared.map_or(true, |d| d < moment || d > 1.5 * moment + 60.0) {
             r.failures.push(format!(
                 "bed {k}: slowest τ {:.1} min, max_power {:.2}, reached {:.1} min, 1 % moment {:.1} \
@@ -533,6 +584,10 @@ pub fn evaluate(
     ratios.sort_by(f64::total_cmp);
     if !ratios.is_empty() {
         r.median_ratio = ratios[ratios.len() / 2];
+    }
+    over_bound.sort_by(f64::total_cmp);
+    if !over_bound.is_empty() {
+        r.median_over_bound = over_bound[over_bound.len() / 2];
     }
     r
 }
@@ -623,6 +678,55 @@ mod tests {
     }
 
     #[test]
+    fn the_information_bound_is_the_first_bin_where_the_slowest_decay_stands_out() {
+        let params = SoakParams::default();
+        let theta = params.max_remaining;
+        let b = params.bin_s;
+        for (sigma, tau) in [
+            (0.002, 3600.0),
+            (0.01, 3600.0),
+            (0.01, 1800.0),
+            (0.03, 600.0),
+        ] {
+            let at = information_bound(100.0, sigma, tau, &params);
+            assert!(at.is_finite(), "σ {sigma}, τ {tau}: never");
+            // Brute force: the decay's spread about its mean over the bins up to `t`.
+            let spread = |t: f64| {
+                let n = ((t - 100.0) / b).round() as usize + 1;
+                let h: Vec<f64> = (0..n)
+                    .map(|i| theta * ((t - 100.0 - i as f64 * b) / tau).exp())
+                    .collect();
+                let mean = h.iter().sum::<f64>() / n as f64;
+                h.iter().map(|x| (x - mean).powi(2)).sum::<f64>().sqrt() / sigma
+            };
+            let z = crate::calib::soak::Z;
+            assert!(
+                spread(at) >= z * 0.999,
+                "σ {sigma}, τ {tau}: {} at {at}",
+                spread(at)
+            );
+            assert!(
+                spread(at - b) < z,
+                "σ {sigma}, τ {tau}: {} a bin before",
+                spread(at - b)
+            );
+            // Where the decay is still a straight line over the window, the slope estimate's
+            // rule of thumb (3·τ·σ·√(12·bin)/θ)^(2/3) holds.
+            if at - 100.0 < 0.3 * tau {
+                let thumb = (z * tau * sigma * (12.0 * b).sqrt() / theta).powf(2.0 / 3.0);
+                assert!(
+                    ((at - 100.0) / thumb - 1.0).abs() < 0.15,
+                    "σ {sigma}, τ {tau}: {at} s against {thumb} s"
+                );
+            }
+        }
+        // More noise or a slower decay: later.
+        let at = |sigma: f64, tau: f64| information_bound(0.0, sigma, tau, &params);
+        assert!(at(0.02, 3600.0) > at(0.01, 3600.0));
+        assert!(at(0.01, 3600.0) > at(0.01, 1800.0));
+    }
+
+    #[test]
     fn beds_that_step_from_another_target_with_their_plate_ahead_are_not_declared_early() {
         // Seeds 103 and 104 are `klipcal bench soak --seed 1` and `--seed 2`'s target_steps
         // family. These beds were heated before (held at another target, some for a long time at
@@ -639,7 +743,7 @@ mod tests {
                 if !beds.contains(&k) {
                     continue;
                 }
-                let (declared, why) = declare(&run, &params);
+                let (declared, why, _) = declare(&run, &params);
                 assert!(
                     declared.map_or(true, |d| d >= run.t_one_s),
                     "seed {seed} bed {k}: declared {declared:?} s before the 1 % moment {} s: {why}",
@@ -663,7 +767,7 @@ mod tests {
             if ![210, 320, 363, 369].contains(&k) {
                 continue;
             }
-            let (declared, why) = declare(&run, &params);
+            let (declared, why, _) = declare(&run, &params);
             assert!(
                 declared.map_or(true, |d| d >= run.t_one_s),
                 "bed {k}: declared {declared:?} s before the 1 % moment {} s: {why}",
