@@ -204,6 +204,9 @@ pub struct DecayFit {
     pub tau_unbounded: bool,
     /// Scatter (standard deviation) of the binned power about the fit.
     pub noise_sd: f64,
+    /// The bin noise the test ruled `max_remaining` out against (standard deviation): the
+    /// scatter at the one-minute scale and beyond, widened while the data are short.
+    pub test_sd: f64,
     /// Factor by which slow (correlated) noise widens the test: the scatter at the one-minute
     /// scale over the scatter of single bins (1 for white noise).
     pub noise_inflation: f64,
@@ -846,6 +849,7 @@ impl SoakDetector {
             rising,
             tau_unbounded: slowest > 0.5 * remaining.max(theta),
             noise_sd: white.sqrt(),
+            test_sd: sigma2.sqrt(),
             noise_inflation: (sigma2 / white.max(1e-18)).sqrt().max(1.0),
         };
         self.fit = Some(fit);

@@ -420,7 +420,7 @@ fn simulate_bed(bed: &Bed, rng: &mut fastrand::Rng, params: &SoakParams) -> Outc
         t_reach_s: t_reach,
         declared_s: declared,
         power_sd: var.sqrt(),
-        test_sd: det.fit().map_or(0.0, |f| f.noise_sd * f.noise_inflation),
+        test_sd: det.fit().map_or(0.0, |f| f.test_sd),
         why: det.explanation().to_string(),
     }
 }
@@ -699,8 +699,14 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     for (name, text) in crate::cmd::soak_families::RECORDED {
         match crate::cmd::soak_families::recorded(text) {
             Ok(run) => {
-                let (d, why, _) = crate::cmd::soak_families::declare(&run, &params);
+                let (d, why, sigma) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
+                let bound = crate::cmd::soak_families::information_bound(
+                    run.t_reach_s,
+                    sigma,
+                    params.tau_max_s,
+                    &params,
+                );
                 let verdict = match d {
                     None => "never declared".to_string(),
                     Some(d) if d < m => {
@@ -720,10 +726,12 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
                 };
                 println!(
                     "    {name}: fitted decay τ {:.1} min, 1 % moment {:.1} min, reached temperature \
-                     {:.1} min; {verdict}",
+                     {:.1} min; {verdict}; information bound {:.1} min (bin noise {:.2} %)",
                     run.tau_s / 60.0,
                     m / 60.0,
-                    run.t_reach_s / 60.0
+                    run.t_reach_s / 60.0,
+                    bound / 60.0,
+                    sigma * 100.0
                 );
                 if args.show_failures {
                     println!("      {why}");

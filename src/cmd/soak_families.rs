@@ -39,7 +39,7 @@ pub struct Run {
 pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
     let mut det = SoakDetector::new(params.clone());
     det.set_max_power(run.max_power);
-    let sigma = |det: &SoakDetector| det.fit().map_or(0.0, |f| f.noise_sd * f.noise_inflation);
+    let sigma = |det: &SoakDetector| det.fit().map_or(0.0, |f| f.test_sd);
     for s in &run.samples {
         if let SoakStatus::Stable { at_s } = det.push(s[0], s[1], s[2], s[3]) {
             return (Some(at_s), det.explanation().to_string(), sigma(&det));
