@@ -85,6 +85,17 @@ fn one_pct_moment(t: &[f64], power: &[f64]) -> f64 {
         .fold(0.0, f64::max)
 }
 
+/// `(t_s, power, temp_c)` samples with their target added, and the first time the temperature
+/// was within 2 °C of it (NaN if never).
+fn at_target(noisy: &[[f64; 3]], target_c: f64) -> (Vec<[f64; 4]>, f64) {
+    let t_reach = noisy
+        .iter()
+        .find(|s| (s[2] - target_c).abs() <= 2.0)
+        .map_or(f64::NAN, |s| s[0]);
+    let samples = noisy.iter().map(|s| [s[0], s[1], s[2], target_c]).collect();
+    (samples, t_reach)
+}
+
 /// Heater, plate and enclosure air under a filtered-derivative PID on a lagging thermistor.
 #[derive(Debug, Clone)]
 struct ThreeNode {
@@ -282,12 +293,9 @@ pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
         noise_c,
         every,
     ));
-    let t_reach = noisy
-        .iter()
-        .find(|s| (s[2] - later).abs() <= 2.0)
-        .map_or(f64::NAN, |s| s[0]);
+    let (samples, t_reach) = at_target(&noisy, later);
     Run {
-        samples: noisy.iter().map(|s| [s[0], s[1], s[2], later]).collect(),
+        samples,
         t_one_s: t_one,
         t_reach_s: t_reach,
         max_power: bed.max_power,
@@ -370,12 +378,9 @@ pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
     let t_one = one_pct_moment(&duty_t, &duty_p);
     let noise_c = uniform(rng, 0.02, 0.1);
     let noisy = sim(rng, (3.0 * t_one + 3600.0).min(horizon), noise_c, 1.0);
-    let t_reach = noisy
-        .iter()
-        .find(|s| (s[2] - target).abs() <= 2.0)
-        .map_or(f64::NAN, |s| s[0]);
+    let (samples, t_reach) = at_target(&noisy, target);
     Run {
-        samples: noisy.iter().map(|s| [s[0], s[1], s[2], target]).collect(),
+        samples,
         t_one_s: t_one,
         t_reach_s: t_reach,
         max_power,
