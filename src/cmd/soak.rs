@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 use crate::cli::{BenchSoakArgs, SoakDetectArgs};
+use crate::cmd::soak_families::information_bound;
 
 /// One line of a bed trace.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -370,8 +371,10 @@ struct Outcome {
     t_reach_s: f64,
     declared_s: Option<f64>,
     power_sd: f64,
-    /// The bin noise the detector's test used at the end of the run.
-    test_sd: f64,
+    /// The information bound at the detector's own noise at the end of the run (see
+    /// `soak_families::information_bound`), with tau_max_s and with it halved, s.
+    bound_s: f64,
+    bound_half_s: f64,
     /// The detector's explanation at the end of the run.
     why: String,
 }
@@ -414,13 +417,15 @@ fn simulate_bed(bed: &Bed, rng: &mut fastrand::Rng, params: &SoakParams) -> Outc
         true
     });
     let var = if n > 0.0 { sum2 / n } else { 0.0 };
+    let test_sd = det.fit().map_or(0.0, |f| f.test_sd);
     Outcome {
         tau_plate_s: bed.tau_plate_s,
         t_one_pct_s: t_one,
         t_reach_s: t_reach,
         declared_s: declared,
         power_sd: var.sqrt(),
-        test_sd: det.fit().map_or(0.0, |f| f.test_sd),
+        bound_s: information_bound(t_reach, test_sd, params.tau_max_s, params),
+        bound_half_s: information_bound(t_reach, test_sd, params.tau_max_s / 2.0, params),
         why: det.explanation().to_string(),
     }
 }
@@ -496,31 +501,18 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
             .count()
     };
     let (in_time, in_150) = (within(1.25), within(1.5));
-    // The information bound of each bed at the detector's own noise (see
-    // `soak_families::information_bound`), with tau_max_s and with it halved.
-    let bound_within = |tau_s: f64| {
+    let bound_within = |half: bool| {
         outcomes
             .iter()
             .filter(|o| {
-                crate::cmd::soak_families::information_bound(o.t_reach_s, o.test_sd, tau_s, &params)
-                    <= 1.25 * o.t_one_pct_s + 60.0
+                (if half { o.bound_half_s } else { o.bound_s }) <= 1.25 * o.t_one_pct_s + 60.0
             })
             .count()
     };
     let over_bound = median(
         outcomes
             .iter()
-            .filter_map(|o| {
-                o.declared_s.map(|d| {
-                    d / crate::cmd::soak_families::information_bound(
-                        o.t_reach_s,
-                        o.test_sd,
-                        params.tau_max_s,
-                        &params,
-                    )
-                    .max(1.0)
-                })
-            })
+            .filter_map(|o| o.declared_s.map(|d| d / o.bound_s.max(1.0)))
             .collect(),
     );
     let never = outcomes.iter().filter(|o| o.declared_s.is_none()).count();
@@ -574,8 +566,8 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
          60 s on {:.1} % of beds ({:.1} % with tau_max_s halved); the detector declares at {:.2} × \
          its bound (median)",
         params.max_remaining * 100.0,
-        pct(bound_within(params.tau_max_s)),
-        pct(bound_within(params.tau_max_s / 2.0)),
+        pct(bound_within(false)),
+        pct(bound_within(true)),
         over_bound
     );
     println!(
@@ -701,12 +693,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
             Ok(run) => {
                 let (d, why, sigma) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
-                let bound = crate::cmd::soak_families::information_bound(
-                    run.t_reach_s,
-                    sigma,
-                    params.tau_max_s,
-                    &params,
-                );
+                let bound = information_bound(run.t_reach_s, sigma, params.tau_max_s, &params);
                 let verdict = match d {
                     None => "never declared".to_string(),
                     Some(d) if d < m => {
