@@ -14,7 +14,10 @@
 //! errors, every such model whose power still to fall now is `max_remaining` or more — whatever
 //! its time constant up to `tau_max_s`. A decay too slow to resolve yet is one of those models,
 //! so it is waited for, not ignored: the test needs the slope to be known well enough that even
-//! the slowest allowed decay could not hide `max_remaining` in it. The noise level comes from
+//! the slowest allowed decay could not hide `max_remaining` in it. The model also has a column
+//! for the temperature's rate of change over each bin: power that went into the bed's own heat
+//! capacity (a bang-bang heater's on and off, a PID's derivative kick) is no heat flow to the
+//! surroundings, so it is taken out instead of counted as noise. The noise level comes from
 //! the scatter about the best fit, taken at the one-minute scale too, so correlated controller
 //! noise and bang-bang cycling widen the test instead of fooling it.
 //!
@@ -223,6 +226,9 @@ fn grid_min_s(p: &SoakParams) -> f64 {
 /// Decays faster than this many times the grid's fastest may be negative (the controller's
 /// undershoot); slower ones are the plate's and its surroundings' and only decay.
 const FREE_TAUS: f64 = 2.5;
+/// Columns after the decays: the temperature's rate of change (heat into the bed's own
+/// capacity, either sign).
+const EXTRA_COLS: usize = 1;
 /// Ratio between neighbouring time constants of the grid.
 const GRID_RATIO: f64 = std::f64::consts::SQRT_2;
 /// Consecutive bins out of the band that restart the soak clock (fewer are only skipped).
@@ -248,6 +254,10 @@ const OVERSHOOT_C: f64 = 0.5;
 struct Point {
     t_s: f64,
     power: f64,
+    /// The bin's rate of temperature change (°C/s), edge to edge: power that went into the
+    /// bed's own heat capacity (a bang-bang heater's on and off, a PID's derivative kick) is
+    /// no heat flow to its surroundings, and this column takes it out of the decays.
+    rate_c_s: f64,
 }
 
 /// A bin being filled: the time-weighted integrals of power, time and temperature.
@@ -259,6 +269,7 @@ struct Bin {
     power_int: f64,
     temp_sum: f64,
     temp_n: u32,
+    temp_last: f64,
 }
 
 /// One direction's test (see `SoakDetector::test`).
@@ -291,6 +302,8 @@ pub struct SoakDetector {
     target_c: Option<f64>,
     last: Option<(f64, f64)>,
     bin: Option<Bin>,
+    /// Where the last closed bin with a temperature ended, and its last temperature.
+    edge: Option<(f64, f64)>,
     /// Mean powers of the latest bins (for the one-minute saturation check).
     recent: Vec<(f64, f64)>,
     band_since_s: Option<f64>,
@@ -343,13 +356,14 @@ impl SoakDetector {
             tau *= GRID_RATIO;
         }
         taus.push(params.tau_max_s);
-        let k = taus.len() + 1;
+        let k = taus.len() + 1 + EXTRA_COLS;
         SoakDetector {
             params,
             taus,
             target_c: None,
             last: None,
             bin: None,
+            edge: None,
             recent: Vec::new(),
             band_since_s: None,
             soak_t0_s: None,
@@ -449,6 +463,7 @@ impl SoakDetector {
         if let Some(bin) = self.bin.as_mut() {
             bin.temp_sum += temp_c;
             bin.temp_n += 1;
+            bin.temp_last = temp_c;
         }
         self.last = Some((t_s, power.clamp(0.0, 1.0)));
         self.status.clone()
@@ -473,12 +488,22 @@ impl SoakDetector {
                     } else {
                         f64::NAN
                     };
+                    let rate = match self.edge {
+                        Some((start, last))
+                            if bin.temp_n > 0 && (start - bin.start_s).abs() < 1e-9 =>
+                        {
+                            (bin.temp_last - last) / bin_s
+                        }
+                        _ => 0.0,
+                    };
                     self.on_bin(
                         bin.t_int / bin.covered_s,
                         bin.power_int / bin.covered_s,
                         temp,
+                        rate,
                     );
                 }
+                self.edge = (bin.temp_n > 0).then_some((bin.start_s + bin_s, bin.temp_last));
                 let skip = ((t_s - bin.start_s) / bin_s).floor();
                 self.bin = Some(Bin {
                     start_s: bin.start_s + skip * bin_s,
@@ -507,18 +532,20 @@ impl SoakDetector {
         }
     }
 
-    /// The model's row at time `t_s`: 1, then each decay.
-    fn row(&self, t_s: f64) -> DVector<f64> {
-        let origin = self.origin_s.unwrap_or(t_s);
-        let dt = (t_s - origin).max(0.0);
+    /// The model's row for a bin: 1, then each decay, then the temperature's rate of change.
+    fn row(&self, p: &Point) -> DVector<f64> {
+        let origin = self.origin_s.unwrap_or(p.t_s);
+        let dt = (p.t_s - origin).max(0.0);
         DVector::from_iterator(
-            self.taus.len() + 1,
-            std::iter::once(1.0).chain(self.taus.iter().map(|tau| (-dt / tau).exp())),
+            self.taus.len() + 1 + EXTRA_COLS,
+            std::iter::once(1.0)
+                .chain(self.taus.iter().map(|tau| (-dt / tau).exp()))
+                .chain([p.rate_c_s]),
         )
     }
 
     fn add_point(&mut self, p: Point) {
-        let x = self.row(p.t_s);
+        let x = self.row(&p);
         self.xtx.ger(1.0, &x, &x, 1.0);
         self.xty.axpy(p.power, &x, 1.0);
         self.yty += p.power * p.power;
@@ -526,7 +553,7 @@ impl SoakDetector {
     }
 
     /// One smoothed bin: temperature and headroom gates, then the model and the decision.
-    fn on_bin(&mut self, t_s: f64, power: f64, temp_c: f64) {
+    fn on_bin(&mut self, t_s: f64, power: f64, temp_c: f64, rate_c_s: f64) {
         if matches!(self.status, SoakStatus::Stable { .. }) {
             return;
         }
@@ -624,11 +651,15 @@ impl SoakDetector {
         }
         let soak_t0 = *self.soak_t0_s.get_or_insert(t_s);
         self.origin_s.get_or_insert(t_s);
-        self.add_point(Point { t_s, power });
+        self.add_point(Point {
+            t_s,
+            power,
+            rate_c_s,
+        });
         if self.points.len() > MAX_POINTS {
             let keep = self.points.split_off(MAX_POINTS / 2);
             self.points.clear();
-            let k = self.taus.len() + 1;
+            let k = self.taus.len() + 1 + EXTRA_COLS;
             self.xtx = DMatrix::zeros(k, k);
             self.xty = DVector::zeros(k);
             self.yty = 0.0;
@@ -674,6 +705,7 @@ impl SoakDetector {
                             || *tau <= self.excursion_len_s
                             || *tau <= warm_free_s
             }))
+            .chain([true; EXTRA_COLS])
             .collect()
     }
 
@@ -696,7 +728,7 @@ impl SoakDetector {
         let residuals: Vec<f64> = self
             .points
             .iter()
-            .map(|p| sign * p.power - self.row(p.t_s).dot(coef))
+            .map(|p| sign * p.power - self.row(p).dot(coef))
             .collect();
         let n = residuals.len();
         let used = coef.iter().filter(|c| **c != 0.0).count();
@@ -719,7 +751,11 @@ impl SoakDetector {
 
     /// The decays' values at `t_s` (the constant's entry 0): g·c is the power still to fall.
     fn decays_at(&self, t_s: f64) -> DVector<f64> {
-        let mut g = self.row(t_s);
+        let mut g = self.row(&Point {
+            t_s,
+            power: 0.0,
+            rate_c_s: 0.0,
+        });
         g[0] = 0.0;
         g
     }
@@ -845,7 +881,7 @@ impl SoakDetector {
             final_power: sign * best.coef[0],
             remaining,
             remaining_upper,
-            amplitude: sign * best.coef.iter().skip(1).sum::<f64>(),
+            amplitude: sign * best.coef.iter().skip(1).take(self.taus.len()).sum::<f64>(),
             rising,
             tau_unbounded: slowest > 0.5 * remaining.max(theta),
             noise_sd: white.sqrt(),
@@ -1319,6 +1355,62 @@ mod tests {
             }
         }
         assert_eq!(checked, defaults.as_object().unwrap().len());
+    }
+
+    /// A watermark (bang-bang) bed: one heat capacity, switched between 0 and full power at
+    /// ±1 °C about the target, losing heat to surroundings that warm with a 15-min decay, one
+    /// sample a second. Returns the detector after `until_s` and the sd of the raw 10-s bins
+    /// of power over the last 10 minutes.
+    fn bang_bang_bed(until_s: f64) -> (SoakDetector, f64) {
+        // Full power heats the bed by 0.2 °C/s; it loses 1 % of full power per °C over its
+        // surroundings (about 0.35 at the target).
+        let (heat_c_s, loss_per_c) = (0.2, 0.01);
+        let mut temp = 25.0;
+        let mut on = true;
+        let mut d = SoakDetector::new(SoakParams::default());
+        let mut bins: Vec<f64> = Vec::new();
+        let mut acc = 0.0;
+        let mut t = 0.0;
+        while t < until_s {
+            let ambient = 25.0 + 10.0 * (1.0 - (-t / 900.0).exp());
+            if temp > TARGET_C + 1.0 {
+                on = false;
+            } else if temp < TARGET_C - 1.0 {
+                on = true;
+            }
+            let power = if on { 1.0 } else { 0.0 };
+            d.push(t, power, temp, TARGET_C);
+            acc += power;
+            if (t as u64 + 1) % 10 == 0 {
+                bins.push(acc / 10.0);
+                acc = 0.0;
+            }
+            temp += heat_c_s * (power - loss_per_c * (temp - ambient));
+            t += 1.0;
+        }
+        let last: Vec<f64> = bins[bins.len() - 60..].to_vec();
+        let mean = last.iter().sum::<f64>() / last.len() as f64;
+        let sd = (last.iter().map(|b| (b - mean).powi(2)).sum::<f64>() / last.len() as f64).sqrt();
+        (d, sd)
+    }
+
+    /// Power a bang-bang heater puts into the bed's own heat capacity (on: the temperature
+    /// climbs; off: it falls) is no heat flow: the temperature's rate takes it out of the
+    /// model, so the scatter left is a small part of the 0/1 switching's.
+    #[test]
+    fn a_bang_bang_heaters_switching_is_taken_out_by_the_temperature_rate() {
+        let (d, raw_sd) = bang_bang_bed(5400.0);
+        let fit = d.fit().expect("a fit after 90 min");
+        assert!(
+            raw_sd > 0.1,
+            "the bins of a switching heater scatter: {raw_sd}"
+        );
+        assert!(
+            fit.noise_sd < 0.25 * raw_sd,
+            "scatter about the fit {:.4} against the raw bins' {raw_sd:.4}: {}",
+            fit.noise_sd,
+            d.explanation()
+        );
     }
 
     #[test]
