@@ -6,6 +6,7 @@ mod backlash;
 mod backlash_job;
 mod bench;
 mod browser;
+mod cli;
 mod daemon;
 mod fake;
 mod http;
