@@ -8,4 +8,5 @@ pub mod mesh;
 pub mod pylons;
 pub mod soak;
 pub mod soak_families;
+pub mod soak_real;
 pub mod solve;
