@@ -893,16 +893,30 @@ impl SoakDetector {
         let saturated_recently = self
             .last_saturated_s
             .is_some_and(|t| now_s - t < p.min_soak_s);
-        let fit_words = format!(
-            "best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most {:.2} % \
-             (stable below {:.2} %; power noise {:.2} %)",
-            remaining * 100.0,
-            tau_s / 60.0,
-            fit.final_power * 100.0,
-            remaining_upper * 100.0,
-            theta * 100.0,
-            sigma2.sqrt() * 100.0
-        );
+        // Early in a soak (or on a bed whose power wanders) the best fit can head for a power
+        // the heater cannot give; its numbers would only confuse: say so in words instead.
+        let plausible = (-0.05..=self.max_power + 0.05).contains(&fit.final_power)
+            && remaining <= self.max_power
+            && remaining_upper <= self.max_power;
+        let fit_words = if plausible {
+            format!(
+                "best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most {:.2} % \
+                 (stable below {:.2} %; power noise {:.2} %)",
+                remaining * 100.0,
+                tau_s / 60.0,
+                fit.final_power * 100.0,
+                remaining_upper * 100.0,
+                theta * 100.0,
+                sigma2.sqrt() * 100.0
+            )
+        } else {
+            format!(
+                "the power is still changing too much to tell where it settles (stable once less \
+                 than {:.2} % can still {fall}; power noise {:.2} %)",
+                theta * 100.0,
+                sigma2.sqrt() * 100.0
+            )
+        };
         if span_ok && ruled_out && !saturated_recently {
             self.status = SoakStatus::Stable { at_s: now_s };
             self.explanation = format!(
@@ -916,7 +930,7 @@ impl SoakDetector {
         }
         let mut waits = Vec::new();
         if !ruled_out {
-            if fit.tau_unbounded && remaining > theta {
+            if plausible && fit.tau_unbounded && remaining > theta {
                 waits.push(format!(
                     "power still {falling} steadily ({:.3} %/min); the end of the decay is not \
                      in sight yet ({fit_words})",
@@ -934,7 +948,14 @@ impl SoakDetector {
             ));
         }
         if saturated_recently {
-            waits.push("the heater was at full power within the minimum soak".into());
+            waits.push(if self.max_power < 1.0 {
+                format!(
+                    "the heater was at its max_power ({:.2}) within the minimum soak",
+                    self.max_power
+                )
+            } else {
+                "the heater was at full power within the minimum soak".into()
+            });
         }
         // ETA: the best fit's fall to θ, and the span the test needs to rule out
         // the slowest decay allowed: its slope θ/τ_max known to ± θ/(Z·τ_max) at this noise

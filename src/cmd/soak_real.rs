@@ -224,6 +224,27 @@ mod tests {
         assert!(out.why.contains("from the target 70.0 °C"), "{}", out.why);
     }
 
+    /// What the console says on real beds reads as a power a heater can give: the fits of
+    /// wandering beds headed for −183 % or 25 556 % and were printed as such.
+    #[test]
+    fn the_explanations_on_real_beds_state_no_impossible_power() {
+        for t in &all() {
+            let why = run_real(t, &SoakParams::default()).why;
+            for (i, _) in why.match_indices(" %") {
+                let num: String = why[..i]
+                    .chars()
+                    .rev()
+                    .take_while(|c| c.is_ascii_digit() || *c == '.' || *c == '-')
+                    .collect::<Vec<_>>()
+                    .into_iter()
+                    .rev()
+                    .collect();
+                let v: f64 = num.parse().unwrap_or(0.0);
+                assert!((-5.0..=105.0).contains(&v), "{}: {why}", t.name);
+            }
+        }
+    }
+
     #[test]
     fn header_values_are_read_and_missing_ones_named() {
         let text = "# heater_bed control: watermark\n# heater_bed max_power: 0.6 (set)\n\
