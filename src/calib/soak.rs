@@ -247,6 +247,8 @@ const MAX_POINTS: usize = 20_000;
 const MAX_HOLD_S: f64 = 30.0;
 /// Saturation is judged on the mean power over this long.
 const SATURATION_WINDOW_S: f64 = 60.0;
+/// A power held this long at one value while heating is the heater's cap (`max_power`), s.
+const CAP_RUN_S: f64 = 30.0;
 /// A temperature this far over the target counts as an overshoot, °C.
 const OVERSHOOT_C: f64 = 0.5;
 
@@ -320,6 +322,11 @@ pub struct SoakDetector {
     last_saturated_s: Option<f64>,
     /// The heater's `max_power` (Klipper caps the pwm there): saturation is measured against it.
     max_power: f64,
+    /// `max_power` came from Klipper's config ([`SoakDetector::set_max_power`]); otherwise it
+    /// is learnt from the heat-up (see `learn_cap`).
+    max_power_set: bool,
+    /// The power held at one value while heating, and since when.
+    cap_run: Option<(f64, f64)>,
     status: SoakStatus,
     explanation: String,
     fit: Option<DecayFit>,
@@ -376,6 +383,8 @@ impl SoakDetector {
             excursions: 0,
             last_saturated_s: None,
             max_power: 1.0,
+            max_power_set: false,
+            cap_run: None,
             status: SoakStatus::Heating,
             explanation: "no samples yet".into(),
             fit: None,
@@ -394,6 +403,30 @@ impl SoakDetector {
     pub fn set_max_power(&mut self, max_power: f64) {
         if max_power.is_finite() && (0.05..=1.0).contains(&max_power) {
             self.max_power = max_power;
+            self.max_power_set = true;
+        }
+    }
+
+    /// The `max_power` saturation is measured against: Klipper's, when given; else 1.0 until
+    /// the heat-up shows a lower cap (see [`SoakDetector::push`]).
+    #[must_use]
+    pub fn max_power(&self) -> f64 {
+        self.max_power
+    }
+
+    /// Without Klipper's `max_power` (a trace replayed offline), the cap shows in the heat-up:
+    /// while the bed is below its band a PID heater sits at exactly `max_power`, and a
+    /// watermark heater's "on" is `max_power`. A power held at one value for `CAP_RUN_S` while
+    /// heating, below the cap assumed so far, is taken as the cap.
+    fn learn_cap(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) {
+        let heating = temp_c < target_c - self.params.temp_band_c;
+        match self.cap_run {
+            Some((v, since)) if heating && (power - v).abs() < 1e-9 => {
+                if t_s - since >= CAP_RUN_S && v >= 0.05 && v < self.max_power {
+                    self.max_power = v;
+                }
+            }
+            _ => self.cap_run = heating.then_some((power, t_s)),
         }
     }
 
@@ -419,9 +452,10 @@ impl SoakDetector {
 
     /// Forgets everything but the thresholds and `max_power` (a new heat-up).
     pub fn reset(&mut self) {
-        let max_power = self.max_power;
+        let (max_power, set) = (self.max_power, self.max_power_set);
         *self = SoakDetector::new(self.params.clone());
         self.max_power = max_power;
+        self.max_power_set = set;
     }
 
     /// Feeds one sample: time `t_s` (any origin, increasing), heater `power` (0..1, held until
@@ -441,6 +475,9 @@ impl SoakDetector {
             // The new target holds from this sample on; what came before belongs to the old.
             self.last = last.map(|(t, _)| (t, power.clamp(0.0, 1.0)));
             self.target_c = Some(target_c);
+        }
+        if !self.max_power_set {
+            self.learn_cap(t_s, power.clamp(0.0, 1.0), temp_c, target_c);
         }
         if target_c <= self.params.skip_below_c {
             self.last = Some((t_s, power.clamp(0.0, 1.0)));
@@ -1488,6 +1525,41 @@ mod tests {
         d.set_max_power(7.0);
         d.set_max_power(f64::NAN);
         assert_eq!(d.max_power, 1.0);
+    }
+
+    /// A trace replayed without Klipper's config (`klipcal soak-detect`): the heat-up at a
+    /// steady 0.6 shows the cap, and the bed at its target still at 0.6 is still heating.
+    #[test]
+    fn a_cap_below_full_power_is_learnt_from_the_heat_up() {
+        let mut d = SoakDetector::new(SoakParams::default());
+        for k in 0..600 {
+            let t = f64::from(k);
+            d.push(t, 0.6, 25.0 + 0.055 * t, TARGET_C);
+        }
+        assert_eq!(d.max_power(), 0.6);
+        for k in 600..900 {
+            d.push(f64::from(k), 0.6, TARGET_C, TARGET_C);
+        }
+        assert_eq!(*d.status(), SoakStatus::Heating, "{}", d.explanation());
+        assert!(
+            d.explanation().contains("max_power 0.60"),
+            "{}",
+            d.explanation()
+        );
+        // A PID's varying output while heating is no cap; Klipper's own value wins.
+        let mut varying = SoakDetector::new(SoakParams::default());
+        for k in 0..600 {
+            let t = f64::from(k);
+            varying.push(t, 0.5 + 0.1 * (t / 7.0).sin(), 25.0 + 0.055 * t, TARGET_C);
+        }
+        assert_eq!(varying.max_power(), 1.0);
+        let mut told = SoakDetector::new(SoakParams::default());
+        told.set_max_power(0.8);
+        for k in 0..600 {
+            let t = f64::from(k);
+            told.push(t, 0.6, 25.0 + 0.055 * t, TARGET_C);
+        }
+        assert_eq!(told.max_power(), 0.8);
     }
 
     #[test]

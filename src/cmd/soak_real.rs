@@ -245,6 +245,36 @@ mod tests {
         }
     }
 
+    /// The bed capped at max_power 0.6 (issue 10: measure saturation against it), replayed as
+    /// `klipcal soak-detect` does, without its config: the cap is learnt from the heat-up.
+    #[test]
+    fn the_capped_real_bed_shows_its_max_power_in_its_heat_up() {
+        let traces = all();
+        let capped = traces
+            .iter()
+            .find(|t| t.max_power < 0.75)
+            .expect("a capped bed");
+        let mut det = SoakDetector::new(SoakParams::default());
+        for s in &capped.samples {
+            det.push(s.t_s, s.power, s.temp_c, s.target_c);
+        }
+        assert!(
+            (det.max_power() - capped.max_power).abs() < 1e-9,
+            "{}: learnt {}, config {}",
+            capped.name,
+            det.max_power(),
+            capped.max_power
+        );
+        // Beds at full power learn nothing lower.
+        for t in traces.iter().filter(|t| t.max_power == 1.0) {
+            let mut det = SoakDetector::new(SoakParams::default());
+            for s in &t.samples {
+                det.push(s.t_s, s.power, s.temp_c, s.target_c);
+            }
+            assert_eq!(det.max_power(), 1.0, "{}", t.name);
+        }
+    }
+
     #[test]
     fn header_values_are_read_and_missing_ones_named() {
         let text = "# heater_bed control: watermark\n# heater_bed max_power: 0.6 (set)\n\
