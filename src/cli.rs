@@ -319,11 +319,17 @@ pub struct PylonsArgs {
 
 /// `klipcal soak-detect`
 #[derive(Debug, Args)]
+#[command(group(clap::ArgGroup::new("input").required(true).args(["trace", "klippy_log"])))]
 pub struct SoakDetectArgs {
     /// CSV trace with columns `t_s,power,temp_c,target_c` (power 0..1; a header row is allowed).
     #[arg(long, value_name = "PATH")]
-    pub trace: PathBuf,
-    /// Print one JSON object (`{"stable_at_s": …, …}`) instead of text.
+    pub trace: Option<PathBuf>,
+    /// A klippy.log instead: every hold of the bed at a heated target in its `Stats` lines,
+    /// judged one by one, with the bed's `max_power` from the log's config dump.
+    #[arg(long, value_name = "PATH")]
+    pub klippy_log: Option<PathBuf>,
+    /// Print one JSON object (`{"stable_at_s": …, …}`; with `--klippy-log`, `{"holds": […]}`)
+    /// instead of text.
     #[arg(long)]
     pub json: bool,
 }

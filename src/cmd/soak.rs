@@ -173,9 +173,14 @@ pub fn replay(samples: &[TraceSample], params: &SoakParams) -> TraceVerdict {
 /// # Errors
 /// An unreadable or malformed trace (the message names the line and what is expected).
 pub fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
-    let samples = read_trace(&args.trace).map_err(|e| match e {
+    let trace = match (&args.trace, &args.klippy_log) {
+        (Some(trace), _) => trace,
+        (None, Some(log)) => return detect_log(log, args.json, params),
+        (None, None) => anyhow::bail!("give --trace FILE or --klippy-log FILE"),
+    };
+    let samples = read_trace(trace).map_err(|e| match e {
         TraceError::Read { .. } => anyhow::Error::new(e),
-        other => anyhow::Error::new(other).context(format!("trace {}", args.trace.display())),
+        other => anyhow::Error::new(other).context(format!("trace {}", trace.display())),
     })?;
     let v = replay(&samples, params);
     if args.json {
@@ -192,6 +197,127 @@ pub fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Result<Exit
         ),
     }
     println!("why: {}", v.reason);
+    Ok(ExitCode::SUCCESS)
+}
+
+/// One hold of the bed at a heated target in a klippy.log, as the detector judged it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct LogHold {
+    /// Klipper's eventtime when the target was set, s.
+    pub from_eventtime_s: f64,
+    /// The target before, °C.
+    pub from_target_c: f64,
+    /// The target held, °C.
+    pub target_c: f64,
+    /// How long the target was held in the log, s.
+    pub held_s: f64,
+    /// Seconds after the target was set that the bed was declared stable.
+    pub stable_after_s: Option<f64>,
+    /// The detector's word at the declaration or at the end of the hold.
+    pub reason: String,
+}
+
+/// Every hold of the bed at a heated target in one start of Klipper, judged by a detector
+/// that sees the whole history (as the daemon would), with `max_power` when the log gives it.
+#[must_use]
+pub fn log_holds(
+    stats: &[crate::klipper::klippy_log::BedStat],
+    max_power: Option<f64>,
+    params: &SoakParams,
+) -> Vec<LogHold> {
+    let mut d = SoakDetector::new(params.clone());
+    if let Some(m) = max_power {
+        d.set_max_power(m);
+    }
+    let mut holds: Vec<LogHold> = Vec::new();
+    let mut prev_target: Option<f64> = None;
+    for s in stats {
+        if prev_target.map_or(true, |t| (t - s.target_c).abs() > 0.05) {
+            if s.target_c > params.skip_below_c {
+                holds.push(LogHold {
+                    from_eventtime_s: s.eventtime_s,
+                    from_target_c: prev_target.unwrap_or(0.0),
+                    target_c: s.target_c,
+                    held_s: 0.0,
+                    stable_after_s: None,
+                    reason: String::new(),
+                });
+            }
+            prev_target = Some(s.target_c);
+        }
+        let status = d.push(s.eventtime_s, s.pwm, s.temp_c, s.target_c);
+        if let Some(h) = holds
+            .last_mut()
+            .filter(|h| (h.target_c - s.target_c).abs() <= 0.05)
+        {
+            h.held_s = s.eventtime_s - h.from_eventtime_s;
+            if h.stable_after_s.is_none() {
+                if let SoakStatus::Stable { at_s } = status {
+                    h.stable_after_s = Some(at_s - h.from_eventtime_s);
+                }
+                h.reason = d.explanation().to_string();
+            }
+        }
+    }
+    holds
+}
+
+/// `klipcal soak-detect --klippy-log PATH [--json]`.
+fn detect_log(path: &Path, json: bool, params: &SoakParams) -> anyhow::Result<ExitCode> {
+    let bytes = std::fs::read(path)
+        .map_err(|e| anyhow::anyhow!("cannot read klippy.log {}: {e}", path.display()))?;
+    let text = String::from_utf8_lossy(&bytes);
+    let sessions = crate::klipper::klippy_log::parse(&text);
+    let mut out = Vec::new();
+    for s in &sessions {
+        let max_power = s.max_power.or(s.has_config.then_some(1.0));
+        for h in log_holds(&s.stats, max_power, params) {
+            out.push((h, max_power, s.control.clone()));
+        }
+    }
+    if json {
+        let holds: Vec<serde_json::Value> = out
+            .iter()
+            .map(|(h, m, c)| {
+                let mut v = serde_json::to_value(h).unwrap_or_default();
+                v["max_power"] = serde_json::json!(m);
+                v["control"] = serde_json::json!(c);
+                v
+            })
+            .collect();
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({ "holds": holds }))?
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    if out.is_empty() {
+        println!(
+            "no hold of the bed at a heated target (above {:.0} °C) in {}: expected `Stats …: … \
+             heater_bed: target=… temp=… pwm=…` lines",
+            params.skip_below_c,
+            path.display()
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    for (h, m, c) in &out {
+        let said = match h.stable_after_s {
+            Some(s) => format!("stable after {:.1} min", s / 60.0),
+            None => "not stable within the hold".to_string(),
+        };
+        println!(
+            "eventtime {:.1}: {:.0} -> {:.0} °C, held {:.1} min ({}, max_power {}): {said}",
+            h.from_eventtime_s,
+            h.from_target_c,
+            h.target_c,
+            h.held_s / 60.0,
+            c.as_deref().unwrap_or("control unknown"),
+            m.map_or("unknown, learnt from the heat-up".to_string(), |m| format!(
+                "{m:.2}"
+            )),
+        );
+        println!("  why: {}", h.reason);
+    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -275,6 +275,73 @@ mod tests {
         }
     }
 
+    /// A real trace written back as the klippy.log it came from (config dump, then a `Stats`
+    /// line a second, the target set from 0 after 30 s).
+    pub(crate) fn as_klippy_log(t: &RealTrace) -> String {
+        let mut log = format!(
+            "Starting Klippy...\n===== Config file =====\n[heater_bed]\nheater_pin = PA1\n\
+             control = {}\nmax_power = {}\n=======================\n",
+            t.control, t.max_power
+        );
+        for k in 0..30 {
+            log += &format!(
+                "Stats {:.1}: gcodein=0 heater_bed: target=0 temp=22.0 pwm=0.000 sysload=0.1\n",
+                1000.0 + f64::from(k)
+            );
+        }
+        for x in &t.samples {
+            log += &format!(
+                "Stats {:.1}: gcodein=0  mcu: mcu_awake=0.003 heater_bed: target={} temp={} \
+                 pwm={:.3} extruder: target=0 temp=21.0 pwm=0.000\n",
+                1030.0 + x.t_s,
+                x.target_c,
+                x.temp_c,
+                x.power
+            );
+        }
+        log
+    }
+
+    /// `klipcal soak-detect --klippy-log` reads back what the log holds and judges each hold
+    /// as a replay of the same samples does: the real beds written back as their logs give
+    /// every sample, max_power from the config dump, one hold as long as the trace, and the
+    /// same declaration.
+    #[test]
+    fn a_klippy_log_gives_the_same_holds_as_its_trace() {
+        let params = SoakParams::default();
+        for t in &all() {
+            let sessions = crate::klipper::klippy_log::parse(&as_klippy_log(t));
+            assert_eq!(sessions.len(), 1, "{}", t.name);
+            let session = &sessions[0];
+            assert_eq!(session.max_power, Some(t.max_power), "{}", t.name);
+            assert_eq!(session.stats.len(), 30 + t.samples.len(), "{}", t.name);
+            for (b, x) in session.stats[30..].iter().zip(&t.samples) {
+                assert!((b.eventtime_s - 1030.0 - x.t_s).abs() < 0.06, "{}", t.name);
+                assert!(
+                    (b.pwm - x.power).abs() < 6e-4 && b.temp_c == x.temp_c,
+                    "{}",
+                    t.name
+                );
+            }
+            let holds = crate::cmd::soak::log_holds(&session.stats, session.max_power, &params);
+            assert_eq!(holds.len(), 1, "{}: {holds:?}", t.name);
+            let h = &holds[0];
+            let end = t.samples.last().map_or(0.0, |s| s.t_s);
+            assert!((h.held_s - end).abs() < 0.1, "{}", t.name);
+            // The same samples replayed as a trace, with the same max_power.
+            let mut d = SoakDetector::new(params.clone());
+            d.set_max_power(t.max_power);
+            let declared = session.stats.iter().find_map(|b| {
+                match d.push(b.eventtime_s, b.pwm, b.temp_c, b.target_c) {
+                    SoakStatus::Stable { at_s } => Some(at_s - h.from_eventtime_s),
+                    _ => None,
+                }
+            });
+            assert_eq!(h.stable_after_s, declared, "{}", t.name);
+            assert!(!h.reason.is_empty(), "{}", t.name);
+        }
+    }
+
     #[test]
     fn header_values_are_read_and_missing_ones_named() {
         let text = "# heater_bed control: watermark\n# heater_bed max_power: 0.6 (set)\n\

@@ -14,6 +14,8 @@
 //!   typed values, names checked against `[A-Za-z0-9_.-]`, numbers without exponents.
 //! - [`start_macro`]: [`find_start_macro`], the start macro the slicer calls (configured,
 //!   `PRINT_START` or `START_PRINT`).
+//! - [`klippy_log`]: the bed's history in a klippy.log (`Stats` lines, the config dump's
+//!   `[heater_bed]` max_power and control), per start of Klipper.
 //! - [`facts`]: [`PrinterFacts`], the few settings klipcal needs, from a [`Config`] or from
 //!   Moonraker's `configfile.config` JSON through one code path.
 
@@ -24,6 +26,7 @@ pub mod edit;
 pub mod facts;
 pub mod files;
 pub mod gcode_cmd;
+pub mod klippy_log;
 pub mod plan;
 pub mod start_macro;
 

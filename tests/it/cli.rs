@@ -25,3 +25,77 @@ fn an_offline_command_piped_into_a_reader_that_stops_early_ends_quietly() {
         "{stderr}"
     );
 }
+
+/// `klipcal soak-detect --klippy-log`: a real bed's heat-up (tests/fixtures/soak/real) written
+/// back as Klipper logs it, config dump first, a timestamp before some lines. One hold at 80 °C
+/// comes back with its length, the config's control and max_power (default 1.0), and the
+/// declaration the detector makes on it.
+#[test]
+fn soak_detect_judges_each_hold_of_a_klippy_log() {
+    let csv = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/fixtures/soak/real/ryszardwpl-vzbot-old-1.csv"
+    ))
+    .unwrap();
+    let mut log = String::from(
+        "Starting Klippy...\n===== Config file =====\n[heater_bed]\ncontrol = pid\n\
+         =======================\n",
+    );
+    for k in 0..30 {
+        log += &format!(
+            "Stats {}.0: gcodein=0 heater_bed: target=0 temp=22.0 pwm=0.000\n",
+            1000 + k
+        );
+    }
+    let mut last = 0.0;
+    for (i, line) in csv
+        .lines()
+        .filter(|l| l.starts_with(|c: char| c.is_ascii_digit()))
+        .enumerate()
+    {
+        let v: Vec<&str> = line.split(',').collect();
+        let t: f64 = v[0].parse().unwrap();
+        last = t;
+        let stamp = if i % 2 == 0 { "12:25:06.344: " } else { "" };
+        log += &format!(
+            "{stamp}Stats {:.1}: gcodein=0 mcu: mcu_awake=0.003 heater_bed: target={} temp={} pwm={} sysload=0.1\n",
+            1030.0 + t,
+            v[3],
+            v[2],
+            v[1]
+        );
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("klippy.log");
+    std::fs::write(&path, log).unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+        .args(["soak-detect", "--json", "--klippy-log"])
+        .arg(&path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let holds = v["holds"].as_array().unwrap();
+    assert_eq!(holds.len(), 1, "{v}");
+    let h = &holds[0];
+    assert_eq!(h["target_c"], 80.0);
+    assert_eq!(h["control"], "pid");
+    assert_eq!(h["max_power"], 1.0);
+    assert!((h["held_s"].as_f64().unwrap() - last).abs() < 0.1, "{h}");
+    let stable = h["stable_after_s"]
+        .as_f64()
+        .expect("declared within the 74 min hold");
+    // Never before the bed reached its band (about a minute) and settled (settle + minimum soak).
+    assert!(stable > 60.0 + 480.0 && stable < last, "{h}");
+    assert!(
+        h["reason"]
+            .as_str()
+            .unwrap()
+            .contains("power stopped falling"),
+        "{h}"
+    );
+}
