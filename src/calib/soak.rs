@@ -247,6 +247,8 @@ const MAX_POINTS: usize = 20_000;
 const MAX_HOLD_S: f64 = 30.0;
 /// Saturation is judged on the mean power over this long.
 const SATURATION_WINDOW_S: f64 = 60.0;
+/// Readings (power between off and the cap, and temperature) unchanged this long are frozen, s.
+const FROZEN_S: f64 = 120.0;
 /// A power held this long at one value while heating is the heater's cap (`max_power`), s.
 const CAP_RUN_S: f64 = 30.0;
 /// A temperature this far over the target counts as an overshoot, °C.
@@ -327,6 +329,9 @@ pub struct SoakDetector {
     max_power_set: bool,
     /// The power held at one value while heating, and since when.
     cap_run: Option<(f64, f64)>,
+    /// The last reading (power, temperature), and since when readings have not changed.
+    reading: Option<(f64, f64)>,
+    unchanged_since_s: Option<f64>,
     status: SoakStatus,
     explanation: String,
     fit: Option<DecayFit>,
@@ -385,6 +390,8 @@ impl SoakDetector {
             max_power: 1.0,
             max_power_set: false,
             cap_run: None,
+            reading: None,
+            unchanged_since_s: None,
             status: SoakStatus::Heating,
             explanation: "no samples yet".into(),
             fit: None,
@@ -478,6 +485,10 @@ impl SoakDetector {
         }
         if !self.max_power_set {
             self.learn_cap(t_s, power.clamp(0.0, 1.0), temp_c, target_c);
+        }
+        if self.reading != Some((power, temp_c)) {
+            self.reading = Some((power, temp_c));
+            self.unchanged_since_s = Some(t_s);
         }
         if target_c <= self.params.skip_below_c {
             self.last = Some((t_s, power.clamp(0.0, 1.0)));
@@ -927,6 +938,18 @@ impl SoakDetector {
         };
         self.fit = Some(fit);
         let span_ok = span >= p.min_soak_s;
+        // A heater between off and its cap always moves a little, and so does a thermistor's
+        // reading: readings frozen for minutes are a stopped Klipper (a shutdown keeps logging
+        // its last values), not a settled bed.
+        let frozen_s = match (self.unchanged_since_s, self.reading) {
+            (Some(since), Some((power, _)))
+                if power > 0.0 && power < self.params.saturated_power * self.max_power =>
+            {
+                now_s - since
+            }
+            _ => 0.0,
+        };
+        let frozen = frozen_s >= FROZEN_S;
         let saturated_recently = self
             .last_saturated_s
             .is_some_and(|t| now_s - t < p.min_soak_s);
@@ -954,7 +977,7 @@ impl SoakDetector {
                 sigma2.sqrt() * 100.0
             )
         };
-        if span_ok && ruled_out && !saturated_recently {
+        if span_ok && ruled_out && !saturated_recently && !frozen {
             self.status = SoakStatus::Stable { at_s: now_s };
             self.explanation = format!(
                 "power stopped {falling}: temperature within ±{:.1} °C of {:.1} °C, soaked {:.1} \
@@ -976,6 +999,13 @@ impl SoakDetector {
             } else {
                 waits.push(format!("power may still {fall}: {fit_words}"));
             }
+        }
+        if frozen {
+            waits.push(format!(
+                "the bed's power and temperature have not changed for {:.0} s: are Klipper and \
+                 its heater still running?",
+                frozen_s
+            ));
         }
         if span < p.min_soak_s {
             waits.push(format!(
@@ -1560,6 +1590,37 @@ mod tests {
             told.push(t, 0.6, 25.0 + 0.055 * t, TARGET_C);
         }
         assert_eq!(told.max_power(), 0.8);
+    }
+
+    /// A stopped Klipper keeps logging its last values (a real klippy.log held pwm 0.365 and
+    /// 59.9 °C for 30 min after a shutdown, and the detector called it stable after 8 min):
+    /// frozen readings are no settled bed.
+    #[test]
+    fn readings_frozen_for_minutes_are_not_a_settled_bed() {
+        let mut rng = fastrand::Rng::with_seed(9);
+        let mut d = SoakDetector::new(SoakParams::default());
+        for k in 0..3600 {
+            let t = f64::from(k);
+            let (p, temp) = if t < 600.0 {
+                (
+                    0.36 + 0.01 * (rng.f64() - 0.5),
+                    TARGET_C + 0.1 * (rng.f64() - 0.5),
+                )
+            } else {
+                (0.365, TARGET_C - 0.1)
+            };
+            let status = d.push(t, p, temp, TARGET_C);
+            assert!(
+                !matches!(status, SoakStatus::Stable { .. }),
+                "declared at {t} s: {}",
+                d.explanation()
+            );
+        }
+        assert!(
+            d.explanation().contains("have not changed for"),
+            "{}",
+            d.explanation()
+        );
     }
 
     #[test]
