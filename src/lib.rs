@@ -14,9 +14,10 @@
 //! - [`jobs`]: the only place Moonraker I/O meets the math: the session core every calibration
 //!   shares (stored sessions, one active session, runner, guards, console and prompts, bed soak,
 //!   config transaction, routing) and one file per calibration (`jobs::ab`).
-//! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place) and
-//!   G-code command text built from typed values, never from pasted user text. Files reach it
-//!   through the `klipper::Files` trait; [`fsio`] is the small std::fs implementation.
+//! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place),
+//!   G-code command text built from typed values, never from pasted user text, and the bed's
+//!   history read from klippy.log text. Files reach it through the `klipper::Files` trait;
+//!   [`fsio`] is the small std::fs implementation.
 //! - [`gcode`]: PURE. The pylon job generator (printer facts → geometry → toolpaths → G-code
 //!   text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget,
