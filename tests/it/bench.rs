@@ -13,6 +13,18 @@ pub fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
+/// Runs the `klipcal` binary as `cmd` sets it up and asserts that it succeeded (its stderr in
+/// the failure message); its output.
+pub fn klipcal_ok(cmd: &mut Command) -> std::process::Output {
+    let out = cmd.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
 fn bench_py(args: &[&str]) -> Result<String, String> {
     let out = Command::new("python3")
         .arg(repo().join("tests/bench/bench.py"))

@@ -3,6 +3,8 @@
 use std::io::{BufRead, BufReader};
 use std::process::{Command, Stdio};
 
+use crate::bench::klipcal_ok;
+
 /// `klipcal bench soak | head -1`: the reader goes after one line; klipcal ends without a
 /// panic message (it panicked with "failed printing to stdout: Broken pipe" before).
 #[test]
@@ -68,15 +70,10 @@ fn soak_detect_judges_each_hold_of_a_klippy_log() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("klippy.log");
     std::fs::write(&path, log).unwrap();
-    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
-        .args(["soak-detect", "--json", "--klippy-log"])
-        .arg(&path)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = klipcal_ok(
+        Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args(["soak-detect", "--json", "--klippy-log"])
+            .arg(&path),
     );
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     let holds = v["holds"].as_array().unwrap();

@@ -8,7 +8,7 @@ use std::time::Duration;
 use klipcal::moonraker::{Event, Moonraker};
 use serde_json::{json, Value};
 
-use crate::bench::{agent_listed, extension_request, poll, wait_event, Bench, Daemon};
+use crate::bench::{agent_listed, extension_request, klipcal_ok, poll, wait_event, Bench, Daemon};
 
 const LONG: Duration = Duration::from_secs(30);
 
@@ -267,15 +267,10 @@ fn check_prints_a_correct_summary_of_the_corexy_bench() {
 #[test]
 fn check_on_the_cartesian_bench_reports_cartesian_kinematics() {
     let bench = Bench::start("cartesian");
-    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
-        .args(["check", "--json", "--moonraker", &bench.ws_url()])
-        .env("HOME", bench.dir.path())
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let out = klipcal_ok(
+        Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args(["check", "--json", "--moonraker", &bench.ws_url()])
+            .env("HOME", bench.dir.path()),
     );
     let v: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(v["kinematics"], "cartesian");

@@ -9,7 +9,7 @@ use std::time::Duration;
 use klipcal::gcode::{generate, Error, Job, Kinematics, LayoutKind, Machine, Options};
 use serde_json::{json, Value};
 
-use crate::bench::{poll, repo, Bench};
+use crate::bench::{klipcal_ok, poll, repo, Bench};
 
 fn machine(kinematics: Kinematics, size_mm: f64) -> Machine {
     Machine {
@@ -114,23 +114,18 @@ async fn the_job_uploads_with_metadata_and_prints_with_every_pylon_excludable() 
     let bench = Bench::start("corexy");
     let dir = bench.dir.path();
     let (gcode, layout) = (dir.join("pylons.gcode"), dir.join("layout.json"));
-    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
-        .args([
-            "pylons",
-            "--printer-cfg",
-            bench.info["printer_cfg"].as_str().unwrap(),
-        ])
-        .arg("--out")
-        .arg(&gcode)
-        .arg("--layout-out")
-        .arg(&layout)
-        .args(["--bed-temp", "70", "--nozzle-temp", "230"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    klipcal_ok(
+        Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args([
+                "pylons",
+                "--printer-cfg",
+                bench.info["printer_cfg"].as_str().unwrap(),
+            ])
+            .arg("--out")
+            .arg(&gcode)
+            .arg("--layout-out")
+            .arg(&layout)
+            .args(["--bed-temp", "70", "--nozzle-temp", "230"]),
     );
     let layout: Value = serde_json::from_str(&std::fs::read_to_string(&layout).unwrap()).unwrap();
     let ids: Vec<String> = layout["pylons"]
