@@ -231,8 +231,19 @@ pub fn log_holds(
     }
     let mut holds: Vec<LogHold> = Vec::new();
     let mut prev_target: Option<f64> = None;
+    // A hold not declared keeps the detector's word at its end: taken when the target
+    // changes (before the detector forgets) and after the last line.
+    let close = |holds: &mut Vec<LogHold>, d: &SoakDetector, held: Option<f64>| {
+        let open = |h: &&mut LogHold| {
+            h.stable_after_s.is_none() && held.is_some_and(|t| (h.target_c - t).abs() <= 0.05)
+        };
+        if let Some(h) = holds.last_mut().filter(open) {
+            h.reason = d.explanation().to_string();
+        }
+    };
     for s in stats {
         if prev_target.map_or(true, |t| (t - s.target_c).abs() > 0.05) {
+            close(&mut holds, &d, prev_target);
             if s.target_c > params.skip_below_c {
                 holds.push(LogHold {
                     from_eventtime_s: s.eventtime_s,
@@ -251,14 +262,13 @@ pub fn log_holds(
             .filter(|h| (h.target_c - s.target_c).abs() <= 0.05)
         {
             h.held_s = s.eventtime_s - h.from_eventtime_s;
-            if h.stable_after_s.is_none() {
-                if let SoakStatus::Stable { at_s } = status {
-                    h.stable_after_s = Some(at_s - h.from_eventtime_s);
-                }
+            if let (None, SoakStatus::Stable { at_s }) = (h.stable_after_s, status) {
+                h.stable_after_s = Some(at_s - h.from_eventtime_s);
                 h.reason = d.explanation().to_string();
             }
         }
     }
+    close(&mut holds, &d, prev_target);
     holds
 }
 
@@ -933,6 +943,38 @@ fn report_real(params: &SoakParams, show_failures: bool) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Each hold of a klippy.log keeps the detector's word at its own end: a bed heated to
+    /// 60 °C, switched off, heated again is two holds, and the first does not say what the
+    /// detector said of the unheated bed.
+    #[test]
+    fn each_log_hold_keeps_its_own_last_word() {
+        use crate::klipper::klippy_log::BedStat;
+        let mut stats = Vec::new();
+        for (from, to, target, temp) in [
+            (0, 600, 60.0, 59.9),
+            (600, 700, 0.0, 40.0),
+            (700, 900, 60.0, 58.5),
+        ] {
+            for k in from..to {
+                stats.push(BedStat {
+                    eventtime_s: f64::from(k),
+                    target_c: target,
+                    temp_c: temp + 0.01 * f64::from(k % 3),
+                    pwm: 0.3 + 0.01 * f64::from(k % 5),
+                });
+            }
+        }
+        let holds = log_holds(&stats, Some(1.0), &SoakParams::default());
+        assert_eq!(holds.len(), 2, "{holds:?}");
+        assert_eq!((holds[0].held_s, holds[1].from_target_c), (599.0, 0.0));
+        for h in &holds {
+            assert!(
+                !h.reason.is_empty() && !h.reason.contains("unheated"),
+                "{h:?}"
+            );
+        }
+    }
 
     fn expect_line_error(text: &str, line: usize, needle: &str) {
         match parse_trace(text) {
