@@ -62,6 +62,17 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Backlash(a)) => {
             crate::cmd::backlash::bench(&a, &config.backlash)
         }
+        Command::Macros(a) => {
+            if a.readme {
+                print!(
+                    "{}",
+                    crate::jobs::table::markdown(&crate::jobs::registry::all_ops())
+                );
+            } else {
+                print!("{}", crate::jobs::registry::macros_cfg());
+            }
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 

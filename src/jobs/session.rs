@@ -450,6 +450,12 @@ impl Core {
         true
     }
 
+    /// Notes that the user closed klipcal's dialog in Klipper (KLIPCAL_PROMPT_CLOSE sends the
+    /// close itself, so a dialog klipcal shows next is sent whole again).
+    pub fn prompt_closed_by_user(&self) {
+        self.mark_closed();
+    }
+
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
     fn mark_closed(&self) -> bool {
         let mut shown = self.shown();
