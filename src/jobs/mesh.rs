@@ -835,7 +835,7 @@ impl Mesh {
         self.homed().await?;
         let sensor = s.options.frame_sensor.clone();
         let me = self.clone();
-        let stop = CancellationToken::new();
+        let stop = self.core.shutdown().child_token();
         let stop2 = stop.clone();
         let sampler = tokio::spawn(async move {
             let t0 = Instant::now();
@@ -1186,7 +1186,7 @@ impl Mesh {
             fit: sel.heating.fit,
             temps_c: temps,
         };
-        tokio::spawn(async move {
+        self.core.spawn(async move {
             me.follow_loop(token, sensor, policy, heating, cooling)
                 .await;
         });

@@ -80,8 +80,8 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             &[arg(
                 "reason",
                 ArgKind::Text,
-                "cancelled by the user",
-                "a few words",
+                "aborted",
+                "a word or a quoted text",
                 "",
                 "why, noted in the session (optional)",
             )],
@@ -277,8 +277,8 @@ impl Calibrations {
                     // The macro closed the dialog in Klipper before asking: klipcal only notes it.
                     self.core.prompt_closed_by_user();
                     Ok(
-                        json!({"message": "dialog closed; type readings on the console \
-                        (KLIPCAL_MEASURE PAIR=... VALUES=...) or on klipcal's page"}),
+                        json!({"message": "type readings on the console: KLIPCAL_MEASURE \
+                        PAIR=... VALUES=... (or on klipcal's page)"}),
                     )
                 }
                 CoreCall::Status => Err(anyhow::anyhow!(
@@ -572,6 +572,23 @@ mod tests {
                 for line in gcode.lines() {
                     assert_eq!(table::gcode_line_problem(line), None, "{name}: {line}");
                 }
+            }
+        }
+    }
+
+    #[test]
+    fn every_example_can_be_typed_on_a_gcode_line_as_it_is() {
+        // Klipper splits parameters at spaces and ends a command at ';', '#' or '*': an example
+        // a user copies from a field hint or the README must arrive whole.
+        for op in all_ops() {
+            for a in op.args {
+                assert!(
+                    !a.example.is_empty() && !a.example.contains([' ', ';', '#', '*', '"', '=']),
+                    "{} {}={:?}",
+                    op.macro_name,
+                    a.name.to_uppercase(),
+                    a.example
+                );
             }
         }
     }
