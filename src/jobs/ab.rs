@@ -242,8 +242,8 @@ impl StartRequest {
 pub struct MeasureRequest {
     /// The pair id as typed.
     pub pair: String,
-    /// The readings as typed, one item each ([`entry::items`]).
-    pub values: Vec<String>,
+    /// The readings as typed, each with where it was typed ([`readings_typed`]).
+    pub values: Vec<entry::Item>,
     /// Remove the pair's readings first (to enter them again, or to drop a wrong one).
     pub clear: bool,
 }
@@ -262,27 +262,41 @@ impl MeasureRequest {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_MEASURE PAIR=A-D1 VALUES=10.02,10.03,10.01")
         })?;
-        let mut values: Vec<String> = Vec::new();
-        for key in ["values", "value"] {
-            match a.raw(key) {
-                Some(Value::Array(items)) => {
-                    for v in items {
-                        match v {
-                            Value::String(s) => values.extend(entry::items(s)),
-                            other => values.push(other.to_string()),
-                        }
-                    }
-                }
-                Some(Value::String(t)) => values.extend(entry::items(t)),
-                Some(other) => values.push(other.to_string()),
-                None => {}
-            }
-        }
+        let mut values = readings_typed(a.raw("values"), "VALUES");
+        values.extend(readings_typed(a.raw("value"), "VALUE"));
         Ok(Self {
             pair,
             values,
             clear: a.flag("clear")?,
         })
+    }
+}
+
+/// Readings as an argument carries them: a list of fields (the page, the API: one reading
+/// each, a comma is its decimal mark), the console's `VALUES=` text (a list: commas separate,
+/// a dot is the decimal mark) or `VALUE=` text (one reading).
+fn readings_typed(v: Option<&Value>, key: &str) -> Vec<entry::Item> {
+    match v {
+        Some(Value::Array(list)) => list
+            .iter()
+            .enumerate()
+            .filter_map(|(i, v)| match v {
+                Value::String(s) => entry::field(s, i + 1),
+                Value::Number(n) => n
+                    .as_f64()
+                    .map(|x| entry::sent_number(x, &format!("field {}", i + 1))),
+                other => entry::field(&other.to_string(), i + 1),
+            })
+            .collect(),
+        Some(Value::String(t)) if key == "VALUES" => entry::list(t),
+        Some(Value::String(t)) => entry::single(t, key),
+        Some(Value::Null) | None => Vec::new(),
+        Some(Value::Number(n)) => n
+            .as_f64()
+            .map(|x| entry::sent_number(x, key))
+            .into_iter()
+            .collect(),
+        Some(other) => entry::single(&other.to_string(), key),
     }
 }
 
@@ -1048,7 +1062,8 @@ impl Ab {
         let values = if req.values.is_empty() && req.clear {
             Vec::new()
         } else {
-            entry::parse(&req.values, &pair.id, &window).map_err(|e| user(e.0))?
+            entry::parse(&req.values, &pair.id, &window)
+                .map_err(|e| user(format!("{}: nothing saved; {}", pair.id, e.0)))?
         };
         let n = s.rounds.len() as i64;
         let mut notes = Vec::new();
@@ -1144,33 +1159,37 @@ impl Ab {
         let typed = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
         })?;
-        let fields: Vec<String> = match a.raw("values") {
-            Some(Value::Array(list)) => list
-                .iter()
-                .map(|v| match v {
-                    Value::String(s) => s.clone(),
-                    other => other.to_string(),
-                })
-                .collect(),
-            Some(Value::String(t)) => entry::items(t),
-            Some(other) => vec![other.to_string()],
-            None => Vec::new(),
-        };
+        let typed_items = readings_typed(a.raw("values"), "VALUES");
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &typed)?;
-        let items: Vec<Value> = fields
-            .iter()
-            .map(|field| {
-                let one = entry::parse(&entry::items(field), &pair.id, &window);
-                json!({
-                    "text": field,
-                    "values": one.as_ref().ok(),
-                    "error": one.err().map(|e| e.0),
-                })
-            })
-            .collect();
-        let all: Vec<String> = fields.iter().flat_map(|f| entry::items(f)).collect();
-        let whole = entry::parse(&all, &pair.id, &window);
+        // One answer per field as sent (blank fields too), so the page marks the field the
+        // user typed in; a console list: one per item.
+        let per_field: Vec<Value> = match a.raw("values") {
+            Some(Value::Array(list)) => {
+                let texts: Vec<String> = list
+                    .iter()
+                    .map(|v| match v {
+                        Value::String(s) => s.clone(),
+                        other => other.to_string(),
+                    })
+                    .collect();
+                texts
+                    .iter()
+                    .enumerate()
+                    .map(|(i, t)| {
+                        let item = typed_items
+                            .iter()
+                            .find(|it| it.label == format!("field {}", i + 1));
+                        item_answer(t, item, &pair.id, &window)
+                    })
+                    .collect()
+            }
+            _ => typed_items
+                .iter()
+                .map(|it| item_answer(&it.text, Some(it), &pair.id, &window))
+                .collect(),
+        };
+        let whole = entry::parse(&typed_items, &pair.id, &window);
         let message = match &whole {
             Ok(v) => format!(
                 "{}: {} reading(s) would be accepted (plausible {:.2}–{:.2} mm); nothing saved",
@@ -1179,8 +1198,9 @@ impl Ab {
                 window.nominal_mm - window.half_width_mm(),
                 window.nominal_mm + window.half_width_mm()
             ),
-            Err(e) => e.0.clone(),
+            Err(e) => format!("{}: would be refused; {}", pair.id, e.0),
         };
+        let items = per_field;
         Ok(json!({
             "pair": pair.id,
             "nominal_mm": pair.nominal_mm,
@@ -1589,6 +1609,22 @@ fn pairs_progress(
         .join(" · ")
 }
 
+/// The check's answer for one field or item: its value, or the problem alone (the page
+/// shows it beside the field).
+fn item_answer(
+    text: &str,
+    item: Option<&entry::Item>,
+    pair: &str,
+    window: &entry::Window,
+) -> Value {
+    let one = item.map(|it| entry::one(it, pair, window));
+    json!({
+        "text": text,
+        "values": one.as_ref().and_then(|r| r.as_ref().ok()).map(|v| vec![*v]),
+        "error": one.and_then(Result::err),
+    })
+}
+
 /// The round's pair named `typed` (any case) and its plausibility window.
 fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair, entry::Window)> {
     let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
@@ -1609,6 +1645,7 @@ fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair,
         nominal_mm: pair.nominal_mm,
         tolerance_mm: s.options.reading_tolerance_mm,
         max_change_pct: s.options.max_change_pct,
+        resolution_mm: s.options.caliper_resolution_mm,
     };
     Ok((pair, window))
 }
@@ -1747,10 +1784,28 @@ mod tests {
         assert!(ApplyRequest::parse(&json!({"FORCE": "1"})).unwrap().force);
         assert!(!ApplyRequest::parse(&json!({})).unwrap().force);
         let m = MeasureRequest::parse(
-            &json!({"pair": "A-D1", "values": "10.02, 10.03;10.01", "value": ""}),
+            &json!({"pair": "A-D1", "values": "10.02, 10.03,10.01", "value": "10,04"}),
         )
         .unwrap();
-        assert_eq!(m.values, vec!["10.02", "10.03", "10.01"]);
+        let texts: Vec<(&str, &str)> = m
+            .values
+            .iter()
+            .map(|i| (i.text.as_str(), i.label.as_str()))
+            .collect();
+        assert_eq!(
+            texts,
+            vec![
+                ("10.02", "item 1"),
+                ("10.03", "item 2"),
+                ("10.01", "item 3"),
+                ("10,04", "VALUE")
+            ]
+        );
+        // The page's fields: one reading each, named by the field.
+        let m = MeasureRequest::parse(&json!({"pair": "A-D1", "values": ["", "10,10"]})).unwrap();
+        assert_eq!(m.values.len(), 1);
+        assert_eq!(m.values[0].label, "field 2");
+        assert!(m.values[0].comma_is_decimal);
     }
 
     #[test]
