@@ -450,7 +450,11 @@ fn readings_form(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
             text(&p["to"]),
             mm(nominal),
             have.len(),
-            if have.len() >= per_pair { " ✓" } else { "" }
+            match have.len().cmp(&per_pair) {
+                std::cmp::Ordering::Less => "",
+                std::cmp::Ordering::Equal => " ✓",
+                std::cmp::Ordering::Greater => ": more than asked; Clear to enter the pair again",
+            }
         );
         if !have.is_empty() {
             let list: Vec<String> = have.iter().map(|v| mm(*v)).collect();

@@ -1066,6 +1066,26 @@ impl Ab {
                 .map_err(|e| user(format!("{}: nothing saved; {}", pair.id, e.0)))?
         };
         let n = s.rounds.len() as i64;
+        let per_pair = s.options.readings_per_pair;
+        if !req.clear && !values.is_empty() {
+            // The same line sent again (a re-sent console line, a double tap) would double the
+            // pair's readings: refused, with the way to replace them.
+            let have = self.readings(&s)?.remove(&pair.id).unwrap_or_default();
+            let tail = &have[have.len().saturating_sub(values.len())..];
+            let again = tail.len() == values.len()
+                && tail.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9);
+            if again && have.len() + values.len() > per_pair {
+                return Err(user(format!(
+                    "{}: nothing saved: these {} reading(s) are already saved (the same entry \
+                     sent again?), {} of {per_pair} in all. To enter the pair again, replace its \
+                     readings: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
+                    pair.id,
+                    values.len(),
+                    have.len(),
+                    pair.id
+                )));
+            }
+        }
         let mut notes = Vec::new();
         if req.clear {
             let old: Vec<String> = self
@@ -1127,6 +1147,13 @@ impl Ab {
             values.len(),
             s.options.readings_per_pair
         ));
+        if count > s.options.readings_per_pair && !values.is_empty() {
+            message.push_str(&format!(
+                " — more than the {} asked for (all are used); if some were wrong, replace \
+                 them: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
+                s.options.readings_per_pair, pair.id
+            ));
+        }
         let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
         let progress = pairs_progress(&round.layout.pairs, &have, s.options.readings_per_pair);
         message.push('\n');

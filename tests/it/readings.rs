@@ -32,12 +32,6 @@ async fn console_readings_are_read_as_typed_or_refused_whole() {
         .expect("a 10 mm pair")
         .clone();
     let id = pair["id"].as_str().unwrap().to_string();
-    let readings = |st: &Value| -> Vec<f64> {
-        st["readings"][&id]
-            .as_array()
-            .map(|a| a.iter().filter_map(Value::as_f64).collect())
-            .unwrap_or_default()
-    };
     let cases: Vec<(String, Want)> = vec![
         // The issue's lines: four numbers, not two readings read as 10 and 10 and 10 and 9.
         (
@@ -90,7 +84,24 @@ async fn console_readings_are_read_as_typed_or_refused_whole() {
             Want::Answer("1 reading(s) saved, 4 of 5", &[10.10, 10.09, 10.08, 10.07]),
         ),
     ];
-    for (line, want) in &cases {
+    send(&bench, &d, &m, &id, &cases).await;
+}
+
+/// Runs each console line through Klipper and checks what it led to.
+async fn send(
+    bench: &Bench,
+    d: &crate::bench::Daemon,
+    m: &klipcal::moonraker::Moonraker,
+    id: &str,
+    cases: &[(String, Want<'_>)],
+) {
+    let readings = |st: &Value| -> Vec<f64> {
+        st["readings"][id]
+            .as_array()
+            .map(|a| a.iter().filter_map(Value::as_f64).collect())
+            .unwrap_or_default()
+    };
+    for (line, want) in cases {
         let mut rx = m.events();
         let sent = m.gcode(line).await;
         match want {
@@ -111,9 +122,40 @@ async fn console_readings_are_read_as_typed_or_refused_whole() {
                     "{line}: no console line with {words:?}\n{}",
                     d.log_text()
                 );
-                let got = readings(&session(&bench).await);
+                let got = readings(&session(bench).await);
                 assert_eq!(&got, after, "{line}");
             }
         }
     }
+}
+
+/// Issue 25 C2: a line sent again would double a pair's readings ("10 of 5 in all"): it is
+/// refused, saying how to replace them; more readings than asked for are taken with a word.
+#[tokio::test]
+async fn a_line_sent_again_is_refused_and_the_answer_says_how_to_replace() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, s) = measuring_session(&bench).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let id = s["pairs"][0]["id"].as_str().unwrap().to_string();
+    let five = [10.10, 10.09, 10.08, 10.07, 10.06];
+    let six = [10.10, 10.09, 10.08, 10.07, 10.06, 10.05];
+    let line = format!("KLIPCAL_MEASURE PAIR={id} VALUES=10.10,10.09,10.08,10.07,10.06");
+    let cases: Vec<(String, Want)> = vec![
+        (
+            line.clone(),
+            Want::Answer("5 reading(s) saved, 5 of 5", &five),
+        ),
+        (line.clone(), Want::Answer("already saved", &five)),
+        (line.clone(), Want::Answer("CLEAR=1 VALUES=", &five)),
+        (
+            format!("KLIPCAL_MEASURE PAIR={id} VALUES=10.05"),
+            Want::Answer("more than the 5 asked for", &six),
+        ),
+        (
+            format!("KLIPCAL_MEASURE PAIR={id} CLEAR=1 VALUES=10.10,10.09,10.08,10.07,10.06"),
+            Want::Answer("5 of 5 in all", &five),
+        ),
+    ];
+    send(&bench, &d, &m, &id, &cases).await;
 }
