@@ -19,6 +19,8 @@ use crate::moonraker::{ClientOptions, ConnState, Moonraker};
 /// Bad settings, or a command that failed; the message says why.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     let mut config = Config::load(cli.config.as_deref()).context("loading settings")?;
+    // install/uninstall read a printer's Moonraker from its own folder unless told.
+    let explicit_url = cli.moonraker.clone();
     if let Some(url) = cli.moonraker {
         config.moonraker.url = url;
         config.validate().context("--moonraker")?;
@@ -43,8 +45,16 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Serve => rt.block_on(serve(config)),
         Command::Check(args) => rt.block_on(check(config, args.json)),
         Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::cmd::bench::footprint(&a)),
-        Command::Install(a) => rt.block_on(crate::cmd::install::install(&a, &config)),
-        Command::Uninstall(a) => rt.block_on(crate::cmd::install::uninstall(&a, &config)),
+        Command::Install(a) => rt.block_on(crate::cmd::install::install(
+            &a,
+            &config,
+            explicit_url.as_deref(),
+        )),
+        Command::Uninstall(a) => rt.block_on(crate::cmd::install::uninstall(
+            &a,
+            &config,
+            explicit_url.as_deref(),
+        )),
         Command::Pylons(args) => {
             crate::cmd::pylons::run(&args)?;
             Ok(ExitCode::SUCCESS)

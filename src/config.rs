@@ -312,6 +312,10 @@ pub struct AbConfig {
     pub soak_max_s: f64,
     /// Readings further than this from a pair's nominal distance are refused, mm.
     pub reading_tolerance_mm: f64,
+    /// The caliper's last digit, mm (0.01 for most digital calipers, 0.02 or 0.05 for a
+    /// vernier): a reading is typed with at most its decimals, and its rounding enters the
+    /// stated uncertainty.
+    pub caliper_resolution_mm: f64,
     /// Where the in-plane shear goes: `motors` (A/B rotation distances absorb it, as the paper's
     /// iteration does; Cartesian printers still send it to Klipper's skew correction) or
     /// `klipper_skew` (Klipper's skew_correction takes it, saved as profile `klipcal`).
@@ -333,6 +337,7 @@ impl Default for AbConfig {
             max_change_pct: 3.0,
             soak_max_s: 5400.0,
             reading_tolerance_mm: 2.0,
+            caliper_resolution_mm: 0.01,
             shear_to: "motors".into(),
             start_macro: String::new(),
         }
@@ -577,6 +582,14 @@ impl Config {
                 0.01,
                 50.0,
                 "mm from 0.01 to 50",
+            ),
+            (
+                "ab.caliper_resolution_mm",
+                ab.caliper_resolution_mm,
+                0.001,
+                0.1,
+                "the caliper's last digit in mm, from 0.001 to 0.1 (0.01 for most digital \
+                 calipers)",
             ),
         ];
         for (key, v, lo, hi, expected) in ranges {

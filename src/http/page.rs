@@ -67,15 +67,15 @@ async function call(op,body){
 function say(el,msg,ok){if(!el)return;el.textContent=msg||'';el.className='msg '+(ok?'ok':'error')}
 function entries(fs){return $$('input.reading',fs)}
 let timers={};
-async function check(fs){
+async function check(fs,keep){
   const pair=fs.dataset.pair,inputs=entries(fs),filled=inputs.filter(i=>i.value.trim()!=='');
   inputs.forEach(i=>{if(i.value.trim()===''){i.removeAttribute('aria-invalid');$('.err',i.parentNode).textContent=''}});
   if(!filled.length){say($('.msg',fs),'');return}
-  const j=await call('ab/check',{pair,values:filled.map(i=>i.value.trim())});
+  const j=await call('ab/check',{pair,values:inputs.map(i=>i.value.trim())});
   if(j.ok===false){say($('.msg',fs),j.error.message,false);return}
-  filled.forEach((inp,k)=>{const it=(j.items||[])[k]||{};const bad=!!it.error;
-    inp.setAttribute('aria-invalid',bad?'true':'false');$('.err',inp.parentNode).textContent=bad?it.error.replace(/^.*?: nothing saved; item \d+ /,'').replace(/ for \S+ \(nominal [^)]*\); measure outer face to outer face/,''):''});
-  say($('.msg',fs),j.valid?'':j.message,j.valid);
+  inputs.forEach((inp,k)=>{if(inp.value.trim()==='')return;const it=(j.items||[])[k]||{};const bad=!!it.error;
+    inp.setAttribute('aria-invalid',bad?'true':'false');$('.err',inp.parentNode).textContent=bad?it.error.replace(/ for \S+ \(nominal [^)]*\); measure outer face to outer face/,''):''});
+  if(!keep)say($('.msg',fs),j.valid?'':j.message,j.valid);
 }
 let dirty=false;
 $$('fieldset.pair').forEach(fs=>{
@@ -85,10 +85,10 @@ $$('fieldset.pair').forEach(fs=>{
   });
   const save=$('button.save',fs);
   if(save)save.addEventListener('click',async ev=>{ev.preventDefault();
-    const values=entries(fs).map(i=>i.value.trim()).filter(v=>v!=='');
+    const values=entries(fs).map(i=>i.value.trim());
     const j=await call('ab/measure',{pair:fs.dataset.pair,values});
     if(j.ok){dirty=false;say($('.msg',fs),j.message,true);setTimeout(()=>location.reload(),400)}
-    else{say($('.msg',fs),j.error.message,false);check(fs)}});
+    else{say($('.msg',fs),j.error.message,false);check(fs,true)}});
   const clear=$('button.clear',fs);
   if(clear)clear.addEventListener('click',async ev=>{ev.preventDefault();
     if(!confirm('Remove every saved reading of '+fs.dataset.pair+'?'))return;
@@ -492,8 +492,9 @@ fn readings_form(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
     let _ = write!(
         h,
         "<section id=\"readings\"><h2>Readings</h2><p>Measure each pair {on}: {per_pair} readings with \
-         calipers from outer face to outer face, just below the top chamfer. Type them with a \
-         dot as decimal mark; each pair is saved whole or not at all.</p>"
+         calipers from outer face to outer face, just below the top chamfer. One reading per \
+         field, as the caliper shows it (10.02 or 10,02); each pair is saved whole or not at \
+         all.</p>"
     );
     if let Some(svg) = diagram_svg {
         // The diagram is the generator's own SVG (ids from the layout, no user text).
@@ -519,7 +520,11 @@ fn readings_form(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
             text(&p["to"]),
             mm(nominal),
             have.len(),
-            if have.len() >= per_pair { " ✓" } else { "" }
+            match have.len().cmp(&per_pair) {
+                std::cmp::Ordering::Less => "",
+                std::cmp::Ordering::Equal => " ✓",
+                std::cmp::Ordering::Greater => ": more than asked; Clear to enter the pair again",
+            }
         );
         if !have.is_empty() {
             let list: Vec<String> = have.iter().map(|v| mm(*v)).collect();

@@ -98,7 +98,7 @@ pub static OPS: &[Op<AbCall>] = &[
                     "10.02,10.03,10.01",
                     "readings separated by commas, e.g. 10.02,10.03",
                     "",
-                    "the readings, separated by commas",
+                    "the readings as the caliper shows them: commas between, a dot as the decimal mark",
                 ),
                 arg(
                     "value",
@@ -106,7 +106,7 @@ pub static OPS: &[Op<AbCall>] = &[
                     "10.02",
                     "one reading, e.g. 10.02",
                     "",
-                    "one reading",
+                    "one reading (its comma is the decimal mark: 10,02 is 10.02)",
                 ),
                 arg(
                     "clear",
@@ -406,8 +406,8 @@ impl StartRequest {
 pub struct MeasureRequest {
     /// The pair id as typed.
     pub pair: String,
-    /// The readings as typed, one item each ([`entry::items`]).
-    pub values: Vec<String>,
+    /// The readings as typed, each with where it was typed ([`readings_typed`]).
+    pub values: Vec<entry::Item>,
     /// Remove the pair's readings first (to enter them again, or to drop a wrong one).
     pub clear: bool,
 }
@@ -421,23 +421,41 @@ impl MeasureRequest {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_MEASURE PAIR=A-D1 VALUES=10.02,10.03,10.01")
         })?;
-        let mut values: Vec<String> = Vec::new();
-        for key in ["values", "value"] {
-            match a.fields(key) {
-                Some(Fields::List(items)) => {
-                    for v in items {
-                        values.extend(entry::items(&v));
-                    }
-                }
-                Some(Fields::Text(t)) => values.extend(entry::items(&t)),
-                None => {}
-            }
-        }
+        let mut values = readings_typed(a.raw("values"), "VALUES");
+        values.extend(readings_typed(a.raw("value"), "VALUE"));
         Ok(Self {
             pair,
             values,
             clear: a.flag("clear")?,
         })
+    }
+}
+
+/// Readings as an argument carries them: a list of fields (the page, the API: one reading
+/// each, a comma is its decimal mark), the console's `VALUES=` text (a list: commas separate,
+/// a dot is the decimal mark) or `VALUE=` text (one reading).
+fn readings_typed(v: Option<&Value>, key: &str) -> Vec<entry::Item> {
+    match v {
+        Some(Value::Array(list)) => list
+            .iter()
+            .enumerate()
+            .filter_map(|(i, v)| match v {
+                Value::String(s) => entry::field(s, i + 1),
+                Value::Number(n) => n
+                    .as_f64()
+                    .map(|x| entry::sent_number(x, &format!("field {}", i + 1))),
+                other => entry::field(&other.to_string(), i + 1),
+            })
+            .collect(),
+        Some(Value::String(t)) if key == "VALUES" => entry::list(t),
+        Some(Value::String(t)) => entry::single(t, key),
+        Some(Value::Null) | None => Vec::new(),
+        Some(Value::Number(n)) => n
+            .as_f64()
+            .map(|x| entry::sent_number(x, key))
+            .into_iter()
+            .collect(),
+        Some(other) => entry::single(&other.to_string(), key),
     }
 }
 
@@ -461,12 +479,14 @@ impl ApplyRequest {
 }
 
 /// `klipcal_ab_check` / `KLIPCAL_AB_CHECK`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct CheckRequest {
     /// The pair id as typed.
     pub pair: String,
-    /// One entry per field (a JSON list) or per item (a console text).
-    pub fields: Vec<String>,
+    /// The readings as typed, each with where it was typed.
+    pub items: Vec<entry::Item>,
+    /// The page's fields as sent (blank ones too), when the readings came as a list.
+    pub fields: Option<Vec<String>>,
 }
 
 impl CheckRequest {
@@ -479,11 +499,14 @@ impl CheckRequest {
             user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
         })?;
         let fields = match a.fields("values") {
-            Some(Fields::List(list)) => list,
-            Some(Fields::Text(t)) => entry::items(&t),
-            None => Vec::new(),
+            Some(Fields::List(list)) => Some(list),
+            _ => None,
         };
-        Ok(Self { pair, fields })
+        Ok(Self {
+            pair,
+            items: readings_typed(a.raw("values"), "VALUES"),
+            fields,
+        })
     }
 }
 
@@ -1224,9 +1247,30 @@ impl Ab {
         let values = if req.values.is_empty() && req.clear {
             Vec::new()
         } else {
-            entry::parse(&req.values, &pair.id, &window).map_err(|e| user(e.0))?
+            entry::parse(&req.values, &pair.id, &window)
+                .map_err(|e| user(format!("{}: nothing saved; {}", pair.id, e.0)))?
         };
         let n = s.rounds.len() as i64;
+        let per_pair = s.options.readings_per_pair;
+        if !req.clear && !values.is_empty() {
+            // The same line sent again (a re-sent console line, a double tap) would double the
+            // pair's readings: refused, with the way to replace them.
+            let have = self.readings(&s)?.remove(&pair.id).unwrap_or_default();
+            let tail = &have[have.len().saturating_sub(values.len())..];
+            let again = tail.len() == values.len()
+                && tail.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9);
+            if again && have.len() + values.len() > per_pair {
+                return Err(user(format!(
+                    "{}: nothing saved: these {} reading(s) are already saved (the same entry \
+                     sent again?), {} of {per_pair} in all. To enter the pair again, replace its \
+                     readings: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
+                    pair.id,
+                    values.len(),
+                    have.len(),
+                    pair.id
+                )));
+            }
+        }
         let mut notes = Vec::new();
         if req.clear {
             let old: Vec<String> = self
@@ -1288,6 +1332,13 @@ impl Ab {
             values.len(),
             s.options.readings_per_pair
         ));
+        if count > s.options.readings_per_pair && !values.is_empty() {
+            message.push_str(&format!(
+                " — more than the {} asked for (all are used); if some were wrong, replace \
+                 them: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
+                s.options.readings_per_pair, pair.id
+            ));
+        }
         let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
         let progress = pairs_progress(&round.layout.pairs, &have, s.options.readings_per_pair);
         message.push('\n');
@@ -1316,23 +1367,28 @@ impl Ab {
     /// # Errors
     /// No session waiting for readings, an unknown pair, or a bad argument.
     pub fn check(&self, req: &CheckRequest) -> anyhow::Result<Value> {
-        let typed = &req.pair;
-        let fields = &req.fields;
+        let typed_items = &req.items;
         let s = self.measuring()?;
-        let (pair, window) = pair_window(&s, typed)?;
-        let items: Vec<Value> = fields
-            .iter()
-            .map(|field| {
-                let one = entry::parse(&entry::items(field), &pair.id, &window);
-                json!({
-                    "text": field,
-                    "values": one.as_ref().ok(),
-                    "error": one.err().map(|e| e.0),
+        let (pair, window) = pair_window(&s, &req.pair)?;
+        // One answer per field as sent (blank fields too), so the page marks the field the
+        // user typed in; a console list: one per item.
+        let per_field: Vec<Value> = match &req.fields {
+            Some(texts) => texts
+                .iter()
+                .enumerate()
+                .map(|(i, t)| {
+                    let item = typed_items
+                        .iter()
+                        .find(|it| it.label == format!("field {}", i + 1));
+                    item_answer(t, item, &pair.id, &window)
                 })
-            })
-            .collect();
-        let all: Vec<String> = fields.iter().flat_map(|f| entry::items(f)).collect();
-        let whole = entry::parse(&all, &pair.id, &window);
+                .collect(),
+            None => typed_items
+                .iter()
+                .map(|it| item_answer(&it.text, Some(it), &pair.id, &window))
+                .collect(),
+        };
+        let whole = entry::parse(typed_items, &pair.id, &window);
         let message = match &whole {
             Ok(v) => format!(
                 "{}: {} reading(s) would be accepted (plausible {:.2}–{:.2} mm); nothing saved",
@@ -1341,8 +1397,9 @@ impl Ab {
                 window.nominal_mm - window.half_width_mm(),
                 window.nominal_mm + window.half_width_mm()
             ),
-            Err(e) => e.0.clone(),
+            Err(e) => format!("{}: would be refused; {}", pair.id, e.0),
         };
+        let items = per_field;
         Ok(json!({
             "pair": pair.id,
             "nominal_mm": pair.nominal_mm,
@@ -1747,6 +1804,22 @@ fn pairs_progress(
         .join(" · ")
 }
 
+/// The check's answer for one field or item: its value, or the problem alone (the page
+/// shows it beside the field).
+fn item_answer(
+    text: &str,
+    item: Option<&entry::Item>,
+    pair: &str,
+    window: &entry::Window,
+) -> Value {
+    let one = item.map(|it| entry::one(it, pair, window));
+    json!({
+        "text": text,
+        "values": one.as_ref().and_then(|r| r.as_ref().ok()).map(|v| vec![*v]),
+        "error": one.and_then(Result::err),
+    })
+}
+
 /// The round's pair named `typed` (any case) and its plausibility window.
 fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair, entry::Window)> {
     let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
@@ -1767,6 +1840,7 @@ fn pair_window(s: &Session, typed: &str) -> anyhow::Result<(crate::layout::Pair,
         nominal_mm: pair.nominal_mm,
         tolerance_mm: s.options.reading_tolerance_mm,
         max_change_pct: s.options.max_change_pct,
+        resolution_mm: s.options.caliper_resolution_mm,
     };
     Ok((pair, window))
 }
@@ -1914,15 +1988,30 @@ mod tests {
             apply(json!({})),
             AbCall::Apply(ApplyRequest { force: false })
         );
-        let m = AbCall::parse(
-            "klipcal_measure",
-            &json!({"pair": "A-D1", "values": "10.02, 10.03;10.01", "value": ""}),
-        )
-        .unwrap();
-        let AbCall::Measure(m) = m else {
-            panic!("{m:?}")
+        let measure = |v| match AbCall::parse("klipcal_measure", &v).unwrap() {
+            AbCall::Measure(m) => m,
+            other => panic!("{other:?}"),
         };
-        assert_eq!(m.values, vec!["10.02", "10.03", "10.01"]);
+        let m = measure(json!({"pair": "A-D1", "values": "10.02, 10.03,10.01", "value": "10,04"}));
+        let texts: Vec<(&str, &str)> = m
+            .values
+            .iter()
+            .map(|i| (i.text.as_str(), i.label.as_str()))
+            .collect();
+        assert_eq!(
+            texts,
+            vec![
+                ("10.02", "item 1"),
+                ("10.03", "item 2"),
+                ("10.01", "item 3"),
+                ("10,04", "VALUE")
+            ]
+        );
+        // The page's fields: one reading each, named by the field.
+        let m = measure(json!({"pair": "A-D1", "values": ["", "10,10"]}));
+        assert_eq!(m.values.len(), 1);
+        assert_eq!(m.values[0].label, "field 2");
+        assert!(m.values[0].comma_is_decimal);
         assert_eq!(
             AbCall::parse("klipcal_soak_choice", &json!({})).unwrap(),
             AbCall::SoakChoice("wait"),

@@ -281,32 +281,50 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         "the diagram does not highlight the pair"
     );
 
-    // A bad reading (a comma decimal in the third field): its error shows beside that field,
-    // and saving refuses the whole entry.
+    // A field holds one reading: the comma in the second is its decimal mark. A reading
+    // without its decimals in the third is refused beside that field, and the pair's message
+    // does not say "nothing saved" before Save is pressed (issue 25, C1 and C3).
     let good: Vec<String> = simulated_readings(&pairs[0])
         .iter()
-        .map(|v| v.to_string())
+        .map(|v| format!("{v:.2}"))
         .collect();
     let mut bad = good.clone();
-    let whole = bad[2].split('.').next().unwrap().to_string();
-    bad[2] = format!("{whole},5");
+    bad[1] = good[1].replace('.', ",");
+    bad[2] = good[2].split('.').next().unwrap().to_string();
     b.eval(&type_into(&first, &bad)).await;
-    let field3 =
-        format!("document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[2]");
+    let field = |k: usize| {
+        format!("document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[{k}]")
+    };
+    let field3 = field(2);
     assert!(
-        b.wait_for(&format!("{field3}.querySelector('input').getAttribute('aria-invalid') === 'true' && {field3}.querySelector('.err').textContent.length > 0"), Duration::from_secs(10)).await,
-        "no error next to the bad field"
+        b.wait_for(&format!("{field3}.querySelector('input').getAttribute('aria-invalid') === 'true' && {field3}.querySelector('.err').textContent.includes('with its decimals')"), Duration::from_secs(10)).await,
+        "no error next to the bad field: {}",
+        b.eval(&format!("{field3}.outerHTML")).await
     );
-    let other_field = format!(
-        "document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[0].querySelector('input').getAttribute('aria-invalid')"
-    );
-    assert_eq!(b.eval(&other_field).await, json!("false"));
-    b.eval(&click_save(&first)).await;
+    for k in [0, 1] {
+        assert_eq!(
+            b.eval(&format!(
+                "{}.querySelector('input').getAttribute('aria-invalid')",
+                field(k)
+            ))
+            .await,
+            json!("false"),
+            "field {}",
+            k + 1
+        );
+    }
     let msg = format!("document.querySelector('fieldset.pair[data-pair=\"{first}\"] .msg')");
+    let before_save = b.eval(&format!("{msg}.textContent")).await;
+    let before_save = before_save.as_str().unwrap_or("");
+    assert!(
+        before_save.contains("field 3") && !before_save.contains("nothing saved"),
+        "{before_save}"
+    );
+    b.eval(&click_save(&first)).await;
     assert!(
         b.wait_for(
             &format!(
-                "{msg}.classList.contains('error') && {msg}.textContent.includes('nothing saved')"
+                "{msg}.classList.contains('error') && {msg}.textContent.includes('nothing saved; field 3')"
             ),
             Duration::from_secs(10)
         )
@@ -328,10 +346,12 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
     // Every pair entered through the form: saved, and the page shows each as complete.
     for p in &pairs {
         let id = p["id"].as_str().unwrap();
-        let values: Vec<String> = simulated_readings(p)
+        // As typed in Europe: the second reading with a decimal comma.
+        let mut values: Vec<String> = simulated_readings(p)
             .iter()
-            .map(|v| v.to_string())
+            .map(|v| format!("{v:.2}"))
             .collect();
+        values[1] = values[1].replace('.', ",");
         assert!(
             b.wait_for(
                 &format!(

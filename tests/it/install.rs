@@ -1,5 +1,5 @@
 //! `klipcal install` / `uninstall` on the bench's printer_data (issue 14): Moonraker restarted
-//! with the edited moonraker.conf loads `[update_manager klipcal]` without a warning, Klipper
+//! with the edited moonraker.conf loads `[update_manager klipcal-<printer>]` without a warning, Klipper
 //! restarted with the include runs the macros, a second install changes nothing, a dry run
 //! writes nothing, uninstall restores every file byte for byte, and conflicts are refused.
 
@@ -118,7 +118,7 @@ async fn install_twice_then_uninstall_restores_every_file_byte_for_byte() {
     let (ok, out) = run(&bench, &install_args(&bench, &["--dry-run"]));
     assert!(ok, "{out}");
     assert!(
-        out.contains("+[include klipcal.cfg]") && out.contains("+[update_manager klipcal]"),
+        out.contains("+[include klipcal.cfg]") && out.contains("+[update_manager klipcal-"),
         "{out}"
     );
     assert!(out.contains("+type: executable"), "{out}");
@@ -138,10 +138,12 @@ async fn install_twice_then_uninstall_restores_every_file_byte_for_byte() {
         "{printer_now}"
     );
     assert!(printer_now.contains("[respond]"));
+    // The service of this printer (its folder is not `printer_data`: klipcal-<folder>).
+    let service = format!("klipcal-{}", pd.file_name().unwrap().to_string_lossy());
     assert!(std::fs::read_to_string(pd.join("moonraker.asvc"))
         .unwrap()
         .lines()
-        .any(|l| l == "klipcal"));
+        .any(|l| l == service));
     let rinfo: Value = serde_json::from_str(
         &std::fs::read_to_string(pd.join("klipcal-bin/release_info.json")).unwrap(),
     )
@@ -156,7 +158,7 @@ async fn install_twice_then_uninstall_restores_every_file_byte_for_byte() {
     assert!(!warnings.to_lowercase().contains("klipcal"), "{warnings}");
     let upd = poll(Duration::from_secs(30), || async {
         let v = files.get("/machine/update/status").await.ok()?;
-        let k = v["version_info"]["klipcal"].clone();
+        let k = v["version_info"][&service].clone();
         (!k.is_null()).then_some(k)
     })
     .await
@@ -234,7 +236,8 @@ async fn install_refuses_a_conflict_a_missing_layout_and_keeps_a_users_later_edi
     assert!(!ok && out.contains("no printer_data layout"), "{out}");
     // A moonraker.conf with someone else's [update_manager klipcal].
     let conf0 = std::fs::read_to_string(cfg.join("moonraker.conf")).unwrap();
-    let theirs = format!("{conf0}\n[update_manager klipcal]\ntype: git_repo\npath: ~/klipcal\norigin: https://example.org/klipcal.git\n");
+    let service = format!("klipcal-{}", pd.file_name().unwrap().to_string_lossy());
+    let theirs = format!("{conf0}\n[update_manager {service}]\ntype: git_repo\npath: ~/klipcal\norigin: https://example.org/klipcal.git\n");
     std::fs::write(cfg.join("moonraker.conf"), &theirs).unwrap();
     let before = snapshot(&pd);
     let (ok, out) = run(&bench, &install_args(&bench, &["--yes", "--no-restart"]));
@@ -274,4 +277,230 @@ async fn install_refuses_a_conflict_a_missing_layout_and_keeps_a_users_later_edi
         "{after}"
     );
     assert!(after.starts_with(&conf0), "{after}");
+}
+
+/// Every file under `dir` with its bytes' hash, except what the bench's own Klipper, Moonraker
+/// and plant keep writing whatever klipcal does (logs/, comms/, database/, tmp/).
+fn hashed_tree(dir: &Path) -> Vec<(PathBuf, u64)> {
+    use std::hash::{Hash, Hasher};
+    fn walk(root: &Path, dir: &Path, out: &mut Vec<(PathBuf, u64)>) {
+        for e in std::fs::read_dir(dir).unwrap().flatten() {
+            let p = e.path();
+            let rel = p.strip_prefix(root).unwrap().to_path_buf();
+            if ["logs", "comms", "database", "tmp"]
+                .iter()
+                .any(|d| rel.starts_with(d))
+            {
+                continue;
+            }
+            let t = e.file_type().unwrap();
+            if t.is_dir() {
+                walk(root, &p, out);
+            } else if t.is_file() {
+                let mut h = std::collections::hash_map::DefaultHasher::new();
+                std::fs::read(&p).unwrap().hash(&mut h);
+                out.push((rel, h.finish()));
+            }
+        }
+    }
+    let mut out = Vec::new();
+    walk(dir, dir, &mut out);
+    out.sort();
+    out
+}
+
+/// How often the bench's Klipper and Moonraker have started (a restart adds one).
+fn starts(bench: &Bench) -> (usize, usize) {
+    let log = |f: &str| std::fs::read_to_string(bench.dir.path().join("logs").join(f)).unwrap();
+    (
+        log("klippy.log").matches("Start printer at").count(),
+        log("moonraker.log")
+            .matches("Starting Moonraker on")
+            .count(),
+    )
+}
+
+/// Issue 25 D: two printers on one host (two Moonrakers on their own ports). Install reads
+/// each printer's Moonraker from its own moonraker.conf (no --moonraker), checks and restarts
+/// only that printer, and writes a klipcal.toml with its URL, its own data folder and page
+/// port; each daemon talks only to its printer; uninstalling one names what it leaves and a
+/// daemon still connected, and leaves the other printer's files byte for byte.
+#[tokio::test]
+async fn two_printers_on_one_host_each_get_their_own_klipcal() {
+    let b1 = Bench::start("corexy");
+    let b2 = Bench::start("corexy");
+    let home = tempfile::tempdir().unwrap();
+    let klipcal = |args: &[&str]| -> (bool, String) {
+        let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args(args)
+            .env("HOME", home.path())
+            .output()
+            .unwrap();
+        let text = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        (out.status.success(), text)
+    };
+    let pd = |b: &Bench| b.dir.path().display().to_string();
+    let port = |b: &Bench| {
+        b.ws_url()
+            .split(':')
+            .nth(2)
+            .unwrap()
+            .split('/')
+            .next()
+            .unwrap()
+            .to_string()
+    };
+    let mut http_ports = Vec::new();
+    for (b, other) in [(&b1, &b2), (&b2, &b1)] {
+        let (other_before, this_before) = (starts(other), starts(b));
+        let (ok, out) = klipcal(&["install", "--printer-data", &pd(b), "--no-systemd", "--yes"]);
+        assert!(ok, "{out}");
+        // D1: this printer's Moonraker, from its moonraker.conf.
+        assert!(
+            out.contains(&format!(
+                "Moonraker at ws://127.0.0.1:{}/websocket",
+                port(b)
+            )),
+            "{out}"
+        );
+        let restarted = poll(Duration::from_secs(30), || async {
+            (starts(b).1 > this_before.1).then_some(())
+        })
+        .await;
+        assert!(
+            restarted.is_some(),
+            "install did not restart its Moonraker: {out}"
+        );
+        wait_ready(b).await;
+        assert_eq!(
+            starts(other),
+            other_before,
+            "install restarted the other printer: {out}"
+        );
+        // D2: its settings name its Moonraker, its own data folder and a page port of its own.
+        let toml = std::fs::read_to_string(b.dir.path().join("config/klipcal.toml")).unwrap();
+        let c = klipcal::config::Config::parse(&toml).unwrap();
+        assert_eq!(c.moonraker.url, b.ws_url(), "{toml}");
+        assert_eq!(
+            klipcal::config::expand_home(&c.daemon.data_dir),
+            b.dir.path().join("klipcal")
+        );
+        let bind: std::net::SocketAddr = c.http.bind.parse().unwrap();
+        http_ports.push(bind.port());
+    }
+    assert_ne!(http_ports[0], http_ports[1], "both pages on one port");
+
+    // Each daemon, started as the service would start it, talks only to its printer.
+    let start = |b: &Bench| {
+        let log = b.dir.path().join("klipcal-installed.log");
+        let child = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+            .args([
+                "--config",
+                b.dir.path().join("config/klipcal.toml").to_str().unwrap(),
+                "serve",
+            ])
+            .env("HOME", home.path())
+            .stdin(std::process::Stdio::null())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap();
+        Daemon {
+            child,
+            log,
+            url: None,
+        }
+    };
+    let d1 = start(&b1);
+    let d2 = start(&b2);
+    for (b, d) in [(&b1, &d1), (&b2, &d2)] {
+        let files = b.files();
+        let listed = poll(Duration::from_secs(30), || async {
+            crate::bench::agent_listed(&files).await.then_some(())
+        })
+        .await;
+        assert!(listed.is_some(), "not connected:\n{}", d.log_text());
+        let agents = files.get("/server/extensions/list").await.unwrap();
+        assert_eq!(agents["agents"].as_array().unwrap().len(), 1, "{agents}");
+        assert!(
+            d.log_text()
+                .contains(&format!("url=ws://127.0.0.1:{}/websocket", port(b))),
+            "{}",
+            d.log_text()
+        );
+        assert!(b
+            .dir
+            .path()
+            .join("klipcal")
+            .join("klipcal.sqlite")
+            .is_file());
+    }
+    for (d, p) in [(&d1, http_ports[0]), (&d2, http_ports[1])] {
+        assert!(
+            d.page_url().await.ends_with(&format!(":{p}")),
+            "{}",
+            d.log_text()
+        );
+    }
+
+    // What a session leaves: a picture and a print.
+    for f in [
+        "config/klipcal/ab-s1-r1.png",
+        "gcodes/klipcal/ab-s1-r1.gcode",
+    ] {
+        let p = b2.dir.path().join(f);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, vec![b'x'; 600 * 1024]).unwrap();
+    }
+    // D3/D4: uninstall printer 2 while its daemon runs; printer 1 is left byte for byte.
+    let mut d1 = d1;
+    assert!(d1.terminate(Duration::from_secs(10)).is_some());
+    let before = hashed_tree(b1.dir.path());
+    let starts_before = starts(&b1);
+    let (ok, out) = klipcal(&["uninstall", "--printer-data", &pd(&b2), "--no-systemd"]);
+    assert!(ok, "{out}");
+    let p2 = b2.dir.path();
+    for (dir, words) in [
+        (p2.join("klipcal"), "database"),
+        (p2.join("config/klipcal"), "pictures"),
+        (p2.join("config/klipcal_backups"), "copies of config files"),
+        (p2.join("gcodes/klipcal"), "G-code"),
+    ] {
+        let line = out
+            .lines()
+            .find(|l| l.contains(&format!("{} (", dir.display())))
+            .unwrap_or_else(|| panic!("uninstall does not name {}: {out}", dir.display()));
+        assert!(line.contains(words), "{line}");
+    }
+    assert!(out.contains("600 KB"), "{out}");
+    assert!(out.contains("still connected"), "{out}");
+    assert!(
+        !out.contains(&pd(&b1)),
+        "uninstall spoke of the other printer: {out}"
+    );
+    let restarted = poll(Duration::from_secs(30), || async {
+        (starts(&b2).1 > 2).then_some(())
+    })
+    .await;
+    assert!(
+        restarted.is_some(),
+        "uninstall did not restart its Moonraker: {out}"
+    );
+    wait_ready(&b2).await;
+    wait_ready(&b1).await;
+    assert_eq!(
+        starts(&b1),
+        starts_before,
+        "uninstall restarted the other printer"
+    );
+    assert_eq!(
+        hashed_tree(b1.dir.path()),
+        before,
+        "the other printer's files changed"
+    );
+    drop(d2);
 }

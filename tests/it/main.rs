@@ -16,6 +16,7 @@ mod mesh;
 mod mesh_job;
 mod ops;
 mod pylons;
+mod readings;
 mod realcfg;
 mod runall;
 mod session;

@@ -38,7 +38,9 @@ pub fn simulated_readings(pair: &Value) -> Vec<f64> {
     let w = -0.06;
     [0.0, 0.004, -0.003, 0.002, -0.001]
         .iter()
-        .map(|n| ((nominal * alpha + w + n) * 1000.0).round() / 1000.0)
+        // As a caliper shows them: to its last digit, 0.01 mm (klipcal's default
+        // ab.caliper_resolution_mm).
+        .map(|n| ((nominal * alpha + w + n) * 100.0).round() / 100.0)
         .collect()
 }
 
@@ -283,7 +285,7 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
         assert!(e.contains(&id) && e.contains("nothing saved"), "{bad}: {e}");
     }
     // A mixed entry is refused whole: its good value is not saved either.
-    let e = measure(json!({"pair": id, "values": format!("{},oops", good[2])}))
+    let e = measure(json!({"pair": id, "values": format!("{:.2},oops", good[2])}))
         .await
         .unwrap_err();
     assert!(e.contains("item 2 \"oops\""), "{e}");
@@ -346,7 +348,7 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     m.gcode(&format!(
-        "KLIPCAL_MEASURE PAIR={id} VALUES={},{}",
+        "KLIPCAL_MEASURE PAIR={id} VALUES={:.2},{:.2}",
         good[0], good[1]
     ))
     .await
@@ -477,7 +479,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     for (k, p) in s["pairs"].as_array().unwrap().iter().enumerate() {
         let vals: Vec<String> = simulated_readings(p)
             .iter()
-            .map(|v| format!("{v}"))
+            .map(|v| format!("{v:.2}"))
             .collect();
         m.gcode(&format!(
             "KLIPCAL_MEASURE PAIR={} VALUES={}",

@@ -32,9 +32,10 @@ pub struct InstallArgs {
     /// The printer_data folder Klipper and Moonraker use.
     #[arg(long, value_name = "DIR", default_value = "~/printer_data")]
     pub printer_data: String,
-    /// Where the binary and its release_info.json go (the update_manager's `path`).
-    #[arg(long, value_name = "DIR", default_value = "~/klipcal")]
-    pub bin_dir: String,
+    /// Where the binary and its release_info.json go (the update_manager's `path`); default
+    /// `~/klipcal`, or `~/klipcal-printer_2` for `~/printer_2_data`.
+    #[arg(long, value_name = "DIR")]
+    pub bin_dir: Option<String>,
     /// Print every change as a diff and write nothing.
     #[arg(long)]
     pub dry_run: bool,
@@ -168,6 +169,102 @@ fn layout(printer_data: &str) -> anyhow::Result<PathBuf> {
     Ok(pd)
 }
 
+/// One printer on this host as install sees it: its folder, its Moonraker, its names.
+struct Printer {
+    pd: PathBuf,
+    /// Moonraker's websocket, from the folder's moonraker.conf `[server]` (or `--moonraker`).
+    url: String,
+    /// Moonraker's port, from moonraker.conf.
+    port: u16,
+    /// `printer_2` for `printer_2_data`; `None` for `printer_data`.
+    instance: Option<String>,
+    /// `klipcal` or `klipcal-printer_2`.
+    service: String,
+}
+
+/// Reads which Moonraker serves `pd`, from its own moonraker.conf: never the default port's
+/// printer when the folder is another's. `explicit` is `--moonraker`, when given.
+fn printer(pd: &Path, explicit: Option<&str>) -> anyhow::Result<Printer> {
+    let conf_path = pd.join("config/moonraker.conf");
+    let conf = read_opt(&conf_path)?.unwrap_or_default();
+    let (host, port) =
+        plan::moonraker_address(&conf).map_err(|e| anyhow!("{}: {e}", conf_path.display()))?;
+    let theirs = plan::moonraker_url(&host, port);
+    let url = match explicit {
+        Some(u) => {
+            if u != theirs {
+                println!(
+                    "note: --moonraker {u}, while {} says this printer's Moonraker listens at \
+                     {theirs}",
+                    conf_path.display()
+                );
+            }
+            u.to_string()
+        }
+        None => theirs,
+    };
+    let instance = pd
+        .file_name()
+        .and_then(|n| plan::instance(&n.to_string_lossy()));
+    let service = plan::service_name(instance.as_deref());
+    Ok(Printer {
+        pd: pd.to_path_buf(),
+        url,
+        port,
+        instance,
+        service,
+    })
+}
+
+/// The settings install and uninstall talk to this printer's Moonraker with: its URL, and the
+/// API key of its own klipcal.toml when there is one (else the one given with `--config`).
+fn printer_config(config: &Config, p: &Printer) -> Config {
+    let mut c = config.clone();
+    if let Ok(Some(text)) = read_opt(&p.pd.join("config/klipcal.toml")) {
+        if let Ok(own) = Config::parse(&text) {
+            c.moonraker.api_key = own.moonraker.api_key;
+        }
+    }
+    c.moonraker.url = p.url.clone();
+    c
+}
+
+/// `path` with the home folder written as `~` (as the settings file's comments do).
+fn tilde(path: &Path) -> String {
+    let home = expand("~");
+    match path.strip_prefix(&home) {
+        Ok(rel) if home != Path::new("~") => format!("~/{}", rel.display()),
+        _ => path.display().to_string(),
+    }
+}
+
+/// Page ports this printer's klipcal must not take: those other printers' klipcal.toml
+/// (beside this printer_data folder) name, and those a program listens on now.
+fn taken_http_ports(pd: &Path) -> Vec<u16> {
+    let mut taken = Vec::new();
+    if let Some(parent) = pd.parent() {
+        for e in std::fs::read_dir(parent).into_iter().flatten().flatten() {
+            if e.path() == pd {
+                continue;
+            }
+            let f = e.path().join("config/klipcal.toml");
+            if let Ok(Some(t)) = read_opt(&f) {
+                if let Ok(c) = Config::parse(&t) {
+                    if let Ok(a) = c.http.bind.parse::<std::net::SocketAddr>() {
+                        taken.push(a.port());
+                    }
+                }
+            }
+        }
+    }
+    for port in 7150..7250u16 {
+        if std::net::TcpListener::bind(("0.0.0.0", port)).is_err() {
+            taken.push(port);
+        }
+    }
+    taken
+}
+
 /// Refuses while a print runs; says so when Moonraker cannot be asked.
 async fn not_printing(config: &Config) -> anyhow::Result<Option<crate::moonraker::Files>> {
     let files = crate::moonraker::Files::new(
@@ -232,19 +329,28 @@ fn systemd_available() -> bool {
     Path::new("/run/systemd/system").is_dir()
 }
 
-fn unit_text(bin: &Path, pd: &Path) -> String {
+fn unit_text(bin: &Path, p: &Printer) -> String {
     let user = std::env::var("SUDO_USER")
         .or_else(|_| std::env::var("USER"))
         .unwrap_or_else(|_| "pi".into());
+    // This printer's Moonraker (KIAUH names a second one moonraker-printer_2).
+    let moonraker = p
+        .instance
+        .as_ref()
+        .map_or_else(|| "moonraker".to_string(), |i| format!("moonraker-{i}"));
+    let name = p
+        .instance
+        .as_ref()
+        .map_or_else(String::new, |i| format!(" ({i})"));
     format!(
         "# written by klipcal install; klipcal uninstall removes it\n\
-         [Unit]\nDescription=klipcal calibration daemon for Klipper (Moonraker agent)\n\
-         After=network-online.target moonraker.service\nWants=moonraker.service\n\n\
+         [Unit]\nDescription=klipcal calibration daemon for Klipper{name} (Moonraker agent)\n\
+         After=network-online.target {moonraker}.service\nWants={moonraker}.service\n\n\
          [Service]\nType=simple\nUser={user}\nExecStart={} --config {} serve\n\
          Restart=on-failure\nRestartSec=5\nKillSignal=SIGTERM\nTimeoutStopSec=10\n\n\
          [Install]\nWantedBy=multi-user.target\n",
         bin.display(),
-        pd.join("config/klipcal.toml").display()
+        p.pd.join("config/klipcal.toml").display()
     )
 }
 
@@ -273,12 +379,27 @@ fn nix_is_root() -> bool {
 ///
 /// # Errors
 /// No printer_data layout, a print running, a conflict (named), or an I/O failure.
-pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCode> {
+pub async fn install(
+    a: &InstallArgs,
+    config: &Config,
+    explicit_url: Option<&str>,
+) -> anyhow::Result<ExitCode> {
     let pd = layout(&a.printer_data)?;
+    let p = printer(&pd, explicit_url)?;
+    let config = &printer_config(config, &p);
+    println!(
+        "printer {}: Moonraker at {}, service {}",
+        pd.display(),
+        p.url,
+        p.service
+    );
     let moonraker = not_printing(config).await?;
     let manifest = load_manifest(&pd)?.unwrap_or_default();
     let cfg_dir = pd.join("config");
-    let bin_dir = expand(&a.bin_dir);
+    let bin_dir = expand(a.bin_dir.as_deref().unwrap_or(&match &p.instance {
+        None => "~/klipcal".to_string(),
+        Some(i) => format!("~/klipcal-{i}"),
+    }));
     let asset = target_asset();
     let bin = bin_dir.join(&asset);
 
@@ -309,14 +430,25 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
     );
     let settings = cfg_dir.join("klipcal.toml");
     if let Some(before) = read_opt(&settings)? {
-        if let Err(e) = Config::parse(&before) {
-            println!(
+        match Config::parse(&before) {
+            Err(e) => println!(
                 "note: {} is kept as it is, but klipcal cannot read it: {e}",
                 settings.display()
-            );
+            ),
+            Ok(c) if c.moonraker.url != p.url => println!(
+                "note: {} is kept as it is, but its moonraker.url {} is not this printer's \
+                 Moonraker ({}); edit it",
+                settings.display(),
+                c.moonraker.url,
+                p.url
+            ),
+            Ok(_) => {}
         }
     } else {
-        push(settings, None, SETTINGS.to_string(), vec![], None);
+        // This printer's Moonraker, its own data folder and a page port of its own.
+        let port = plan::http_port(p.port, &taken_http_ports(&pd));
+        let text = plan::settings(SETTINGS, &p.url, &tilde(&pd.join("klipcal")), port);
+        push(settings, None, text, vec![], None);
     }
     // printer.cfg: the include (and [respond]), checked against what Klipper reads now.
     let printer_cfg = cfg_dir.join("printer.cfg");
@@ -352,7 +484,7 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
     // moonraker.conf: the update_manager entry Moonraker can update a binary with.
     let conf = cfg_dir.join("moonraker.conf");
     let conf_text = read_opt(&conf)?.unwrap_or_default();
-    let section = plan::update_manager_section(&bin_dir.display().to_string(), &a.repo);
+    let section = plan::update_manager_section(&bin_dir.display().to_string(), &a.repo, &p.service);
     let ours = manifest
         .files
         .get(&conf)
@@ -363,18 +495,22 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
             Some(conf_text),
             after,
             vec![],
-            Some(format!("[update_manager {}]", plan::SERVICE)),
+            Some(format!("[update_manager {}]", p.service)),
         );
     }
     // moonraker.asvc: Moonraker may restart klipcal (its update_manager needs that).
     let asvc = pd.join("moonraker.asvc");
     let asvc_before = read_opt(&asvc)?;
-    if let Some(after) = plan::asvc(asvc_before.as_deref(), MOONRAKER_DEFAULT_SERVICES) {
+    if let Some(after) = plan::asvc(
+        asvc_before.as_deref(),
+        MOONRAKER_DEFAULT_SERVICES,
+        &p.service,
+    ) {
         push(
             asvc.clone(),
             asvc_before,
             after,
-            vec![plan::SERVICE.to_string()],
+            vec![p.service.clone()],
             None,
         );
     }
@@ -393,9 +529,9 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
     let exe = std::env::current_exe().context("finding klipcal's own binary")?;
     let exe_bytes = std::fs::read(&exe).with_context(|| format!("reading {}", exe.display()))?;
     let copy_binary = std::fs::read(&bin).ok().as_deref() != Some(exe_bytes.as_slice());
-    let unit_path = PathBuf::from("/etc/systemd/system/klipcal.service");
+    let unit_path = PathBuf::from(format!("/etc/systemd/system/{}.service", p.service));
     let use_systemd = !a.no_systemd && systemd_available();
-    let unit = unit_text(&bin, &pd);
+    let unit = unit_text(&bin, &p);
     let write_unit =
         use_systemd && read_opt(&unit_path).ok().flatten().as_deref() != Some(unit.as_str());
 
@@ -422,7 +558,10 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
                     Some(&unit)
                 )
             );
-            println!("systemctl daemon-reload && systemctl enable --now klipcal");
+            println!(
+                "systemctl daemon-reload && systemctl enable --now {}",
+                p.service
+            );
         }
         println!("(dry run: nothing written)");
         return Ok(ExitCode::SUCCESS);
@@ -501,11 +640,11 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
         }
         manifest.unit = Some(unit_path.clone());
         systemctl(&["daemon-reload"])?;
-        systemctl(&["enable", "--now", "klipcal"])?;
+        systemctl(&["enable", "--now", &p.service])?;
         if copy_binary {
-            systemctl(&["restart", "klipcal"])?;
+            systemctl(&["restart", &p.service])?;
         }
-        println!("service  klipcal enabled and started");
+        println!("service  {} enabled and started", p.service);
     } else if a.no_systemd || !systemd_available() {
         println!(
             "note: no systemd service installed; start it with: {} --config {} serve",
@@ -529,6 +668,27 @@ pub async fn install(a: &InstallArgs, config: &Config) -> anyhow::Result<ExitCod
         .await;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Files under `dir` and their bytes (0, 0 when it does not exist).
+fn tree_size(dir: &Path) -> (usize, u64) {
+    let mut out = (0, 0);
+    let Ok(rd) = std::fs::read_dir(dir) else {
+        return out;
+    };
+    for e in rd.flatten() {
+        let Ok(t) = e.file_type() else { continue };
+        if t.is_dir() {
+            let (n, b) = tree_size(&e.path());
+            out = (out.0 + n, out.1 + b);
+        } else {
+            out = (
+                out.0 + 1,
+                out.1 + e.metadata().map(|m| m.len()).unwrap_or(0),
+            );
+        }
+    }
+    out
 }
 
 /// Restarts Klipper when its config changed and Moonraker when its did.
@@ -558,7 +718,11 @@ async fn restart(files: &crate::moonraker::Files, changed: &[PathBuf], pd: &Path
 ///
 /// # Errors
 /// No install recorded, a print running, or an I/O failure.
-pub async fn uninstall(a: &UninstallArgs, config: &Config) -> anyhow::Result<ExitCode> {
+pub async fn uninstall(
+    a: &UninstallArgs,
+    config: &Config,
+    explicit_url: Option<&str>,
+) -> anyhow::Result<ExitCode> {
     let pd = layout(&a.printer_data)?;
     let Some(manifest) = load_manifest(&pd)? else {
         bail!(
@@ -567,6 +731,19 @@ pub async fn uninstall(a: &UninstallArgs, config: &Config) -> anyhow::Result<Exi
             manifest_path(&pd).display()
         );
     };
+    let p = printer(&pd, explicit_url)?;
+    let config = &printer_config(config, &p);
+    // Where this printer's klipcal kept its data, read before its settings file goes.
+    let data_dir = read_opt(&pd.join("config/klipcal.toml"))
+        .ok()
+        .flatten()
+        .and_then(|t| Config::parse(&t).ok())
+        .map_or_else(|| pd.join("klipcal"), |c| expand(&c.daemon.data_dir));
+    let service = manifest
+        .unit
+        .as_ref()
+        .and_then(|u| u.file_stem())
+        .map_or_else(|| p.service.clone(), |s| s.to_string_lossy().to_string());
     let moonraker = not_printing(config).await?;
     let mut writes: Vec<(PathBuf, Option<String>, Option<String>, bool)> = Vec::new();
     for (path, e) in &manifest.files {
@@ -597,13 +774,13 @@ pub async fn uninstall(a: &UninstallArgs, config: &Config) -> anyhow::Result<Exi
             println!("remove {}", p.display());
         }
         if let Some(u) = &manifest.unit {
-            println!("systemctl disable --now klipcal; remove {}", u.display());
+            println!("systemctl disable --now {service}; remove {}", u.display());
         }
         println!("(dry run: nothing written)");
         return Ok(ExitCode::SUCCESS);
     }
     if let (Some(u), false) = (&manifest.unit, a.no_systemd) {
-        systemctl(&["disable", "--now", "klipcal"])?;
+        systemctl(&["disable", "--now", &service])?;
         let st = std::process::Command::new(if nix_is_root() { "rm" } else { "sudo" })
             .args(if nix_is_root() { vec![] } else { vec!["rm"] })
             .args(["-f"])
@@ -613,7 +790,7 @@ pub async fn uninstall(a: &UninstallArgs, config: &Config) -> anyhow::Result<Exi
             bail!("could not remove {}", u.display());
         }
         systemctl(&["daemon-reload"])?;
-        println!("service  klipcal stopped and removed");
+        println!("service  {service} stopped and removed");
     }
     for (p, _, after, partial) in &writes {
         match after {
@@ -641,10 +818,66 @@ pub async fn uninstall(a: &UninstallArgs, config: &Config) -> anyhow::Result<Exi
         }
     }
     std::fs::remove_file(manifest_path(&pd))?;
-    println!(
-        "klipcal uninstalled; its sessions stay in {} (delete the folder to remove them)",
-        pd.join("klipcal").display()
-    );
+    let _ = std::fs::remove_dir(pd.join("klipcal")); // only when nothing else is in it
+    println!("klipcal uninstalled from {}", pd.display());
+    let cfg = pd.join("config");
+    let left: Vec<String> = [
+        (data_dir, "klipcal's database: sessions, readings, results"),
+        (
+            cfg.join("klipcal"),
+            "pictures and plots of the calibrations",
+        ),
+        (
+            cfg.join("klipcal_backups"),
+            "copies of config files from before klipcal's edits",
+        ),
+        (pd.join("gcodes/klipcal"), "the calibration prints' G-code"),
+    ]
+    .into_iter()
+    .filter_map(|(dir, what)| {
+        let (n, bytes) = tree_size(&dir);
+        (n > 0).then(|| {
+            format!(
+                "  {} ({n} file(s), {:.0} KB): {what}",
+                dir.display(),
+                bytes as f64 / 1024.0
+            )
+        })
+    })
+    .collect();
+    if !left.is_empty() {
+        println!("left in place (yours to keep or delete):");
+        for l in &left {
+            println!("{l}");
+        }
+    }
+    if let Some(files) = &moonraker {
+        // A daemon this uninstall did not stop (started by hand, or by another unit).
+        let stopped = manifest.unit.is_some() && !a.no_systemd;
+        let limit = Duration::from_secs(if stopped { 5 } else { 0 });
+        let start = std::time::Instant::now();
+        loop {
+            let connected = files
+                .get("/server/extensions/list")
+                .await
+                .ok()
+                .and_then(|v| v["agents"].as_array().cloned())
+                .is_some_and(|a| a.iter().any(|x| x["name"] == "klipcal"));
+            if !connected {
+                break;
+            }
+            if start.elapsed() >= limit {
+                println!(
+                    "warning: a klipcal daemon is still connected to this printer's Moonraker \
+                     ({}); uninstall did not stop it (started by hand or by another service?): \
+                     stop it, it still acts on this printer",
+                    p.url
+                );
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(300)).await;
+        }
+    }
     if let (Some(files), false) = (&moonraker, a.no_restart) {
         let changed: Vec<PathBuf> = writes.iter().map(|w| w.0.clone()).collect();
         restart(files, &changed, &pd).await;

@@ -116,14 +116,14 @@ pub fn has_respond(loaded: &Config) -> bool {
     loaded.has_section("respond")
 }
 
-/// moonraker.asvc with `klipcal` listed, or `None` when it is. A missing file is created with
+/// moonraker.asvc with `service` listed, or `None` when it is. A missing file is created with
 /// Moonraker's default services (what Moonraker itself would write) and klipcal.
 #[must_use]
-pub fn asvc(current: Option<&str>, moonraker_defaults: &str) -> Option<String> {
+pub fn asvc(current: Option<&str>, moonraker_defaults: &str, service: &str) -> Option<String> {
     let text = current.unwrap_or(moonraker_defaults);
     let listed = text.lines().any(|l| {
         let l = l.trim();
-        l == SERVICE || l == "klipcal.service"
+        l == service || l.strip_suffix(".service") == Some(service)
     });
     if listed && current.is_some() {
         return None;
@@ -133,24 +133,151 @@ pub fn asvc(current: Option<&str>, moonraker_defaults: &str) -> Option<String> {
         if !out.is_empty() && !out.ends_with('\n') {
             out.push('\n');
         }
-        out.push_str(SERVICE);
+        out.push_str(service);
         out.push('\n');
     }
     Some(out)
 }
 
-/// The `[update_manager klipcal]` section: the `executable` type (one binary from the
-/// release's assets, named in release_info.json; the folder is not wiped on update).
+/// Where a printer's Moonraker listens, from its moonraker.conf `[server]` section: `host`
+/// (default `0.0.0.0`) and `port` (default 7125).
+///
+/// # Errors
+/// A `port` that is not a port number.
+pub fn moonraker_address(conf: &str) -> Result<(String, u16), Conflict> {
+    let mut in_server = false;
+    let (mut host, mut port) = ("0.0.0.0".to_string(), 7125u16);
+    for line in conf.lines() {
+        let t = line.trim();
+        if t.starts_with('[') && t.ends_with(']') {
+            in_server = t[1..t.len() - 1].trim().eq_ignore_ascii_case("server");
+            continue;
+        }
+        if !in_server || t.starts_with('#') || t.starts_with(';') || line.starts_with([' ', '\t']) {
+            continue;
+        }
+        let Some((k, v)) = t.split_once([':', '=']) else {
+            continue;
+        };
+        let v = v.split(['#', ';']).next().unwrap_or("").trim();
+        match k.trim().to_ascii_lowercase().as_str() {
+            "host" => host = v.to_string(),
+            "port" => {
+                port = v.parse().map_err(|_| {
+                    Conflict(format!(
+                        "moonraker.conf [server] port: {v:?} is not a port number"
+                    ))
+                })?;
+            }
+            _ => {}
+        }
+    }
+    Ok((host, port))
+}
+
+/// The websocket URL klipcal on this host reaches that Moonraker at (a wildcard host is
+/// reached on loopback).
 #[must_use]
-pub fn update_manager_section(bin_dir: &str, repo: &str) -> String {
+pub fn moonraker_url(host: &str, port: u16) -> String {
+    let h = match host.trim() {
+        "" | "0.0.0.0" | "all" | "::" | "[::]" => "127.0.0.1".to_string(),
+        h if h.contains(':') && !h.starts_with('[') => format!("[{h}]"),
+        h => h.to_string(),
+    };
+    format!("ws://{h}:{port}/websocket")
+}
+
+/// The printer's name on a host with several, from its printer_data folder's name
+/// (`printer_2_data` → `printer_2`); `None` for the conventional single `printer_data`.
+#[must_use]
+pub fn instance(printer_data_name: &str) -> Option<String> {
+    if printer_data_name == "printer_data" {
+        return None;
+    }
+    let stem = printer_data_name
+        .strip_suffix("_data")
+        .filter(|s| !s.is_empty())
+        .unwrap_or(printer_data_name);
+    let clean: String = stem
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '_' || c == '-' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    Some(clean)
+}
+
+/// The systemd service (and moonraker.asvc name) of a printer's klipcal: `klipcal` for the
+/// single printer, `klipcal-printer_2` for another (as KIAUH names `moonraker-printer_2`).
+#[must_use]
+pub fn service_name(instance: Option<&str>) -> String {
+    instance.map_or_else(|| SERVICE.to_string(), |i| format!("{SERVICE}-{i}"))
+}
+
+/// klipcal's page port for a printer: 7150 beside Moonraker's 7125, one up for each port
+/// Moonraker is up (7126 → 7151), then the next port no other printer's klipcal and no
+/// running program uses (`taken`).
+#[must_use]
+pub fn http_port(moonraker_port: u16, taken: &[u16]) -> u16 {
+    let mut p = if (7125..7150).contains(&moonraker_port) {
+        7150 + (moonraker_port - 7125)
+    } else {
+        7150
+    };
+    while taken.contains(&p) && p < u16::MAX {
+        p += 1;
+    }
+    p
+}
+
+/// The settings file as install writes it for one printer: the documented template with its
+/// Moonraker URL, its own data folder and its own page port.
+#[must_use]
+pub fn settings(template: &str, url: &str, data_dir: &str, http_port: u16) -> String {
+    let quote = |v: &str| format!("\"{}\"", v.replace('\\', "\\\\").replace('"', "\\\""));
+    let mut section = String::new();
+    let mut out = String::new();
+    for line in template.split_inclusive('\n') {
+        let t = line.trim();
+        if t.starts_with('[') && t.ends_with(']') {
+            section = t.to_string();
+        }
+        let key = t.split('=').next().unwrap_or("").trim();
+        let new = match (section.as_str(), key) {
+            ("[moonraker]", "url") if !t.starts_with('#') => {
+                Some(format!("url = {}\n", quote(url)))
+            }
+            ("[daemon]", "data_dir") if !t.starts_with('#') => {
+                Some(format!("data_dir = {}\n", quote(data_dir)))
+            }
+            ("[http]", "bind") if !t.starts_with('#') => {
+                Some(format!("bind = \"0.0.0.0:{http_port}\"\n"))
+            }
+            _ => None,
+        };
+        out.push_str(new.as_deref().unwrap_or(line));
+    }
+    out
+}
+
+/// The `[update_manager <service>]` section: the `executable` type (one binary from the
+/// release's assets, named in release_info.json; the folder is not wiped on update). Moonraker
+/// restarts the service its section is named after, so a second printer's section is
+/// `[update_manager klipcal-printer_2]`.
+#[must_use]
+pub fn update_manager_section(bin_dir: &str, repo: &str, service: &str) -> String {
     format!(
-        "[update_manager {SERVICE}]\n\
+        "[update_manager {service}]\n\
          # added by klipcal install; klipcal uninstall removes it\n\
          type: executable\n\
          channel: stable\n\
          repo: {repo}\n\
          path: {bin_dir}\n\
-         managed_services: {SERVICE}\n"
+         managed_services: {service}\n"
     )
 }
 
@@ -318,17 +445,25 @@ mod tests {
 
     #[test]
     fn asvc_lists_klipcal_once_and_a_missing_file_keeps_moonrakers_defaults() {
-        assert_eq!(asvc(Some("klipper_mcu\nklipcal\n"), ""), None);
+        assert_eq!(asvc(Some("klipper_mcu\nklipcal\n"), "", "klipcal"), None);
         assert_eq!(
-            asvc(Some("klipper_mcu"), "").unwrap(),
+            asvc(Some("klipper_mcu"), "", "klipcal").unwrap(),
             "klipper_mcu\nklipcal\n"
         );
-        assert_eq!(asvc(None, "crowsnest\n").unwrap(), "crowsnest\nklipcal\n");
+        assert_eq!(
+            asvc(None, "crowsnest\n", "klipcal").unwrap(),
+            "crowsnest\nklipcal\n"
+        );
+        // A second printer's Moonraker may restart only its own klipcal.
+        assert_eq!(
+            asvc(Some("klipper_mcu\nklipcal\n"), "", "klipcal-printer_2").unwrap(),
+            "klipper_mcu\nklipcal\nklipcal-printer_2\n"
+        );
     }
 
     #[test]
     fn the_update_manager_section_is_added_replaced_when_ours_and_refused_when_not() {
-        let sec = update_manager_section("~/klipcal", "klipcal/klipcal");
+        let sec = update_manager_section("~/klipcal", "klipcal/klipcal", SERVICE);
         let conf = "[server]\nhost: 0.0.0.0\n";
         let out = moonraker_conf(conf, &sec, false).unwrap().unwrap();
         assert_eq!(out, format!("{conf}\n{sec}"));
@@ -346,7 +481,7 @@ mod tests {
 
     #[test]
     fn additions_come_out_of_a_file_the_user_changed_since() {
-        let sec = update_manager_section("~/klipcal", "klipcal/klipcal");
+        let sec = update_manager_section("~/klipcal", "klipcal/klipcal", SERVICE);
         let installed = format!("[server]\nhost: 0.0.0.0\n\n{sec}");
         let changed = format!("{installed}\n[webcam cam]\nservice: mjpegstreamer\n");
         let back = remove_additions(&changed, &[], Some("[update_manager klipcal]"));
@@ -357,5 +492,55 @@ mod tests {
         let cfg = "[include klipcal.cfg]\n\n[printer]\nkinematics: corexy\n[fan]\npin: PA1\n";
         let back = remove_additions(cfg, &[INCLUDE_LINE.to_string()], None);
         assert_eq!(back, "\n[printer]\nkinematics: corexy\n[fan]\npin: PA1\n");
+    }
+
+    #[test]
+    fn each_printer_gets_its_moonraker_its_service_and_its_own_page_port() {
+        let conf =
+            "[server]\nhost: 0.0.0.0\nport: 7126\nklippy_uds_address: x\n\n[webcam]\nport = 1\n";
+        let (h, p) = moonraker_address(conf).unwrap();
+        assert_eq!((h.as_str(), p), ("0.0.0.0", 7126));
+        assert_eq!(moonraker_url(&h, p), "ws://127.0.0.1:7126/websocket");
+        assert_eq!(
+            moonraker_address("[server]\nhost = 192.168.1.5 # lan\n").unwrap(),
+            ("192.168.1.5".to_string(), 7125)
+        );
+        assert_eq!(moonraker_address("").unwrap().1, 7125);
+        assert!(moonraker_address("[server]\nport: 71x\n").is_err());
+        assert_eq!(moonraker_url("::1", 7125), "ws://[::1]:7125/websocket");
+        assert_eq!(instance("printer_data"), None);
+        assert_eq!(instance("printer_2_data").as_deref(), Some("printer_2"));
+        assert_eq!(service_name(None), "klipcal");
+        assert_eq!(service_name(Some("printer_2")), "klipcal-printer_2");
+        assert_eq!(http_port(7125, &[]), 7150);
+        assert_eq!(http_port(7126, &[7150]), 7151);
+        assert_eq!(http_port(43211, &[7150, 7151]), 7152);
+        let t = "[moonraker]\n# url = \"x\"\nurl = \"ws://127.0.0.1:7125/websocket\"\n[daemon]\n\
+                 data_dir = \"~/printer_data/klipcal\"\n[http]\nenabled = true\nbind = \"0.0.0.0:7150\"\n";
+        let out = settings(
+            t,
+            "ws://127.0.0.1:7126/websocket",
+            "/home/pi/printer_2_data/klipcal",
+            7151,
+        );
+        assert!(
+            out.contains("# url = \"x\"\nurl = \"ws://127.0.0.1:7126/websocket\"\n"),
+            "{out}"
+        );
+        assert!(
+            out.contains("data_dir = \"/home/pi/printer_2_data/klipcal\"\n"),
+            "{out}"
+        );
+        assert!(out.contains("bind = \"0.0.0.0:7151\"\n"), "{out}");
+        let cfg = crate::config::Config::parse(&settings(
+            include_str!("../../../config/klipcal.toml"),
+            "ws://127.0.0.1:7126/websocket",
+            "/x/printer_2_data/klipcal",
+            7151,
+        ))
+        .unwrap();
+        assert_eq!(cfg.moonraker.url, "ws://127.0.0.1:7126/websocket");
+        assert_eq!(cfg.daemon.data_dir, "/x/printer_2_data/klipcal");
+        assert_eq!(cfg.http.bind, "0.0.0.0:7151");
     }
 }
