@@ -1121,7 +1121,7 @@ impl Ab {
                     lines: measuring_dialog(&s),
                     buttons: vec![Button::new(
                         "Close and type readings",
-                        "KLIPCAL_PROMPT_CLOSE",
+                        "_KLIPCAL_PROMPT_CLOSE",
                         "primary",
                     )],
                     footer: Vec::new(),
@@ -1351,7 +1351,7 @@ impl Ab {
                     title: format!("klipcal: all pairs measured (round {})", s.rounds.len()),
                     lines: vec![progress.clone()],
                     buttons: vec![Button::new("Solve", "KLIPCAL_AB_SOLVE", "primary")],
-                    footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+                    footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
                 })
                 .await;
         }
@@ -1478,7 +1478,7 @@ impl Ab {
                 title: "klipcal: new rotation distances".into(),
                 lines: decision.lines().map(str::to_string).collect(),
                 buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
-                footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+                footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
             })
             .await;
         Ok(json!({"solution": sol, "message": message}))

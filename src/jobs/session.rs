@@ -478,7 +478,7 @@ impl Core {
         true
     }
 
-    /// Notes that the user closed klipcal's dialog in Klipper (KLIPCAL_PROMPT_CLOSE sends the
+    /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
     /// close itself, so a dialog klipcal shows next is sent whole again).
     pub fn prompt_closed_by_user(&self) {
         self.mark_closed();

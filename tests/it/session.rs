@@ -465,10 +465,10 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         measuring
             .buttons
             .iter()
-            .any(|b| b.1 == "KLIPCAL_PROMPT_CLOSE"),
+            .any(|b| b.1 == "_KLIPCAL_PROMPT_CLOSE"),
         "{measuring:?}"
     );
-    m.gcode("KLIPCAL_PROMPT_CLOSE").await.unwrap();
+    m.gcode("_KLIPCAL_PROMPT_CLOSE").await.unwrap();
     assert_eq!(crate::mainsail::after_reload(&m).await, None);
     let told = crate::mainsail::history(&m).await;
     assert!(
