@@ -1112,7 +1112,7 @@ impl Ab {
         let s = self.load(id)?;
         // The console carries the whole guide; the dialog only what to do and where to look,
         // so the console does not read the guide twice.
-        let guide = measuring_guide(&s);
+        let guide = measuring_guide(&s, self.core.page());
         self.core
             .say_and_prompt(
                 &guide.join("\n"),
@@ -1865,7 +1865,7 @@ fn measuring_dialog(s: &Session) -> Vec<String> {
     lines
 }
 
-fn measuring_guide(s: &Session) -> Vec<String> {
+fn measuring_guide(s: &Session, page: Option<&str>) -> Vec<String> {
     let Some(round) = s.rounds.last() else {
         return Vec::new();
     };
@@ -1899,11 +1899,11 @@ fn measuring_guide(s: &Session) -> Vec<String> {
             "picture of the pylons and pairs: {p} (Mainsail/Fluidd: Machine → config files → klipcal)"
         ));
     }
-    lines.push(
-        "type readings on the console (or on klipcal's page); a wrong one: KLIPCAL_MEASURE \
-         PAIR=… CLEAR=1, then enter the pair again"
-            .into(),
-    );
+    lines.push(format!(
+        "type readings on the console (or on klipcal's page{}); a wrong one: KLIPCAL_MEASURE \
+         PAIR=… CLEAR=1, then enter the pair again",
+        page.map(|p| format!(", {p}")).unwrap_or_default()
+    ));
     lines
 }
 

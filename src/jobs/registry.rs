@@ -276,10 +276,11 @@ impl Calibrations {
                 CoreCall::PromptClose => {
                     // The macro closed the dialog in Klipper before asking: klipcal only notes it.
                     self.core.prompt_closed_by_user();
-                    Ok(
-                        json!({"message": "type readings on the console: KLIPCAL_MEASURE \
-                        PAIR=... VALUES=... (or on klipcal's page)"}),
-                    )
+                    Ok(json!({"message": format!(
+                        "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
+                         (or on klipcal's page{})",
+                        self.core.page().map(|p| format!(", {p}")).unwrap_or_default()
+                    )}))
                 }
                 CoreCall::Status => Err(anyhow::anyhow!(
                     "klipcal_status is answered by the agent with the printer's summary"
