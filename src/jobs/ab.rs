@@ -359,6 +359,10 @@ pub struct Session {
     /// The user's answer (`print` or `wait`), taken by the runner.
     #[serde(default)]
     pub soak_choice: Option<String>,
+    /// Since when the bed heats again after an apply that did not converge, so the next round's
+    /// soak starts warm (Unix s); the hold limit bounds it.
+    #[serde(default)]
+    pub preheat_since_unix: Option<f64>,
 }
 
 impl Doc for Session {
@@ -549,6 +553,63 @@ impl Ab {
             Ok(())
         })
         .await
+    }
+
+    /// After an apply that did not converge: Klipper's restart turned the bed off, so it heats
+    /// again at once (the next round's soak then starts warm), owned by the session and bounded
+    /// by the hold limit (klipcal's watchdog, and Klipper's idle timeout if klipcal is gone);
+    /// a dialog offers the next round. Returns what the apply answer adds.
+    async fn preheat_next_round(&self, s: &Session, round: usize) -> String {
+        let bed = s.options.bed_temp_c;
+        let hold_min = s.options.hold_max_s / 60.0;
+        let mut said = String::new();
+        if bed > 0.0 {
+            let heated = async {
+                BedSoak::heat(&self.core, bed).await?;
+                self.core.hold_heaters_for(s.options.hold_max_s).await
+            }
+            .await;
+            match heated {
+                Ok(()) => {
+                    let _ = self
+                        .update(s.id, |d| {
+                            d.preheat_since_unix = Some(now_unix());
+                            d.heaters_off = false;
+                            Ok(())
+                        })
+                        .await;
+                    said = format!(
+                        " The bed heats to {bed} °C again so that round {round} starts warm; \
+                         it goes off after {hold_min:.0} min without KLIPCAL_AB_START \
+                         (ab.hold_max_s), or with KLIPCAL_CANCEL."
+                    );
+                }
+                Err(e) => {
+                    warn!(error = %e, "no preheat for the next round");
+                    let _ = self.core.heaters_off().await;
+                }
+            }
+        }
+        self.core
+            .prompt(&Prompt {
+                title: format!("klipcal: round {round}?"),
+                lines: vec![format!(
+                    "Not yet converged: round {round} prints new pylons with the new values{}.",
+                    if said.is_empty() {
+                        ""
+                    } else {
+                        " (the bed is heating again)"
+                    }
+                )],
+                buttons: vec![Button::new(
+                    &format!("Print round {round}"),
+                    "KLIPCAL_AB_START",
+                    "primary",
+                )],
+                footer: vec![Button::new("End", "_KLIPCAL_CANCEL_ASK", "secondary")],
+            })
+            .await;
+        said
     }
 
     fn spawn_runner(&self, id: i64) {
@@ -1185,6 +1246,7 @@ impl Ab {
                     s.options.layout.clone_from(&layout);
                     s.print_done_unix = None;
                     s.heaters_off = false;
+                    s.preheat_since_unix = None;
                     self.core.save(s.id, &s)?;
                     Some(s.id)
                 }
@@ -1213,6 +1275,7 @@ impl Ab {
                     heaters_off: false,
                     soak_asking: false,
                     soak_choice: None,
+                    preheat_since_unix: None,
                 };
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
@@ -1593,6 +1656,7 @@ impl Ab {
                         "Not yet converged: print the next round with KLIPCAL_AB_START."
                     }
                 );
+                let next_round = s.rounds.len() + 1;
                 self.update(s.id, |s| {
                     if let Some(r) = s.rounds.last_mut() {
                         r.applied = Some(report.clone());
@@ -1626,6 +1690,10 @@ impl Ab {
                     })
                     .await?;
                     self.core.console(&format!("{TITLE}: {note}")).await;
+                }
+                let mut msg = msg;
+                if next == State::Applied {
+                    msg.push_str(&self.preheat_next_round(&s, next_round).await);
                 }
                 Ok(json!({"state": next.name(), "applied": report, "message": msg}))
             }
@@ -1758,7 +1826,17 @@ impl Calibration for Ab {
     fn held(&self, row: &SessionRow) -> Option<Hold> {
         let s: Session = serde_json::from_value(row.doc.clone()).ok()?;
         let waiting = matches!(s.state, State::Holding | State::Measuring | State::Solved);
-        (waiting && !s.heaters_off).then_some(Hold {
+        if s.heaters_off {
+            return None;
+        }
+        if s.state == State::Applied {
+            // The bed heating again for the next round.
+            return Some(Hold {
+                since_unix: s.preheat_since_unix?,
+                max_s: s.options.hold_max_s,
+            });
+        }
+        waiting.then_some(Hold {
             since_unix: s.print_done_unix?,
             max_s: s.options.hold_max_s,
         })
@@ -1770,8 +1848,9 @@ impl Calibration for Ab {
                 .update(row.id, |s| {
                     s.heaters_off = true;
                     s.notes.push(format!(
-                        "heaters turned off: the hold limit of {} s after the print passed (ab.hold_max_s)",
-                        s.options.hold_max_s
+                        "heaters turned off: the hold limit of {} s after the {} passed (ab.hold_max_s)",
+                        s.options.hold_max_s,
+                        if s.state == State::Applied { "apply" } else { "print" }
                     ));
                     Ok(())
                 })
