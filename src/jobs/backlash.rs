@@ -346,12 +346,7 @@ impl Backlash {
         };
         let axis = g.axis.name().to_uppercase();
         Prompt {
-            title: format!(
-                "klipcal: backlash {} — cycle {}/{}, moving only {dir}",
-                key_words(&result_key(g.axis, s.carriage)),
-                step.cycle,
-                g.params.cycles
-            ),
+            title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
             lines: vec![
                 format!(
                     "Jog {axis}{sign} until the nozzle is centred on the camera mark; never back."
@@ -1183,6 +1178,15 @@ fn result_key(axis: GuideAxis, carriage: Option<u32>) -> String {
 }
 
 /// A result key in words: `X`, `X (carriage 1)`.
+/// A jog dialog's title, what matters first: Mainsail cuts titles at its 400 px dialog width
+/// (about 34 characters), and "backlash X — cycle 1/2, mo" lost the direction (issue 26 A.3).
+fn title_for(axis: &str, dir: &str, carriage: Option<u32>, cycle: usize, cycles: usize) -> String {
+    match carriage {
+        Some(c) => format!("{axis}{dir} only · carriage {c} · {cycle}/{cycles}"),
+        None => format!("{axis}{dir} only · backlash {cycle}/{cycles}"),
+    }
+}
+
 fn key_words(key: &str) -> String {
     match key.split_once('@') {
         Some((axis, n)) => format!("{} (carriage {n})", axis.to_uppercase()),

@@ -115,12 +115,11 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     start_axis(&bench, json!({"axis": "Y"})).await;
     let shown = crate::mainsail::after_reload(&m).await;
     assert!(
-        shown
-            .as_ref()
-            .is_some_and(|d| d.title.contains("backlash Y")
-                && d.buttons
-                    .iter()
-                    .any(|b| b.1 == "_KLIPCAL_BACKLASH_JOG PRESS=centred")),
+        shown.as_ref().is_some_and(|d| d.title.starts_with("Y")
+            && d.title.contains(" only · backlash ")
+            && d.buttons
+                .iter()
+                .any(|b| b.1 == "_KLIPCAL_BACKLASH_JOG PRESS=centred")),
         "{shown:?}"
     );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
@@ -130,7 +129,9 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     let dialogs = h
         .iter()
         .filter(|(k, msg)| {
-            k == "response" && msg.starts_with("// action:prompt_begin klipcal: backlash Y")
+            k == "response"
+                && msg.starts_with("// action:prompt_begin Y")
+                && msg.contains(" only · backlash ")
         })
         .count();
     assert!(
