@@ -1270,6 +1270,8 @@ impl Ab {
             },
             ..SolveOptions::default()
         };
+        // The caliper's last digit is part of every reading's uncertainty.
+        opts.rules.resolution_mm = s.options.caliper_resolution_mm;
         if s.rounds.len() > 1 {
             let prev = &s.rounds[s.rounds.len() - 2];
             opts.previous = prev.solution.as_ref().map(|sol| {
