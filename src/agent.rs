@@ -56,8 +56,13 @@ async fn answer(
     method: &str,
     args: &Value,
 ) -> Result<Value, RpcError> {
-    if method == "klipcal_status" {
-        return status(m, cals).await;
+    if crate::jobs::registry::is_core_method(method) {
+        // Read whole first: a status call with an unknown argument is refused like any other.
+        if crate::jobs::registry::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
+            == crate::jobs::registry::CoreCall::Status
+        {
+            return status(m, cals).await;
+        }
     }
     let Some(cals) = cals else {
         return Err(RpcError {

@@ -72,6 +72,17 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Bench(BenchCommand::Backlash(a)) => {
             crate::cmd::backlash::bench(&a, &config.backlash)
         }
+        Command::Macros(a) => {
+            if a.readme {
+                print!(
+                    "{}",
+                    crate::jobs::table::markdown(&crate::jobs::registry::all_ops())
+                );
+            } else {
+                print!("{}", crate::jobs::registry::macros_cfg());
+            }
+            Ok(ExitCode::SUCCESS)
+        }
     }
 }
 
@@ -163,11 +174,18 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
         }
     };
     if let Some(c) = cals.clone() {
-        tokio::spawn(c.clone().hold_watchdog());
+        c.core().spawn(c.clone().hold_watchdog());
         let m2 = m.clone();
-        tokio::spawn(async move {
-            if m2.wait_connected(Duration::from_secs(86_400)).await.is_ok() {
-                c.resume().await;
+        let c2 = c.clone();
+        let stop = cancel.clone();
+        c.core().spawn(async move {
+            tokio::select! {
+                () = stop.cancelled() => {}
+                r = m2.wait_connected(Duration::from_secs(86_400)) => {
+                    if r.is_ok() {
+                        c2.resume().await;
+                    }
+                }
             }
         });
     }
@@ -185,8 +203,21 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
             Err(e) => tracing::error!("the page and API are off: {e:#}"),
         }
     }
-    let agent = tokio::spawn(crate::agent::serve(m.clone(), cals, calls));
+    let agent = tokio::spawn(crate::agent::serve(m.clone(), cals.clone(), calls));
     cancel.cancelled().await;
+    // Every task the sessions started (runners, the follower, the watchdog, the resume) ends
+    // with the token; wait for them, within a deadline, before the socket closes.
+    if let Some(c) = &cals {
+        let running = c.core().running_tasks();
+        if c.core().stopped(Duration::from_millis(1500)).await {
+            info!(tasks = running, "every session task stopped");
+        } else {
+            tracing::warn!(
+                still_running = c.core().running_tasks(),
+                "session tasks still running 1.5 s after shutdown; stopping anyway"
+            );
+        }
+    }
     // Every task selects on the token; give them a moment to close the socket cleanly.
     let mut state = m.state_watch();
     let _ = tokio::time::timeout(

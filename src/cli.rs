@@ -44,9 +44,20 @@ pub enum Command {
     Install(crate::cmd::install::InstallArgs),
     /// Take klipcal off again: every edited file restored, what install added removed.
     Uninstall(crate::cmd::install::UninstallArgs),
+    /// Print klipcal's Klipper macros (config/klipcal.cfg), generated from its command table.
+    Macros(MacrosArgs),
     /// Offline backlash commands (seed 004).
     #[command(subcommand)]
     Backlash(BacklashCommand),
+}
+
+/// `klipcal macros`
+#[derive(Debug, Args)]
+pub struct MacrosArgs {
+    /// Print the README's table of every operation (macro, remote method, HTTP path,
+    /// arguments) instead of the macros.
+    #[arg(long)]
+    pub readme: bool,
 }
 
 /// `klipcal mesh …`

@@ -17,6 +17,11 @@ fi
 echo "== bench setup"
 bash tests/bench/setup.sh
 
+echo "== cargo fmt --check, cargo clippy"
+# The code's shape is part of the tests: formatted, and no clippy warning.
+cargo fmt --check
+cargo clippy --all-targets --quiet -- -D warnings
+
 echo "== cargo test"
 # Each integration test starts its own bench on free ports; four at a time fit two cores.
 cargo test --all-targets -- --test-threads="${KLIPCAL_TEST_THREADS:-4}"

@@ -40,25 +40,20 @@ pub struct Http {
 
 type Shared = Arc<Http>;
 
-/// The operations a POST may name, and the remote method behind each (`ab/clear` is
-/// `klipcal_measure` with `clear`).
-pub const OPERATIONS: &[(&str, &str)] = &[
-    ("ab/start", "klipcal_ab_start"),
-    ("ab/measure", "klipcal_measure"),
-    ("ab/check", "klipcal_ab_check"),
-    ("ab/clear", "klipcal_measure"),
-    ("ab/solve", "klipcal_solve"),
-    ("ab/apply", "klipcal_apply"),
-    ("cancel", "klipcal_cancel"),
-    ("backlash/set_point", "klipcal_backlash_set_point"),
-    ("backlash/start", "klipcal_backlash_start"),
-    ("backlash/jog", "klipcal_backlash_jog"),
-    ("backlash/apply", "klipcal_backlash_apply"),
-    ("mesh/capture", "klipcal_mesh_capture"),
-    ("mesh/import", "klipcal_mesh_import"),
-    ("mesh/follow", "klipcal_mesh_follow"),
-    ("mesh/check", "klipcal_mesh_check"),
-];
+/// HTTP paths that are another operation with one argument set: `ab/clear` is `ab/measure`
+/// with `clear`.
+pub const ALIASES: &[(&str, &str, &str)] = &[("ab/clear", "ab/measure", "clear")];
+
+/// Every path a POST may name under `/api/`: each operation's of the command table, then the
+/// aliases.
+#[must_use]
+pub fn operation_paths() -> Vec<&'static str> {
+    crate::jobs::registry::all_ops()
+        .iter()
+        .filter_map(|o| o.http)
+        .chain(ALIASES.iter().map(|(a, _, _)| *a))
+        .collect()
+}
 
 /// Binds `[http] bind` and serves until `cancel`; returns the bound address.
 ///
@@ -96,7 +91,7 @@ pub async fn start(
 fn router(shared: Shared) -> Router {
     Router::new()
         .route("/", get(index))
-        .route("/api/status", get(status))
+        .route("/api/status", get(status).post(status_op))
         .route("/api/sessions", get(sessions))
         .route("/api/sessions/{id}", get(session))
         .route("/api/sessions/{id}/diagram.svg", get(diagram))
@@ -301,13 +296,37 @@ async fn index(State(h): State<Shared>) -> Response {
         .into_response()
 }
 
+/// `POST /api/status`: the status as an operation (arguments checked like any other's).
+async fn status_op(
+    State(h): State<Shared>,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
+) -> Response {
+    run_operation(&h, "status", body).await
+}
+
 async fn operation(
     State(h): State<Shared>,
     Path(op): Path<String>,
     body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Response {
-    let Some(&(_, method)) = OPERATIONS.iter().find(|(name, _)| *name == op) else {
-        let known: Vec<&str> = OPERATIONS.iter().map(|(n, _)| *n).collect();
+    run_operation(&h, &op, body).await
+}
+
+async fn run_operation(
+    h: &Http,
+    op: &str,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
+) -> Response {
+    let (path, set) = match ALIASES.iter().find(|(a, _, _)| *a == op) {
+        Some((_, target, flag)) => (*target, Some(*flag)),
+        None => (op, None),
+    };
+    let method = crate::jobs::registry::all_ops()
+        .into_iter()
+        .find(|o| o.http == Some(path))
+        .and_then(|o| o.method);
+    let Some(method) = method else {
+        let known = operation_paths();
         return error(
             StatusCode::NOT_FOUND,
             &format!("unknown operation /api/{op}; known: {}", known.join(", ")),
@@ -336,10 +355,8 @@ async fn operation(
             }
         }
     };
-    if op == "ab/clear" {
-        if let Value::Object(o) = &mut args {
-            o.insert("clear".into(), json!(1));
-        }
+    if let (Some(flag), Value::Object(o)) = (set, &mut args) {
+        o.insert(flag.into(), json!(1));
     }
     tracing::info!(%op, "HTTP call");
     answer(dispatch(&h.m, h.cals.as_ref(), method, &args).await)

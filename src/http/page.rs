@@ -195,8 +195,78 @@ pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
         }
     }
     last_results(&mut h, &status["last"], &session);
+    operations(&mut h, &crate::jobs::registry::all_ops());
     let _ = write!(h, "</main><script>{SCRIPT}</script></body></html>");
     h
+}
+
+/// Every operation of the command table as a form, with a field per argument (its help as the
+/// field's hint, its choices as a list): whatever a macro can do, the page can (a phone without
+/// a console reaches all of them). Folded away under the session's own controls.
+fn operations(h: &mut String, ops: &[&crate::jobs::table::OpSpec]) {
+    use crate::jobs::table::{arg_form, ArgKind};
+    h.push_str(
+        "<section id=\"operations\"><details><summary><b>Every operation</b> \
+         <small>(the same as the macros)</small></summary>",
+    );
+    for op in ops {
+        let Some(path) = op.http else { continue };
+        let _ = write!(
+            h,
+            "<form class=\"op\" data-path=\"{}\"><p><b>{}</b> <small>{}</small></p><div class=\"fields\">",
+            esc(path),
+            esc(op.macro_name),
+            esc(op.summary)
+        );
+        for a in op.args {
+            let name = esc(a.name);
+            let label = esc(&a.name.to_uppercase());
+            let hint = esc(&format!("{} ({})", a.help, arg_form(a)));
+            match a.kind {
+                ArgKind::Choice(choices) => {
+                    let _ = write!(
+                        h,
+                        "<label class=\"field\" title=\"{hint}\">{label}<select name=\"{name}\">\
+                         <option value=\"\">{}</option>",
+                        if a.default.is_empty() {
+                            "default".to_string()
+                        } else {
+                            format!("default ({})", esc(a.default))
+                        }
+                    );
+                    for c in choices {
+                        let _ = write!(h, "<option>{}</option>", esc(c));
+                    }
+                    h.push_str("</select></label>");
+                }
+                ArgKind::Flag => {
+                    let _ = write!(
+                        h,
+                        "<label class=\"field\" title=\"{hint}\"><span>{label}</span>\
+                         <input type=\"checkbox\" name=\"{name}\" style=\"width:auto\"></label>"
+                    );
+                }
+                _ => {
+                    let _ = write!(
+                        h,
+                        "<label class=\"field\" title=\"{hint}\">{label}<input name=\"{name}\" \
+                         placeholder=\"{}\" autocomplete=\"off\"></label>",
+                        esc(a.example)
+                    );
+                }
+            }
+        }
+        let _ = write!(
+            h,
+            "</div><p class=\"row\"><button class=\"quiet\" data-op=\"{}\" data-out=\"op-{}\" \
+             data-confirm=\"Run {} now?\">Run</button><span id=\"op-{}\" class=\"msg\"></span></p></form>",
+            esc(path),
+            esc(&path.replace('/', "-")),
+            esc(op.macro_name),
+            esc(&path.replace('/', "-"))
+        );
+    }
+    h.push_str("</details></section>");
 }
 
 fn start_form(h: &mut String) {
@@ -683,6 +753,32 @@ mod tests {
             None,
         );
         assert!(page.contains("Status unavailable") && page.contains("no database"));
+    }
+
+    #[test]
+    fn every_operation_with_an_http_path_has_a_form_with_a_field_per_argument() {
+        let page = render(&json!({"session": null, "last": {}}), None);
+        for op in crate::jobs::registry::all_ops() {
+            let Some(path) = op.http else { continue };
+            assert!(
+                page.contains(&format!("data-op=\"{path}\" data-out=\"op-")),
+                "no form for {path}"
+            );
+            let form = page
+                .split(&format!("data-path=\"{path}\""))
+                .nth(1)
+                .and_then(|f| f.split("</form>").next())
+                .unwrap();
+            for a in op.args {
+                assert!(
+                    form.contains(&format!("name=\"{}\"", a.name)),
+                    "{path} has no field {}",
+                    a.name
+                );
+            }
+        }
+        // The soak's answer, which the page once lacked (issue 24).
+        assert!(page.contains("data-op=\"ab/soak_choice\""));
     }
 
     #[test]

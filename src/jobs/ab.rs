@@ -14,12 +14,12 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
-use super::args::Args;
 use super::console::{Button, Prompt};
 use super::printer_config::{self, ApplyReport, ValueSet};
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
+use super::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use super::user;
 use crate::calib::entry;
 use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
@@ -31,15 +31,191 @@ use crate::klipper::{self, PrinterFacts};
 use crate::layout::Layout;
 use crate::store::SessionRow;
 
-/// The remote methods of the A/B calibration.
-pub const METHODS: &[&str] = &[
-    "klipcal_ab_start",
-    "klipcal_measure",
-    "klipcal_solve",
-    "klipcal_apply",
-    "klipcal_ab_check",
-    "klipcal_soak_choice",
+const BED: crate::jobs::table::ArgSpec = arg(
+    "bed",
+    ArgKind::Number {
+        min: 0.0,
+        max: 130.0,
+    },
+    "60",
+    "a bed temperature from 0 (unheated) to 130 °C",
+    "",
+    "bed temperature, °C (0: unheated, no soak; default ab.bed_temp_c)",
+);
+const PAIR: crate::jobs::table::ArgSpec = arg(
+    "pair",
+    ArgKind::Text,
+    "A-D1",
+    "a pair of the layout, e.g. A-D1",
+    "",
+    "the pair measured, as the layout names it (A-D1)",
+);
+
+/// The A/B calibration's operations, each declared once (see [`crate::jobs::table`]).
+pub static OPS: &[Op<AbCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_ab_start",
+            "KLIPCAL_AB_START",
+            "ab/start",
+            "print the pylons and calibrate stepper_x/stepper_y rotation_distance (BED=0 for an unheated bed, LAYOUT=paper or full)",
+            &[
+                BED,
+                arg(
+                    "extruder",
+                    ArgKind::Number {
+                        min: 150.0,
+                        max: 320.0,
+                    },
+                    "215",
+                    "a nozzle temperature from 150 to 320 °C",
+                    "",
+                    "nozzle temperature, °C (default ab.nozzle_temp_c)",
+                ),
+                arg(
+                    "layout",
+                    ArgKind::Choice(&["paper", "full"]),
+                    "paper",
+                    "paper or full",
+                    "",
+                    "paper: the paper's pylons; full: also observes shear",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Start(StartRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_measure",
+            "KLIPCAL_MEASURE",
+            "ab/measure",
+            "enter caliper readings for one pair, e.g. PAIR=A-D1 VALUES=10.02,10.03,10.01,10.02,10.04 (CLEAR=1 removes the pair's readings)",
+            &[
+                PAIR,
+                arg(
+                    "values",
+                    ArgKind::Readings,
+                    "10.02,10.03,10.01",
+                    "readings separated by commas, e.g. 10.02,10.03",
+                    "",
+                    "the readings, separated by commas",
+                ),
+                arg(
+                    "value",
+                    ArgKind::Readings,
+                    "10.02",
+                    "one reading, e.g. 10.02",
+                    "",
+                    "one reading",
+                ),
+                arg(
+                    "clear",
+                    ArgKind::Flag,
+                    "1",
+                    "1 or 0",
+                    "0",
+                    "1: remove the pair's readings first",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Measure(MeasureRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_ab_check",
+            "KLIPCAL_AB_CHECK",
+            "ab/check",
+            "check readings for one pair without saving them, e.g. PAIR=A-D1 VALUES=10.02,10.03",
+            &[
+                PAIR,
+                arg(
+                    "values",
+                    ArgKind::Readings,
+                    "10.02,10.03",
+                    "readings separated by commas, e.g. 10.02,10.03",
+                    "",
+                    "the readings, separated by commas",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Check(CheckRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_soak_choice",
+            "KLIPCAL_SOAK_CHOICE",
+            "ab/soak_choice",
+            "answer the \"bed has not settled\" prompt: CHOICE=print (print now) or CHOICE=wait (10 min more)",
+            &[arg(
+                "choice",
+                ArgKind::Choice(&["print", "wait"]),
+                "wait",
+                "print or wait",
+                "wait",
+                "print: print now; wait: 10 min more",
+            )],
+        ),
+        parse: |a| {
+            Ok(AbCall::SoakChoice(a.choice("choice")?.ok_or_else(|| {
+                user("no CHOICE given; expected CHOICE=print or CHOICE=wait (KLIPCAL_CANCEL cancels)")
+            })?))
+        },
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_solve",
+            "KLIPCAL_AB_SOLVE",
+            "ab/solve",
+            "compute the new rotation distances from the readings",
+            &[],
+        ),
+        parse: |_| Ok(AbCall::Solve),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_apply",
+            "KLIPCAL_AB_APPLY",
+            "ab/apply",
+            "write the new rotation distances (backup, restart, verify, FORCE=1 for a change beyond the limit)",
+            &[arg(
+                "force",
+                ArgKind::Flag,
+                "1",
+                "1 or 0",
+                "0",
+                "1: apply a change beyond ab.max_change_pct",
+            )],
+        ),
+        parse: |a| Ok(AbCall::Apply(ApplyRequest::from_args(a)?)),
+    },
 ];
+
+/// An A/B call, typed at the boundary.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AbCall {
+    /// `klipcal_ab_start`.
+    Start(StartRequest),
+    /// `klipcal_measure`.
+    Measure(MeasureRequest),
+    /// `klipcal_ab_check`.
+    Check(CheckRequest),
+    /// `klipcal_soak_choice`: `print` or `wait`.
+    SoakChoice(&'static str),
+    /// `klipcal_solve`.
+    Solve,
+    /// `klipcal_apply`.
+    Apply(ApplyRequest),
+}
+
+impl AbCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(OPS, method, args)
+    }
+}
 
 /// The store's kind.
 pub const KIND: &str = "ab";
@@ -183,6 +359,10 @@ pub struct Session {
     /// The user's answer (`print` or `wait`), taken by the runner.
     #[serde(default)]
     pub soak_choice: Option<String>,
+    /// The last entry of readings saved: its pair and readings (a line sent again is told from
+    /// new readings by it).
+    #[serde(default)]
+    pub last_entry: Option<(String, Vec<f64>)>,
 }
 
 impl Doc for Session {
@@ -216,24 +396,12 @@ impl StartRequest {
     ///
     /// # Errors
     /// A bad or unknown argument, named.
-    pub fn parse(args: &Value) -> anyhow::Result<Self> {
-        let a = Args::parse(args, "KLIPCAL_AB_START", &["bed", "extruder", "layout"])?;
-        let r = Self {
-            bed_temp_c: a.num("bed", "60")?,
-            nozzle_temp_c: a.num("extruder", "215")?,
-            layout: a.choice("layout", &["paper", "full"])?,
-        };
-        if let Some(bed) = r.bed_temp_c.filter(|b| !(0.0..=130.0).contains(b)) {
-            return Err(user(format!(
-                "BED={bed}: expected a bed temperature from 0 (unheated) to 130 °C"
-            )));
-        }
-        if let Some(n) = r.nozzle_temp_c.filter(|n| !(150.0..=320.0).contains(n)) {
-            return Err(user(format!(
-                "EXTRUDER={n}: expected a nozzle temperature from 150 to 320 °C"
-            )));
-        }
-        Ok(r)
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+        Ok(Self {
+            bed_temp_c: a.num("bed")?,
+            nozzle_temp_c: a.num("extruder")?,
+            layout: a.choice("layout")?.map(str::to_string),
+        })
     }
 }
 
@@ -253,12 +421,7 @@ impl MeasureRequest {
     ///
     /// # Errors
     /// No pair, a bad CLEAR, or an unknown argument.
-    pub fn parse(args: &Value) -> anyhow::Result<Self> {
-        let a = Args::parse(
-            args,
-            "KLIPCAL_MEASURE",
-            &["pair", "values", "value", "clear"],
-        )?;
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_MEASURE PAIR=A-D1 VALUES=10.02,10.03,10.01")
         })?;
@@ -312,10 +475,48 @@ impl ApplyRequest {
     ///
     /// # Errors
     /// A bad FORCE, or an unknown argument.
-    pub fn parse(args: &Value) -> anyhow::Result<Self> {
-        let a = Args::parse(args, "KLIPCAL_AB_APPLY", &["force"])?;
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
         Ok(Self {
             force: a.flag("force")?,
+        })
+    }
+}
+
+/// `klipcal_ab_check` / `KLIPCAL_AB_CHECK`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CheckRequest {
+    /// The pair id as typed.
+    pub pair: String,
+    /// The readings as typed, each with where it was typed ([`readings_typed`]).
+    pub items: Vec<entry::Item>,
+    /// The page's fields as sent, blank ones too (a JSON list), so each gets its answer.
+    pub fields: Option<Vec<String>>,
+}
+
+impl CheckRequest {
+    /// Reads the call's arguments.
+    ///
+    /// # Errors
+    /// No pair.
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+        let pair = a.text("pair").ok_or_else(|| {
+            user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
+        })?;
+        let fields = match a.raw("values") {
+            Some(Value::Array(list)) => Some(
+                list.iter()
+                    .map(|v| match v {
+                        Value::String(s) => s.clone(),
+                        other => other.to_string(),
+                    })
+                    .collect(),
+            ),
+            _ => None,
+        };
+        Ok(Self {
+            pair,
+            items: readings_typed(a.raw("values"), "VALUES"),
+            fields,
         })
     }
 }
@@ -798,11 +999,7 @@ impl Ab {
     ///
     /// # Errors
     /// A bad CHOICE, or no soak waiting for one.
-    pub async fn soak_choice(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_SOAK_CHOICE", &["choice"])?;
-        let choice = a.choice("choice", &["print", "wait"])?.ok_or_else(|| {
-            user("no CHOICE given; expected CHOICE=print or CHOICE=wait (KLIPCAL_CANCEL cancels)")
-        })?;
+    pub async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.soak_asking => s,
             _ => {
@@ -811,9 +1008,8 @@ impl Ab {
                 ))
             }
         };
-        let c = choice.clone();
         self.update(s.id, |d| {
-            d.soak_choice = Some(c);
+            d.soak_choice = Some(choice.to_string());
             Ok(())
         })
         .await?;
@@ -1028,6 +1224,7 @@ impl Ab {
                     heaters_off: false,
                     soak_asking: false,
                     soak_choice: None,
+                    last_entry: None,
                 };
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
@@ -1068,12 +1265,15 @@ impl Ab {
         let n = s.rounds.len() as i64;
         let per_pair = s.options.readings_per_pair;
         if !req.clear && !values.is_empty() {
-            // The same line sent again (a re-sent console line, a double tap) would double the
-            // pair's readings: refused, with the way to replace them.
+            // The last entry sent again (a re-sent console line, a double tap) would double the
+            // pair's readings: refused, with the way to replace them. A new reading that
+            // happens to equal an earlier one is not an entry sent again.
             let have = self.readings(&s)?.remove(&pair.id).unwrap_or_default();
-            let tail = &have[have.len().saturating_sub(values.len())..];
-            let again = tail.len() == values.len()
-                && tail.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9);
+            let again = s.last_entry.as_ref().is_some_and(|(p, last)| {
+                *p == pair.id
+                    && last.len() == values.len()
+                    && last.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9)
+            });
             if again && have.len() + values.len() > per_pair {
                 return Err(user(format!(
                     "{}: nothing saved: these {} reading(s) are already saved (the same entry \
@@ -1116,8 +1316,12 @@ impl Ab {
             );
         }
         let logged = notes.clone();
+        let entry = (!values.is_empty()).then(|| (pair.id.clone(), values.clone()));
         self.update(s.id, |s| {
             s.notes.extend(logged);
+            if entry.is_some() || req.clear {
+                s.last_entry.clone_from(&entry);
+            }
             if s.state == State::Solved {
                 s.state = State::Measuring;
                 s.progress = "waiting for caliper readings".into();
@@ -1181,42 +1385,29 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or a bad argument.
-    pub fn check(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_AB_CHECK", &["pair", "values"])?;
-        let typed = a.text("pair").ok_or_else(|| {
-            user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
-        })?;
-        let typed_items = readings_typed(a.raw("values"), "VALUES");
+    pub fn check(&self, req: &CheckRequest) -> anyhow::Result<Value> {
+        let typed_items = &req.items;
         let s = self.measuring()?;
-        let (pair, window) = pair_window(&s, &typed)?;
+        let (pair, window) = pair_window(&s, &req.pair)?;
         // One answer per field as sent (blank fields too), so the page marks the field the
         // user typed in; a console list: one per item.
-        let per_field: Vec<Value> = match a.raw("values") {
-            Some(Value::Array(list)) => {
-                let texts: Vec<String> = list
-                    .iter()
-                    .map(|v| match v {
-                        Value::String(s) => s.clone(),
-                        other => other.to_string(),
-                    })
-                    .collect();
-                texts
-                    .iter()
-                    .enumerate()
-                    .map(|(i, t)| {
-                        let item = typed_items
-                            .iter()
-                            .find(|it| it.label == format!("field {}", i + 1));
-                        item_answer(t, item, &pair.id, &window)
-                    })
-                    .collect()
-            }
-            _ => typed_items
+        let per_field: Vec<Value> = match &req.fields {
+            Some(texts) => texts
+                .iter()
+                .enumerate()
+                .map(|(i, t)| {
+                    let item = typed_items
+                        .iter()
+                        .find(|it| it.label == format!("field {}", i + 1));
+                    item_answer(t, item, &pair.id, &window)
+                })
+                .collect(),
+            None => typed_items
                 .iter()
                 .map(|it| item_answer(&it.text, Some(it), &pair.id, &window))
                 .collect(),
         };
-        let whole = entry::parse(&typed_items, &pair.id, &window);
+        let whole = entry::parse(typed_items, &pair.id, &window);
         let message = match &whole {
             Ok(v) => format!(
                 "{}: {} reading(s) would be accepted (plausible {:.2}–{:.2} mm); nothing saved",
@@ -1545,8 +1736,8 @@ impl Calibration for Ab {
         "an A/B calibration"
     }
 
-    fn methods(&self) -> &'static [&'static str] {
-        METHODS
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        crate::jobs::table::specs(OPS).collect()
     }
 
     fn call<'a>(
@@ -1555,17 +1746,13 @@ impl Calibration for Ab {
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match method {
-                "klipcal_ab_start" => self.start(&StartRequest::parse(args)?).await,
-                "klipcal_measure" => self.measure(&MeasureRequest::parse(args)?).await,
-                "klipcal_solve" => {
-                    Args::parse(args, "KLIPCAL_AB_SOLVE", &[])?;
-                    self.solve().await
-                }
-                "klipcal_apply" => self.apply(&ApplyRequest::parse(args)?).await,
-                "klipcal_ab_check" => self.check(args),
-                "klipcal_soak_choice" => self.soak_choice(args).await,
-                other => Err(anyhow!("{other} is not an A/B method")),
+            match AbCall::parse(method, args)? {
+                AbCall::Start(r) => self.start(&r).await,
+                AbCall::Measure(r) => self.measure(&r).await,
+                AbCall::Solve => self.solve().await,
+                AbCall::Apply(r) => self.apply(&r).await,
+                AbCall::Check(r) => self.check(&r),
+                AbCall::SoakChoice(c) => self.soak_choice(c).await,
             }
         }
         .boxed()
@@ -1796,26 +1983,37 @@ mod tests {
 
     #[test]
     fn start_arguments_are_typed_at_the_boundary() {
-        let r =
-            StartRequest::parse(&json!({"BED": "60", "extruder": 215, "layout": "Full"})).unwrap();
+        let r = AbCall::parse(
+            "klipcal_ab_start",
+            &json!({"BED": "60", "extruder": 215, "layout": "Full"}),
+        )
+        .unwrap();
         assert_eq!(
             r,
-            StartRequest {
+            AbCall::Start(StartRequest {
                 bed_temp_c: Some(60.0),
                 nozzle_temp_c: Some(215.0),
                 layout: Some("full".into())
-            }
+            })
         );
-        let e = StartRequest::parse(&json!({"bed": "200"})).unwrap_err();
+        let e = AbCall::parse("klipcal_ab_start", &json!({"bed": "200"})).unwrap_err();
         assert!(e.to_string().starts_with("BED=200: expected"), "{e}");
-        let e = StartRequest::parse(&json!({"layout": "round"})).unwrap_err();
+        let e = AbCall::parse("klipcal_ab_start", &json!({"layout": "round"})).unwrap_err();
         assert_eq!(e.to_string(), "LAYOUT=round: expected paper or full");
-        assert!(ApplyRequest::parse(&json!({"FORCE": "1"})).unwrap().force);
-        assert!(!ApplyRequest::parse(&json!({})).unwrap().force);
-        let m = MeasureRequest::parse(
-            &json!({"pair": "A-D1", "values": "10.02, 10.03,10.01", "value": "10,04"}),
-        )
-        .unwrap();
+        let apply = |v| AbCall::parse("klipcal_apply", &v).unwrap();
+        assert_eq!(
+            apply(json!({"FORCE": "1"})),
+            AbCall::Apply(ApplyRequest { force: true })
+        );
+        assert_eq!(
+            apply(json!({})),
+            AbCall::Apply(ApplyRequest { force: false })
+        );
+        let measure = |v| match AbCall::parse("klipcal_measure", &v).unwrap() {
+            AbCall::Measure(m) => m,
+            other => panic!("{other:?}"),
+        };
+        let m = measure(json!({"pair": "A-D1", "values": "10.02, 10.03,10.01", "value": "10,04"}));
         let texts: Vec<(&str, &str)> = m
             .values
             .iter()
@@ -1831,10 +2029,15 @@ mod tests {
             ]
         );
         // The page's fields: one reading each, named by the field.
-        let m = MeasureRequest::parse(&json!({"pair": "A-D1", "values": ["", "10,10"]})).unwrap();
+        let m = measure(json!({"pair": "A-D1", "values": ["", "10,10"]}));
         assert_eq!(m.values.len(), 1);
         assert_eq!(m.values[0].label, "field 2");
         assert!(m.values[0].comma_is_decimal);
+        assert_eq!(
+            AbCall::parse("klipcal_soak_choice", &json!({})).unwrap(),
+            AbCall::SoakChoice("wait"),
+            "the macro's field default is the daemon's"
+        );
     }
 
     #[test]

@@ -15,11 +15,11 @@ use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use super::args::Args;
 use super::console::{Button, Prompt};
 use super::printer_config::{self, ValueSet};
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
+use super::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use super::user;
 use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult, SEED_SMOOTH_TIME_S};
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
@@ -28,13 +28,142 @@ use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, 
 use crate::klipper::GcodeCmd;
 use crate::store::SessionRow;
 
-/// The remote methods of the backlash measurement.
-pub const METHODS: &[&str] = &[
-    "klipcal_backlash_set_point",
-    "klipcal_backlash_start",
-    "klipcal_backlash_jog",
-    "klipcal_backlash_apply",
+/// The backlash measurement's operations, each declared once (see [`crate::jobs::table`]).
+pub static OPS: &[Op<BacklashCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_set_point",
+            "KLIPCAL_BACKLASH_SET_POINT",
+            "backlash/set_point",
+            "save the current position (nozzle centred on the camera mark) as the backlash camera point",
+            &[],
+        ),
+        parse: |_| Ok(BacklashCall::SetPoint),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_start",
+            "KLIPCAL_BACKLASH_START",
+            "backlash/start",
+            "measure backlash through the nozzle camera, AXIS=X, Y, Z, or A/B (CoreXY motors), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
+            &[
+                arg(
+                    "axis",
+                    ArgKind::Text,
+                    "X",
+                    "X, Y, Z, A or B",
+                    "",
+                    "the axis: X, Y, Z, or A/B (CoreXY motors)",
+                ),
+                arg(
+                    "cycles",
+                    ArgKind::Whole { min: 1, max: 50 },
+                    "5",
+                    "1..50",
+                    "",
+                    "approach cycles (default backlash.cycles)",
+                ),
+                arg(
+                    "carriage",
+                    ArgKind::Whole { min: 0, max: 1 },
+                    "1",
+                    "0 or 1",
+                    "",
+                    "the carriage on a dual_carriage printer",
+                ),
+            ],
+        ),
+        parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_jog",
+            "KLIPCAL_BACKLASH_JOG",
+            "backlash/jog",
+            "backlash prompt button, PRESS=coarse, fine, centred or overshot (moves only in the approach direction)",
+            &[arg(
+                "press",
+                ArgKind::Text,
+                "fine",
+                "coarse, fine, centred or overshot",
+                "",
+                "coarse, fine, centred or overshot",
+            )],
+        ),
+        parse: |a| {
+            Press::parse(&a.text("press").unwrap_or_default())
+                .map(BacklashCall::Jog)
+                .map_err(|e| user(e.to_string()))
+        },
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_apply",
+            "KLIPCAL_BACKLASH_APPLY",
+            "backlash/apply",
+            "set the measured backlash compensation and write it to the config (backup, restart, verify)",
+            &[],
+        ),
+        parse: |_| Ok(BacklashCall::Apply),
+    },
 ];
+
+/// A backlash call, typed at the boundary.
+#[derive(Debug, Clone, PartialEq)]
+pub enum BacklashCall {
+    /// `klipcal_backlash_set_point`.
+    SetPoint,
+    /// `klipcal_backlash_start`.
+    Start(StartRequest),
+    /// `klipcal_backlash_jog`.
+    Jog(Press),
+    /// `klipcal_backlash_apply`.
+    Apply,
+}
+
+impl BacklashCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(OPS, method, args)
+    }
+}
+
+/// `klipcal_backlash_start` / `KLIPCAL_BACKLASH_START`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartRequest {
+    /// The axis measured.
+    pub axis: GuideAxis,
+    /// Approach cycles, when given.
+    pub cycles: Option<usize>,
+    /// The dual_carriage carriage, when given.
+    pub carriage: Option<i64>,
+}
+
+impl StartRequest {
+    /// Reads the call's arguments.
+    ///
+    /// # Errors
+    /// No or a bad axis, bad cycles or carriage.
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+        let carriage = a.int("carriage")?;
+        let axis_text = a.text("axis").ok_or_else(|| {
+            user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
+        })?;
+        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+        let cycles = a
+            .int("cycles")?
+            .map(|c| usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50"))))
+            .transpose()?;
+        Ok(Self {
+            axis,
+            cycles,
+            carriage,
+        })
+    }
+}
 
 /// The store's kind.
 pub const KIND: &str = "backlash";
@@ -346,21 +475,12 @@ impl Backlash {
     /// # Errors
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
-    pub async fn start(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(
-            args,
-            "KLIPCAL_BACKLASH_START",
-            &["axis", "cycles", "carriage"],
-        )?;
-        let carriage_arg = a.int("carriage", "1")?;
-        let axis_text = a.text("axis").ok_or_else(|| {
-            user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
-        })?;
-        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+        let carriage_arg = req.carriage;
+        let axis = req.axis;
         let mut params = self.settings.guide();
-        if let Some(c) = a.int("cycles", "5")? {
-            params.cycles =
-                usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50")))?;
+        if let Some(c) = req.cycles {
+            params.cycles = c;
         }
         params.validate().map_err(|e| user(e.to_string()))?;
         self.core.refuse_other_kind(KIND)?;
@@ -380,7 +500,7 @@ impl Backlash {
         if axis.is_motor() && kin != "corexy" {
             return Err(user(format!(
                 "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
-                axis_text.to_uppercase()
+                axis.name().to_uppercase()
             )));
         }
         let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
@@ -483,10 +603,7 @@ impl Backlash {
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
-    pub async fn jog(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_BACKLASH_JOG", &["press"])?;
-        let press =
-            Press::parse(&a.text("press").unwrap_or_default()).map_err(|e| user(e.to_string()))?;
+    pub async fn jog(&self, press: Press) -> anyhow::Result<Value> {
         // The press and its reading are saved before the machine moves.
         let (s, step) = {
             let _g = self.core.lock().await;
@@ -559,8 +676,7 @@ impl Backlash {
     /// # Errors
     /// Nothing measured, a printer printing, neither branch (with the reason), a reply that
     /// disagrees, or a config Klipper rejects (rolled back).
-    pub async fn apply(&self, args: &Value) -> anyhow::Result<Value> {
-        Args::parse(args, "KLIPCAL_BACKLASH_APPLY", &[])?;
+    pub async fn apply(&self) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.state == State::Measured => s,
             _ => {
@@ -1087,8 +1203,8 @@ impl Calibration for Backlash {
         "a backlash measurement"
     }
 
-    fn methods(&self) -> &'static [&'static str] {
-        METHODS
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        crate::jobs::table::specs(OPS).collect()
     }
 
     fn call<'a>(
@@ -1097,15 +1213,11 @@ impl Calibration for Backlash {
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match method {
-                "klipcal_backlash_set_point" => {
-                    Args::parse(args, "KLIPCAL_BACKLASH_SET_POINT", &[])?;
-                    self.set_point().await
-                }
-                "klipcal_backlash_start" => self.start(args).await,
-                "klipcal_backlash_jog" => self.jog(args).await,
-                "klipcal_backlash_apply" => self.apply(args).await,
-                other => Err(anyhow!("{other} is not a backlash method")),
+            match BacklashCall::parse(method, args)? {
+                BacklashCall::SetPoint => self.set_point().await,
+                BacklashCall::Start(r) => self.start(&r).await,
+                BacklashCall::Jog(p) => self.jog(p).await,
+                BacklashCall::Apply => self.apply().await,
             }
         }
         .boxed()

@@ -18,11 +18,11 @@ use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
-use super::args::Args;
 use super::printer_config::FileWrite;
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
+use super::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
 use super::user;
 use crate::calib::mesh::{self as cm, Capture, Phase};
 use crate::calib::mesh_follow::{Branch, Decision, Follower};
@@ -31,13 +31,167 @@ use crate::config::MeshConfig;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
 
-/// The remote methods of the thermal mesh.
-pub const METHODS: &[&str] = &[
-    "klipcal_mesh_capture",
-    "klipcal_mesh_import",
-    "klipcal_mesh_follow",
-    "klipcal_mesh_check",
+/// The thermal mesh's operations, each declared once (see [`crate::jobs::table`]).
+pub static OPS: &[Op<MeshCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_mesh_capture",
+            "KLIPCAL_MESH_CAPTURE",
+            "mesh/capture",
+            "thermal bed mesh: heat the bed, then take meshes as the frame warms and write klipcal_<T> profiles (BED=0 for an unheated bed)",
+            &[arg(
+                "bed",
+                ArgKind::Number {
+                    min: 0.0,
+                    max: 130.0,
+                },
+                "60",
+                "a bed temperature from 0 (unheated) to 130 °C",
+                "",
+                "bed temperature, °C (0: unheated; default mesh.bed_temp_c)",
+            )],
+        ),
+        parse: |a| Ok(MeshCall::Capture { bed_c: a.num("bed")? }),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_mesh_import",
+            "KLIPCAL_MESH_IMPORT",
+            "mesh/import",
+            "fit the VGB profiles already in the config (COLDxx.x, HOTxx.x, TESTxx.x are judged) and write klipcal_<T> profiles from them",
+            &[],
+        ),
+        parse: |_| Ok(MeshCall::Import),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_mesh_follow",
+            "KLIPCAL_MESH_FOLLOW",
+            "mesh/follow",
+            "load the thermal mesh profile for the frame temperature as it changes (ENABLE=1) or stop (ENABLE=0)",
+            &[arg(
+                "enable",
+                ArgKind::Choice(&["1", "0"]),
+                "1",
+                "1 (follow) or 0 (stop)",
+                "1",
+                "1: follow the frame temperature, 0: stop",
+            )],
+        ),
+        parse: |a| {
+            Ok(MeshCall::Follow {
+                enable: a.choice("enable")? != Some("0"),
+            })
+        },
+    },
+    Op {
+        spec: OpSpec {
+            method: None,
+            macro_name: OFFSET_MACRO,
+            http: None,
+            summary: "BED_MESH_OFFSET X= Y= that thermal mesh following sets again after each profile load (a load drops a plain BED_MESH_OFFSET)",
+            args: &[
+                arg(
+                    "x",
+                    ArgKind::Number {
+                        min: -1000.0,
+                        max: 1000.0,
+                    },
+                    "5",
+                    "a number of mm",
+                    "",
+                    "X offset, mm (default: the one kept)",
+                ),
+                arg(
+                    "y",
+                    ArgKind::Number {
+                        min: -1000.0,
+                        max: 1000.0,
+                    },
+                    "-3",
+                    "a number of mm",
+                    "",
+                    "Y offset, mm (default: the one kept)",
+                ),
+            ],
+            body: MacroBody::Local(&[
+                "{% set sx = params.X|default(x)|string %}",
+                "{% set sy = params.Y|default(y)|string %}",
+                "{% set nx = sx|float(none) %}",
+                "{% set ny = sy|float(none) %}",
+                "{% if nx is none or not (-1000 < nx < 1000) %}",
+                "{action_raise_error(\"KLIPCAL_MESH_OFFSET: X=\" ~ sx ~ \" is not a number of mm, expected e.g. X=5\")}",
+                "{% endif %}",
+                "{% if ny is none or not (-1000 < ny < 1000) %}",
+                "{action_raise_error(\"KLIPCAL_MESH_OFFSET: Y=\" ~ sy ~ \" is not a number of mm, expected e.g. Y=-3\")}",
+                "{% endif %}",
+                "BED_MESH_OFFSET X={nx} Y={ny}",
+                "SET_GCODE_VARIABLE MACRO=KLIPCAL_MESH_OFFSET VARIABLE=x VALUE={nx}",
+                "SET_GCODE_VARIABLE MACRO=KLIPCAL_MESH_OFFSET VARIABLE=y VALUE={ny}",
+            ]),
+            variables: &[("x", "0.0"), ("y", "0.0")],
+            comment: &[
+                "The offset is kept here, in Klipper (a restart clears it, as it clears BED_MESH_OFFSET),",
+                "klipcal reads x and y and sends BED_MESH_OFFSET with them right after each profile it loads.",
+                "A value not given keeps the one kept before. Bad values stop the macro before anything is",
+                "set or kept.",
+            ],
+        },
+        parse: |_| Err(anyhow::anyhow!("KLIPCAL_MESH_OFFSET runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec {
+            body: MacroBody::Remote {
+                before: &[],
+                // A remote call does not wait: the print pauses here and klipcal resumes it
+                // when the bed matches (or cancels it).
+                after: &[
+                    "{% if printer.print_stats.state == \"printing\" %}",
+                    "RESPOND PREFIX=klipcal MSG=\"print paused for the thermal mesh check, klipcal resumes it when the bed matches\"",
+                    "PAUSE",
+                    "{% endif %}",
+                ],
+            },
+            ..OpSpec::remote(
+                "klipcal_mesh_check",
+                "KLIPCAL_MESH_CHECK",
+                "mesh/check",
+                "probe a few points and compare with the thermal mesh model, call it in PRINT_START (cancels the print when off by more than mesh.reference_limit_mm)",
+                &[],
+            )
+        },
+        parse: |_| Ok(MeshCall::Check),
+    },
 ];
+
+/// A thermal mesh call, typed at the boundary.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum MeshCall {
+    /// `klipcal_mesh_capture`, with the bed temperature when given.
+    Capture {
+        /// °C (0: unheated).
+        bed_c: Option<f64>,
+    },
+    /// `klipcal_mesh_import`.
+    Import,
+    /// `klipcal_mesh_follow`.
+    Follow {
+        /// Start (true) or stop following.
+        enable: bool,
+    },
+    /// `klipcal_mesh_check`.
+    Check,
+}
+
+impl MeshCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(OPS, method, args)
+    }
+}
 
 /// The store's kind.
 pub const KIND: &str = "mesh";
@@ -421,15 +575,9 @@ impl Mesh {
     }
 
     /// `klipcal_mesh_capture`: starts a capture.
-    async fn capture(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_MESH_CAPTURE", &["bed"])?;
+    async fn capture(&self, bed_c: Option<f64>) -> anyhow::Result<Value> {
         let mut options = self.settings.clone();
-        if let Some(b) = a.num("bed", "60")? {
-            if !(0.0..=130.0).contains(&b) {
-                return Err(user(format!(
-                    "BED={b}: expected a bed temperature from 0 (unheated) to 130 °C"
-                )));
-            }
+        if let Some(b) = bed_c {
             options.bed_temp_c = b;
         }
         self.core.refuse_other_kind(KIND)?;
@@ -463,8 +611,7 @@ impl Mesh {
     /// `klipcal_mesh_import`: fits the VGB profiles already in the config (`COLDxx.x`,
     /// `HOTxx.x`; `TESTxx.x` are judged, never fitted) and writes klipcal's profiles from
     /// them, every profile's mesh parameters checked against the others.
-    async fn import(&self, args: &Value) -> anyhow::Result<Value> {
-        Args::parse(args, "KLIPCAL_MESH_IMPORT", &[])?;
+    async fn import(&self) -> anyhow::Result<Value> {
         self.core.refuse_other_kind(KIND)?;
         self.core.printer_idle().await?;
         let pc = super::printer_config::fetch(self.core.m(), self.core.files()).await?;
@@ -688,7 +835,7 @@ impl Mesh {
         self.homed().await?;
         let sensor = s.options.frame_sensor.clone();
         let me = self.clone();
-        let stop = CancellationToken::new();
+        let stop = self.core.shutdown().child_token();
         let stop2 = stop.clone();
         let sampler = tokio::spawn(async move {
             let t0 = Instant::now();
@@ -967,17 +1114,7 @@ impl Mesh {
     }
 
     /// `klipcal_mesh_follow`: starts or stops following the frame temperature.
-    async fn follow_cmd(&self, args: &Value) -> anyhow::Result<Value> {
-        let a = Args::parse(args, "KLIPCAL_MESH_FOLLOW", &["enable"])?;
-        let enable = match a.text("enable").as_deref() {
-            None | Some("1") => true,
-            Some("0") => false,
-            Some(other) => {
-                return Err(user(format!(
-                    "ENABLE={other}: expected 1 (follow) or 0 (stop)"
-                )))
-            }
-        };
+    async fn follow_cmd(&self, enable: bool) -> anyhow::Result<Value> {
         if !enable {
             self.stop_following("KLIPCAL_MESH_FOLLOW ENABLE=0").await;
             return Ok(json!({"following": false, "message": "thermal mesh following is off"}));
@@ -1049,7 +1186,7 @@ impl Mesh {
             fit: sel.heating.fit,
             temps_c: temps,
         };
-        tokio::spawn(async move {
+        self.core.spawn(async move {
             me.follow_loop(token, sensor, policy, heating, cooling)
                 .await;
         });
@@ -1230,7 +1367,7 @@ impl Mesh {
     /// `klipcal_mesh_check`: probes the mesh's corners and centre and compares each with the
     /// model at the current frame temperature (seed 001: a difference over the reference
     /// limit halts the print start).
-    async fn check(&self, _args: &Value) -> anyhow::Result<Value> {
+    async fn check(&self) -> anyhow::Result<Value> {
         // From PRINT_START the macro pauses the print right after asking (a remote call does
         // not wait): wait for the pause, probe, then RESUME on a pass or CANCEL_PRINT on a fail.
         let in_print = self.paused_print().await?;
@@ -1457,8 +1594,8 @@ impl Calibration for Mesh {
         "a thermal mesh capture"
     }
 
-    fn methods(&self) -> &'static [&'static str] {
-        METHODS
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        crate::jobs::table::specs(OPS).collect()
     }
 
     fn call<'a>(
@@ -1467,15 +1604,11 @@ impl Calibration for Mesh {
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match method {
-                "klipcal_mesh_capture" => self.capture(args).await,
-                "klipcal_mesh_import" => self.import(args).await,
-                "klipcal_mesh_follow" => self.follow_cmd(args).await,
-                "klipcal_mesh_check" => {
-                    Args::parse(args, "KLIPCAL_MESH_CHECK", &[])?;
-                    self.check(args).await
-                }
-                other => Err(anyhow!("{other} is not a thermal mesh method")),
+            match MeshCall::parse(method, args)? {
+                MeshCall::Capture { bed_c } => self.capture(bed_c).await,
+                MeshCall::Import => self.import().await,
+                MeshCall::Follow { enable } => self.follow_cmd(enable).await,
+                MeshCall::Check => self.check().await,
             }
         }
         .boxed()
@@ -1533,7 +1666,7 @@ impl Calibration for Mesh {
     fn connected(&self) -> BoxFuture<'_, ()> {
         async move {
             if self.settings.follow {
-                if let Err(e) = self.follow_cmd(&json!({"enable": "1"})).await {
+                if let Err(e) = self.follow_cmd(true).await {
                     warn!(error = %format!("{e:#}"), "mesh.follow is on but following cannot start");
                 }
             }

@@ -1,11 +1,10 @@
 //! The only place where Moonraker I/O meets the math. A session core every calibration shares
 //! (`session`: stored documents, one active session, the runner, the printer guards; `console`:
-//! answers and prompts; `soak`: the bed soak step; `args`: typed arguments; `printer_config`:
+//! answers and prompts; `soak`: the bed soak step; `table`: the command table and the typed arguments read against it; `printer_config`:
 //! the config transaction; `registry`: routing, status, cancel, resume, the hold watchdog), and
 //! one file per calibration, each reading like a klippy/extras module: `ab`, `backlash`, `mesh`.
 
 pub mod ab;
-pub mod args;
 pub mod backlash;
 pub mod console;
 pub mod mesh;
@@ -13,6 +12,7 @@ pub mod printer_config;
 pub mod registry;
 pub mod session;
 pub mod soak;
+pub mod table;
 
 pub use registry::{Calibration, Calibrations};
 pub use session::Core;

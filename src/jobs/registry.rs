@@ -11,8 +11,8 @@ use futures_util::future::BoxFuture;
 use serde_json::{json, Map, Value};
 use tracing::{info, warn};
 
-use super::args::Args;
 use super::session::{hold_expired, now_unix, Core};
+use super::table::{self, arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
 use super::user;
 use crate::store::SessionRow;
 
@@ -31,9 +31,9 @@ pub trait Calibration: Send + Sync {
     fn kind(&self) -> &'static str;
     /// How a user calls it, with its article ("an A/B calibration").
     fn title(&self) -> &'static str;
-    /// The remote methods it answers.
-    fn methods(&self) -> &'static [&'static str];
-    /// Answers one of [`Calibration::methods`].
+    /// Its operations (see [`table`]).
+    fn ops(&self) -> Vec<&'static OpSpec>;
+    /// Answers the remote method of one of [`Calibration::ops`].
     fn call<'a>(&'a self, method: &'a str, args: &'a Value)
         -> BoxFuture<'a, anyhow::Result<Value>>;
     /// Picks its session up after a daemon start or reconnect.
@@ -59,19 +59,152 @@ pub trait Calibration: Send + Sync {
     }
 }
 
-/// The methods every daemon answers besides the calibrations' own.
-pub const COMMON_METHODS: &[&str] = &["klipcal_status", "klipcal_cancel", "klipcal_prompt_back"];
+/// The operations every daemon answers besides the calibrations' own.
+pub static CORE_OPS: &[Op<CoreCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_status",
+            "KLIPCAL_STATUS",
+            "status",
+            "show the daemon's state and what it sees of the printer",
+            &[],
+        ),
+        parse: |_| Ok(CoreCall::Status),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_cancel",
+            "KLIPCAL_CANCEL",
+            "cancel",
+            "cancel the calibration session (cancels its print, turns the heaters off)",
+            &[arg(
+                "reason",
+                ArgKind::Text,
+                "aborted",
+                "a word or a quoted text",
+                "",
+                "why, noted in the session (optional)",
+            )],
+        ),
+        parse: |a| {
+            Ok(CoreCall::Cancel(
+                a.text("reason")
+                    .unwrap_or_else(|| "cancelled by the user".into()),
+            ))
+        },
+    },
+    Op {
+        spec: OpSpec {
+            method: None,
+            macro_name: "KLIPCAL_CANCEL_ASK",
+            http: None,
+            summary: "ask before ending the session (the Cancel of klipcal's dialogs)",
+            args: &[],
+            body: MacroBody::Local(&[
+                "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL|error\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|KLIPCAL_PROMPT_BACK|secondary\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_show\"",
+            ]),
+            variables: &[],
+            comment: &[],
+        },
+        parse: |_| Err(anyhow::anyhow!("KLIPCAL_CANCEL_ASK runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec {
+            body: MacroBody::Remote {
+                before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
+                after: &[],
+            },
+            ..OpSpec::remote(
+                "klipcal_prompt_back",
+                "KLIPCAL_PROMPT_BACK",
+                "prompt/back",
+                "back to klipcal's dialog (from the cancel question)",
+                &[],
+            )
+        },
+        parse: |_| Ok(CoreCall::PromptBack),
+    },
+    Op {
+        spec: OpSpec {
+            body: MacroBody::Remote {
+                before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
+                after: &[],
+            },
+            ..OpSpec::remote(
+                "klipcal_prompt_close",
+                "KLIPCAL_PROMPT_CLOSE",
+                "prompt/close",
+                "close klipcal's dialog (then type readings on the console)",
+                &[],
+            )
+        },
+        parse: |_| Ok(CoreCall::PromptClose),
+    },
+];
+
+/// A call of the common operations, typed at the boundary.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CoreCall {
+    /// `klipcal_status` (answered by the agent, around [`Calibrations::status`]).
+    Status,
+    /// `klipcal_cancel` with its reason.
+    Cancel(String),
+    /// `klipcal_prompt_back`.
+    PromptBack,
+    /// `klipcal_prompt_close`.
+    PromptClose,
+}
+
+impl CoreCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// Not a common method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(CORE_OPS, method, args)
+    }
+}
+
+/// Every operation klipcal has, in the order a user meets them: the common ones, then each
+/// calibration's.
+#[must_use]
+pub fn all_ops() -> Vec<&'static OpSpec> {
+    table::specs(CORE_OPS)
+        .chain(table::specs(super::ab::OPS))
+        .chain(table::specs(super::backlash::OPS))
+        .chain(table::specs(super::mesh::OPS))
+        .collect()
+}
+
+/// Whether `method` is one of the common operations'.
+#[must_use]
+pub fn is_core_method(method: &str) -> bool {
+    CORE_OPS.iter().any(|o| o.spec.method == Some(method))
+}
+
+/// The operation of a remote method.
+#[must_use]
+pub fn op_of_method(method: &str) -> Option<&'static OpSpec> {
+    all_ops().into_iter().find(|o| o.method == Some(method))
+}
 
 /// Every remote method the daemon registers with Moonraker.
 #[must_use]
 pub fn all_methods() -> Vec<String> {
-    COMMON_METHODS
+    all_ops()
         .iter()
-        .chain(super::ab::METHODS)
-        .chain(super::backlash::METHODS)
-        .chain(super::mesh::METHODS)
-        .map(|s| (*s).to_string())
+        .filter_map(|o| o.method.map(str::to_string))
         .collect()
+}
+
+/// `config/klipcal.cfg`, generated from the table (`klipcal macros`).
+#[must_use]
+pub fn macros_cfg() -> String {
+    table::macros_cfg(&all_ops())
 }
 
 /// The daemon's calibrations over one core.
@@ -122,7 +255,7 @@ impl Calibrations {
     /// Whether `method` is one of the calibrations' or the common ones.
     #[must_use]
     pub fn knows(&self, method: &str) -> bool {
-        COMMON_METHODS.contains(&method) || self.list.iter().any(|c| c.methods().contains(&method))
+        op_of_method(method).is_some()
     }
 
     /// Answers a remote method (except `klipcal_status`, which the agent builds with the
@@ -131,33 +264,35 @@ impl Calibrations {
     /// # Errors
     /// The calibration's error (user errors say what was wrong and what is expected).
     pub async fn call(&self, method: &str, args: &Value) -> anyhow::Result<Value> {
-        match method {
-            "klipcal_cancel" => {
-                let a = Args::parse(args, "KLIPCAL_CANCEL", &["reason"])?;
-                let reason = a
-                    .text("reason")
-                    .unwrap_or_else(|| "cancelled by the user".into());
-                self.cancel(&reason).await
-            }
-            "klipcal_prompt_back" => {
-                Args::parse(args, "KLIPCAL_PROMPT_BACK", &[])?;
-                Ok(if self.core.prompt_again().await {
+        if is_core_method(method) {
+            return match CoreCall::parse(method, args)? {
+                CoreCall::Cancel(reason) => self.cancel(&reason).await,
+                CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
                     json!({"message": ""})
                 } else {
                     self.core.prompt_end().await;
                     json!({"message": "no klipcal dialog to go back to"})
-                })
-            }
-            "klipcal_prompt_close" => {
-                self.core.prompt_end().await;
-                Ok(
-                    json!({"message": "prompt closed; type readings on the console (KLIPCAL_MEASURE) or on klipcal's page"}),
-                )
-            }
-            _ => match self.list.iter().find(|c| c.methods().contains(&method)) {
-                Some(c) => c.call(method, args).await,
-                None => Err(user(format!("unknown method {method}"))),
-            },
+                }),
+                CoreCall::PromptClose => {
+                    // The macro closed the dialog in Klipper before asking: klipcal only notes it.
+                    self.core.prompt_closed_by_user();
+                    Ok(
+                        json!({"message": "type readings on the console: KLIPCAL_MEASURE \
+                        PAIR=... VALUES=... (or on klipcal's page)"}),
+                    )
+                }
+                CoreCall::Status => Err(anyhow::anyhow!(
+                    "klipcal_status is answered by the agent with the printer's summary"
+                )),
+            };
+        }
+        match self
+            .list
+            .iter()
+            .find(|c| c.ops().iter().any(|o| o.method == Some(method)))
+        {
+            Some(c) => c.call(method, args).await,
+            None => Err(user(format!("unknown method {method}"))),
         }
     }
 
@@ -281,6 +416,7 @@ fn with_kind(mut v: Value, kind: &str) -> Value {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::json;
 
     const MACROS: &str = include_str!("../../config/klipcal.cfg");
 
@@ -304,8 +440,12 @@ mod tests {
     }
 
     fn macros() -> Vec<(String, String)> {
+        macros_of(MACROS)
+    }
+
+    fn macros_of(text: &str) -> Vec<(String, String)> {
         let mut out: Vec<(String, String)> = Vec::new();
-        for line in MACROS.lines() {
+        for line in text.lines() {
             if let Some(name) = line
                 .strip_prefix("[gcode_macro ")
                 .and_then(|l| l.strip_suffix(']'))
@@ -342,6 +482,130 @@ mod tests {
                 "{name}"
             );
         }
+    }
+
+    #[test]
+    fn klipcal_cfg_is_the_command_tables_macros() {
+        // `klipcal macros > config/klipcal.cfg` writes it again after a change to the table.
+        assert_eq!(
+            MACROS,
+            macros_cfg(),
+            "config/klipcal.cfg differs from the command table: run `klipcal macros > config/klipcal.cfg`"
+        );
+    }
+
+    #[test]
+    fn the_readmes_table_of_operations_is_the_command_tables() {
+        let readme = include_str!("../../README.md");
+        let inner = readme
+            .split("<!-- operations -->\n")
+            .nth(1)
+            .and_then(|r| r.split("<!-- /operations -->").next())
+            .expect("README has no <!-- operations --> table");
+        assert_eq!(
+            inner,
+            table::markdown(&all_ops()),
+            "README's operations differ from the command table: `klipcal macros --readme`"
+        );
+    }
+
+    #[test]
+    fn every_operation_is_declared_once_with_its_own_names() {
+        let ops = all_ops();
+        let mut seen = std::collections::BTreeSet::new();
+        for op in &ops {
+            for name in [op.method, Some(op.macro_name), op.http]
+                .into_iter()
+                .flatten()
+            {
+                assert!(seen.insert(name), "{name} is declared twice");
+            }
+            assert!(
+                op.macro_name.starts_with("KLIPCAL_") || op.macro_name.starts_with("_KLIPCAL_")
+            );
+            if let Some(m) = op.method {
+                assert!(m.starts_with("klipcal_"), "{m}");
+                assert!(op.http.is_some(), "{m} has no HTTP path");
+            }
+            let mut args = std::collections::BTreeSet::new();
+            for a in op.args {
+                assert!(
+                    args.insert(a.name),
+                    "{} takes {} twice",
+                    op.macro_name,
+                    a.name
+                );
+                assert_eq!(a.name, a.name.to_lowercase());
+                assert!(!a.help.is_empty() && !a.expect.is_empty(), "{}", a.name);
+                // The declared default is one the argument's own getter accepts.
+                if !a.default.is_empty() {
+                    let spec: &'static OpSpec = op;
+                    let args = table::Args::parse(&json!({}), spec).unwrap();
+                    let ok = match a.kind {
+                        ArgKind::Number { .. } => args.num(a.name).is_ok(),
+                        ArgKind::Whole { .. } => args.int(a.name).is_ok(),
+                        ArgKind::Flag => args.flag(a.name).is_ok(),
+                        ArgKind::Choice(_) => args.choice(a.name).is_ok(),
+                        ArgKind::Text | ArgKind::Readings => true,
+                    };
+                    assert!(
+                        ok,
+                        "{} {}: default {} refused",
+                        op.macro_name, a.name, a.default
+                    );
+                }
+            }
+        }
+        // Every remote method is registered and routed to a calibration or the core.
+        assert_eq!(
+            all_methods().len(),
+            ops.iter().filter(|o| o.method.is_some()).count()
+        );
+    }
+
+    #[test]
+    fn no_macro_line_is_cut_short_by_klippers_gcode_parser() {
+        // klippy/gcode.py ends a command at ';' anywhere (also inside a RESPOND message): the
+        // macro after it would be malformed. Checked on the generated text and on the file.
+        for text in [macros_cfg(), MACROS.to_string()] {
+            for (name, gcode) in macros_of(&text) {
+                for line in gcode.lines() {
+                    assert_eq!(table::gcode_line_problem(line), None, "{name}: {line}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn every_example_can_be_typed_on_a_gcode_line_as_it_is() {
+        // Klipper splits parameters at spaces and ends a command at ';', '#' or '*': an example
+        // a user copies from a field hint or the README must arrive whole.
+        for op in all_ops() {
+            for a in op.args {
+                assert!(
+                    !a.example.is_empty() && !a.example.contains([' ', ';', '#', '*', '"', '=']),
+                    "{} {}={:?}",
+                    op.macro_name,
+                    a.name.to_uppercase(),
+                    a.example
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn a_semicolon_in_a_macro_message_is_caught() {
+        // The defect of issue 25 A.1: MESH_CHECK's RESPOND had "…check; klipcal resumes…".
+        let bad = "[gcode_macro X]\ngcode:\n  RESPOND PREFIX=klipcal MSG=\"paused; resumes\"\n";
+        let found: Vec<_> = macros_of(bad)
+            .iter()
+            .flat_map(|(_, g)| {
+                g.lines()
+                    .filter_map(table::gcode_line_problem)
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        assert_eq!(found.len(), 1);
     }
 
     #[test]

@@ -60,6 +60,9 @@ struct Inner {
     /// What klipcal's dialog shows, as far as klipcal knows: `None` after a start (unknown),
     /// `Some(None)` closed, `Some(Some(script))` showing that script.
     shown: std::sync::Mutex<Option<Option<String>>>,
+    /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
+    /// shutdown waits for them.
+    tasks: tokio_util::task::TaskTracker,
 }
 
 impl Core {
@@ -75,6 +78,7 @@ impl Core {
                 runner: std::sync::Mutex::new(None),
                 titles: std::sync::RwLock::new(BTreeMap::new()),
                 shown: std::sync::Mutex::new(None),
+                tasks: tokio_util::task::TaskTracker::new(),
             }),
         }
     }
@@ -134,6 +138,30 @@ impl Core {
     /// The daemon's shutdown token.
     pub fn shutdown(&self) -> &CancellationToken {
         &self.inner.shutdown
+    }
+
+    /// Starts a task shutdown waits for (see [`Core::stopped`]); it must end when the shutdown
+    /// token is cancelled.
+    pub fn spawn<F>(&self, fut: F)
+    where
+        F: Future<Output = ()> + Send + 'static,
+    {
+        self.inner.tasks.spawn(fut);
+    }
+
+    /// After shutdown: waits at most `limit` for every task the core started to end; false when
+    /// some are still running then (named in the log by the caller).
+    pub async fn stopped(&self, limit: std::time::Duration) -> bool {
+        self.inner.tasks.close();
+        tokio::time::timeout(limit, self.inner.tasks.wait())
+            .await
+            .is_ok()
+    }
+
+    /// How many tasks the core has running.
+    #[must_use]
+    pub fn running_tasks(&self) -> usize {
+        self.inner.tasks.len()
     }
 
     /// Names a kind for refusals ("an A/B calibration").
@@ -285,7 +313,7 @@ impl Core {
                 old.cancel();
             }
         }
-        tokio::spawn(async move {
+        self.spawn(async move {
             tokio::select! {
                 () = token.cancelled() => {}
                 () = fut => {}
@@ -450,6 +478,12 @@ impl Core {
         true
     }
 
+    /// Notes that the user closed klipcal's dialog in Klipper (KLIPCAL_PROMPT_CLOSE sends the
+    /// close itself, so a dialog klipcal shows next is sent whole again).
+    pub fn prompt_closed_by_user(&self) {
+        self.mark_closed();
+    }
+
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
     fn mark_closed(&self) -> bool {
         let mut shown = self.shown();
@@ -486,6 +520,43 @@ mod tests {
         let (m, _calls) = Moonraker::spawn(opts, cancel.clone());
         let files = Files::new("http://127.0.0.1:9", None, Duration::from_secs(1)).unwrap();
         Core::new(m, files, Store::in_memory().unwrap(), cancel)
+    }
+
+    #[tokio::test]
+    async fn shutdown_waits_for_the_cores_tasks_and_gives_up_at_its_deadline() {
+        let core = offline_core();
+        let done = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let (stop, flag) = (core.shutdown().clone(), done.clone());
+        // A task that needs 200 ms to clean up after the token (a heater off, a last save).
+        core.spawn(async move {
+            stop.cancelled().await;
+            tokio::time::sleep(Duration::from_millis(200)).await;
+            flag.store(true, std::sync::atomic::Ordering::SeqCst);
+        });
+        assert_eq!(core.running_tasks(), 1);
+        core.shutdown().cancel();
+        assert!(core.stopped(Duration::from_secs(2)).await);
+        assert!(
+            done.load(std::sync::atomic::Ordering::SeqCst),
+            "stopped() returned before the task ended"
+        );
+        // A task that ignores the token: the deadline ends the wait, and says so.
+        let core = offline_core();
+        core.spawn(std::future::pending());
+        core.shutdown().cancel();
+        let t0 = std::time::Instant::now();
+        assert!(!core.stopped(Duration::from_millis(100)).await);
+        assert!(t0.elapsed() < Duration::from_secs(1));
+    }
+
+    #[tokio::test]
+    async fn a_runner_is_one_of_the_tasks_shutdown_waits_for() {
+        let core = offline_core();
+        core.spawn_runner(std::future::pending());
+        assert_eq!(core.running_tasks(), 1);
+        core.shutdown().cancel();
+        assert!(core.stopped(Duration::from_secs(1)).await);
+        assert_eq!(core.running_tasks(), 0);
     }
 
     #[derive(serde::Serialize, serde::Deserialize)]

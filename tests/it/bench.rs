@@ -170,6 +170,16 @@ impl Drop for Bench {
 pub struct Daemon {
     pub child: Child,
     pub log: PathBuf,
+    /// The page's base URL (`http://127.0.0.1:PORT`) the helper gave it, when it set `[http]`.
+    pub url: Option<String>,
+}
+
+/// A loopback port free at the time of asking (the daemon binds it a moment later).
+pub fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .map(|a| a.port())
+        .expect("a free loopback port")
 }
 
 impl Daemon {
@@ -177,6 +187,9 @@ impl Daemon {
     pub fn start_with(bench: &Bench, extra_toml: &str) -> Daemon {
         let dir = bench.dir.path();
         let cfg = dir.join("klipcal.toml");
+        // Tests run side by side: each daemon's page on its own free loopback port, whose
+        // address the helper knows (no scraping of the log).
+        let port = (!extra_toml.contains("[http]")).then(free_port);
         std::fs::write(
             &cfg,
             format!(
@@ -184,12 +197,8 @@ impl Daemon {
                  [daemon]\ndata_dir = \"{}\"\n{}{extra_toml}\n",
                 bench.ws_url(),
                 dir.join("klipcal-data").display(),
-                // Tests run side by side: each daemon's page on a free loopback port.
-                if extra_toml.contains("[http]") {
-                    ""
-                } else {
-                    "[http]\nbind = \"127.0.0.1:0\"\n"
-                }
+                port.map(|p| format!("[http]\nbind = \"127.0.0.1:{p}\"\n"))
+                    .unwrap_or_default()
             ),
         )
         .unwrap();
@@ -202,27 +211,55 @@ impl Daemon {
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
             .expect("klipcal binary");
-        Daemon { child, log }
+        Daemon {
+            child,
+            log,
+            url: port.map(|p| format!("http://127.0.0.1:{p}")),
+        }
     }
 
-    /// Starts the daemon and waits until Moonraker lists it as an agent.
+    /// Starts the daemon and waits until Moonraker lists it as an agent and it says it is
+    /// connected (its remote methods registered with Klipper: a macro run before that gets
+    /// "Remote method … not registered").
     pub async fn ready(bench: &Bench, extra_toml: &str) -> Daemon {
         let d = Self::start_with(bench, extra_toml);
         let files = bench.files();
         let listed = poll(Duration::from_secs(30), || async {
-            agent_listed(&files).await.then_some(())
+            if !agent_listed(&files).await {
+                return None;
+            }
+            let st = extension_request(&files, "klipcal_status", json!({}))
+                .await
+                .ok()?;
+            (st["connection"]["moonraker"] == "connected").then_some(())
         })
         .await;
         assert!(
             listed.is_some(),
-            "klipcal never registered as an agent:\n{}",
+            "klipcal never registered as an agent with its methods:\n{}",
             d.log_text()
         );
         d
     }
 
-    /// The page's base URL (`http://127.0.0.1:PORT`), from the daemon's log line.
+    /// The page's base URL (`http://127.0.0.1:PORT`): the address the helper gave the daemon,
+    /// or, when a test set its own `[http]`, the one the daemon's log names.
     pub async fn page_url(&self) -> String {
+        if let Some(url) = &self.url {
+            let up = poll(Duration::from_secs(15), || async {
+                reqwest::get(format!("{url}/api/status"))
+                    .await
+                    .ok()
+                    .map(|_| ())
+            })
+            .await;
+            assert!(
+                up.is_some(),
+                "the daemon's page never answered at {url}:\n{}",
+                self.log_text()
+            );
+            return url.clone();
+        }
         let url = poll(Duration::from_secs(15), || async {
             let log = self.log_text();
             let rest = log.split("page and API on ").nth(1)?;

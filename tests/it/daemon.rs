@@ -229,6 +229,37 @@ async fn sigterm_stops_the_daemon_cleanly_within_two_seconds() {
     assert!(gone.is_some(), "Moonraker still lists the agent");
 }
 
+#[tokio::test]
+async fn sigterm_waits_for_every_session_task_before_it_stops() {
+    // Issue 24 step 6: the runner of a soaking session and the hold watchdog are the daemon's
+    // tasks; shutdown waits for them (within its deadline) before it closes the socket.
+    let bench = Bench::start("corexy");
+    let mut d = daemon_ready(&bench).await;
+    let files = bench.files();
+    extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let heating = poll(Duration::from_secs(60), || async {
+        let st = extension_request(&files, "klipcal_status", json!({}))
+            .await
+            .ok()?;
+        matches!(st["session"]["state"].as_str(), Some("heating" | "soaking")).then_some(())
+    })
+    .await;
+    assert!(heating.is_some(), "no session heating:\n{}", d.log_text());
+    let st = d
+        .terminate(Duration::from_secs(3))
+        .expect("still running 3 s after SIGTERM");
+    assert!(st.success(), "exit status {st:?}");
+    let log = d.log_text();
+    assert!(
+        log.contains("every session task stopped"),
+        "shutdown did not wait for the session tasks:\n{log}"
+    );
+    let stopped = log.find("every session task stopped").unwrap();
+    assert!(log[stopped..].contains("klipcal stopped"), "{log}");
+}
+
 #[test]
 fn check_prints_a_correct_summary_of_the_corexy_bench() {
     let bench = Bench::start("corexy");

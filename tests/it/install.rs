@@ -409,7 +409,11 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
             .stderr(std::fs::File::create(&log).unwrap())
             .spawn()
             .unwrap();
-        Daemon { child, log }
+        Daemon {
+            child,
+            log,
+            url: None,
+        }
     };
     let d1 = start(&b1);
     let d2 = start(&b2);

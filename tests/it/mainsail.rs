@@ -100,6 +100,23 @@ pub async fn after_reload(m: &Moonraker) -> Option<Dialog> {
     replay(&history(m).await)
 }
 
+/// What a reload shows once it shows what `want` expects (klipcal sends a dialog after the
+/// state it follows is stored, so a loaded machine may show it a moment later), or what it
+/// shows after `limit`.
+pub async fn after_reload_showing(
+    m: &Moonraker,
+    limit: Duration,
+    want: impl Fn(&Dialog) -> bool,
+) -> Option<Dialog> {
+    let deadline = std::time::Instant::now() + limit;
+    loop {
+        let shown = after_reload(m).await;
+        if shown.as_ref().is_some_and(&want) || std::time::Instant::now() >= deadline {
+            return shown;
+        }
+    }
+}
+
 #[test]
 fn the_port_follows_mainsails_reading_of_the_history() {
     let h = |v: &[(&str, &str)]| -> Vec<(String, String)> {

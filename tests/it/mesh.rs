@@ -47,6 +47,14 @@ async fn profiles_klipcal_writes_load_in_klipper_with_the_points_written() {
         assert_eq!(st["bed_mesh"]["profile_name"], p.name.as_str());
         let got: Vec<Vec<f64>> =
             serde_json::from_value(st["bed_mesh"]["probed_matrix"].clone()).unwrap();
+        // Same shape first: a zip over an empty or shorter matrix would compare nothing.
+        assert!(!p.points_mm.is_empty(), "{}: nothing written", p.name);
+        assert_eq!(
+            got.iter().map(Vec::len).collect::<Vec<_>>(),
+            p.points_mm.iter().map(Vec::len).collect::<Vec<_>>(),
+            "{}: Klipper's matrix has another shape than the one written",
+            p.name
+        );
         for (gr, wr) in got.iter().zip(&p.points_mm) {
             for (g, w) in gr.iter().zip(wr) {
                 assert!((g - w).abs() < 6e-7, "{}: Klipper {g}, written {w}", p.name);

@@ -513,7 +513,10 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     );
     // A page reload (Mainsail rebuilds its dialog from the console history) shows the one
     // decision that is true now: Solve.
-    let shown = crate::mainsail::after_reload(&m).await;
+    let shown = crate::mainsail::after_reload_showing(&m, Duration::from_secs(10), |d| {
+        d.title.contains("all pairs measured")
+    })
+    .await;
     assert!(
         shown
             .as_ref()
@@ -523,7 +526,11 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     );
     m.gcode("KLIPCAL_AB_SOLVE").await.unwrap();
     wait_state(&bench, "solved", Duration::from_secs(20)).await;
-    let shown = crate::mainsail::after_reload(&m).await;
+    let shown = crate::mainsail::after_reload_showing(&m, Duration::from_secs(10), |d| {
+        d.title.contains("new rotation distances")
+            && d.buttons.iter().any(|b| b.1 == "KLIPCAL_AB_APPLY")
+    })
+    .await;
     assert!(
         shown
             .as_ref()

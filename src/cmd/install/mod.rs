@@ -20,7 +20,6 @@ use serde_json::json;
 use crate::config::Config;
 
 /// The Klipper macros users include (replaced on every install: users don't edit it).
-const MACROS: &str = include_str!("../../../config/klipcal.cfg");
 /// The documented settings file (written only when absent).
 const SETTINGS: &str = include_str!("../../../config/klipcal.toml");
 /// What Moonraker writes to a missing moonraker.asvc (its `default_allowed_services` asset).
@@ -425,7 +424,7 @@ pub async fn install(
     push(
         macros.clone(),
         read_opt(&macros)?,
-        MACROS.to_string(),
+        crate::jobs::registry::macros_cfg(),
         vec![],
         None,
     );
@@ -466,7 +465,12 @@ pub async fn install(
         println!("note: printer.cfg has no [respond]; klipcal's console answers need it (run with --yes to add it)");
         false
     };
-    if let Some(after) = plan::printer_cfg(&text, &loaded, MACROS, add_respond)? {
+    if let Some(after) = plan::printer_cfg(
+        &text,
+        &loaded,
+        &crate::jobs::registry::macros_cfg(),
+        add_respond,
+    )? {
         let added: Vec<String> = [plan::INCLUDE_LINE, plan::RESPOND_LINE]
             .iter()
             .filter(|l| {
