@@ -169,12 +169,19 @@ fn console_text(method: &str, v: &Value) -> String {
                 }
             }
             if let Some(sess) = v.get("session").filter(|s| !s.is_null()) {
-                t.push_str(&format!(
-                    "\nsession {}: {} — {}",
-                    sess["id"],
-                    sess["state"].as_str().unwrap_or("?"),
-                    sess["progress"].as_str().unwrap_or("")
-                ));
+                let state = sess["state"].as_str().unwrap_or("?");
+                t.push_str(&format!("\nsession {}: {state}", sess["id"]));
+                // "cancelled — cancelled" said nothing: the progress when it adds to the state,
+                // and why a session ended.
+                match sess["progress"].as_str() {
+                    Some(p) if !p.is_empty() && p != state => t.push_str(&format!(" — {p}")),
+                    _ => {}
+                }
+                if let Some(why) = sess["reason"].as_str().filter(|r| !r.is_empty()) {
+                    if sess["progress"].as_str() != Some(why) {
+                        t.push_str(&format!(" ({why})"));
+                    }
+                }
                 for m in sess["missing"].as_array().into_iter().flatten() {
                     t.push_str(&format!("\n  {}", m.as_str().unwrap_or("")));
                 }
@@ -198,5 +205,25 @@ mod tests {
         let t = console_text("klipcal_status", &v);
         assert!(t.contains("Klipper ready"), "{t}");
         assert!(t.contains("stepper_x rotation_distance 40.0"), "{t}");
+    }
+
+    #[test]
+    fn a_finished_session_on_the_console_says_why_not_its_state_twice() {
+        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {"klippy_state": "ready"},
+            "session": {"id": 3, "state": "cancelled", "progress": "cancelled",
+                        "reason": "cancelled by the user"}});
+        let t = console_text("klipcal_status", &v);
+        assert!(
+            t.contains("session 3: cancelled (cancelled by the user)"),
+            "{t}"
+        );
+        assert!(!t.contains("cancelled — cancelled"), "{t}");
+        let v = json!({"daemon": {}, "printer": {}, "session": {"id": 4, "state": "soaking",
+            "progress": "bed at 60 °C, settling", "reason": null}});
+        let t = console_text("klipcal_status", &v);
+        assert!(
+            t.contains("session 4: soaking — bed at 60 °C, settling"),
+            "{t}"
+        );
     }
 }

@@ -199,7 +199,12 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
         )
         .await
         {
-            Ok(addr) => info!("page and API on http://{addr}/ ([http] bind)"),
+            Ok(addr) => {
+                info!("page and API on http://{addr}/ ([http] bind)");
+                if let Some(c) = &cals {
+                    c.core().set_page(crate::http::page_address_here(addr));
+                }
+            }
             Err(e) => tracing::error!("the page and API are off: {e:#}"),
         }
     }

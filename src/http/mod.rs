@@ -40,6 +40,61 @@ pub struct Http {
 
 type Shared = Arc<Http>;
 
+/// The page's address as a user types it on a phone: the bound address when it names one; for
+/// an unspecified bind (`0.0.0.0`, every interface) the host's address on its default route,
+/// else its name with `.local` (what Mainsail's own hosts answer to); a loopback bind says the
+/// page is on this host only.
+#[must_use]
+pub fn page_address(
+    bound: SocketAddr,
+    primary_ip: Option<std::net::IpAddr>,
+    hostname: Option<&str>,
+) -> String {
+    let port = bound.port();
+    let host = |ip: std::net::IpAddr| match ip {
+        std::net::IpAddr::V6(v6) => format!("[{v6}]"),
+        v4 => v4.to_string(),
+    };
+    if bound.ip().is_loopback() {
+        return format!(
+            "http://{}:{port}/ (this host only: [http] bind)",
+            host(bound.ip())
+        );
+    }
+    if !bound.ip().is_unspecified() {
+        return format!("http://{}:{port}/", host(bound.ip()));
+    }
+    match (primary_ip, hostname.filter(|h| !h.is_empty())) {
+        (Some(ip), _) if !ip.is_loopback() && !ip.is_unspecified() => {
+            format!("http://{}:{port}/", host(ip))
+        }
+        (_, Some(name)) if name.contains('.') => format!("http://{name}:{port}/"),
+        (_, Some(name)) => format!("http://{name}.local:{port}/"),
+        _ => format!("port {port} of this host"),
+    }
+}
+
+/// This host's address on its default route (no packet is sent: a UDP socket only picks the
+/// source address the kernel would use), and its name.
+fn host_identity() -> (Option<std::net::IpAddr>, Option<String>) {
+    let ip = std::net::UdpSocket::bind("0.0.0.0:0")
+        .and_then(|s| s.connect("192.0.2.1:9").map(|()| s))
+        .and_then(|s| s.local_addr())
+        .ok()
+        .map(|a| a.ip());
+    let name = std::fs::read_to_string("/proc/sys/kernel/hostname")
+        .ok()
+        .map(|n| n.trim().to_string());
+    (ip, name)
+}
+
+/// [`page_address`] of the bound address on this host.
+#[must_use]
+pub fn page_address_here(bound: SocketAddr) -> String {
+    let (ip, name) = host_identity();
+    page_address(bound, ip, name.as_deref())
+}
+
 /// HTTP paths that are another operation with one argument set: `ab/clear` is `ab/measure`
 /// with `clear`.
 pub const ALIASES: &[(&str, &str, &str)] = &[("ab/clear", "ab/measure", "clear")];
@@ -360,4 +415,35 @@ async fn run_operation(
     }
     tracing::info!(%op, "HTTP call");
     answer(dispatch(&h.m, h.cals.as_ref(), method, &args).await)
+}
+
+#[cfg(test)]
+mod address_tests {
+    use super::page_address;
+
+    #[test]
+    fn the_pages_address_is_one_a_phone_can_open() {
+        let any = "0.0.0.0:7150".parse().unwrap();
+        let lan = "192.168.1.23".parse().ok();
+        assert_eq!(
+            page_address(any, lan, Some("voron")),
+            "http://192.168.1.23:7150/"
+        );
+        assert_eq!(
+            page_address(any, None, Some("voron")),
+            "http://voron.local:7150/"
+        );
+        assert_eq!(
+            page_address(any, None, Some("voron.lan")),
+            "http://voron.lan:7150/"
+        );
+        assert_eq!(
+            page_address("10.0.0.5:7151".parse().unwrap(), None, None),
+            "http://10.0.0.5:7151/"
+        );
+        assert!(
+            page_address("127.0.0.1:7150".parse().unwrap(), lan, None).contains("this host only")
+        );
+        assert_eq!(page_address(any, None, None), "port 7150 of this host");
+    }
 }

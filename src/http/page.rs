@@ -442,7 +442,7 @@ fn backlash_section(h: &mut String, s: &Value) {
     if let Some(axis) = s["axis"].as_str() {
         let _ = write!(
             h,
-            "<p>measuring {} — cycle {}: use the prompt's jog buttons (or KLIPCAL_BACKLASH_JOG) \
+            "<p>measuring {} — cycle {}: use the prompt's jog buttons (or _KLIPCAL_BACKLASH_JOG) \
              while looking through the camera</p>",
             esc(axis),
             text(&s["cycle"])

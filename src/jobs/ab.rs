@@ -19,7 +19,7 @@ use super::printer_config::{self, ApplyReport, ValueSet};
 use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
-use super::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
+use super::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
 use super::user;
 use crate::calib::entry;
 use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
@@ -98,7 +98,7 @@ pub static OPS: &[Op<AbCall>] = &[
                     "10.02,10.03,10.01",
                     "readings separated by commas, e.g. 10.02,10.03",
                     "",
-                    "the readings, separated by commas",
+                    "the readings as the caliper shows them: commas between, a dot as the decimal mark",
                 ),
                 arg(
                     "value",
@@ -106,7 +106,7 @@ pub static OPS: &[Op<AbCall>] = &[
                     "10.02",
                     "one reading, e.g. 10.02",
                     "",
-                    "one reading",
+                    "one reading (its comma is the decimal mark: 10,02 is 10.02)",
                 ),
                 arg(
                     "clear",
@@ -483,13 +483,13 @@ impl ApplyRequest {
 }
 
 /// `klipcal_ab_check` / `KLIPCAL_AB_CHECK`.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct CheckRequest {
     /// The pair id as typed.
     pub pair: String,
-    /// The readings as typed, each with where it was typed ([`readings_typed`]).
+    /// The readings as typed, each with where it was typed.
     pub items: Vec<entry::Item>,
-    /// The page's fields as sent, blank ones too (a JSON list), so each gets its answer.
+    /// The page's fields as sent (blank ones too), when the readings came as a list.
     pub fields: Option<Vec<String>>,
 }
 
@@ -502,15 +502,8 @@ impl CheckRequest {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
         })?;
-        let fields = match a.raw("values") {
-            Some(Value::Array(list)) => Some(
-                list.iter()
-                    .map(|v| match v {
-                        Value::String(s) => s.clone(),
-                        other => other.to_string(),
-                    })
-                    .collect(),
-            ),
+        let fields = match a.fields("values") {
+            Some(Fields::List(list)) => Some(list),
             _ => None,
         };
         Ok(Self {
@@ -1123,7 +1116,7 @@ impl Ab {
         let s = self.load(id)?;
         // The console carries the whole guide; the dialog only what to do and where to look,
         // so the console does not read the guide twice.
-        let guide = measuring_guide(&s);
+        let guide = measuring_guide(&s, self.core.page());
         self.core
             .say_and_prompt(
                 &guide.join("\n"),
@@ -1132,7 +1125,7 @@ impl Ab {
                     lines: measuring_dialog(&s),
                     buttons: vec![Button::new(
                         "Close and type readings",
-                        "KLIPCAL_PROMPT_CLOSE",
+                        "_KLIPCAL_PROMPT_CLOSE",
                         "primary",
                     )],
                     footer: Vec::new(),
@@ -1370,7 +1363,7 @@ impl Ab {
                     title: format!("klipcal: all pairs measured (round {})", s.rounds.len()),
                     lines: vec![progress.clone()],
                     buttons: vec![Button::new("Solve", "KLIPCAL_AB_SOLVE", "primary")],
-                    footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+                    footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
                 })
                 .await;
         }
@@ -1499,7 +1492,7 @@ impl Ab {
                 title: "klipcal: new rotation distances".into(),
                 lines: decision.lines().map(str::to_string).collect(),
                 buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
-                footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+                footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
             })
             .await;
         Ok(json!({"solution": sol, "message": message}))
@@ -1886,7 +1879,7 @@ fn measuring_dialog(s: &Session) -> Vec<String> {
     lines
 }
 
-fn measuring_guide(s: &Session) -> Vec<String> {
+fn measuring_guide(s: &Session, page: Option<&str>) -> Vec<String> {
     let Some(round) = s.rounds.last() else {
         return Vec::new();
     };
@@ -1920,11 +1913,11 @@ fn measuring_guide(s: &Session) -> Vec<String> {
             "picture of the pylons and pairs: {p} (Mainsail/Fluidd: Machine → config files → klipcal)"
         ));
     }
-    lines.push(
-        "type readings on the console (or on klipcal's page); a wrong one: KLIPCAL_MEASURE \
-         PAIR=… CLEAR=1, then enter the pair again"
-            .into(),
-    );
+    lines.push(format!(
+        "type readings on the console (or on klipcal's page{}); a wrong one: KLIPCAL_MEASURE \
+         PAIR=… CLEAR=1, then enter the pair again",
+        page.map(|p| format!(", {p}")).unwrap_or_default()
+    ));
     lines
 }
 

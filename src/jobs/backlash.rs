@@ -1,7 +1,7 @@
 //! The guided backlash measurement (seed 004) through a nozzle camera: measuring → measured →
 //! applying → done (and failed / cancelled, with the reason). KLIPCAL_BACKLASH_SET_POINT saves
 //! the camera point once; KLIPCAL_BACKLASH_START AXIS=X|Y|Z|A|B [CYCLES=] runs
-//! `calib::backlash_guide` with a prompt whose jog buttons (KLIPCAL_BACKLASH_JOG PRESS=…) move
+//! `calib::backlash_guide` with a prompt whose jog buttons (_KLIPCAL_BACKLASH_JOG PRESS=…) move
 //! only in the approach direction, each step saved before the machine moves;
 //! KLIPCAL_BACKLASH_APPLY sets the values (SET_BACKLASH_COMPENSATION with its reply checked on
 //! PR 7259; PR 7157's `[backlash]` by config) and persists them through the shared config
@@ -78,7 +78,7 @@ pub static OPS: &[Op<BacklashCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
-            "KLIPCAL_BACKLASH_JOG",
+            "_KLIPCAL_BACKLASH_JOG",
             "backlash/jog",
             "backlash prompt button, PRESS=coarse, fine, centred or overshot (moves only in the approach direction)",
             &[arg(
@@ -366,18 +366,18 @@ impl Backlash {
             buttons: vec![
                 Button::new(
                     &format!("Coarse {axis}{sign}"),
-                    "KLIPCAL_BACKLASH_JOG PRESS=coarse",
+                    "_KLIPCAL_BACKLASH_JOG PRESS=coarse",
                     "secondary",
                 ),
                 Button::new(
                     &format!("Fine {axis}{sign}"),
-                    "KLIPCAL_BACKLASH_JOG PRESS=fine",
+                    "_KLIPCAL_BACKLASH_JOG PRESS=fine",
                     "secondary",
                 ),
-                Button::new("Centred", "KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
+                Button::new("Centred", "_KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
                 Button::new(
                     "Overshot - start over",
-                    "KLIPCAL_BACKLASH_JOG PRESS=overshot",
+                    "_KLIPCAL_BACKLASH_JOG PRESS=overshot",
                     "warning",
                 ),
             ],
@@ -1139,7 +1139,7 @@ impl Backlash {
                 if self.homed(axis).await.is_err() {
                     self.core
                         .console(&format!(
-                            "{TITLE} session {id}: home (G28), then KLIPCAL_BACKLASH_JOG PRESS=overshot to continue"
+                            "{TITLE} session {id}: home (G28), then _KLIPCAL_BACKLASH_JOG PRESS=overshot to continue"
                         ))
                         .await;
                     return;

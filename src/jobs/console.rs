@@ -73,12 +73,12 @@ impl Button {
         }
     }
 
-    /// The footer's Cancel of a session dialog: it asks first (`KLIPCAL_CANCEL_ASK`, a macro in
+    /// The footer's Cancel of a session dialog: it asks first (`_KLIPCAL_CANCEL_ASK`, a macro in
     /// klipcal.cfg, shows "end the session?" with Yes → `KLIPCAL_CANCEL` and Back →
-    /// `KLIPCAL_PROMPT_BACK`), so one tap beside the other buttons ends nothing.
+    /// `_KLIPCAL_PROMPT_BACK`), so one tap beside the other buttons ends nothing.
     #[must_use]
     pub fn cancel_asking() -> Self {
-        Self::new("Cancel session…", "KLIPCAL_CANCEL_ASK", "error")
+        Self::new("Cancel session…", "_KLIPCAL_CANCEL_ASK", "error")
     }
 }
 
@@ -248,13 +248,13 @@ mod tests {
             title: "klipcal: new rotation distances".into(),
             lines: vec!["stepper_x: 40 → 40.08".into()],
             buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
-            footer: vec![Button::new("Close", "KLIPCAL_PROMPT_CLOSE", "secondary")],
+            footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
         };
         let s = p.script();
         let lines: Vec<&str> = s.lines().collect();
         assert!(lines[0].contains("action:prompt_begin klipcal"), "{s}");
         assert!(lines[2].contains("prompt_button Apply|KLIPCAL_AB_APPLY|primary"));
-        assert!(lines[3].contains("prompt_footer_button Close|KLIPCAL_PROMPT_CLOSE|secondary"));
+        assert!(lines[3].contains("prompt_footer_button Close|_KLIPCAL_PROMPT_CLOSE|secondary"));
         assert!(lines[4].contains("action:prompt_show"));
     }
 

@@ -96,7 +96,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
         spec: OpSpec {
             method: None,
-            macro_name: "KLIPCAL_CANCEL_ASK",
+            macro_name: "_KLIPCAL_CANCEL_ASK",
             http: None,
             summary: "ask before ending the session (the Cancel of klipcal's dialogs)",
             args: &[],
@@ -104,13 +104,13 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
                 "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL|error\"",
-                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|KLIPCAL_PROMPT_BACK|secondary\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|secondary\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_show\"",
             ]),
             variables: &[],
             comment: &[],
         },
-        parse: |_| Err(anyhow::anyhow!("KLIPCAL_CANCEL_ASK runs in Klipper")),
+        parse: |_| Err(anyhow::anyhow!("_KLIPCAL_CANCEL_ASK runs in Klipper")),
     },
     Op {
         spec: OpSpec {
@@ -120,7 +120,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             },
             ..OpSpec::remote(
                 "klipcal_prompt_back",
-                "KLIPCAL_PROMPT_BACK",
+                "_KLIPCAL_PROMPT_BACK",
                 "prompt/back",
                 "back to klipcal's dialog (from the cancel question)",
                 &[],
@@ -136,7 +136,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             },
             ..OpSpec::remote(
                 "klipcal_prompt_close",
-                "KLIPCAL_PROMPT_CLOSE",
+                "_KLIPCAL_PROMPT_CLOSE",
                 "prompt/close",
                 "close klipcal's dialog (then type readings on the console)",
                 &[],
@@ -276,10 +276,11 @@ impl Calibrations {
                 CoreCall::PromptClose => {
                     // The macro closed the dialog in Klipper before asking: klipcal only notes it.
                     self.core.prompt_closed_by_user();
-                    Ok(
-                        json!({"message": "type readings on the console: KLIPCAL_MEASURE \
-                        PAIR=... VALUES=... (or on klipcal's page)"}),
-                    )
+                    Ok(json!({"message": format!(
+                        "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
+                         (or on klipcal's page{})",
+                        self.core.page().map(|p| format!(", {p}")).unwrap_or_default()
+                    )}))
                 }
                 CoreCall::Status => Err(anyhow::anyhow!(
                     "klipcal_status is answered by the agent with the printer's summary"
@@ -574,6 +575,34 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn the_dialogs_helpers_are_hidden_from_the_macro_panels() {
+        // Mainsail and Fluidd hide macros whose name starts with '_' (issue 26 A.5): the
+        // buttons left are the ones a user presses, the dialogs' helpers are not among them.
+        let visible: Vec<&str> = all_ops()
+            .iter()
+            .map(|o| o.macro_name)
+            .filter(|n| !n.starts_with('_'))
+            .collect();
+        for helper in [
+            "_KLIPCAL_PROMPT_BACK",
+            "_KLIPCAL_PROMPT_CLOSE",
+            "_KLIPCAL_CANCEL_ASK",
+            "_KLIPCAL_BACKLASH_JOG",
+        ] {
+            assert!(
+                all_ops().iter().any(|o| o.macro_name == helper),
+                "{helper} is not declared"
+            );
+            assert!(!visible.contains(&&helper[1..]), "{helper} shows");
+        }
+        assert!(
+            visible.len() <= 16,
+            "{} buttons: {visible:?}",
+            visible.len()
+        );
     }
 
     #[test]

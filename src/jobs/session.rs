@@ -63,6 +63,8 @@ struct Inner {
     /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
     /// shutdown waits for them.
     tasks: tokio_util::task::TaskTracker,
+    /// klipcal's page as a user opens it (set once the page is listening).
+    page: std::sync::OnceLock<String>,
 }
 
 impl Core {
@@ -79,6 +81,7 @@ impl Core {
                 titles: std::sync::RwLock::new(BTreeMap::new()),
                 shown: std::sync::Mutex::new(None),
                 tasks: tokio_util::task::TaskTracker::new(),
+                page: std::sync::OnceLock::new(),
             }),
         }
     }
@@ -162,6 +165,17 @@ impl Core {
     #[must_use]
     pub fn running_tasks(&self) -> usize {
         self.inner.tasks.len()
+    }
+
+    /// Notes where klipcal's page is (`http://192.168.1.23:7150/`), for the console's answers.
+    pub fn set_page(&self, address: String) {
+        let _ = self.inner.page.set(address);
+    }
+
+    /// "on klipcal's page, http://…" for the console, or `None` when the page is off.
+    #[must_use]
+    pub fn page(&self) -> Option<&str> {
+        self.inner.page.get().map(String::as_str)
     }
 
     /// Names a kind for refusals ("an A/B calibration").
@@ -478,7 +492,7 @@ impl Core {
         true
     }
 
-    /// Notes that the user closed klipcal's dialog in Klipper (KLIPCAL_PROMPT_CLOSE sends the
+    /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
     /// close itself, so a dialog klipcal shows next is sent whole again).
     pub fn prompt_closed_by_user(&self) {
         self.mark_closed();

@@ -456,6 +456,12 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
             "the guide does not say {words:?}: {guide}"
         );
     }
+    // The phone path (issue 26 A.6): the page's address, not only "klipcal's page".
+    let page = d.url.clone().expect("the helper gave the page an address");
+    assert!(
+        guide.contains(&format!("or on klipcal's page, {page}/")),
+        "the guide does not give the page's address {page}: {guide}"
+    );
     // A dialog never waits on input only the console can give (item 18): the measuring
     // dialog's button closes it and says where to type, and readings do not reopen it.
     let measuring = crate::mainsail::after_reload(&m)
@@ -465,10 +471,10 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         measuring
             .buttons
             .iter()
-            .any(|b| b.1 == "KLIPCAL_PROMPT_CLOSE"),
+            .any(|b| b.1 == "_KLIPCAL_PROMPT_CLOSE"),
         "{measuring:?}"
     );
-    m.gcode("KLIPCAL_PROMPT_CLOSE").await.unwrap();
+    m.gcode("_KLIPCAL_PROMPT_CLOSE").await.unwrap();
     assert_eq!(crate::mainsail::after_reload(&m).await, None);
     let told = crate::mainsail::history(&m).await;
     assert!(
