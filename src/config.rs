@@ -771,6 +771,22 @@ mod tests {
     }
 
     #[test]
+    fn a_caliper_resolution_out_of_range_is_refused_by_name() {
+        for bad in ["0", "0.5", "-0.01"] {
+            let e = Config::parse(&format!("[ab]\ncaliper_resolution_mm = {bad}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("ab.caliper_resolution_mm") && e.contains("last digit"),
+                "{e}"
+            );
+        }
+        let c = Config::parse("[ab]\ncaliper_resolution_mm = 0.02\n").unwrap();
+        assert_eq!(c.ab.caliper_resolution_mm, 0.02);
+        assert_eq!(Config::default().ab.caliper_resolution_mm, 0.01);
+    }
+
+    #[test]
     fn empty_file_gives_the_embedded_defaults() {
         let cfg = Config::parse("").unwrap();
         assert_eq!(cfg, Config::default());

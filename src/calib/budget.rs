@@ -22,6 +22,11 @@ pub struct BudgetInputs {
     pub line_width_mm: f64,
     /// Stated caliper precision as a 3σ bound, mm (paper: 0.02).
     pub caliper_precision_3sigma_mm: f64,
+    /// The caliper's last digit, mm: its rounding (r/√12, common to readings that agree)
+    /// adds to the measurement term. The paper's budget has none (0); the solver passes
+    /// `ab.caliper_resolution_mm`.
+    #[serde(default)]
+    pub caliper_resolution_mm: f64,
     /// Observed per-reading standard deviation, mm, when readings exist (the larger of this and
     /// the stated precision is used).
     pub observed_sigma_mm: Option<f64>,
@@ -53,6 +58,7 @@ impl Default for BudgetInputs {
             filament_diameter_mm: 1.75,
             line_width_mm: 0.5,
             caliper_precision_3sigma_mm: 0.02,
+            caliper_resolution_mm: 0.0,
             observed_sigma_mm: None,
             readings_per_pair: 5,
             rotation_distance_mm: 40.0,
@@ -73,7 +79,9 @@ pub struct ErrorBudget {
     pub bed_mm: f64,
     /// Filament cross-section: half of (2ε/d) × line width reaches the face.
     pub filament_mm: f64,
-    /// Measurement: 3 × 1.253 σ/√n (the 3σ bound of a median of n readings).
+    /// Measurement: 3 × √((1.253 σ/√n)² + r²/12): the 3σ bound of a median of n readings
+    /// (σ the larger of the stated precision and the readings' own spread) and of the
+    /// caliper's rounding to its last digit r ([`super::readings::centre_uncertainty`]).
     pub measurement_mm: f64,
     /// Motor resolution: half a microstep, rotation_distance / (full_steps × microsteps × gear_ratio) / 2.
     pub motor_mm: f64,
@@ -93,7 +101,9 @@ pub fn error_budget(inp: &BudgetInputs) -> ErrorBudget {
         * (2.0 * inp.filament_tolerance_mm / inp.filament_diameter_mm.max(f64::MIN_POSITIVE))
         * inp.line_width_mm;
     let sigma = (inp.caliper_precision_3sigma_mm / 3.0).max(inp.observed_sigma_mm.unwrap_or(0.0));
-    let measurement_mm = 3.0 * 1.253 * sigma / (inp.readings_per_pair.max(1) as f64).sqrt();
+    let measurement_mm = 3.0
+        * (1.253 * sigma / (inp.readings_per_pair.max(1) as f64).sqrt())
+            .hypot(inp.caliper_resolution_mm / 12f64.sqrt());
     let steps = f64::from(inp.full_steps_per_rotation.max(1))
         * f64::from(inp.microsteps.max(1))
         * inp.gear_ratio.max(f64::MIN_POSITIVE);

@@ -361,6 +361,7 @@ pub fn solve(
             error_budget(&BudgetInputs {
                 bed_length_mm: g.span_mm / 2.0,
                 observed_sigma_mm: Some(observed),
+                caliper_resolution_mm: opts.rules.resolution_mm,
                 readings_per_pair: n_min,
                 rotation_distance_mm: stepper.rotation_distance_mm,
                 full_steps_per_rotation: stepper.full_steps_per_rotation,

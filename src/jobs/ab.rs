@@ -363,6 +363,10 @@ pub struct Session {
     /// soak starts warm (Unix s); the hold limit bounds it.
     #[serde(default)]
     pub preheat_since_unix: Option<f64>,
+    /// The last entry of readings saved: its pair and readings (a line sent again is told from
+    /// new readings by it).
+    #[serde(default)]
+    pub last_entry: Option<(String, Vec<f64>)>,
 }
 
 impl Doc for Session {
@@ -1276,6 +1280,7 @@ impl Ab {
                     soak_asking: false,
                     soak_choice: None,
                     preheat_since_unix: None,
+                    last_entry: None,
                 };
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
@@ -1316,12 +1321,15 @@ impl Ab {
         let n = s.rounds.len() as i64;
         let per_pair = s.options.readings_per_pair;
         if !req.clear && !values.is_empty() {
-            // The same line sent again (a re-sent console line, a double tap) would double the
-            // pair's readings: refused, with the way to replace them.
+            // The last entry sent again (a re-sent console line, a double tap) would double the
+            // pair's readings: refused, with the way to replace them. A new reading that
+            // happens to equal an earlier one is not an entry sent again.
             let have = self.readings(&s)?.remove(&pair.id).unwrap_or_default();
-            let tail = &have[have.len().saturating_sub(values.len())..];
-            let again = tail.len() == values.len()
-                && tail.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9);
+            let again = s.last_entry.as_ref().is_some_and(|(p, last)| {
+                *p == pair.id
+                    && last.len() == values.len()
+                    && last.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9)
+            });
             if again && have.len() + values.len() > per_pair {
                 return Err(user(format!(
                     "{}: nothing saved: these {} reading(s) are already saved (the same entry \
@@ -1364,8 +1372,12 @@ impl Ab {
             );
         }
         let logged = notes.clone();
+        let entry = (!values.is_empty()).then(|| (pair.id.clone(), values.clone()));
         self.update(s.id, |s| {
             s.notes.extend(logged);
+            if entry.is_some() || req.clear {
+                s.last_entry.clone_from(&entry);
+            }
             if s.state == State::Solved {
                 s.state = State::Measuring;
                 s.progress = "waiting for caliper readings".into();
@@ -1505,6 +1517,8 @@ impl Ab {
             },
             ..SolveOptions::default()
         };
+        // The caliper's last digit is part of every reading's uncertainty.
+        opts.rules.resolution_mm = s.options.caliper_resolution_mm;
         if s.rounds.len() > 1 {
             let prev = &s.rounds[s.rounds.len() - 2];
             opts.previous = prev.solution.as_ref().map(|sol| {

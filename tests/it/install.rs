@@ -354,6 +354,22 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
             .unwrap()
             .to_string()
     };
+    // D2: --moonraker is what the written settings name (a note says it is not the folder's).
+    let (ok, out) = klipcal(&[
+        "--moonraker",
+        "ws://127.0.0.1:1/websocket",
+        "install",
+        "--printer-data",
+        &pd(&b1),
+        "--no-systemd",
+        "--dry-run",
+    ]);
+    assert!(ok, "{out}");
+    assert!(
+        out.contains("+url = \"ws://127.0.0.1:1/websocket\"")
+            && out.contains("note: --moonraker ws://127.0.0.1:1/websocket"),
+        "{out}"
+    );
     let mut http_ports = Vec::new();
     for (b, other) in [(&b1, &b2), (&b2, &b1)] {
         let (other_before, this_before) = (starts(other), starts(b));
