@@ -22,3 +22,4 @@ mod runall;
 mod session;
 mod skew;
 mod startup;
+mod try_bench;
