@@ -472,6 +472,11 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();
         std::fs::write(&p, vec![b'x'; 600 * 1024]).unwrap();
     }
+    // Moonraker 0.11 cannot be restarted while its start-up shell commands still run (apt's
+    // package refresh, the new print's metadata): its close() fails with "Set changed size
+    // during iteration" and it does not come back (seen 2 s after the install's restart on a
+    // loaded host). A user uninstalls later than that; so does the test.
+    tokio::time::sleep(Duration::from_secs(15)).await;
     // D3/D4: uninstall printer 2 while its daemon runs; printer 1 is left byte for byte.
     let mut d1 = d1;
     assert!(d1.terminate(Duration::from_secs(10)).is_some());
@@ -498,9 +503,7 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
         !out.contains(&pd(&b1)),
         "uninstall spoke of the other printer: {out}"
     );
-    // A loaded host (Moonraker also reads the metadata of the 600 KB print just written) was
-    // seen to take over 30 s for the restart.
-    let restarted = poll(Duration::from_secs(120), || async {
+    let restarted = poll(Duration::from_secs(60), || async {
         (starts(&b2).1 > 2).then_some(())
     })
     .await;
