@@ -139,6 +139,8 @@ struct Shared {
     identified_once: std::sync::atomic::AtomicBool,
     /// Why the client gave up for good (Moonraker refused to identify the agent).
     fatal: Mutex<Option<String>>,
+    /// The websocket is open (the client may still be identifying itself).
+    socket_open: std::sync::atomic::AtomicBool,
 }
 
 /// The cloneable handle to the Moonraker connection.
@@ -176,6 +178,7 @@ impl Moonraker {
             cancel,
             identified_once: std::sync::atomic::AtomicBool::new(false),
             fatal: Mutex::new(None),
+            socket_open: std::sync::atomic::AtomicBool::new(false),
         });
         let handle = Moonraker {
             shared: shared.clone(),
@@ -197,6 +200,14 @@ impl Moonraker {
     /// The connection state now.
     pub fn state(&self) -> ConnState {
         self.shared.state.borrow().clone()
+    }
+
+    /// Whether the websocket is open now: connected, or identifying itself right after
+    /// connecting (so [`Moonraker::wait_connected`] is a matter of moments).
+    pub fn socket_open(&self) -> bool {
+        self.shared
+            .socket_open
+            .load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// A watch on the connection state.
@@ -628,7 +639,13 @@ async fn actor(
                 info!(url = %opts.url, "connected to Moonraker");
                 backoff = opts.reconnect_min;
                 reported = None;
+                shared
+                    .socket_open
+                    .store(true, std::sync::atomic::Ordering::SeqCst);
                 session(&handle, ws, &mut rx, &agent_tx).await;
+                shared
+                    .socket_open
+                    .store(false, std::sync::atomic::Ordering::SeqCst);
                 handle.set_state(ConnState::Connecting(Some("connection closed".into())));
                 handle.emit(Event::Disconnected);
                 if shared.cancel.is_cancelled() {

@@ -14,6 +14,7 @@ mod install;
 mod mainsail;
 mod mesh;
 mod mesh_job;
+mod outage;
 mod pylons;
 mod realcfg;
 mod runall;
