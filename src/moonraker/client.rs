@@ -252,6 +252,47 @@ impl Moonraker {
         }
     }
 
+    /// Whether `e` means Moonraker is unreachable right now ([`Error::is_unreachable`] with this
+    /// connection's state): an outage to wait out, not a failure.
+    pub fn is_unreachable(&self, e: &Error) -> bool {
+        e.is_unreachable(matches!(self.state(), ConnState::Connected { .. }))
+    }
+
+    /// Waits for Moonraker to be back after an outage, however long: connected again, and
+    /// Klipper ready or `klippy_limit` spent waiting for it once connected (Klipper itself may
+    /// be down; the caller then sees in what state). False when the client stopped (shutdown).
+    pub async fn wait_back(&self, klippy_limit: Duration) -> bool {
+        let mut rx = self.shared.state.subscribe();
+        loop {
+            let connected = rx
+                .wait_for(|s| matches!(s, ConnState::Connected { .. } | ConnState::Stopped))
+                .await
+                .map(|s| matches!(*s, ConnState::Connected { .. }));
+            if !matches!(connected, Ok(true)) {
+                return false;
+            }
+            let ready = tokio::time::timeout(
+                klippy_limit,
+                rx.wait_for(|s| match s {
+                    ConnState::Connected { klippy_state } => klippy_state == "ready",
+                    _ => true,
+                }),
+            )
+            .await;
+            match ready {
+                // Klipper did not get ready in time: back, in whatever state Klipper is.
+                Err(_) => return true,
+                Ok(Err(_)) => return false,
+                Ok(Ok(s)) => match &*s {
+                    ConnState::Connected { .. } => return true,
+                    ConnState::Stopped => return false,
+                    // Lost again before Klipper was ready: wait for the next connection.
+                    ConnState::Connecting(_) => {}
+                },
+            }
+        }
+    }
+
     /// Calls a Moonraker method and awaits the reply. Waits for the connection (up to the
     /// request timeout) when it is being re-established.
     ///
