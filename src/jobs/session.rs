@@ -350,6 +350,17 @@ impl Core {
             .any(|me| self.inner.m.is_unreachable(me))
     }
 
+    /// Why Moonraker is unreachable now (its last connect error), or `None` when connected.
+    pub fn unreachable_now(&self) -> Option<String> {
+        match self.inner.m.state() {
+            crate::moonraker::ConnState::Connected { .. } => None,
+            crate::moonraker::ConnState::Connecting(why) => {
+                Some(why.unwrap_or_else(|| "not connected yet".into()))
+            }
+            crate::moonraker::ConnState::Stopped => Some("klipcal is stopping".into()),
+        }
+    }
+
     /// Waits until Moonraker is back (and Klipper ready, or a minute spent waiting for it);
     /// false at shutdown.
     pub async fn wait_back(&self) -> bool {

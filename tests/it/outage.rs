@@ -70,11 +70,34 @@ async fn soaking_session(bench: &Bench, d: &Daemon) -> Value {
 async fn an_ab_soak_rides_out_moonraker_stopped_for_90_s_and_cancels_after() {
     let bench = Bench::start_with("corexy", Some(SLOW_PLANT));
     let d = Daemon::ready(&bench, &settings(600.0)).await;
+    let base = d.page_url().await;
     let s = soaking_session(&bench, &d).await;
     let id = s["id"].clone();
     bench.stop_one("moonraker");
     // The outage lasts longer than the daemon's request timeout (30 s) three times over.
-    tokio::time::sleep(Duration::from_secs(90)).await;
+    let down = Instant::now();
+    tokio::time::sleep(Duration::from_secs(10)).await;
+    // A cancel from the page meanwhile answers at once that nothing can be stopped now, and
+    // leaves the session to go on.
+    let c = reqwest::Client::new();
+    let t0 = Instant::now();
+    let r = c
+        .post(format!("{base}/api/cancel"))
+        .header("content-type", "application/json")
+        .body("{}")
+        .send()
+        .await
+        .unwrap();
+    let took = t0.elapsed();
+    let v: Value = r.json().await.unwrap_or(Value::Null);
+    assert!(took < Duration::from_secs(1), "cancel took {took:?}: {v}");
+    let msg = v["error"]["message"].as_str().unwrap_or("");
+    assert!(
+        msg.contains("Moonraker is unreachable")
+            && msg.contains("cancel again once Moonraker is back"),
+        "{v}"
+    );
+    tokio::time::sleep(Duration::from_secs(90).saturating_sub(down.elapsed())).await;
     bench.start_one("moonraker");
     let files = bench.files();
     poll(Duration::from_secs(60), || async {
