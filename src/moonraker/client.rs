@@ -832,6 +832,9 @@ async fn session(
         }
     }
     setup.abort();
+    // Not connected any more before anyone hears of the lost replies, so that a caller who
+    // looks at the state on `Disconnected` sees the outage.
+    handle.set_state(ConnState::Connecting(Some("connection closed".into())));
     for (_, p) in pending.drain() {
         let Pending::Waiting { method, tx } = p;
         let _ = tx.send(Err(Error::Disconnected(method)));
