@@ -122,17 +122,33 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     }
 }
 
+/// The status answers at once, whatever Moonraker's state: while it is unreachable, the
+/// printer's part is null and `connection` says why (the sessions come from the database).
 async fn status(m: &Moonraker, cals: Option<&Calibrations>) -> Result<Value, RpcError> {
-    let summary = printer::gather(m).await.map_err(|e| RpcError {
-        code: 503,
-        message: e.to_string(),
-    })?;
-    let connection = match m.state() {
+    if m.socket_open() {
+        // Just connected, still identifying (a call can arrive meanwhile): moments away.
+        let _ = m.wait_connected(std::time::Duration::from_secs(2)).await;
+    }
+    let (connection, summary) = match m.state() {
         ConnState::Connected { klippy_state } => {
-            json!({"moonraker": "connected", "klippy_state": klippy_state})
+            let mut c = json!({"moonraker": "connected", "klippy_state": klippy_state});
+            let summary = match printer::gather(m).await {
+                Ok(s) => json!(s),
+                Err(e) => {
+                    c["last_error"] = json!(e.to_string());
+                    Value::Null
+                }
+            };
+            (c, summary)
         }
-        ConnState::Connecting(why) => json!({"moonraker": "connecting", "last_error": why}),
-        ConnState::Stopped => json!({"moonraker": "stopped"}),
+        ConnState::Connecting(why) => (
+            json!({"moonraker": "unreachable", "last_error": why,
+                   "message": format!("Moonraker is unreachable at {}{}; klipcal keeps \
+                                       retrying, and a running session waits for it",
+                                      m.url(), why.as_deref().map(|w| format!(" ({w})")).unwrap_or_default())}),
+            Value::Null,
+        ),
+        ConnState::Stopped => (json!({"moonraker": "stopped"}), Value::Null),
     };
     let sessions = match cals {
         Some(c) => c.status().map_err(|e| rpc_error(&e))?,

@@ -175,6 +175,14 @@ pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
             text(&status["error"]["message"])
         );
     }
+    if let Some(msg) = status["connection"]["message"].as_str() {
+        // Moonraker unreachable: said at once; the session below still shows from the database.
+        let _ = write!(
+            h,
+            "<p id=\"moonraker\" class=\"msg error\">{}</p>",
+            esc(msg)
+        );
+    }
     h.push_str("<p id=\"opmsg\" class=\"msg\"></p>");
     let active = session["state"]
         .as_str()

@@ -617,18 +617,26 @@ impl Ab {
     }
 
     fn spawn_runner(&self, id: i64) {
-        let ab = self.clone();
-        self.core.spawn_runner(async move {
-            if let Err(e) = ab.run(id).await {
-                let msg = format!("{e:#}");
-                warn!(session = id, error = %msg, "session failed");
-                ab.fail(id, &msg).await;
-            }
-        });
+        let (ab, ab2) = (self.clone(), self.clone());
+        self.core.spawn_session(
+            id,
+            TITLE,
+            move || {
+                let ab = ab.clone();
+                async move { ab.run(id).await }
+            },
+            move |msg| async move { ab2.fail(id, &msg).await },
+        );
     }
 
     async fn fail(&self, id: i64, why: &str) {
-        let _ = self.core.heaters_off().await;
+        let off = self
+            .core
+            .heaters_off_once_back(&format!("{TITLE} failed: {why}"))
+            .await;
+        if let Err(e) = &off {
+            warn!(session = id, error = %format!("{e:#}"), "heaters not turned off");
+        }
         let _ = self
             .update(id, |s| {
                 if !s.state.is_final() {
@@ -640,8 +648,9 @@ impl Ab {
             })
             .await;
         self.core.prompt_end().await;
+        let heaters = if off.is_ok() { "; heaters off" } else { "" };
         self.core
-            .console_error(&format!("{TITLE} failed: {why}"))
+            .console_error(&format!("{TITLE} failed: {why}{heaters}"))
             .await;
     }
 
@@ -950,6 +959,10 @@ impl Ab {
                     minutes,
                     falling_pct_per_10min,
                 } => {
+                    // The bed stays on while the user answers, and no longer.
+                    self.core
+                        .hold_heaters_for(SOAK_ANSWER_S + super::soak::BOUND_SLACK_S)
+                        .await?;
                     if self
                         .ask_soak_choice(id, minutes, falling_pct_per_10min)
                         .await?
@@ -1087,6 +1100,9 @@ impl Ab {
         let state = ps["state"].as_str().unwrap_or("");
         if !(ours && matches!(state, "printing" | "paused" | "complete")) {
             self.core.printer_idle().await?;
+            // Klipper keeps the heaters on while it prints; once the print ends, it turns them
+            // off by itself after the hold limit if klipcal is not there to do it.
+            self.core.hold_heaters_for(s.options.hold_max_s).await?;
             self.core.m().print_start(&round.file).await?;
             self.core
                 .console(&format!("A/B calibration: printing {}", round.file))
@@ -1160,10 +1176,11 @@ impl Ab {
 
     async fn hold(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
-        // Klipper itself turns the heaters off after the hold limit, even if klipcal stops.
-        let hold = s.options.hold_max_s.max(1.0);
-        self.core.hold_heaters_for(hold).await?;
+        // Klipper itself turns the heaters off at the hold limit (counted from the print's
+        // end, also when the hold resumes after an outage), even if klipcal stops.
         let done = s.print_done_unix.unwrap_or_else(now_unix);
+        let hold = (done + s.options.hold_max_s - now_unix()).max(1.0);
+        self.core.hold_heaters_for(hold).await?;
         let wait = (done + s.options.cooldown_s - now_unix()).max(0.0);
         if wait > 0.0 {
             self.core.console(&format!(

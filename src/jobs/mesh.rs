@@ -726,27 +726,38 @@ impl Mesh {
     }
 
     fn spawn_runner(&self, id: i64) {
-        let me = self.clone();
-        self.core.spawn_runner(async move {
-            if let Err(e) = me.run(id).await {
-                let msg = format!("{e:#}");
-                warn!(session = id, error = %msg, "mesh session failed");
-                let _ = me.core.heaters_off().await;
-                let _ = me
+        let (me, me2) = (self.clone(), self.clone());
+        self.core.spawn_session(
+            id,
+            TITLE,
+            move || {
+                let me = me.clone();
+                async move { me.run(id).await }
+            },
+            move |msg| async move {
+                let off = me2
+                    .core
+                    .heaters_off_once_back(&format!("{TITLE} failed: {msg}"))
+                    .await;
+                if let Err(e) = &off {
+                    warn!(session = id, error = %format!("{e:#}"), "heaters not turned off");
+                }
+                let heaters = if off.is_ok() { "; heaters off" } else { "" };
+                let _ = me2
                     .update(id, |s| {
                         if !s.state.is_final() {
                             s.state = State::Failed;
                             s.reason = Some(msg.clone());
-                            s.progress = "failed; heaters off".into();
+                            s.progress = format!("failed{heaters}");
                         }
                         Ok(())
                     })
                     .await;
-                me.core
-                    .console_error(&format!("{TITLE} failed: {msg}"))
+                me2.core
+                    .console_error(&format!("{TITLE} failed: {msg}{heaters}"))
                     .await;
-            }
-        });
+            },
+        );
     }
 
     async fn run(&self, id: i64) -> anyhow::Result<()> {

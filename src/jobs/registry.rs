@@ -306,6 +306,17 @@ impl Calibrations {
             .core
             .active()?
             .ok_or_else(|| user("no calibration session to cancel"))?;
+        if let Some(why) = self.core.unreachable_now() {
+            // Nothing on the printer can be stopped now: say so rather than mark the session
+            // cancelled over a print or heaters still running.
+            return Err(user(format!(
+                "Moonraker is unreachable ({why}): klipcal cannot stop a print or turn the \
+                 heaters off now. Session {} waits for Moonraker and goes on (Klipper's idle \
+                 timeout turns the heaters off after the phase's limit if it stays away); \
+                 cancel again once Moonraker is back",
+                row.id
+            )));
+        }
         self.core.stop_runner();
         let c = self
             .by_kind(&row.kind)

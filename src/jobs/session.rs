@@ -14,11 +14,17 @@ use serde::Serialize;
 use serde_json::json;
 use tokio_util::sync::CancellationToken;
 
+use tracing::{info, warn};
+
 use super::console::{self, Prompt};
 use super::user;
 use crate::klipper::gcode_cmd;
 use crate::moonraker::{Files, Moonraker};
 use crate::store::{SessionRow, Store};
+
+/// How long a session waits for Klipper to be ready once Moonraker is back after an outage,
+/// before its steps look at the printer as it is.
+const KLIPPY_BACK_LIMIT: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// A calibration's stored session document.
 pub trait Doc: Serialize + DeserializeOwned + Send {
@@ -335,6 +341,74 @@ impl Core {
         });
     }
 
+    /// Runs session `id`'s automatic steps in the background ([`Core::spawn_runner`]), riding
+    /// out Moonraker outages of any length: when `steps` ends on Moonraker being unreachable
+    /// ([`Core::unreachable`]), the runner waits for it (and for Klipper) to be back, says so on
+    /// the console, and runs `steps` again, which re-read the stored state and the printer and
+    /// go on from there (or end the session, saying why). Only a real failure reaches `fail`,
+    /// with its message.
+    pub fn spawn_session<S, SF, F, FF>(&self, id: i64, title: &'static str, steps: S, fail: F)
+    where
+        S: Fn() -> SF + Send + 'static,
+        SF: Future<Output = anyhow::Result<()>> + Send,
+        F: FnOnce(String) -> FF + Send + 'static,
+        FF: Future<Output = ()> + Send,
+    {
+        let core = self.clone();
+        self.spawn_runner(async move {
+            loop {
+                let e = match steps().await {
+                    Ok(()) => return,
+                    Err(e) => e,
+                };
+                let why = format!("{e:#}");
+                if !core.unreachable(&e) {
+                    warn!(session = id, error = %why, "session failed");
+                    fail(why).await;
+                    return;
+                }
+                warn!(session = id, error = %why, "Moonraker unreachable; the session waits for it");
+                let since = std::time::Instant::now();
+                if !core.wait_back().await {
+                    return;
+                }
+                let secs = since.elapsed().as_secs_f64();
+                info!(session = id, outage_s = secs, "Moonraker is back; resuming the session");
+                core.console(&format!(
+                    "{title}: Moonraker was unreachable for {secs:.0} s ({why}); klipcal \
+                     reconnected and goes on from the printer's state"
+                ))
+                .await;
+            }
+        });
+    }
+
+    /// Whether `e` says Moonraker is unreachable (connection refused or lost, no reply while
+    /// disconnected) rather than a real failure: the one place that tells an outage from a
+    /// failure ([`crate::moonraker::Error::is_unreachable`]).
+    pub fn unreachable(&self, e: &anyhow::Error) -> bool {
+        e.chain()
+            .filter_map(|c| c.downcast_ref::<crate::moonraker::Error>())
+            .any(|me| self.inner.m.is_unreachable(me))
+    }
+
+    /// Why Moonraker is unreachable now (its last connect error), or `None` when connected.
+    pub fn unreachable_now(&self) -> Option<String> {
+        match self.inner.m.state() {
+            crate::moonraker::ConnState::Connected { .. } => None,
+            crate::moonraker::ConnState::Connecting(why) => {
+                Some(why.unwrap_or_else(|| "not connected yet".into()))
+            }
+            crate::moonraker::ConnState::Stopped => Some("klipcal is stopping".into()),
+        }
+    }
+
+    /// Waits until Moonraker is back (and Klipper ready, or a minute spent waiting for it);
+    /// false at shutdown.
+    pub async fn wait_back(&self) -> bool {
+        self.inner.m.wait_back(KLIPPY_BACK_LIMIT).await
+    }
+
     /// Stops the running session's automatic steps.
     pub fn stop_runner(&self) {
         if let Ok(mut r) = self.inner.runner.lock() {
@@ -383,6 +457,37 @@ impl Core {
     /// Moonraker failures.
     pub async fn heaters_off(&self) -> anyhow::Result<()> {
         self.inner.m.gcode("TURN_OFF_HEATERS").await?;
+        self.restore_idle_timeout().await
+    }
+
+    /// [`Core::heaters_off`], waiting out a Moonraker outage however long it lasts (a failed or
+    /// cancelled session's heaters go off once Moonraker is back). Says on the console that the
+    /// heaters are off, after `what` ("A/B calibration failed: …").
+    ///
+    /// # Errors
+    /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
+    pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
+        let mut waited = false;
+        loop {
+            match self.heaters_off().await {
+                Ok(()) => break,
+                Err(e) if self.unreachable(&e) => {
+                    waited = true;
+                    if !self.wait_back().await {
+                        return Err(e);
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        if waited {
+            self.console_error(&format!("{what}; now that Moonraker is back: heaters off"))
+                .await;
+        }
+        Ok(())
+    }
+
+    async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
         let cf = self.inner.m.configfile().await?;
         if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
             self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
@@ -390,14 +495,21 @@ impl Core {
         Ok(())
     }
 
-    /// Lets Klipper itself turn the heaters off after `hold_s` of idling, even if klipcal stops.
+    /// Lets Klipper itself turn the heaters off after `hold_s` of idling from now, even if
+    /// klipcal (or Moonraker) is gone: the heater's owner while klipcal cannot be. Each call
+    /// starts the count again. A 1 ms dwell follows, so that Klipper's idle timer runs even from
+    /// its `Idle` state (where it only starts again with the next move).
     ///
     /// # Errors
     /// Moonraker failures.
     pub async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
+        let script = format!(
+            "{}\nG4 P1",
+            gcode_cmd::set_idle_timeout(hold_s.max(1.0).ceil())?
+        );
         self.inner
             .m
-            .gcode(&gcode_cmd::set_idle_timeout(hold_s.max(1.0))?)
+            .gcode(&script)
             .await
             .context("setting Klipper's idle timeout to the hold limit")?;
         Ok(())

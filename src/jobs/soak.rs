@@ -54,7 +54,14 @@ pub struct BedSoak {
     soaking_since_s: Option<f64>,
     last_console_s: f64,
     primed: bool,
+    /// Klipper's idle timeout must be set again to the soak's remaining time (at the first
+    /// poll, and after [`BedSoak::extend`]).
+    rebound: bool,
 }
+
+/// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
+/// next look at it, and its question to the user, come well within it).
+pub const BOUND_SLACK_S: f64 = 60.0;
 
 /// How often the console hears of the soak.
 const CONSOLE_EVERY_S: f64 = 60.0;
@@ -74,6 +81,7 @@ impl BedSoak {
             soaking_since_s: None,
             last_console_s: f64::NEG_INFINITY,
             primed: false,
+            rebound: true,
         }
     }
 
@@ -142,6 +150,7 @@ impl BedSoak {
     /// Allows `extra_s` more from now (the user chose to wait).
     pub fn extend(&mut self, extra_s: f64) {
         self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
+        self.rebound = true;
     }
 
     /// Sets the bed's target through Klipper.
@@ -170,6 +179,13 @@ impl BedSoak {
             }
         }
         let t_s = self.start.elapsed().as_secs_f64();
+        if self.rebound && self.target_c > 0.0 {
+            // Klipper owns the heated bed for the rest of the soak: if klipcal or Moonraker is
+            // gone longer than that, Klipper's idle timeout turns the heaters off.
+            core.hold_heaters_for((self.max_s - t_s).max(0.0) + BOUND_SLACK_S)
+                .await?;
+            self.rebound = false;
+        }
         if t_s > self.max_s {
             if matches!(self.detector.status(), SoakStatus::Heating) {
                 return Err(user(format!(
@@ -197,6 +213,18 @@ impl BedSoak {
             .objects_query(json!({"heater_bed": ["temperature", "power", "target"]}))
             .await?;
         let hb = &st["heater_bed"];
+        if let Some(now_c) = hb["target"].as_f64() {
+            if self.target_c > 0.0 && (now_c - self.target_c).abs() > 0.5 {
+                // Not this soak's bed any more (e.g. Klipper restarted during an outage): a
+                // soak cannot go on from it, and printing would waste the round.
+                return Err(anyhow::anyhow!(
+                    "the bed's target is now {now_c:.0} °C instead of this soak's {:.0} °C \
+                     (Klipper restarted, or the heaters were turned off by its idle timeout or \
+                     by hand)",
+                    self.target_c
+                ));
+            }
+        }
         let status = self.detector.push(
             t_s,
             hb["power"].as_f64().unwrap_or(0.0),

@@ -139,6 +139,8 @@ struct Shared {
     identified_once: std::sync::atomic::AtomicBool,
     /// Why the client gave up for good (Moonraker refused to identify the agent).
     fatal: Mutex<Option<String>>,
+    /// The websocket is open (the client may still be identifying itself).
+    socket_open: std::sync::atomic::AtomicBool,
 }
 
 /// The cloneable handle to the Moonraker connection.
@@ -176,6 +178,7 @@ impl Moonraker {
             cancel,
             identified_once: std::sync::atomic::AtomicBool::new(false),
             fatal: Mutex::new(None),
+            socket_open: std::sync::atomic::AtomicBool::new(false),
         });
         let handle = Moonraker {
             shared: shared.clone(),
@@ -197,6 +200,14 @@ impl Moonraker {
     /// The connection state now.
     pub fn state(&self) -> ConnState {
         self.shared.state.borrow().clone()
+    }
+
+    /// Whether the websocket is open now: connected, or identifying itself right after
+    /// connecting (so [`Moonraker::wait_connected`] is a matter of moments).
+    pub fn socket_open(&self) -> bool {
+        self.shared
+            .socket_open
+            .load(std::sync::atomic::Ordering::SeqCst)
     }
 
     /// A watch on the connection state.
@@ -237,6 +248,47 @@ impl Moonraker {
                     _ => self.url().to_string(),
                 };
                 Err(Error::NotConnected(why))
+            }
+        }
+    }
+
+    /// Whether `e` means Moonraker is unreachable right now ([`Error::is_unreachable`] with this
+    /// connection's state): an outage to wait out, not a failure.
+    pub fn is_unreachable(&self, e: &Error) -> bool {
+        e.is_unreachable(matches!(self.state(), ConnState::Connected { .. }))
+    }
+
+    /// Waits for Moonraker to be back after an outage, however long: connected again, and
+    /// Klipper ready or `klippy_limit` spent waiting for it once connected (Klipper itself may
+    /// be down; the caller then sees in what state). False when the client stopped (shutdown).
+    pub async fn wait_back(&self, klippy_limit: Duration) -> bool {
+        let mut rx = self.shared.state.subscribe();
+        loop {
+            let connected = rx
+                .wait_for(|s| matches!(s, ConnState::Connected { .. } | ConnState::Stopped))
+                .await
+                .map(|s| matches!(*s, ConnState::Connected { .. }));
+            if !matches!(connected, Ok(true)) {
+                return false;
+            }
+            let ready = tokio::time::timeout(
+                klippy_limit,
+                rx.wait_for(|s| match s {
+                    ConnState::Connected { klippy_state } => klippy_state == "ready",
+                    _ => true,
+                }),
+            )
+            .await;
+            match ready {
+                // Klipper did not get ready in time: back, in whatever state Klipper is.
+                Err(_) => return true,
+                Ok(Err(_)) => return false,
+                Ok(Ok(s)) => match &*s {
+                    ConnState::Connected { .. } => return true,
+                    ConnState::Stopped => return false,
+                    // Lost again before Klipper was ready: wait for the next connection.
+                    ConnState::Connecting(_) => {}
+                },
             }
         }
     }
@@ -628,7 +680,13 @@ async fn actor(
                 info!(url = %opts.url, "connected to Moonraker");
                 backoff = opts.reconnect_min;
                 reported = None;
+                shared
+                    .socket_open
+                    .store(true, std::sync::atomic::Ordering::SeqCst);
                 session(&handle, ws, &mut rx, &agent_tx).await;
+                shared
+                    .socket_open
+                    .store(false, std::sync::atomic::Ordering::SeqCst);
                 handle.set_state(ConnState::Connecting(Some("connection closed".into())));
                 handle.emit(Event::Disconnected);
                 if shared.cancel.is_cancelled() {
@@ -774,6 +832,9 @@ async fn session(
         }
     }
     setup.abort();
+    // Not connected any more before anyone hears of the lost replies, so that a caller who
+    // looks at the state on `Disconnected` sees the outage.
+    handle.set_state(ConnState::Connecting(Some("connection closed".into())));
     for (_, p) in pending.drain() {
         let Pending::Waiting { method, tx } = p;
         let _ = tx.send(Err(Error::Disconnected(method)));

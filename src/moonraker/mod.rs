@@ -61,4 +61,47 @@ impl Error {
     pub fn is_refusal(&self) -> bool {
         matches!(self, Error::Rpc { .. })
     }
+
+    /// Whether the error says Moonraker could not be reached rather than that a request went
+    /// wrong: no connection or a lost one, or no reply (a timeout, an HTTP transfer failing)
+    /// while the websocket is down (`connected` is the connection's state now). An outage is
+    /// waited out; every other error is a real failure.
+    #[must_use]
+    pub fn is_unreachable(&self, connected: bool) -> bool {
+        match self {
+            Error::NotConnected(_) | Error::Disconnected(_) => true,
+            Error::Timeout { .. } | Error::Http { .. } => !connected,
+            Error::Rpc { .. } | Error::Shutdown | Error::Protocol(_) => false,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Error;
+
+    #[test]
+    fn only_a_lost_connection_or_no_answer_while_down_is_an_outage() {
+        let timeout = Error::Timeout {
+            method: "printer.objects.query".into(),
+            timeout_s: 30.0,
+        };
+        let refused = Error::Rpc {
+            method: "printer.gcode.script".into(),
+            code: 400,
+            message: "Must home axis first".into(),
+        };
+        for connected in [true, false] {
+            assert!(
+                Error::NotConnected("ws://x (connection refused)".into()).is_unreachable(connected)
+            );
+            assert!(Error::Disconnected("printer.info".into()).is_unreachable(connected));
+            assert!(!refused.is_unreachable(connected));
+            assert!(!Error::Shutdown.is_unreachable(connected));
+        }
+        // A request that hangs while connected is a real failure; without a connection, it is
+        // the outage.
+        assert!(!timeout.is_unreachable(true));
+        assert!(timeout.is_unreachable(false));
+    }
 }

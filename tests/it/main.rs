@@ -15,6 +15,7 @@ mod mainsail;
 mod mesh;
 mod mesh_job;
 mod ops;
+mod outage;
 mod pylons;
 mod readings;
 mod realcfg;
