@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 use crate::cli::{BenchSoakArgs, SoakDetectArgs};
-use crate::cmd::soak_families::information_bound;
+use crate::cmd::soak_families::{information_bound, weakest_threshold};
 
 /// One line of a bed trace.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -560,8 +560,20 @@ fn simulate_bed(bed: &Bed, rng: &mut fastrand::Rng, params: &SoakParams) -> Outc
         t_reach_s: t_reach,
         declared_s: declared,
         power_sd: var.sqrt(),
-        bound_s: information_bound(t_reach, test_sd, params.tau_max_s, params),
-        bound_half_s: information_bound(t_reach, test_sd, params.tau_max_s / 2.0, params),
+        bound_s: information_bound(
+            t_reach,
+            test_sd,
+            params.tau_max_s,
+            weakest_threshold(params),
+            params,
+        ),
+        bound_half_s: information_bound(
+            t_reach,
+            test_sd,
+            params.tau_max_s / 2.0,
+            weakest_threshold(params),
+            params,
+        ),
         why: det.explanation().to_string(),
     }
 }
@@ -673,7 +685,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
     println!(
         "  detector: stable once the data rule out (3 σ) a fall of {:.1} % or more still to come \
          from any positive sum of decays up to tau_max_s = {:.0} min",
-        params.max_remaining * 100.0,
+        weakest_threshold(&params) * 100.0,
         params.tau_max_s / 60.0
     );
     println!(
@@ -701,7 +713,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
          {:.1} % to fall, at the detector's noise, from reaching temperature): within 1.25 × + \
          60 s on {:.1} % of beds ({:.1} % with tau_max_s halved); the detector declares at {:.2} × \
          its bound (median)",
-        params.max_remaining * 100.0,
+        weakest_threshold(&params) * 100.0,
         pct(bound_within(false)),
         pct(bound_within(true)),
         over_bound
@@ -804,7 +816,7 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
              within 1.25 × + 60 s on {:.1} % of beds ({:.1} % with tau_max_s halved); the \
              detector declares at {:.2} × its bound (median)",
             crate::calib::soak::Z,
-            params.max_remaining * 100.0,
+            weakest_threshold(&params) * 100.0,
             fp(r.bound_within_125),
             fp(r.bound_within_125_half),
             r.median_over_bound
@@ -829,7 +841,13 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
             Ok(run) => {
                 let (d, why, sigma) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
-                let bound = information_bound(run.t_reach_s, sigma, params.tau_max_s, &params);
+                let bound = information_bound(
+                    run.t_reach_s,
+                    sigma,
+                    params.tau_max_s,
+                    weakest_threshold(&params),
+                    &params,
+                );
                 let verdict = match d {
                     None => "never declared".to_string(),
                     Some(d) if d < m => {

@@ -57,8 +57,13 @@ pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
 /// That decay adds θ·e^((t−s)/τ) to the bin at s ≤ t; what the unknown final power cannot
 /// absorb of it is its spread about its mean over the n bins, a pair of geometric sums.
 #[must_use]
-pub fn information_bound(from_s: f64, sigma: f64, tau_s: f64, params: &SoakParams) -> f64 {
-    let theta = params.max_remaining;
+pub fn information_bound(
+    from_s: f64,
+    sigma: f64,
+    tau_s: f64,
+    theta: f64,
+    params: &SoakParams,
+) -> f64 {
     let b = params.bin_s;
     let q = (b / tau_s).exp();
     let need = (crate::calib::soak::Z * sigma / theta).powi(2);
@@ -73,6 +78,16 @@ pub fn information_bound(from_s: f64, sigma: f64, tau_s: f64, params: &SoakParam
         }
     }
     f64::INFINITY
+}
+
+/// The power the rule allows still to fall on a bed whose coupling is not identified nor
+/// named (the weakest).
+#[must_use]
+pub fn weakest_threshold(params: &SoakParams) -> f64 {
+    params.surface_budget_c
+        * crate::calib::soak::BED_PRESETS
+            .last()
+            .map_or(1.0 / 150.0, |b| b.g)
 }
 
 /// The last time `power` (at times `t`) was more than 0.01 from its final value.
@@ -541,8 +556,20 @@ pub fn evaluate(
         let run = make(&mut rng);
         let moment = run.t_one_s;
         let (declared, why, sigma) = declare(&run, params);
-        let bound = information_bound(run.t_reach_s, sigma, params.tau_max_s, params);
-        let half = information_bound(run.t_reach_s, sigma, params.tau_max_s / 2.0, params);
+        let bound = information_bound(
+            run.t_reach_s,
+            sigma,
+            params.tau_max_s,
+            weakest_threshold(params),
+            params,
+        );
+        let half = information_bound(
+            run.t_reach_s,
+            sigma,
+            params.tau_max_s / 2.0,
+            weakest_threshold(params),
+            params,
+        );
         if bound <= 1.25 * moment + 60.0 {
             r.bound_within_125 += 1;
         }
@@ -685,7 +712,7 @@ mod tests {
     #[test]
     fn the_information_bound_is_the_first_bin_where_the_slowest_decay_stands_out() {
         let params = SoakParams::default();
-        let theta = params.max_remaining;
+        let theta = weakest_threshold(&params);
         let b = params.bin_s;
         for (sigma, tau) in [
             (0.002, 3600.0),
@@ -693,7 +720,7 @@ mod tests {
             (0.01, 1800.0),
             (0.03, 600.0),
         ] {
-            let at = information_bound(100.0, sigma, tau, &params);
+            let at = information_bound(100.0, sigma, tau, theta, &params);
             assert!(at.is_finite(), "σ {sigma}, τ {tau}: never");
             // Brute force: the decay's spread about its mean over the bins up to `t`.
             let spread = |t: f64| {
@@ -726,7 +753,9 @@ mod tests {
             }
         }
         // More noise or a slower decay: later.
-        let at = |sigma: f64, tau: f64| information_bound(0.0, sigma, tau, &params);
+        let at = |sigma: f64, tau: f64| {
+            information_bound(0.0, sigma, tau, weakest_threshold(&params), &params)
+        };
         assert!(at(0.02, 3600.0) > at(0.01, 3600.0));
         assert!(at(0.01, 3600.0) > at(0.01, 1800.0));
     }

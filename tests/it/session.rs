@@ -17,7 +17,7 @@ pub fn settings(hold_max_s: f64) -> String {
     format!(
         "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 600.0\n\
          [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 3.0\ntau_max_s = 30.0\n\
-         max_remaining = 0.03\n"
+         surface_budget_c = 0.1\nbed = \"bare-plate\"\n"
     )
 }
 
