@@ -364,6 +364,37 @@ pub fn identify_coupling(bins: &[[f64; 4]]) -> Result<Coupling, String> {
         white
     };
     let sigma2 = white.max(long);
+    // One lag must do: a stack of two layers that show apart (a plate under glass, sensed in
+    // the pad) fits a second lag clearly better, and then the first lag is the nearer layer,
+    // not the surface: its coupling would be too strong to be safe.
+    let two_lags = |t1: f64, t2: f64| -> Option<f64> {
+        let (f1, f2) = (filtered(t1), filtered(t2));
+        let x = DMatrix::from_fn(n, 4, |i, j| match j {
+            0 => bins[i][3],
+            1 => bins[i][2] - t0,
+            2 => -f1[i],
+            _ => -f2[i],
+        });
+        let y = DVector::from_iterator(n, bins.iter().map(|b| b[1]));
+        let coef = (x.transpose() * &x).try_inverse()? * (x.transpose() * &y);
+        let r = &y - &x * &coef;
+        coef.iter().all(|c| c.is_finite()).then(|| r.dot(&r))
+    };
+    let mut sse2 = f64::INFINITY;
+    for (i, t1) in taus.iter().enumerate().step_by(2) {
+        for t2 in taus.iter().skip(i + 2).step_by(2) {
+            if let Some(v) = two_lags(*t1, *t2) {
+                sse2 = sse2.min(v);
+            }
+        }
+    }
+    if best.sse - sse2 > Z * Z * sigma2 {
+        return Err(format!(
+            "the heat-up shows more than one layer between the thermistor and the surface (two \
+             lags fit it better by {:.0} σ²), so the surface's own coupling is not seen",
+            (best.sse - sse2) / sigma2
+        ));
+    }
     let (mut low, mut high) = (f64::INFINITY, f64::NEG_INFINITY);
     let mut charge_s: f64 = 0.0;
     for IdFit {
