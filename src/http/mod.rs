@@ -49,6 +49,7 @@ pub const OPERATIONS: &[(&str, &str)] = &[
     ("ab/clear", "klipcal_measure"),
     ("ab/solve", "klipcal_solve"),
     ("ab/apply", "klipcal_apply"),
+    ("ab/soak_choice", "klipcal_soak_choice"),
     ("cancel", "klipcal_cancel"),
     ("backlash/set_point", "klipcal_backlash_set_point"),
     ("backlash/start", "klipcal_backlash_start"),

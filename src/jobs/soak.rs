@@ -243,7 +243,7 @@ impl BedSoak {
                     self.soaking_since_s = Some(t_s);
                     core.console(&format!(
                         "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}); print now is offered meanwhile",
+                         warm by at most {} ({}); KLIPCAL_SOAK_CHOICE CHOICE=print prints now",
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
                         self.detector.coupling().why
