@@ -8,5 +8,6 @@ pub mod mesh;
 pub mod pylons;
 pub mod soak;
 pub mod soak_families;
+pub mod soak_four_node;
 pub mod soak_real;
 pub mod solve;

@@ -31,6 +31,9 @@ pub struct Run {
     pub max_power: f64,
     /// Its slowest time constant, s (for the report).
     pub tau_s: f64,
+    /// The surface moment (issue 29): the last time the plate, these beds' print surface, was
+    /// more than 1 K from its final temperature, s; NaN where the bed has no surface truth.
+    pub t_surface_s: f64,
 }
 
 /// The detector's declaration on a run (with the bed's max_power), s, its explanation at that
@@ -57,8 +60,13 @@ pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
 /// That decay adds θ·e^((t−s)/τ) to the bin at s ≤ t; what the unknown final power cannot
 /// absorb of it is its spread about its mean over the n bins, a pair of geometric sums.
 #[must_use]
-pub fn information_bound(from_s: f64, sigma: f64, tau_s: f64, params: &SoakParams) -> f64 {
-    let theta = params.max_remaining;
+pub fn information_bound(
+    from_s: f64,
+    sigma: f64,
+    tau_s: f64,
+    theta: f64,
+    params: &SoakParams,
+) -> f64 {
     let b = params.bin_s;
     let q = (b / tau_s).exp();
     let need = (crate::calib::soak::Z * sigma / theta).powi(2);
@@ -75,6 +83,29 @@ pub fn information_bound(from_s: f64, sigma: f64, tau_s: f64, params: &SoakParam
     f64::INFINITY
 }
 
+/// The power the rule allows still to fall on a bed whose coupling is not identified nor
+/// named (the weakest).
+#[must_use]
+pub fn weakest_threshold(params: &SoakParams) -> f64 {
+    params.surface_budget_c
+        * crate::calib::soak::BED_PRESETS
+            .last()
+            .map_or(1.0 / 150.0, |b| b.g)
+}
+
+/// The last time the plate (column 3) of a noise-free run was more than 1 K from its final
+/// temperature, s.
+fn surface_moment(clean: &[[f64; 4]]) -> f64 {
+    let Some(fin) = clean.last().map(|s| s[3]) else {
+        return 0.0;
+    };
+    clean
+        .iter()
+        .filter(|s| (s[3] - fin).abs() > 1.0)
+        .map(|s| s[0])
+        .fold(0.0, f64::max)
+}
+
 /// The last time `power` (at times `t`) was more than 0.01 from its final value.
 fn one_pct_moment(t: &[f64], power: &[f64]) -> f64 {
     let Some(&fin) = power.last() else { return 0.0 };
@@ -87,7 +118,7 @@ fn one_pct_moment(t: &[f64], power: &[f64]) -> f64 {
 
 /// `(t_s, power, temp_c)` samples with their target added, and the first time the temperature
 /// was within 2 °C of it (NaN if never).
-fn at_target(noisy: &[[f64; 3]], target_c: f64) -> (Vec<[f64; 4]>, f64) {
+fn at_target(noisy: &[[f64; 4]], target_c: f64) -> (Vec<[f64; 4]>, f64) {
     let t_reach = noisy
         .iter()
         .find(|s| (s[2] - target_c).abs() <= 2.0)
@@ -173,7 +204,7 @@ impl ThreeNode {
         until_s: f64,
         noise_c: f64,
         every_s: f64,
-    ) -> Vec<[f64; 3]> {
+    ) -> Vec<[f64; 4]> {
         const DT: f64 = 0.25;
         let (mut th, mut tp, mut te) = (self.t_amb, self.t_amb, self.t_amb);
         let mut ts = self.t_amb;
@@ -202,7 +233,7 @@ impl ThreeNode {
                 integ += err * DT;
             }
             if t >= next {
-                out.push([t, power, meas]);
+                out.push([t, power, meas, tp]);
                 next += every_s;
             }
             let q_hp = self.g_hp * (th - tp);
@@ -251,6 +282,7 @@ pub fn three_node(rng: &mut fastrand::Rng) -> Run {
         t_reach_s: t_reach,
         max_power: bed.max_power,
         tau_s: bed.tau_slow,
+        t_surface_s: surface_moment(&clean),
     }
 }
 
@@ -275,10 +307,10 @@ pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
     let switch = uniform(rng, 1200.0, 7200.0);
     bed.before = Some((earlier, switch));
     let horizon = switch + 12.0 * bed.tau_slow + 3600.0;
-    let after = |run: Vec<[f64; 3]>| -> Vec<[f64; 3]> {
+    let after = |run: Vec<[f64; 4]>| -> Vec<[f64; 4]> {
         run.into_iter()
             .filter(|s| s[0] >= switch)
-            .map(|s| [s[0] - switch, s[1], s[2]])
+            .map(|s| [s[0] - switch, s[1], s[2], s[3]])
             .collect()
     };
     let clean = after(bed.run(rng, horizon, 0.0, 1.0));
@@ -300,6 +332,7 @@ pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
         t_reach_s: t_reach,
         max_power: bed.max_power,
         tau_s: bed.tau_slow,
+        t_surface_s: surface_moment(&clean),
     }
 }
 
@@ -338,7 +371,7 @@ pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
             }
             let power = if on { max_power } else { 0.0 };
             if t >= next {
-                out.push([t, power, meas]);
+                out.push([t, power, meas, tp]);
                 next += every_s;
             }
             let q = g_hp * (th - tp);
@@ -385,6 +418,7 @@ pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
         t_reach_s: t_reach,
         max_power,
         tau_s: tau_p,
+        t_surface_s: surface_moment(&clean),
     }
 }
 
@@ -473,6 +507,7 @@ pub fn recorded(text: &str) -> Result<Run, String> {
         t_reach_s: t_reach,
         max_power: 1.0,
         tau_s: tau,
+        t_surface_s: f64::NAN,
     })
 }
 
@@ -506,6 +541,15 @@ pub struct FamilyReport {
     pub bound_within_125_half: usize,
     /// Median declared / bound over the beds declared.
     pub median_over_bound: f64,
+    /// Judged on the surface (issue 29): declared while the plate was still more than 1 K
+    /// from its final temperature.
+    pub surface_early: usize,
+    /// Declared within 1.5 × the surface moment + 5 min (and not early on it).
+    pub surface_within: usize,
+    /// Median soak after reaching the target, min (∞ counted for beds never declared).
+    pub median_soak_min: f64,
+    /// Median surface moment after reaching the target, min.
+    pub median_surface_min: f64,
     /// One line per bed that missed a target (early, later than 1.5 × + 60 s, or never):
     /// its time constant, moment, declaration and the detector's explanation.
     pub failures: Vec<String>,
@@ -533,16 +577,34 @@ pub fn evaluate(
         bound_within_125: 0,
         bound_within_125_half: 0,
         median_over_bound: f64::NAN,
+        surface_early: 0,
+        surface_within: 0,
+        median_soak_min: f64::NAN,
+        median_surface_min: f64::NAN,
         failures: Vec::new(),
     };
+    let mut soaks = Vec::new();
+    let mut surfaces = Vec::new();
     let mut ratios = Vec::new();
     let mut over_bound = Vec::new();
     for k in 0..beds {
         let run = make(&mut rng);
         let moment = run.t_one_s;
         let (declared, why, sigma) = declare(&run, params);
-        let bound = information_bound(run.t_reach_s, sigma, params.tau_max_s, params);
-        let half = information_bound(run.t_reach_s, sigma, params.tau_max_s / 2.0, params);
+        let bound = information_bound(
+            run.t_reach_s,
+            sigma,
+            params.tau_max_s,
+            weakest_threshold(params),
+            params,
+        );
+        let half = information_bound(
+            run.t_reach_s,
+            sigma,
+            params.tau_max_s / 2.0,
+            weakest_threshold(params),
+            params,
+        );
         if bound <= 1.25 * moment + 60.0 {
             r.bound_within_125 += 1;
         }
@@ -552,14 +614,17 @@ pub fn evaluate(
         if let Some(d) = declared {
             over_bound.push(d / bound.max(1.0));
         }
-        if declared.map_or(true, |d| d < moment || d > 1.5 * moment + 60.0) {
+        if declared.map_or(true, |d| {
+            d < run.t_surface_s || d > 1.5 * run.t_surface_s + 300.0
+        }) {
             r.failures.push(format!(
                 "bed {k}: slowest τ {:.1} min, max_power {:.2}, reached {:.1} min, 1 % moment {:.1} \
-                 min, declared {}: {why}",
+                 min, surface moment {:.1} min, declared {}: {why}",
                 run.tau_s / 60.0,
                 run.max_power,
                 run.t_reach_s / 60.0,
                 moment / 60.0,
+                run.t_surface_s / 60.0,
                 declared.map_or("never".to_string(), |d| format!("{:.1} min", d / 60.0)),
             ));
         }
@@ -579,6 +644,14 @@ pub fn evaluate(
                 ratios.push(d / moment.max(1.0));
             }
         }
+        let ts = run.t_surface_s;
+        soaks.push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
+        surfaces.push((ts - run.t_reach_s).max(0.0) / 60.0);
+        match declared {
+            Some(d) if d < ts => r.surface_early += 1,
+            Some(d) if d <= 1.5 * ts + 300.0 => r.surface_within += 1,
+            _ => {}
+        }
         if run.t_reach_s + 600.0 < moment {
             r.fixed10_early += 1;
         }
@@ -586,6 +659,12 @@ pub fn evaluate(
             r.fixed15_early += 1;
         }
     }
+    let med = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    };
+    r.median_soak_min = med(soaks);
+    r.median_surface_min = med(surfaces);
     ratios.sort_by(f64::total_cmp);
     if !ratios.is_empty() {
         r.median_ratio = ratios[ratios.len() / 2];
@@ -685,7 +764,7 @@ mod tests {
     #[test]
     fn the_information_bound_is_the_first_bin_where_the_slowest_decay_stands_out() {
         let params = SoakParams::default();
-        let theta = params.max_remaining;
+        let theta = weakest_threshold(&params);
         let b = params.bin_s;
         for (sigma, tau) in [
             (0.002, 3600.0),
@@ -693,7 +772,7 @@ mod tests {
             (0.01, 1800.0),
             (0.03, 600.0),
         ] {
-            let at = information_bound(100.0, sigma, tau, &params);
+            let at = information_bound(100.0, sigma, tau, theta, &params);
             assert!(at.is_finite(), "σ {sigma}, τ {tau}: never");
             // Brute force: the decay's spread about its mean over the bins up to `t`.
             let spread = |t: f64| {
@@ -726,7 +805,9 @@ mod tests {
             }
         }
         // More noise or a slower decay: later.
-        let at = |sigma: f64, tau: f64| information_bound(0.0, sigma, tau, &params);
+        let at = |sigma: f64, tau: f64| {
+            information_bound(0.0, sigma, tau, weakest_threshold(&params), &params)
+        };
         assert!(at(0.02, 3600.0) > at(0.01, 3600.0));
         assert!(at(0.01, 3600.0) > at(0.01, 1800.0));
     }

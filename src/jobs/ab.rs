@@ -925,7 +925,31 @@ impl Ab {
             "ab.soak_max_s",
         );
         let mut last = String::new();
+        let mut cost: Option<f64> = None;
         loop {
+            // Print now, chosen while soaking (issue 29): from the moment the bed is in its band.
+            if self.load(id)?.soak_choice.as_deref() == Some("print") {
+                let words = cost.map_or_else(
+                    || "what the surface may still warm is not known yet".to_string(),
+                    |c| {
+                        format!(
+                            "the surface may still warm by up to {} (95 %)",
+                            crate::calib::soak::kelvin_words(c)
+                        )
+                    },
+                );
+                let note = format!("the user chose to print now, before the bed settled: {words}");
+                self.update(id, |s| {
+                    s.soak_choice = None;
+                    s.notes.push(note.clone());
+                    s.state = State::Printing;
+                    s.progress = format!("printing now, as chosen ({words})");
+                    Ok(())
+                })
+                .await?;
+                self.core.console(&format!("{TITLE}: {note}")).await;
+                return Ok(());
+            }
             match soak.poll(&self.core, TITLE).await? {
                 SoakUpdate::Stable { why } => {
                     let n = s.rounds.len();
@@ -949,7 +973,10 @@ impl Ab {
                         last = "heating".into();
                     }
                 }
-                SoakUpdate::Soaking { text, .. } => {
+                SoakUpdate::Soaking {
+                    text, print_now_c, ..
+                } => {
+                    cost = print_now_c.or(cost);
                     if last != text {
                         self.set_state(id, State::Soaking, &text).await?;
                         last = text;
@@ -1069,9 +1096,12 @@ impl Ab {
     pub async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.soak_asking => s,
+            // Print now is offered from the moment the bed is in its band (issue 29).
+            Some(s) if s.state == State::Soaking && choice == "print" => s,
             _ => {
                 return Err(user(
-                    "nothing to choose: no bed soak is waiting for an answer",
+                    "nothing to choose: no bed soak is waiting for an answer (CHOICE=print is \
+                     taken while the bed soaks at its target)",
                 ))
             }
         };

@@ -10,7 +10,7 @@ use serde_json::json;
 
 use super::session::Core;
 use super::user;
-use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
+use crate::calib::soak::{kelvin_words, SoakDetector, SoakParams, SoakStatus};
 use crate::klipper::gcode_cmd;
 
 /// What one poll saw.
@@ -26,6 +26,8 @@ pub enum SoakUpdate {
         eta_s: Option<f64>,
         /// Progress in words.
         text: String,
+        /// What printing now would cost: the surface warming still possible at 95 %, K.
+        print_now_c: Option<f64>,
     },
     /// The soak ran past its longest wait with the bed at its target but its power still
     /// moving: the caller asks the user (print now / wait / cancel) instead of failing.
@@ -62,6 +64,21 @@ pub struct BedSoak {
 /// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
 /// next look at it, and its question to the user, come well within it).
 pub const BOUND_SLACK_S: f64 = 60.0;
+
+/// A wait in words: minutes, or hours and minutes for a bed that needs hours.
+#[must_use]
+pub fn eta_words(eta_s: f64) -> String {
+    let min = (eta_s / 60.0).ceil();
+    if min >= 90.0 {
+        format!(
+            "{:.0} h {:.0} min (this bed needs hours: print now is offered)",
+            (min / 60.0).floor(),
+            min % 60.0
+        )
+    } else {
+        format!("{min:.0} min")
+    }
+}
 
 /// How often the console hears of the soak.
 const CONSOLE_EVERY_S: f64 = 60.0;
@@ -245,30 +262,41 @@ impl BedSoak {
             }
             SoakStatus::Heating => SoakUpdate::Heating,
             SoakStatus::Soaking {
-                eta_s, progress, ..
+                eta_s,
+                progress,
+                print_now_c,
+                ..
             } => {
                 if self.soaking_since_s.is_none() {
                     self.soaking_since_s = Some(t_s);
                     core.console(&format!(
-                        "{title}: the bed is at {:.0} °C; waiting for its power to settle \
-                         (thermal equilibrium) before printing",
-                        self.target_c
+                        "{title}: the bed is at {:.0} °C; waiting until its print surface can \
+                         warm by at most {} ({}); KLIPCAL_SOAK_CHOICE CHOICE=print prints now",
+                        self.target_c,
+                        kelvin_words(self.detector.params().surface_budget_c),
+                        self.detector.coupling().why
                     ))
                     .await;
                     self.last_console_s = t_s;
                 }
                 self.best_progress = self.best_progress.max(progress.clamp(0.0, 1.0));
-                let text = match eta_s {
+                let mut text = match eta_s {
                     Some(eta) => format!(
-                        "bed soaking: {:.0} % done, about {:.0} min left",
+                        "bed soaking: {:.0} % done, about {} left",
                         self.best_progress * 100.0,
-                        (eta / 60.0).ceil()
+                        eta_words(eta)
                     ),
                     None => format!(
                         "bed soaking: {:.0} % done, waiting for the bed power to settle",
                         self.best_progress * 100.0
                     ),
                 };
+                if let Some(c) = print_now_c {
+                    text.push_str(&format!(
+                        "; printing now costs up to {} of surface warming (95 %)",
+                        kelvin_words(c)
+                    ));
+                }
                 if t_s - self.last_console_s >= CONSOLE_EVERY_S {
                     self.last_console_s = t_s;
                     core.console(&format!("{title}: {text}")).await;
@@ -276,6 +304,7 @@ impl BedSoak {
                 SoakUpdate::Soaking {
                     progress: self.best_progress,
                     eta_s,
+                    print_now_c,
                     text,
                 }
             }

@@ -17,7 +17,7 @@ pub fn settings(hold_max_s: f64) -> String {
     format!(
         "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = {hold_max_s}\nsoak_max_s = 600.0\n\
          [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 3.0\ntau_max_s = 30.0\n\
-         max_remaining = 0.03\n"
+         surface_budget_c = 0.1\nbed = \"bare-plate\"\n"
     )
 }
 
@@ -132,7 +132,8 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
             .position(|l| l.contains(needle))
             .unwrap_or_else(|| panic!("no {needle:?} on the console: {console:#?}"))
     };
-    let started_at = at("the bed is at 60 °C, waiting for its power to settle");
+    // (Worded for the surface rule of issue 29.)
+    let started_at = at("the bed is at 60 °C, waiting until its print surface can warm by at most");
     let stable_at = at("bed stable after");
     assert!(started_at < stable_at, "{console:#?}");
     let percents: Vec<f64> = console
@@ -1268,4 +1269,72 @@ async fn applying_a_solution_that_changes_nothing_says_already_calibrated_and_wr
         "a no-change apply made a backup"
     );
     assert_eq!(session(&bench).await["state"], "converged");
+}
+
+/// Print now from the moment the bed is in its band (issue 29): the status and the page's API
+/// state what it costs (surface warming at 95 %, K and µm/100 mm), and the macro answer prints.
+#[tokio::test]
+async fn print_now_is_offered_with_its_cost_from_the_band_on_through_the_macro_and_the_page() {
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 3000.0, "tau_heater_s": 20.0}}"#;
+    let bench = Bench::start_with("corexy", Some(plant));
+    let toml = format!(
+        "{}[http]\nbind = \"127.0.0.1:0\"\ntrusted_clients = [\"127.0.0.1/32\"]\n",
+        settings(600.0)
+    );
+    let d = Daemon::ready(&bench, &toml).await;
+    let base = d.page_url().await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let soaking = poll(Duration::from_secs(120), || async {
+        let s = session(&bench).await;
+        (s["state"] == "soaking"
+            && s["progress"]
+                .as_str()
+                .is_some_and(|p| p.contains("printing now costs up to")))
+        .then_some(s)
+    })
+    .await
+    .expect("no print-now cost stated while soaking");
+    let progress = soaking["progress"].as_str().unwrap().to_string();
+    assert!(
+        progress.contains(" K (") && progress.contains("µm/100 mm on steel"),
+        "{progress}"
+    );
+    // The page's API says the same.
+    let st: Value = reqwest::Client::new()
+        .get(format!("{base}/api/status"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(
+        st["session"]["progress"]
+            .as_str()
+            .is_some_and(|p| p.contains("printing now costs up to")),
+        "{st}"
+    );
+    // The API takes the same answer (a bad one is refused by name, and changes nothing).
+    let bad = reqwest::Client::new()
+        .post(format!("{base}/api/ab/soak_choice"))
+        .header("Content-Type", "application/json")
+        .body(r#"{"choice": "maybe"}"#)
+        .send()
+        .await
+        .unwrap();
+    assert!(bad.status().is_client_error(), "{}", bad.status());
+    let text = bad.text().await.unwrap();
+    assert!(text.contains("CHOICE"), "{text}");
+    // Not asked anything: the macro's print answer is taken while soaking.
+    assert_ne!(soaking["soak_asking"], json!(true), "{soaking}");
+    m.gcode("KLIPCAL_SOAK_CHOICE CHOICE=print").await.unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    let notes = s["notes"].to_string();
+    assert!(notes.contains("chose to print now"), "{s}");
+    assert!(notes.contains("µm/100 mm"), "{s}");
+    drop(d);
 }
