@@ -11,10 +11,10 @@ use serde_json::{json, Value};
 use crate::bench::{extension_request, poll, Bench, Daemon};
 use crate::session::settings;
 
-const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0},
+pub const PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0},
     "frame": {"gain": 0.6, "tau_s": 1200.0, "lag_s": 30.0}}"#;
 
-fn mesh_settings() -> String {
+pub fn mesh_settings() -> String {
     // The [soak] of the A/B bench tests (fast plant), and a capture that ends after 4 meshes.
     let base = settings(600.0);
     format!(
@@ -24,7 +24,7 @@ fn mesh_settings() -> String {
     )
 }
 
-async fn mesh_session(bench: &Bench) -> Value {
+pub async fn mesh_session(bench: &Bench) -> Value {
     extension_request(&bench.files(), "klipcal_status", json!({}))
         .await
         .map(|v| v["last"]["mesh"].clone())

@@ -260,3 +260,41 @@ async fn the_page_and_api_status_answer_at_once_while_moonraker_is_down() {
         "{page}"
     );
 }
+
+#[tokio::test]
+async fn a_thermal_mesh_capture_rides_out_moonraker_stopped_for_40_s_and_keeps_its_meshes() {
+    use crate::mesh_job::{mesh_session, mesh_settings, PLANT};
+    let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
+    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    extension_request(&bench.files(), "klipcal_mesh_capture", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let first = poll(Duration::from_secs(300), || async {
+        let s = mesh_session(&bench).await;
+        (s["meshes"].as_u64().unwrap_or(0) >= 1).then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("no mesh stored\n{}", d.log_text()));
+    let before: Vec<f64> = serde_json::from_value(first["frame_c"].clone()).unwrap();
+    bench.stop_one("moonraker");
+    // Longer than the daemon's request timeout (30 s).
+    tokio::time::sleep(Duration::from_secs(40)).await;
+    bench.start_one("moonraker");
+    let done = poll(Duration::from_secs(600), || async {
+        let s = mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed" | "cancelled")).then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("capture never ended\n{}", d.log_text()));
+    assert_eq!(done["state"], "done", "{done}\n{}", d.log_text());
+    let after: Vec<f64> = serde_json::from_value(done["frame_c"].clone()).unwrap();
+    assert_eq!(&after[..before.len()], &before[..], "meshes lost");
+    assert!(after.len() > before.len(), "{after:?}");
+    assert!(
+        d.log_text()
+            .contains("Moonraker is back; resuming the session"),
+        "{}",
+        d.log_text()
+    );
+    assert_eq!(bed_target(&bench).await, Some(0.0), "heaters left on");
+}
