@@ -145,7 +145,7 @@ pub static OPS: &[Op<AbCall>] = &[
             "klipcal_soak_choice",
             "KLIPCAL_SOAK_CHOICE",
             "ab/soak_choice",
-            "answer the \"bed has not settled\" prompt: CHOICE=print (print now) or CHOICE=wait (10 min more)",
+            "the bed soak: CHOICE=print prints now (offered from the moment the bed is in its band, with what the surface may still warm) or CHOICE=wait (10 min more, at the soak limit's prompt)",
             &[arg(
                 "choice",
                 ArgKind::Choice(&["print", "wait"]),
