@@ -43,8 +43,8 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         .context("starting the async runtime")?;
     match cli.command {
         Command::Serve => rt.block_on(serve(config)),
+        Command::Bench(b) => bench(b, &config, &rt),
         Command::Check(args) => rt.block_on(check(config, args.json)),
-        Command::Bench(BenchCommand::Footprint(a)) => rt.block_on(crate::cmd::bench::footprint(&a)),
         Command::Install(a) => rt.block_on(crate::cmd::install::install(
             &a,
             &config,
@@ -60,17 +60,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
         Command::Solve(args) => crate::cmd::solve::run(&args),
-        Command::Bench(BenchCommand::Metrology(args)) => crate::cmd::bench::metrology(&args),
-        Command::Bench(BenchCommand::Soak(a)) => crate::cmd::soak::bench(&a, &config.soak),
         Command::SoakDetect(a) => crate::cmd::soak::detect(&a, &config.soak),
-        Command::Bench(BenchCommand::Mesh(a)) => crate::cmd::mesh::bench(&a),
         Command::Mesh(crate::cli::MeshCommand::Fit(a)) => crate::cmd::mesh::fit_cmd(&a),
         Command::Mesh(crate::cli::MeshCommand::Profiles(a)) => crate::cmd::mesh::profiles_cmd(&a),
         Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
             crate::cmd::backlash::solve(&a, &config.backlash)
-        }
-        Command::Bench(BenchCommand::Backlash(a)) => {
-            crate::cmd::backlash::bench(&a, &config.backlash)
         }
         Command::Macros(a) => {
             if a.readme {
@@ -84,6 +78,35 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
             Ok(ExitCode::SUCCESS)
         }
     }
+}
+
+/// `klipcal bench …`: the benchmarks, from a source checkout (the `bench` feature).
+#[cfg(feature = "bench")]
+fn bench(
+    b: BenchCommand,
+    config: &Config,
+    rt: &tokio::runtime::Runtime,
+) -> anyhow::Result<ExitCode> {
+    match b {
+        BenchCommand::Footprint(a) => rt.block_on(crate::cmd::bench::footprint(&a)),
+        BenchCommand::Metrology(args) => crate::cmd::bench::metrology(&args),
+        BenchCommand::Soak(a) => crate::cmd::soak_bench::bench(&a, &config.soak),
+        BenchCommand::Mesh(a) => crate::cmd::mesh::bench(&a),
+        BenchCommand::Backlash(a) => crate::cmd::backlash::bench(&a, &config.backlash),
+    }
+}
+
+/// The printer's binary is built without the benchmarks' simulators and fixtures.
+#[cfg(not(feature = "bench"))]
+fn bench(
+    _b: BenchCommand,
+    _config: &Config,
+    _rt: &tokio::runtime::Runtime,
+) -> anyhow::Result<ExitCode> {
+    anyhow::bail!(
+        "this klipcal is the printer's build, without the benchmarks and their simulators; run \
+         them from a source checkout: cargo run --release -- bench …"
+    )
 }
 
 fn init_tracing(level: &str) {

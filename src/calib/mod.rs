@@ -22,6 +22,7 @@
 
 pub mod backlash;
 pub mod backlash_guide;
+#[cfg(feature = "bench")]
 pub mod bench_metrology;
 pub mod budget;
 pub mod differential;

@@ -2,6 +2,9 @@
 //! [`crate::calib::backlash`]) and `klipcal bench backlash` (the guided procedure of
 //! [`crate::calib::backlash_guide`] on simulated axes and simulated people, beside the seed's
 //! single pass). Owns the simulators; holds no statistics of its own.
+// Their benchmark's simulators are unused in the printer's build (no `bench` feature), where
+// the linker drops them; `bench` is only built from a source checkout.
+#![cfg_attr(not(feature = "bench"), allow(dead_code, unused_imports))]
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -240,6 +243,7 @@ fn p95(v: &[f64]) -> f64 {
 ///
 /// # Errors
 /// None in practice.
+#[cfg(feature = "bench")]
 pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Result<ExitCode> {
     let params = settings.params();
     let base = settings.guide();

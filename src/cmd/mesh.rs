@@ -2,6 +2,9 @@
 //! (`COLDxx.x`/`HOTxx.x`/`TESTxx.x`) and klipcal's profiles from a printer.cfg and run the pure
 //! model in [`crate::calib::mesh`]; `klipcal bench mesh` runs it on simulated gantries. Owns the
 //! gantry simulator (the same surface formula as the bench's simulated probe); no model logic.
+// Their benchmark's simulators are unused in the printer's build (no `bench` feature), where
+// the linker drops them; `bench` is only built from a source checkout.
+#![cfg_attr(not(feature = "bench"), allow(dead_code, unused_imports))]
 
 use std::process::ExitCode;
 
@@ -344,6 +347,7 @@ fn template() -> MeshProfile {
 ///
 /// # Errors
 /// A simulation that produces unusable captures (a bug).
+#[cfg(feature = "bench")]
 pub fn bench(a: &BenchMeshArgs) -> anyhow::Result<ExitCode> {
     let mut rng = StdRng::seed_from_u64(a.seed);
     let gantries = [

@@ -2,12 +2,18 @@
 //! modules, print. No calibration logic and no Moonraker session here.
 
 pub mod backlash;
+#[cfg(feature = "bench")]
 pub mod bench;
 pub mod install;
 pub mod mesh;
 pub mod pylons;
 pub mod soak;
+#[cfg(feature = "bench")]
+pub mod soak_bench;
+#[cfg(feature = "bench")]
 pub mod soak_families;
+#[cfg(feature = "bench")]
 pub mod soak_four_node;
+#[cfg(feature = "bench")]
 pub mod soak_real;
 pub mod solve;
