@@ -34,7 +34,14 @@ async fn mesh_session(bench: &Bench) -> Value {
 #[tokio::test]
 async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
-    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    // The capture below ends at mesh.max_meshes while the frame still warms: following right
+    // after runs a little past the captured range, which mesh.range_margin_c allows (by
+    // default following stops at the range's ends).
+    let d = Daemon::ready(
+        &bench,
+        &format!("{}range_margin_c = 1.0\n", mesh_settings()),
+    )
+    .await;
     let files = bench.files();
     // Bad arguments are refused by name.
     let e = extension_request(&files, "klipcal_mesh_capture", json!({"bde": 60}))
