@@ -106,6 +106,9 @@ pub struct MeshConfig {
     /// fell this far below its highest reading, and as heating again once it rose this far
     /// above its lowest, °C.
     pub trend_c: f64,
+    /// Following goes on this far outside the captured frame range (the nearest end's
+    /// profile stays loaded) before it stops, °C; 0: it stops at the range's ends.
+    pub range_margin_c: f64,
 }
 
 impl Default for MeshConfig {
@@ -126,6 +129,7 @@ impl Default for MeshConfig {
             follow_interval_s: 30.0,
             jump_limit_um: 50.0,
             trend_c: 0.3,
+            range_margin_c: 0.0,
         }
     }
 }
@@ -139,6 +143,7 @@ impl MeshConfig {
             min_interval_s: self.follow_interval_s,
             jump_limit_um: self.jump_limit_um,
             trend_c: self.trend_c,
+            range_margin_c: self.range_margin_c,
             ..Default::default()
         }
     }
@@ -710,6 +715,13 @@ impl Config {
                 "µm from 1 to 1000",
             ),
             ("mesh.trend_c", me.trend_c, 0.05, 5.0, "°C from 0.05 to 5"),
+            (
+                "mesh.range_margin_c",
+                me.range_margin_c,
+                0.0,
+                5.0,
+                "°C from 0 to 5",
+            ),
         ] {
             if !(v.is_finite() && (lo..=hi).contains(&v)) {
                 return Err(Error::Invalid {
@@ -819,6 +831,24 @@ mod tests {
         assert!(err.to_string().contains("\"loud\""));
         let err = Config::parse("[moonraker]\nurl = \"http://x\"\n").unwrap_err();
         assert!(err.to_string().contains("moonraker.url"));
+    }
+
+    #[test]
+    fn the_follow_range_margin_is_a_setting_off_by_default_and_refused_by_name_out_of_range() {
+        // Issue 26 B.3: following stops at the captured range's ends unless told otherwise.
+        assert_eq!(Config::default().mesh.range_margin_c, 0.0);
+        assert_eq!(Config::default().mesh.follow_policy().range_margin_c, 0.0);
+        let cfg = Config::parse("[mesh]\nrange_margin_c = 0.5\n").unwrap();
+        assert_eq!(cfg.mesh.follow_policy().range_margin_c, 0.5);
+        for bad in ["-0.1", "5.5", "nan"] {
+            let err = Config::parse(&format!("[mesh]\nrange_margin_c = {bad}\n"))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains("mesh.range_margin_c") && err.contains("°C from 0 to 5"),
+                "{err}"
+            );
+        }
     }
 
     #[test]

@@ -21,7 +21,9 @@ pub struct FollowPolicy {
     pub jump_limit_um: f64,
     /// No sample for this long stops following, s.
     pub stale_after_s: f64,
-    /// A sample further than this outside the captured range stops following, °C.
+    /// A sample further than this outside the captured range stops following, °C (config
+    /// `mesh.range_margin_c`, 0 by default: beyond the range the bed keeps moving and no
+    /// profile follows it).
     pub range_margin_c: f64,
     /// The frame counts as cooling once it fell this far below its highest reading since it
     /// last turned, and as heating again once it rose this far above its lowest, °C.
@@ -36,7 +38,7 @@ impl Default for FollowPolicy {
             min_interval_s: 30.0,
             jump_limit_um: 50.0,
             stale_after_s: 30.0,
-            range_margin_c: 1.0,
+            range_margin_c: 0.0,
             trend_c: 0.3,
         }
     }
@@ -110,7 +112,8 @@ pub enum Decision {
     Keep {
         /// Why nothing is loaded: "within tolerance", "busy", "interval".
         why: &'static str,
-        /// Model minus loaded profile at this temperature, µm.
+        /// The loaded profile's distance from the model at this temperature now, µm (beyond
+        /// the captured range, from the model continued along its slope at the range's end).
         residual_um: f64,
     },
     /// Load this profile.
@@ -121,7 +124,8 @@ pub enum Decision {
         index: usize,
         /// Its temperature, °C.
         temp_c: f64,
-        /// Residual after the load, µm.
+        /// The loaded profile's distance from the model at this temperature after the load,
+        /// µm (as in `Keep`).
         residual_um: f64,
     },
     /// A load refused: it would change the mesh by more than the jump limit. Following stops.
@@ -138,6 +142,30 @@ pub enum Decision {
         /// Why, for the console.
         reason: String,
     },
+}
+
+/// The model's mesh at `temp_c`. Beyond the fitted range (which the range margin allows)
+/// the model is continued along its slope at the range's end: the bed keeps moving there, and
+/// the clamped model would call the end profile exact.
+fn model_mesh(fit: &Fit, temp_c: f64) -> Vec<f64> {
+    let p = fit.predict(temp_c);
+    if !p.clamped {
+        return p.points_mm;
+    }
+    let (lo, hi) = fit.range_c;
+    let end = p.used_temp_c;
+    let step = ((hi - lo) / 10.0).clamp(1e-3, 0.5);
+    let inner_t = if end >= hi { end - step } else { end + step };
+    let inner = fit.predict(inner_t);
+    if inner.clamped || (end - inner.used_temp_c).abs() < 1e-9 {
+        return p.points_mm;
+    }
+    let k = (temp_c - end) / (end - inner.used_temp_c);
+    p.points_mm
+        .iter()
+        .zip(&inner.points_mm)
+        .map(|(e, i)| e + (e - i) * k)
+        .collect()
 }
 
 #[derive(Debug, Clone)]
@@ -283,7 +311,7 @@ impl Follower {
         let phase = self.trend.push(temp_c);
         let s = self.set_for(phase, temp_c);
         let set = &self.sets[s];
-        let want = set.branch.fit.predict(temp_c).points_mm;
+        let want = model_mesh(&set.branch.fit, temp_c);
         let cand = nearest(&set.branch.temps_c, temp_c);
         let residual = |(si, k): (usize, usize)| max_abs_diff_um(&want, &self.sets[si].meshes[k]);
         let current = self.loaded.map(residual);
@@ -545,6 +573,58 @@ mod tests {
             ),
             "{d:?}"
         );
+    }
+
+    #[test]
+    fn by_default_following_stops_at_the_captured_ranges_end() {
+        // Issue 26 B.3: 0.3 °C past 45 °C the bed is 3 µm off the 45 °C profile, and 1 °C
+        // past it 10 µm (over the 5 µm tolerance): no margin unless the user sets one.
+        let mut fo = Follower::new(FollowPolicy::default(), &model(), &temps(), None);
+        assert!(matches!(
+            fo.push(0.0, 45.0, false),
+            Decision::Load { index: 20, .. }
+        ));
+        let d = fo.push(1.0, 45.3, false);
+        let Decision::Stopped { reason } = d else {
+            panic!("following went on outside the range: {d:?}")
+        };
+        assert!(reason.contains("25.00..45.00"), "{reason}");
+    }
+
+    #[test]
+    fn within_a_set_margin_the_residual_is_the_current_error_not_the_clamped_one() {
+        // Issue 26 B.3: 10 µm/°C; beyond 45 °C the model goes on along its slope, so the
+        // 45 °C profile is 8 µm off at 45.8 °C (the clamped model said 0).
+        let p = FollowPolicy {
+            range_margin_c: 1.0,
+            ..FollowPolicy::default()
+        };
+        let mut fo = Follower::new(p, &model(), &temps(), None);
+        fo.push(0.0, 44.0, false);
+        let d = fo.push(30.0, 45.8, false);
+        let Decision::Load {
+            index, residual_um, ..
+        } = d
+        else {
+            panic!("{d:?}")
+        };
+        assert_eq!(index, 20);
+        assert!((residual_um - 8.0).abs() < 0.01, "{residual_um}");
+        let Decision::Keep { residual_um, .. } = fo.push(31.0, 45.5, false) else {
+            panic!("kept")
+        };
+        assert!((residual_um - 5.0).abs() < 0.01, "{residual_um}");
+        // Inside the range: the distance from the model now (0.4 °C from the 44 °C profile).
+        let mut fo = Follower::new(p, &model(), &temps(), None);
+        fo.push(0.0, 44.0, false);
+        let Decision::Keep { residual_um, .. } = fo.push(1.0, 44.4, false) else {
+            panic!("kept")
+        };
+        assert!((residual_um - 4.0).abs() < 0.01, "{residual_um}");
+        assert!(matches!(
+            fo.push(2.0, 46.1, false),
+            Decision::Stopped { .. }
+        ));
     }
 
     #[test]

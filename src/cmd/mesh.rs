@@ -23,12 +23,22 @@ use crate::fsio::FsFiles;
 use crate::klipper::bed_mesh::{self, MeshProfile, VgbKind};
 use crate::klipper::Config;
 
-/// Captures (COLD, HOT and `klipcal_cap*`) and TEST meshes of a printer.cfg, with the
-/// profile the others are shaped like.
+/// The COLD and HOT meshes and the TEST meshes of a printer.cfg, the profile the others are
+/// shaped like, and every other profile with why it is not used.
 struct Loaded {
     fitted: Vec<Capture>,
     tests: Vec<(String, f64, Capture)>,
     template: MeshProfile,
+    ignored: Vec<(String, String)>,
+}
+
+/// `name (why); …` of the profiles not used, or nothing.
+fn ignored_words(ignored: &[(String, String)]) -> String {
+    ignored
+        .iter()
+        .map(|(n, why)| format!("{n} ({why})"))
+        .collect::<Vec<_>>()
+        .join("; ")
 }
 
 fn load(path: &std::path::Path) -> anyhow::Result<Loaded> {
@@ -39,6 +49,10 @@ fn load(path: &std::path::Path) -> anyhow::Result<Loaded> {
     let vgb: Vec<(&MeshProfile, VgbKind, f64)> = all
         .iter()
         .filter_map(|p| bed_mesh::vgb_kind(&p.name).map(|(k, t)| (p, k, t)))
+        .collect();
+    let ignored: Vec<(String, String)> = all
+        .iter()
+        .filter_map(|p| bed_mesh::vgb_ignored_why(&p.name).map(|why| (p.name.clone(), why)))
         .collect();
     let used: Vec<&MeshProfile> = vgb.iter().map(|v| v.0).collect();
     bed_mesh::check_same_params(&used)
@@ -53,8 +67,13 @@ fn load(path: &std::path::Path) -> anyhow::Result<Loaded> {
         }
     }
     if fitted.len() < 2 {
+        let others = if ignored.is_empty() {
+            String::new()
+        } else {
+            format!("; not used: {}", ignored_words(&ignored))
+        };
         bail!(
-            "{}: found {} COLDxx.x/HOTxx.x bed_mesh profiles; expected at least a COLD and a HOT mesh in the SAVE_CONFIG block (e.g. [bed_mesh COLD27.3] and [bed_mesh HOT36.6])",
+            "{}: found {} COLDxx.x/HOTxx.x bed_mesh profiles; expected at least a COLD and a HOT mesh in the SAVE_CONFIG block (e.g. [bed_mesh COLD27.3] and [bed_mesh HOT36.6]){others}",
             path.display(),
             fitted.len()
         );
@@ -63,6 +82,7 @@ fn load(path: &std::path::Path) -> anyhow::Result<Loaded> {
         fitted,
         tests,
         template: used[0].clone(),
+        ignored,
     })
 }
 
@@ -94,18 +114,41 @@ pub fn fit_cmd(a: &MeshFitArgs) -> anyhow::Result<ExitCode> {
         .iter()
         .map(|(n, t, c)| test_json(n, *t, &judge(&vgb, c)))
         .collect();
+    let ignored: Vec<Value> = l
+        .ignored
+        .iter()
+        .map(|(n, why)| json!({"name": n, "why": why}))
+        .collect();
+    let fitted: Vec<Value> = l
+        .fitted
+        .iter()
+        .map(|c| json!({"name": c.name, "temp_c": c.temps_c.first()}))
+        .collect();
     let out = json!({"models": models, "chosen": sel.fit.kind.name(), "tests": tests,
-        "vgb_linear": {"tests": vtests}, "range_c": [sel.fit.range_c.0, sel.fit.range_c.1]});
+        "vgb_linear": {"tests": vtests}, "range_c": [sel.fit.range_c.0, sel.fit.range_c.1],
+        "fitted": fitted, "ignored": ignored});
     if a.json {
         println!("{out}");
     } else {
         println!(
-            "{} meshes fitted over {:.2}..{:.2} °C; model: {}",
+            "{} meshes fitted ({}) over {:.2}..{:.2} °C; model: {}",
             refs.len(),
+            l.fitted
+                .iter()
+                .map(|c| format!(
+                    "{} at {:.1} °C",
+                    c.name,
+                    c.temps_c.first().copied().unwrap_or(f64::NAN)
+                ))
+                .collect::<Vec<_>>()
+                .join(", "),
             sel.fit.range_c.0,
             sel.fit.range_c.1,
             sel.fit.kind.name()
         );
+        for (n, why) in &l.ignored {
+            println!("  not used: {n} ({why})");
+        }
         if sel.models.is_empty() {
             println!("  (leave-one-mesh-out needs a mesh between the coldest and the hottest)");
         }
@@ -168,6 +211,9 @@ pub fn profiles_cmd(a: &MeshProfilesArgs) -> anyhow::Result<ExitCode> {
         a.to.unwrap_or(sel.fit.range_c.1),
     );
     let mut notes = Vec::new();
+    if !l.ignored.is_empty() {
+        notes.push(format!("not used: {}", ignored_words(&l.ignored)));
+    }
     if lo < sel.fit.range_c.0 || hi > sel.fit.range_c.1 {
         notes.push(format!(
             "the range {lo:.2}..{hi:.2} °C goes beyond the captured {:.2}..{:.2} °C: the model is clamped there (no extrapolation) — capture meshes over the range you need",

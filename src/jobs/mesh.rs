@@ -268,6 +268,9 @@ pub struct ResultDoc {
     pub max_quantisation_um: f64,
     /// Where the backup of printer.cfg went.
     pub backup: Option<String>,
+    /// The klipcal profiles printer.cfg held before the write, which it replaced.
+    #[serde(default)]
+    pub replaced: Vec<String>,
     /// Heating and cooling: which meshes were fitted, and why, in words.
     #[serde(default)]
     pub directions: String,
@@ -305,7 +308,7 @@ pub struct Session {
     pub progress: String,
     /// `[mesh]` as the session runs it.
     pub options: MeshConfig,
-    /// The mesh parameters (from Klipper's `default` profile after the first mesh).
+    /// The mesh parameters (from Klipper's `klipcal_capture` profile after the first mesh).
     pub params: Option<MeshParams>,
     /// Every mesh so far.
     pub captures: Vec<CaptureDoc>,
@@ -315,7 +318,20 @@ pub struct Session {
     pub result: Option<ResultDoc>,
     /// Things the user should know.
     pub notes: Vec<String>,
+    /// The bed mesh active in Klipper when the capture started (`Some("")`: none), loaded
+    /// again after each mesh and at the end; `None` for an import or an older session.
+    #[serde(default)]
+    pub user_mesh: Option<String>,
+    /// The meshes are VGB's profiles imported from the config (whose names do not say whether
+    /// the frame warmed or cooled), not a capture's.
+    #[serde(default)]
+    pub imported: bool,
 }
+
+/// The profile klipcal's BED_MESH_CALIBRATE stores each capture mesh under: never the
+/// user's `default` (a SAVE_CONFIG during the capture would write a capture mesh over it),
+/// and a `klipcal_` name, so the next profile write removes it should it reach printer.cfg.
+pub const CAPTURE_PROFILE: &str = "klipcal_capture";
 
 /// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
 fn params_from_status(p: &Value) -> Option<MeshParams> {
@@ -506,7 +522,16 @@ pub fn plan_session(s: &Session) -> anyhow::Result<(Vec<MeshProfile>, ResultDoc)
         profiles_c: plan.temps_c,
         max_quantisation_um: plan.max_quantisation_um,
         backup: None,
-        directions: dsel.directions.describe(s.options.tolerance_um),
+        replaced: Vec::new(),
+        directions: if s.imported {
+            format!(
+                "one model from the {} imported profiles (a VGB name gives the frame \
+                 temperature, not whether it was rising or falling)",
+                s.captures.len()
+            )
+        } else {
+            dsel.directions.describe(s.options.tolerance_um)
+        },
         cooling: cooling.map(|(c, cplan)| CoolingDoc {
             model: c.fit.kind.name().to_string(),
             models: model_rows(c),
@@ -584,6 +609,16 @@ impl Mesh {
         self.core.printer_idle().await?;
         self.preflight(&options).await?;
         self.stop_following("a capture starts").await;
+        // The mesh the user has loaded now, to load again after each capture mesh.
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"bed_mesh": ["profile_name"]}))
+            .await?;
+        let user_mesh = st["bed_mesh"]["profile_name"]
+            .as_str()
+            .unwrap_or("")
+            .to_string();
         let mut doc = Session {
             id: 0,
             state: State::Preflight,
@@ -595,6 +630,8 @@ impl Mesh {
             started_unix: None,
             result: None,
             notes: Vec::new(),
+            user_mesh: Some(user_mesh),
+            imported: false,
         };
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
@@ -654,6 +691,88 @@ impl Mesh {
             })
             .collect();
         let names: Vec<&str> = fitted.iter().map(|(p, _)| p.name.as_str()).collect();
+        // VGB's TEST profiles are judged against the model fitted to the others.
+        let tol = self.settings.tolerance_um;
+        let caps: Vec<Capture> = captures
+            .iter()
+            .zip(&fitted)
+            .map(|(c, (p, _))| Capture {
+                name: p.name.clone(),
+                temps_c: c.temps_c.clone(),
+                points_mm: c.points_mm.clone(),
+                phase: Phase::Heating,
+            })
+            .collect();
+        let refs: Vec<&Capture> = caps.iter().collect();
+        let fit = cm::select_directions(&refs, tol)
+            .map_err(|e| user(format!("fitting the imported profiles: {e}")))?
+            .heating
+            .fit;
+        let (lo, hi) = fit.range_c;
+        let judged: Vec<(String, f64, cm::ErrorStats)> = tests
+            .iter()
+            .filter_map(|p| {
+                let (_, t) = bed_mesh::vgb_kind(&p.name)?;
+                let flat = p.flat_mm();
+                let c = Capture::uniform(&p.name, t, flat, Phase::Heating);
+                Some((p.name.clone(), t, cm::judge(&fit, &c)))
+            })
+            .collect();
+        let test_words: Vec<String> = judged
+            .iter()
+            .map(|(n, t, e)| {
+                let verdict = if e.max_um <= tol {
+                    format!("within the {tol} µm tolerance")
+                } else {
+                    format!("over the {tol} µm tolerance")
+                };
+                let outside = if *t < lo || *t > hi {
+                    format!(" ({t:.1} °C is outside the fitted {lo:.1}–{hi:.1} °C: the model's end is used)")
+                } else {
+                    String::new()
+                };
+                format!(
+                    "{n} is {:.1} µm from the model at most (mean {:.1} µm), {verdict}{outside}",
+                    e.max_um, e.mean_um
+                )
+            })
+            .collect();
+        let tests_json: Vec<Value> = judged
+            .iter()
+            .map(|(n, t, e)| {
+                json!({"name": n, "temp_c": t, "max_um": e.max_um, "mean_um": e.mean_um,
+                       "within_tolerance": e.max_um <= tol})
+            })
+            .collect();
+        // An earlier capture's (or import's) profiles are replaced by the write.
+        let replaced: Vec<&str> = all
+            .iter()
+            .map(|p| p.name.as_str())
+            .filter(|n| n.starts_with(bed_mesh::KLIPCAL_PREFIX))
+            .collect();
+        let replace_words = if replaced.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; this replaces the {} klipcal profiles in the config now ({}; printer.cfg is \
+                 backed up first)",
+                replaced.len(),
+                replaced.join(", ")
+            )
+        };
+        let mut notes = vec![format!("imported from the config: {}", names.join(", "))];
+        if !test_words.is_empty() {
+            notes.push(format!(
+                "TEST profiles (judged, not fitted): {}",
+                test_words.join("; ")
+            ));
+        }
+        if !replaced.is_empty() {
+            notes.push(format!(
+                "replaces the klipcal profiles written before: {}",
+                replaced.join(", ")
+            ));
+        }
         let mut doc = Session {
             id: 0,
             state: State::Writing,
@@ -664,31 +783,27 @@ impl Mesh {
             captures,
             started_unix: Some(now),
             result: None,
-            notes: vec![format!(
-                "imported from the config: {}{}",
-                names.join(", "),
-                if tests.is_empty() {
-                    String::new()
-                } else {
-                    format!(
-                        " (TEST profiles not fitted: {})",
-                        tests
-                            .iter()
-                            .map(|p| p.name.as_str())
-                            .collect::<Vec<_>>()
-                            .join(", ")
-                    )
-                }
-            )],
+            notes,
+            user_mesh: None,
+            imported: true,
         };
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
+        let tests_msg = if test_words.is_empty() {
+            String::new()
+        } else {
+            format!("; {}", test_words.join("; "))
+        };
         let msg = format!(
-            "thermal mesh session {id}: fitting {} VGB profiles ({}); klipcal_* profiles follow",
+            "thermal mesh session {id}: fitting {} VGB profiles ({}){tests_msg}; klipcal_* profiles \
+             follow{replace_words}",
             names.len(),
             names.join(", ")
         );
-        Ok(json!({"session": id, "state": "writing", "imported": names, "message": msg}))
+        Ok(
+            json!({"session": id, "state": "writing", "imported": names, "tests": tests_json,
+                  "replaces": replaced, "message": msg}),
+        )
     }
 
     /// Refuses when the printer lacks what a capture needs, naming it.
@@ -760,7 +875,19 @@ impl Mesh {
         );
     }
 
+    /// Runs the session's steps; when one fails, the user's mesh is loaded again before the
+    /// error goes on.
     async fn run(&self, id: i64) -> anyhow::Result<()> {
+        let r = self.run_steps(id).await;
+        if r.is_err() {
+            if let Ok(s) = self.core.load::<Session>(id) {
+                self.put_back_user_mesh(&s, true).await;
+            }
+        }
+        r
+    }
+
+    async fn run_steps(&self, id: i64) -> anyhow::Result<()> {
         loop {
             let s: Session = self.core.load(id)?;
             match s.state {
@@ -826,6 +953,52 @@ impl Mesh {
         .await
     }
 
+    /// Loads the mesh that was active when the capture started (clears the mesh when none
+    /// was), so klipcal's capture mesh never stays in use; `last` also drops the capture
+    /// profile from Klipper's memory (and from what a SAVE_CONFIG would write). Nothing for a
+    /// session that did not record the user's mesh (an import). Failures are logged: the
+    /// capture's own outcome is what the user hears about.
+    async fn put_back_user_mesh(&self, s: &Session, last: bool) {
+        let Some(user_mesh) = &s.user_mesh else {
+            return;
+        };
+        let load = if user_mesh.is_empty() || user_mesh == CAPTURE_PROFILE {
+            Ok("BED_MESH_CLEAR".to_string())
+        } else {
+            crate::klipper::GcodeCmd::new("BED_MESH_PROFILE")
+                .word("LOAD", user_mesh)
+                .build()
+        };
+        let mut script = match load {
+            Ok(l) => l,
+            Err(e) => {
+                warn!(profile = %user_mesh, error = %e, "the mesh active before the capture cannot be loaded by name");
+                "BED_MESH_CLEAR".to_string()
+            }
+        };
+        if last {
+            let st = self
+                .core
+                .m()
+                .objects_query(json!({"bed_mesh": ["profiles"]}))
+                .await;
+            let kept = st.map_or(true, |st| {
+                !st["bed_mesh"]["profiles"][CAPTURE_PROFILE].is_null()
+            });
+            if kept {
+                script.push_str(&format!("\nBED_MESH_PROFILE REMOVE={CAPTURE_PROFILE}"));
+            }
+        }
+        if let Err(e) = self
+            .core
+            .m()
+            .gcode_within(&script, Duration::from_secs(900))
+            .await
+        {
+            warn!(session = s.id, error = %e, "loading the mesh active before the capture again");
+        }
+    }
+
     async fn homed(&self) -> anyhow::Result<()> {
         let st = self
             .core
@@ -865,10 +1038,14 @@ impl Mesh {
             }
             out
         });
+        let calibrate = crate::klipper::GcodeCmd::new("BED_MESH_CALIBRATE")
+            .word("PROFILE", CAPTURE_PROFILE)
+            .build()
+            .map_err(|e| anyhow!("{e}"))?;
         let done = self
             .core
             .m()
-            .gcode_within("BED_MESH_CALIBRATE", Duration::from_secs(900))
+            .gcode_within(&calibrate, Duration::from_secs(900))
             .await;
         stop.cancel();
         let samples = sampler.await.unwrap_or_default();
@@ -878,12 +1055,14 @@ impl Mesh {
             .m()
             .objects_query(json!({"bed_mesh": ["probed_matrix", "profiles", "profile_name"]}))
             .await?;
+        self.put_back_user_mesh(s, false).await;
         let bm = &st["bed_mesh"];
         let rows: Vec<Vec<f64>> = serde_json::from_value(bm["probed_matrix"].clone())
             .context("reading bed_mesh.probed_matrix")?;
-        let name = bm["profile_name"].as_str().unwrap_or("default");
-        let params = params_from_status(&bm["profiles"][name]["mesh_params"])
-            .ok_or_else(|| anyhow!("bed_mesh reports no mesh_params for profile {name}"))?;
+        let params = params_from_status(&bm["profiles"][CAPTURE_PROFILE]["mesh_params"])
+            .ok_or_else(|| {
+                anyhow!("bed_mesh reports no mesh_params for profile {CAPTURE_PROFILE}")
+            })?;
         if rows.len() != params.y_count || rows.iter().any(|r| r.len() != params.x_count) {
             return Err(anyhow!(
                 "the probed mesh is not {}×{}",
@@ -931,6 +1110,7 @@ impl Mesh {
             let s: Session = self.core.load(id)?;
             if let Some(why) = capture_done(&s.captures, now_unix(), started, &o) {
                 let _ = self.core.heaters_off().await;
+                self.put_back_user_mesh(&s, true).await;
                 let msg = format!("{TITLE}: capture complete, {why}; heaters off; fitting");
                 self.core.console(&msg).await;
                 self.set_state(id, State::Writing, &msg).await?;
@@ -978,7 +1158,9 @@ impl Mesh {
         let id = s.id;
         let (profiles, mut result) = plan_session(&s)?;
         self.core.printer_idle().await?;
-        result.backup = Some(self.write_block(&profiles).await?);
+        let (backup, replaced) = self.write_block(&profiles).await?;
+        result.backup = Some(backup);
+        result.replaced = replaced;
         let (lo, hi) = result.range_c;
         let cooling_words = match &result.cooling {
             Some(c) => format!(
@@ -990,9 +1172,20 @@ impl Mesh {
             ),
             None => String::new(),
         };
+        let replaced_words = if result.replaced.is_empty() {
+            String::new()
+        } else {
+            format!(
+                "; they replace the {} klipcal profiles of before ({}), kept in the backup {}",
+                result.replaced.len(),
+                result.replaced.join(", "),
+                result.backup.as_deref().unwrap_or("")
+            )
+        };
         let msg = format!(
             "{TITLE}: {} profiles klipcal_* written for {lo:.2}–{hi:.2} °C (model {}, worst \
-             step {:.1} µm){cooling_words}; {}; KLIPCAL_MESH_FOLLOW ENABLE=1 follows the frame",
+             step {:.1} µm){cooling_words}; {}{replaced_words}; KLIPCAL_MESH_FOLLOW ENABLE=1 \
+             follows the frame",
             result.profiles_c.len(),
             result.model,
             result.max_quantisation_um,
@@ -1010,8 +1203,9 @@ impl Mesh {
     }
 
     /// Replaces the klipcal profiles in printer.cfg's SAVE_CONFIG block: backup, upload,
-    /// restart, verify each profile is known; on failure the backup goes back.
-    async fn write_block(&self, profiles: &[MeshProfile]) -> anyhow::Result<String> {
+    /// restart, verify each profile is known; on failure the backup goes back. The backup's
+    /// path and the klipcal profiles replaced.
+    async fn write_block(&self, profiles: &[MeshProfile]) -> anyhow::Result<(String, Vec<String>)> {
         let files = self.core.files();
         let old = files
             .download("config", "printer.cfg")
@@ -1021,6 +1215,7 @@ impl Mesh {
             String::from_utf8(old.clone()).map_err(|_| anyhow!("printer.cfg is not UTF-8"))?;
         let new =
             bed_mesh::replace_klipcal_profiles(&text, profiles).map_err(|e| user(e.to_string()))?;
+        let replaced = bed_mesh::klipcal_profile_names(&text);
         let stamp = super::printer_config::stamp(now_unix() as u64);
         let backup_dir = format!("klipcal_backups/{stamp}");
         let writes = [FileWrite {
@@ -1037,7 +1232,7 @@ impl Mesh {
             || self.verify_profiles(profiles),
         )
         .await?;
-        Ok(format!("config/{backup_dir}/printer.cfg"))
+        Ok((format!("config/{backup_dir}/printer.cfg"), replaced))
     }
 
     /// After the restart with new profiles: every profile is known to Klipper and loads
@@ -1089,23 +1284,25 @@ impl Mesh {
         Ok(refused)
     }
 
-    /// The newest finished capture and its fit.
+    /// The newest finished capture (`done`: its profiles are the ones written) and its fit. A
+    /// capture still running is waited for; a newer one that failed or was cancelled wrote
+    /// nothing (a failed write is rolled back), so the one before it rules.
     fn model(&self) -> anyhow::Result<(Session, cm::DirectionalSelection)> {
-        let Some((_, s)) = self.core.latest_of::<Session>(KIND)? else {
+        if let Some((id, s)) = self.core.latest_of::<Session>(KIND)? {
+            if !s.state.is_final() {
+                return Err(user(format!(
+                    "thermal mesh session {id} is {}; wait for it to finish (or KLIPCAL_CANCEL)",
+                    s.state.name().replace('_', " ")
+                )));
+            }
+        }
+        let Some((_, s)) = self
+            .core
+            .latest_of_in::<Session>(KIND, &State::Done.name())?
+        else {
             return Err(user(
                 "no thermal mesh captured yet; run KLIPCAL_MESH_CAPTURE first",
             ));
-        };
-        let s: Session = match s.state {
-            State::Done => s,
-            _ => {
-                // the latest may be running or failed: use the newest done one
-                return Err(user(format!(
-                    "the newest thermal mesh session ({}) is {}; a finished capture is needed",
-                    s.id,
-                    s.state.name()
-                )));
-            }
         };
         let sel = fit_session(&s)?;
         Ok((s, sel))
@@ -1522,6 +1719,13 @@ impl Mesh {
     async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
         self.core.stop_runner();
         let _ = self.core.heaters_off().await;
+        // A BED_MESH_CALIBRATE still probing holds Klipper's G-code queue: the user's mesh goes
+        // back once it ends, without holding up the answer.
+        if let Ok(s) = self.core.load::<Session>(id) {
+            let me = self.clone();
+            self.core
+                .spawn(async move { me.put_back_user_mesh(&s, true).await });
+        }
         self.update(id, |s| {
             s.state = State::Cancelled;
             s.reason = Some(reason.to_string());
@@ -1809,6 +2013,8 @@ mod tests {
             started_unix: Some(0.0),
             result: None,
             notes: Vec::new(),
+            user_mesh: None,
+            imported: false,
         }
     }
 

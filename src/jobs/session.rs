@@ -275,6 +275,21 @@ impl Core {
         }
     }
 
+    /// The newest session of `kind` in state `state` (as the store names it).
+    ///
+    /// # Errors
+    /// A damaged database or document.
+    pub fn latest_of_in<D: Doc>(
+        &self,
+        kind: &str,
+        state: &str,
+    ) -> anyhow::Result<Option<(i64, D)>> {
+        match self.inner.store.latest_session_of_in(kind, state)? {
+            Some(row) => Ok(Some((row.id, read_doc(row)?))),
+            None => Ok(None),
+        }
+    }
+
     /// Refuses when a session of another kind is active, naming it.
     ///
     /// # Errors

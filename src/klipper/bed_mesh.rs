@@ -201,24 +201,81 @@ pub fn profiles(cfg: &Config) -> Result<Vec<MeshProfile>, Error> {
     Ok(out)
 }
 
+/// The mesh parameters as `(option, value)` in Klipper's words and order.
+fn param_words(m: &MeshParams) -> [(&'static str, String); 10] {
+    [
+        ("x_count", m.x_count.to_string()),
+        ("y_count", m.y_count.to_string()),
+        ("mesh_x_pps", m.mesh_x_pps.to_string()),
+        ("mesh_y_pps", m.mesh_y_pps.to_string()),
+        ("algo", m.algo.clone()),
+        ("tension", py_float(m.tension)),
+        ("min_x", py_float(m.min_x)),
+        ("max_x", py_float(m.max_x)),
+        ("min_y", py_float(m.min_y)),
+        ("max_y", py_float(m.max_y)),
+    ]
+}
+
 /// Checks that every profile has the same mesh parameters as the first (VGB's generator
 /// copied the first profile's and produced wrong-sized meshes when they differed).
 ///
 /// # Errors
-/// The first profile that differs, with both parameter sets named.
+/// The first profile that differs, naming it, each option that differs with both values,
+/// and what is expected.
 pub fn check_same_params(profiles: &[&MeshProfile]) -> Result<(), Error> {
     let Some(first) = profiles.first() else {
         return Ok(());
     };
+    let want = param_words(&first.params);
     for p in &profiles[1..] {
-        if p.params != first.params {
-            return Err(Error::Settings(format!(
-                "bed_mesh profile {} has mesh parameters {:?} but {} has {:?}; expected every profile used together to be probed with the same mesh (retake it with the same [bed_mesh] settings)",
-                p.name, p.params, first.name, first.params
+        let diff: Vec<String> = param_words(&p.params)
+            .iter()
+            .zip(&want)
+            .filter(|(a, b)| a.1 != b.1)
+            .map(|((k, v), (_, w))| format!("{k} = {v} where {} has {k} = {w}", first.name))
+            .collect();
+        if !diff.is_empty() {
+            return Err(Error::MeshProfiles(format!(
+                "[bed_mesh {}] has {}; expected every profile used together to be probed with \
+                 the same [bed_mesh] settings (take {} again with the settings {} was taken with)",
+                p.name,
+                diff.join(", "),
+                p.name,
+                first.name
             )));
         }
     }
     Ok(())
+}
+
+/// Why a profile is not one of VGB's (`None` when it is): klipcal's own, a VGB-like name
+/// in the wrong case or without a temperature, or another name.
+#[must_use]
+pub fn vgb_ignored_why(name: &str) -> Option<String> {
+    if vgb_kind(name).is_some() {
+        return None;
+    }
+    if name.starts_with(KLIPCAL_PREFIX) {
+        return Some("klipcal's own profile".into());
+    }
+    let upper = name.to_ascii_uppercase();
+    for kind in ["COLD", "HOT", "TEST"] {
+        if let Some(rest) = upper.strip_prefix(kind) {
+            if vgb_kind(&upper).is_some() {
+                return Some(format!(
+                    "VGB's names are upper case: expected {kind}{}",
+                    &name[kind.len()..]
+                ));
+            }
+            return Some(format!(
+                "'{}' after {kind} is not a frame temperature: expected {kind} then °C from \
+                 -50 to 200, e.g. {kind}31.2",
+                &name[name.len() - rest.len()..]
+            ));
+        }
+    }
+    Some("not a VGB name (COLDxx.x, HOTxx.x or TESTxx.x)".into())
 }
 
 /// The VGB kind and temperature of a profile named `COLDxx.x`, `HOTxx.x` or `TESTxx.x`.
@@ -258,19 +315,7 @@ pub fn format_profile(p: &MeshProfile) -> String {
         let vals: Vec<String> = row.iter().map(|z| format!("{z:.6}")).collect();
         out.push_str(&format!("#*# \t  {}\n", vals.join(", ")));
     }
-    let m = &p.params;
-    for (k, v) in [
-        ("x_count", m.x_count.to_string()),
-        ("y_count", m.y_count.to_string()),
-        ("mesh_x_pps", m.mesh_x_pps.to_string()),
-        ("mesh_y_pps", m.mesh_y_pps.to_string()),
-        ("algo", m.algo.clone()),
-        ("tension", py_float(m.tension)),
-        ("min_x", py_float(m.min_x)),
-        ("max_x", py_float(m.max_x)),
-        ("min_y", py_float(m.min_y)),
-        ("max_y", py_float(m.max_y)),
-    ] {
+    for (k, v) in param_words(&p.params) {
         out.push_str(&format!("#*# {k} = {v}\n"));
     }
     out
@@ -294,6 +339,25 @@ pub fn load_script(name: &str, offset_mm: (f64, f64)) -> Result<String, Error> {
         .num("Y", offset_mm.1)
         .build()?;
     Ok(format!("{load}\n{offset}"))
+}
+
+/// The names of the `[bed_mesh klipcal_*]` profiles in printer.cfg's SAVE_CONFIG block (the
+/// ones [`replace_klipcal_profiles`] replaces), in file order.
+#[must_use]
+pub fn klipcal_profile_names(text: &str) -> Vec<String> {
+    let Some(i) = text.find(&format!("\n{SAVE_CONFIG_MARKER}\n")) else {
+        return Vec::new();
+    };
+    text[i..]
+        .lines()
+        .filter_map(|l| {
+            let name = l
+                .strip_prefix("#*# [bed_mesh ")?
+                .trim_end()
+                .strip_suffix(']')?;
+            name.starts_with(KLIPCAL_PREFIX).then(|| name.to_string())
+        })
+        .collect()
 }
 
 /// The printer.cfg text with every `[bed_mesh klipcal_*]` profile of its SAVE_CONFIG block
@@ -394,6 +458,45 @@ mod tests {
         let err = check_same_params(&ps.iter().collect::<Vec<_>>()).unwrap_err();
         assert!(err.to_string().contains("HOT36.6"), "{err}");
         assert!(err.to_string().contains("250"), "{err}");
+    }
+
+    #[test]
+    fn differing_parameters_are_named_by_profile_and_option_in_klippers_words() {
+        // Issue 26 B.5: no Rust struct, no Moonraker, the option and both values.
+        let ps = profiles(&load(CFG)).unwrap();
+        let err = check_same_params(&ps.iter().collect::<Vec<_>>())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.starts_with("[bed_mesh HOT36.6] has ") && err.contains("where COLD27.3 has"),
+            "{err}"
+        );
+        assert!(
+            !err.contains("MeshParams") && !err.contains("Moonraker") && !err.contains('{'),
+            "{err}"
+        );
+        assert!(err.contains("expected every profile"), "{err}");
+    }
+
+    #[test]
+    fn profiles_that_are_not_vgbs_say_why() {
+        assert_eq!(vgb_ignored_why("HOT36"), None);
+        assert_eq!(vgb_ignored_why("COLD27.3"), None);
+        let why = vgb_ignored_why("cold27.3").unwrap();
+        assert!(
+            why.contains("upper case") && why.contains("COLD27.3"),
+            "{why}"
+        );
+        let why = vgb_ignored_why("HOTabc").unwrap();
+        assert!(why.contains("'abc'") && why.contains("HOT31.2"), "{why}");
+        let why = vgb_ignored_why("HOT999").unwrap();
+        assert!(why.contains("'999'"), "{why}");
+        assert!(vgb_ignored_why("default")
+            .unwrap()
+            .contains("not a VGB name"));
+        assert!(vgb_ignored_why("klipcal_30.00")
+            .unwrap()
+            .contains("klipcal"));
     }
 
     #[test]

@@ -215,4 +215,8 @@ pub enum Error {
     /// Moonraker's `configfile.config` JSON does not have the expected shape.
     #[error("Moonraker configfile.config is malformed: {0}")]
     Settings(String),
+    /// Bed-mesh profiles that cannot be used together, in words naming the profiles, the
+    /// options and what is expected.
+    #[error("{0}")]
+    MeshProfiles(String),
 }

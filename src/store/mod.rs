@@ -271,6 +271,27 @@ impl Store {
         r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
     }
 
+    /// The newest session of one kind in one state.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged document.
+    pub fn latest_session_of_in(
+        &self,
+        kind: &str,
+        state: &str,
+    ) -> Result<Option<SessionRow>, Error> {
+        let r = self
+            .conn()
+            .query_row(
+                "SELECT id, kind, state, doc FROM sessions WHERE kind = ?1 AND state = ?2 \
+                 ORDER BY id DESC LIMIT 1",
+                params![kind, state],
+                |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?, r.get(3)?)),
+            )
+            .optional()?;
+        r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
+    }
+
     /// Saves one reading; returns its row id.
     ///
     /// # Errors

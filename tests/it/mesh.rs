@@ -64,3 +64,101 @@ async fn profiles_klipcal_writes_load_in_klipper_with_the_points_written() {
     // The user's profiles are still there.
     m.gcode("BED_MESH_PROFILE LOAD=hot").await.unwrap();
 }
+
+/// A printer.cfg whose SAVE_CONFIG block holds `profiles` (name, how far every point sits
+/// below the base, mm, and max_x), each a 3×3 mesh.
+fn vgb_cfg(profiles: &[(&str, f64, f64)]) -> String {
+    let mut text = String::from(
+        "[printer]\nkinematics: none\n\n#*# <---------------------- SAVE_CONFIG ---------------------->\n\
+         #*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.\n#*#\n",
+    );
+    for (name, dz, max_x) in profiles {
+        let p = MeshProfile {
+            name: (*name).into(),
+            params: klipcal::klipper::bed_mesh::MeshParams {
+                x_count: 3,
+                y_count: 3,
+                mesh_x_pps: 2,
+                mesh_y_pps: 2,
+                algo: "lagrange".into(),
+                tension: 0.2,
+                min_x: 20.0,
+                max_x: *max_x,
+                min_y: 20.0,
+                max_y: 280.0,
+            },
+            points_mm: (0..3)
+                .map(|y| (0..3).map(|x| 0.01 * f64::from(x - y) - dz).collect())
+                .collect(),
+        };
+        text.push_str(&klipcal::klipper::bed_mesh::format_profile(&p));
+        text.push_str("#*#\n");
+    }
+    text
+}
+
+fn mesh_fit(cfg: &str) -> std::process::Output {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("printer.cfg");
+    std::fs::write(&path, cfg).unwrap();
+    std::process::Command::new(env!("CARGO_BIN_EXE_klipcal"))
+        .args(["mesh", "fit", "--printer-cfg"])
+        .arg(&path)
+        .output()
+        .unwrap()
+}
+
+#[test]
+fn mesh_fit_lists_the_profiles_it_ignores_and_words_its_errors_for_the_user() {
+    // Issue 26 B.5. HOT36 is a frame temperature (36 °C); cold27.3 is not VGB's case.
+    let out = mesh_fit(&vgb_cfg(&[
+        ("COLD25.0", 0.0, 280.0),
+        ("HOT36", 0.044, 280.0),
+        ("cold27.3", 0.01, 280.0),
+        ("default", 0.0, 280.0),
+    ]));
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        text.contains("COLD25.0 at 25.0 °C") && text.contains("HOT36 at 36.0 °C"),
+        "{text}"
+    );
+    assert!(
+        text.contains("not used: cold27.3 (VGB's names are upper case: expected COLD27.3)"),
+        "{text}"
+    );
+    assert!(text.contains("not used: default (not a VGB name"), "{text}");
+
+    // Profiles probed with different meshes: the profile, the option and both values.
+    let out = mesh_fit(&vgb_cfg(&[
+        ("COLD25.0", 0.0, 280.0),
+        ("HOT35.0", 0.04, 270.0),
+    ]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("[bed_mesh HOT35.0] has max_x = 270.0 where COLD25.0 has max_x = 280.0"),
+        "{err}"
+    );
+    assert!(
+        !err.contains("Moonraker") && !err.contains("MeshParams"),
+        "{err}"
+    );
+
+    // Too few to fit: the ignored ones are named with why.
+    let out = mesh_fit(&vgb_cfg(&[
+        ("COLD25.0", 0.0, 280.0),
+        ("hot35.0", 0.04, 280.0),
+    ]));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("found 1 COLDxx.x/HOTxx.x")
+            && err.contains("hot35.0 (VGB's names are upper case: expected HOT35.0)"),
+        "{err}"
+    );
+}
