@@ -3,6 +3,7 @@
 
 pub mod backlash;
 pub mod bench;
+pub(crate) mod camera_render;
 pub mod install;
 pub mod mesh;
 pub mod pylons;
