@@ -350,6 +350,28 @@ mod tests {
     }
 
     #[test]
+    fn a_nozzle_cut_by_the_frame_or_a_short_buffer_is_refused() {
+        let mut rng = fastrand::Rng::with_seed(2);
+        let mut s = varied_scene(Family::DarkTip, W, H, [6.0, 120.0], 18.0, &mut rng);
+        s.jpeg_quality = None;
+        let g = s.raw(&mut rng);
+        let img = Gray {
+            width: W,
+            height: H,
+            data: &g,
+        };
+        let r = detect(&img, &DetectParams::default()).unwrap_err();
+        assert!(matches!(r, Refusal::AtEdge { .. }), "{r}");
+        let short = Gray {
+            width: W,
+            height: H,
+            data: &g[..W * H - 1],
+        };
+        let r = detect(&short, &DetectParams::default()).unwrap_err();
+        assert!(r.to_string().contains("bytes for 320×240"), "{r}");
+    }
+
+    #[test]
     fn pictures_without_one_sure_nozzle_are_refused_with_the_reason() {
         for (fam, want) in [
             (Family::Empty, "no_nozzle"),
