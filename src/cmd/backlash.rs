@@ -569,6 +569,8 @@ struct Camera {
     /// The mount's slow drift, mm, a random walk per frame.
     drift_mm: f64,
     drift: [f64; 2],
+    /// Reads the true centre instead of rendering and detecting (the mechanics' own floor).
+    perfect: bool,
 }
 
 impl Camera {
@@ -588,6 +590,7 @@ impl Camera {
             scene: camera_render::varied_scene(family, CAM_W, CAM_H, origin_px, radius, rng),
             drift_mm: model.drift_mm,
             drift: [0.0, 0.0],
+            perfect: false,
         }
     }
 
@@ -606,10 +609,14 @@ impl Camera {
                     *d += self.drift_mm * gauss(rng);
                 }
                 let (x, y) = (xy[0] + self.drift[0], xy[1] + self.drift[1]);
-                self.scene.nozzles_px = vec![[
+                let truth = [
                     self.origin_px[0] + self.a[0][0] * x + self.a[1][0] * y,
                     self.origin_px[1] + self.a[0][1] * x + self.a[1][1] * y,
-                ]];
+                ];
+                if self.perfect {
+                    return Ok(Some((truth, 0.01, 0)));
+                }
+                self.scene.nozzles_px = vec![truth];
                 let (grey, _) = self.scene.render(rng)?;
                 match nozzle::detect(
                     &Gray {
@@ -648,10 +655,12 @@ fn camera_procedure(
     b_mm: f64,
     cycles: usize,
     family: Family,
+    perfect: bool,
     params: &BacklashParams,
     rng: &mut fastrand::Rng,
 ) -> anyhow::Result<Option<(f64, usize)>> {
     let mut cam = Camera::new(model, family, rng);
+    cam.perfect = perfect;
     let mut ax = PlayAxis::new(model, b_mm, rng);
     let mut ay = PlayAxis::new(model, 0.15 * rng.f64(), rng);
     let mut refused = 0;
@@ -768,7 +777,7 @@ fn bench_camera(
     let axes = args.camera_axes.max(5);
     for (mi, model) in MODELS.iter().enumerate() {
         let mut rng = fastrand::Rng::with_seed(args.seed.wrapping_add(mi as u64 * 7919));
-        let (mut errors, mut eff_errors) = (Vec::new(), Vec::new());
+        let (mut errors, mut eff_errors, mut floor) = (Vec::new(), Vec::new(), Vec::new());
         let (mut unfinished, mut refused) = (0, 0);
         for i in 0..axes {
             let b = 0.15 * rng.f64();
@@ -777,7 +786,12 @@ fn bench_camera(
             } else {
                 Family::DarkTip
             };
-            match camera_procedure(model, b, 5, fam, params, &mut rng)? {
+            // The same axis read by a perfect camera: what the mechanics alone allow.
+            let mut twin = rng.clone();
+            if let Some((est, _)) = camera_procedure(model, b, 5, fam, true, params, &mut twin)? {
+                floor.push(est - b);
+            }
+            match camera_procedure(model, b, 5, fam, false, params, &mut rng)? {
                 Some((est, r)) => {
                     errors.push(est - b);
                     // Stick-slip stops each move short by slip·U (U uniform 0–1) whichever the
@@ -796,12 +810,14 @@ fn bench_camera(
         let bias = errors.iter().sum::<f64>() / errors.len().max(1) as f64;
         println!(
             "    model {}: camera 5 cycles p95 |error| {:.1} µm (target ≤ 3 µm) {}   mean error \
-             {:+.1} µm   presses 0   [anchors, same model: guided 5 cycles {:.1} µm, seed single \
-             pass {:.1} µm]   {axes} axes, unfinished {unfinished}, frames retaken {refused}",
+             {:+.1} µm   presses 0   [anchors, same model: a perfect camera (the mechanics alone) \
+             {:.1} µm, guided 5 cycles {:.1} µm, seed single pass {:.1} µm]   {axes} axes, \
+             unfinished {unfinished}, frames retaken {refused}",
             mi + 1,
             1000.0 * e95,
             mark(good),
             1000.0 * bias,
+            1000.0 * p95(&floor),
             1000.0 * g5,
             1000.0 * s1,
         );
