@@ -66,6 +66,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Backlash(crate::cli::BacklashCommand::Solve(a)) => {
             crate::cmd::backlash::solve(&a, &config.backlash)
         }
+        Command::Backlash(crate::cli::BacklashCommand::Image(a)) => crate::cmd::backlash::image(&a),
         Command::Macros(a) => {
             if a.readme {
                 print!(

@@ -152,6 +152,20 @@ pub enum BacklashCommand {
     /// Backlash per axis from camera readings: median, spread, uncertainty, outliers, verdict,
     /// smooth_time.
     Solve(BacklashSolveArgs),
+    /// Where the nozzle is in a camera picture (JPEG or PNG), px ± px, or why it is refused:
+    /// to check a nozzle camera before measuring backlash with it.
+    Image(BacklashImageArgs),
+}
+
+/// `klipcal backlash image`
+#[derive(Debug, Args)]
+pub struct BacklashImageArgs {
+    /// A snapshot of the nozzle seen from below (JPEG or PNG).
+    #[arg(value_name = "FILE")]
+    pub file: PathBuf,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// `klipcal backlash solve`
@@ -178,6 +192,12 @@ pub struct BenchBacklashArgs {
     /// RNG seed.
     #[arg(long, default_value_t = 4)]
     pub seed: u64,
+    /// Rendered camera pictures per image family (detection figures).
+    #[arg(long, default_value_t = 100)]
+    pub camera_images: usize,
+    /// Simulated axes per model for the camera procedure (each renders about 40 pictures).
+    #[arg(long, default_value_t = 40)]
+    pub camera_axes: usize,
 }
 
 /// `klipcal solve`

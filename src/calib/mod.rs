@@ -18,6 +18,10 @@
 //! - [`backlash`]: backlash per axis from the seed's camera cycles (seed 004): median, spread,
 //!   uncertainty, outliers, verdict, smooth_time from an acceleration budget.
 //! - [`backlash_guide`]: the guided camera procedure as a resumable state machine.
+//! - [`nozzle`]: the nozzle found in a camera picture to sub-pixel precision, or refused with
+//!   the reason (issue 27).
+//! - [`camera_scale`]: pixels → mm and the camera's rotation from known moves; the seed's
+//!   backlash cycle from two detected centres.
 //! - [`bench_metrology`]: the closed-loop simulated benchmark behind `klipcal bench metrology`.
 
 pub mod backlash;
@@ -25,11 +29,13 @@ pub mod backlash_guide;
 #[cfg(feature = "bench")]
 pub mod bench_metrology;
 pub mod budget;
+pub mod camera_scale;
 pub mod differential;
 pub mod entry;
 pub mod mesh;
 pub mod mesh_follow;
 pub mod metric;
+pub mod nozzle;
 pub mod readings;
 pub mod skew;
 pub mod soak;
@@ -142,4 +148,7 @@ pub enum Error {
     /// A guided backlash measurement step that cannot be taken.
     #[error("backlash guide: {0}")]
     BacklashGuide(String),
+    /// Camera sightings that do not give a scale.
+    #[error("camera scale: {0}")]
+    CameraScale(String),
 }

@@ -2,6 +2,10 @@
 //! [`crate::calib::backlash`]) and `klipcal bench backlash` (the guided procedure of
 //! [`crate::calib::backlash_guide`] on simulated axes and simulated people, beside the seed's
 //! single pass). Owns the simulators; holds no statistics of its own.
+//!
+//! `klipcal backlash image FILE` finds the nozzle in a user's own camera picture through
+//! [`crate::calib::nozzle`]; the benchmark adds the camera procedure of issue 27 (detection on
+//! rendered pictures, pixels → mm from known moves, the seed's cycles from the image).
 // Their benchmark's simulators are unused in the printer's build (no `bench` feature), where
 // the linker drops them; `bench` is only built from a source checkout.
 #![cfg_attr(not(feature = "bench"), allow(dead_code, unused_imports))]
@@ -13,7 +17,10 @@ use anyhow::Context;
 
 use crate::calib::backlash::{self, AxisResult, BacklashParams, Verdict};
 use crate::calib::backlash_guide::{Guide, GuideAxis, GuideParams, Phase, Press};
-use crate::cli::{BacklashSolveArgs, BenchBacklashArgs};
+use crate::calib::camera_scale::{self, CameraScale, Sighting};
+use crate::calib::nozzle::{self, DetectParams, Gray};
+use crate::cli::{BacklashImageArgs, BacklashSolveArgs, BenchBacklashArgs};
+use crate::cmd::camera_render::{self, Family};
 use crate::config::BacklashConfig;
 
 /// `klipcal backlash solve --readings FILE [--max-accel MM_S2] [--json]`.
@@ -32,6 +39,86 @@ pub fn solve(args: &BacklashSolveArgs, settings: &BacklashConfig) -> anyhow::Res
     }
     print!("{}", render(&results, args.max_accel, &args.readings));
     Ok(ExitCode::SUCCESS)
+}
+
+/// `klipcal backlash image FILE [--json]`: where the nozzle is, or why the picture is refused.
+/// Exits 0 with a centre, 1 with a refusal (the reason printed), and with an error for a file
+/// that cannot be read or decoded.
+///
+/// # Errors
+/// An unreadable file, or bytes that are not a JPEG or PNG picture.
+pub fn image(args: &BacklashImageArgs) -> anyhow::Result<ExitCode> {
+    let bytes = std::fs::read(&args.file)
+        .with_context(|| format!("cannot read picture {}", args.file.display()))?;
+    let (w, h, grey) = camera_render::decode_gray(&bytes)
+        .with_context(|| format!("picture {}", args.file.display()))?;
+    let found = nozzle::detect(
+        &Gray {
+            width: w,
+            height: h,
+            data: &grey,
+        },
+        &DetectParams::default(),
+    );
+    let ok = found.is_ok();
+    print!("{}", image_report(&args.file, w, h, &found, args.json)?);
+    Ok(if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+fn image_report(
+    path: &Path,
+    w: usize,
+    h: usize,
+    found: &Result<nozzle::Detection, nozzle::Refusal>,
+    json: bool,
+) -> anyhow::Result<String> {
+    if json {
+        let v = match found {
+            Ok(d) => serde_json::json!({
+                "file": path.display().to_string(), "width": w, "height": h, "found": true,
+                "centre_px": d.centre_px, "uncertainty_px": d.uncertainty_px,
+                "diagnostics": d.diagnostics,
+            }),
+            Err(r) => serde_json::json!({
+                "file": path.display().to_string(), "width": w, "height": h, "found": false,
+                "refusal": r, "message": r.to_string(),
+            }),
+        };
+        return Ok(format!("{}\n", serde_json::to_string_pretty(&v)?));
+    }
+    Ok(match found {
+        Ok(d) => {
+            let g = &d.diagnostics;
+            format!(
+                "nozzle in {} ({w}×{h}): centre ({:.2}, {:.2}) px ± {:.2} px\n  \
+                 {} on a background of {:.0} grey levels, contrast {:.0}, noise sd {:.1}; \
+                 radius {:.1} px, edge scatter {:.2} px, {} candidate(s), {:.1} % clipped\n",
+                path.display(),
+                d.centre_px[0],
+                d.centre_px[1],
+                d.uncertainty_px,
+                match g.polarity {
+                    nozzle::Polarity::Bright => "brighter than",
+                    nozzle::Polarity::Dark => "darker than",
+                },
+                g.background,
+                g.contrast,
+                g.noise_sd,
+                g.radius_px,
+                g.scatter_px,
+                g.candidates,
+                100.0 * g.clipped_fraction,
+            )
+        }
+        Err(r) => format!(
+            "no nozzle position from {} ({w}×{h}): {r}\n",
+            path.display()
+        ),
+    })
 }
 
 fn solve_text(
@@ -258,8 +345,10 @@ pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Res
         "  verdict graded where the seed is clear: ≤ {} mm needs none, ≥ {} mm needs it; cut {} mm",
         params.none_needed_max_mm, params.needed_from_mm, params.compensate_from_mm
     );
-    for model in &MODELS {
-        println!("  model: {}", model.name);
+    // Per model: (name, guided 5-cycle p95, seed single-pass p95), the camera's anchors.
+    let mut guided: Vec<(&'static str, f64, f64)> = Vec::new();
+    for (mi, model) in MODELS.iter().enumerate() {
+        println!("  model {}: {}", mi + 1, model.name);
         let mut rng = fastrand::Rng::with_seed(args.seed);
         // (label, cycles, klipcal procedure?)
         let variants: [(&str, usize, bool); 4] = [
@@ -305,6 +394,7 @@ pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Res
                 }
             }
         }
+        guided.push((model.name, p95(&tallies[2].errors), p95(&tallies[0].errors)));
         for ((label, cycles, _), t) in variants.iter().zip(&tallies) {
             let e95 = p95(&t.errors);
             let wrong_pct = 100.0 * t.wrong as f64 / t.graded.max(1) as f64;
@@ -342,11 +432,409 @@ pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Res
             );
         }
     }
+    all_ok &= bench_camera(args, &params, &guided)?;
     Ok(if all_ok {
         ExitCode::SUCCESS
     } else {
         ExitCode::FAILURE
     })
+}
+
+// ---------------------------------------------------------------------------------------------
+// The camera procedure of issue 27 on rendered pictures.
+
+/// The snapshot size of a printer's nozzle camera, and a realistic scale for it: a USB
+/// endoscope or microscope a few cm under the nozzle sees about 8 mm across 640 px.
+const CAM_W: usize = 640;
+const CAM_H: usize = 480;
+const REALISTIC_PX_PER_MM: f64 = 80.0;
+/// Frames averaged per position in the procedure (each retaken up to 5 times on a refusal).
+const FRAMES: usize = 2;
+/// A detection off by more than this is a wrong number, not a refusal.
+const WRONG_PX: f64 = 1.0;
+
+/// One family's detection figures.
+#[derive(Debug, Default)]
+struct DetectTally {
+    errors_px: Vec<f64>,
+    centroid_errors_px: Vec<f64>,
+    covered: usize,
+    refused: usize,
+    wrong: usize,
+    n: usize,
+    reasons: std::collections::BTreeMap<String, usize>,
+}
+
+fn refusal_name(r: &nozzle::Refusal) -> String {
+    serde_json::to_value(r)
+        .ok()
+        .and_then(|v| v.get("reason").and_then(|s| s.as_str()).map(String::from))
+        .unwrap_or_default()
+}
+
+/// Detection over each rendered family: error, refusals, wrong numbers.
+fn bench_detection(n: usize, seed: u64) -> anyhow::Result<Vec<(Family, DetectTally)>> {
+    let mut rng = fastrand::Rng::with_seed(seed ^ 0x27);
+    let p = DetectParams::default();
+    let mut out = Vec::new();
+    for fam in Family::ALL {
+        let mut t = DetectTally::default();
+        for _ in 0..n {
+            let c = [
+                CAM_W as f64 / 2.0 + 150.0 * (rng.f64() - 0.5),
+                CAM_H as f64 / 2.0 + 100.0 * (rng.f64() - 0.5),
+            ];
+            let radius = 20.0 + 20.0 * rng.f64();
+            let scene = camera_render::varied_scene(fam, CAM_W, CAM_H, c, radius, &mut rng);
+            let (grey, _) = scene.render(&mut rng)?;
+            t.n += 1;
+            let got = nozzle::detect(
+                &Gray {
+                    width: CAM_W,
+                    height: CAM_H,
+                    data: &grey,
+                },
+                &p,
+            );
+            match got {
+                Err(r) => {
+                    t.refused += 1;
+                    *t.reasons.entry(refusal_name(&r)).or_default() += 1;
+                }
+                Ok(_) if fam.must_refuse() => t.wrong += 1,
+                Ok(d) => {
+                    let (ex, ey) = (d.centre_px[0] - c[0], d.centre_px[1] - c[1]);
+                    let e = ex.hypot(ey);
+                    if e > WRONG_PX {
+                        t.wrong += 1;
+                    }
+                    if ex.abs() <= 2.0 * d.uncertainty_px && ey.abs() <= 2.0 * d.uncertainty_px {
+                        t.covered += 1;
+                    }
+                    t.errors_px.push(e);
+                    let g = d.diagnostics.centroid_px;
+                    t.centroid_errors_px.push((g[0] - c[0]).hypot(g[1] - c[1]));
+                }
+            }
+        }
+        out.push((fam, t));
+    }
+    Ok(out)
+}
+
+/// One simulated axis with play: the motor at `motor`, the nozzle within ±h of it.
+struct PlayAxis {
+    b_mm: f64,
+    play_sd_mm: f64,
+    slip_mm: f64,
+    motor: f64,
+    nozzle: f64,
+    last_dir: f64,
+    h: f64,
+}
+
+impl PlayAxis {
+    fn new(model: &Model, b_mm: f64, rng: &mut fastrand::Rng) -> PlayAxis {
+        PlayAxis {
+            b_mm,
+            play_sd_mm: model.play_sd_mm,
+            slip_mm: model.slip_mm,
+            motor: 0.0,
+            nozzle: if rng.bool() { b_mm / 2.0 } else { -b_mm / 2.0 },
+            last_dir: 0.0,
+            h: b_mm / 2.0,
+        }
+    }
+
+    /// The same mechanics as the guided procedure's simulator.
+    fn move_to(&mut self, m: f64, rng: &mut fastrand::Rng) {
+        let dir = (m - self.motor).signum();
+        if dir != 0.0 && dir != self.last_dir {
+            self.h = (self.b_mm / 2.0 + self.play_sd_mm * gauss(rng)).max(0.0);
+            self.last_dir = dir;
+        }
+        self.nozzle = self.nozzle.clamp(m - self.h, m + self.h);
+        if self.slip_mm > 0.0 && dir != 0.0 {
+            self.nozzle -= dir * self.slip_mm * rng.f64();
+            self.nozzle = self
+                .nozzle
+                .clamp(m - self.h - self.slip_mm, m + self.h + self.slip_mm);
+        }
+        self.motor = m;
+    }
+}
+
+/// The camera under the nozzle: its scale, rotation, mirror and where machine (0, 0) falls.
+struct Camera {
+    /// image ← machine, px per mm, columns X and Y.
+    a: [[f64; 2]; 2],
+    origin_px: [f64; 2],
+    scene: camera_render::Scene,
+    /// The mount's slow drift, mm, a random walk per frame.
+    drift_mm: f64,
+    drift: [f64; 2],
+    /// Reads the true centre instead of rendering and detecting (the mechanics' own floor).
+    perfect: bool,
+}
+
+impl Camera {
+    fn new(model: &Model, family: Family, rng: &mut fastrand::Rng) -> Camera {
+        let s = 60.0 + 40.0 * rng.f64();
+        let th = std::f64::consts::TAU * rng.f64();
+        let m = if rng.bool() { -1.0 } else { 1.0 };
+        let (c, si) = (th.cos(), th.sin());
+        let origin_px = [
+            CAM_W as f64 / 2.0 + 40.0 * (rng.f64() - 0.5),
+            CAM_H as f64 / 2.0 + 30.0 * (rng.f64() - 0.5),
+        ];
+        let radius = 0.35 * s;
+        Camera {
+            a: [[s * c, s * si], [-m * s * si, m * s * c]],
+            origin_px,
+            scene: camera_render::varied_scene(family, CAM_W, CAM_H, origin_px, radius, rng),
+            drift_mm: model.drift_mm,
+            drift: [0.0, 0.0],
+            perfect: false,
+        }
+    }
+
+    /// Averages `FRAMES` detections of the nozzle at machine (x, y) mm; each frame that is
+    /// refused is taken again, up to 5 times. Returns the centre, its sd, and the refusals.
+    fn look(
+        &mut self,
+        xy: [f64; 2],
+        rng: &mut fastrand::Rng,
+    ) -> anyhow::Result<Option<([f64; 2], f64, usize)>> {
+        let mut got = Vec::new();
+        let mut refused = 0;
+        for _ in 0..FRAMES {
+            for _ in 0..5 {
+                for d in &mut self.drift {
+                    *d += self.drift_mm * gauss(rng);
+                }
+                let (x, y) = (xy[0] + self.drift[0], xy[1] + self.drift[1]);
+                let truth = [
+                    self.origin_px[0] + self.a[0][0] * x + self.a[1][0] * y,
+                    self.origin_px[1] + self.a[0][1] * x + self.a[1][1] * y,
+                ];
+                if self.perfect {
+                    return Ok(Some((truth, 0.01, 0)));
+                }
+                self.scene.nozzles_px = vec![truth];
+                let (grey, _) = self.scene.render(rng)?;
+                match nozzle::detect(
+                    &Gray {
+                        width: CAM_W,
+                        height: CAM_H,
+                        data: &grey,
+                    },
+                    &DetectParams::default(),
+                ) {
+                    Ok(d) => {
+                        got.push(d);
+                        break;
+                    }
+                    Err(_) => refused += 1,
+                }
+            }
+        }
+        if got.len() < FRAMES {
+            return Ok(None);
+        }
+        let k = got.len() as f64;
+        let c = [
+            got.iter().map(|d| d.centre_px[0]).sum::<f64>() / k,
+            got.iter().map(|d| d.centre_px[1]).sum::<f64>() / k,
+        ];
+        let u = (got.iter().map(|d| d.uncertainty_px.powi(2)).sum::<f64>() / k / k).sqrt();
+        Ok(Some((c, u, refused)))
+    }
+}
+
+/// The camera procedure on one axis (X) with `cycles` cycles: scale from ±0.5 mm moves
+/// approached from below on each axis, then the seed's two approaches per cycle read from the
+/// image. Returns the estimate (mm) and the refused frames, or None when it could not finish.
+fn camera_procedure(
+    model: &Model,
+    b_mm: f64,
+    cycles: usize,
+    family: Family,
+    perfect: bool,
+    params: &BacklashParams,
+    rng: &mut fastrand::Rng,
+) -> anyhow::Result<Option<(f64, usize)>> {
+    let mut cam = Camera::new(model, family, rng);
+    cam.perfect = perfect;
+    let mut ax = PlayAxis::new(model, b_mm, rng);
+    let mut ay = PlayAxis::new(model, 0.15 * rng.f64(), rng);
+    let mut refused = 0;
+    // Scale: each axis at −0.5, 0, +0.5 mm, all approached moving + (from −1 mm).
+    let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
+    let mut reference = [0.0; 2];
+    let mut ref_u = 0.0;
+    #[allow(clippy::needless_range_loop)] // k picks the axis that moves as well as its list
+    for k in 0..2 {
+        let axis = if k == 0 { &mut ax } else { &mut ay };
+        axis.move_to(-1.0, rng);
+        for t in [-0.5, 0.0, 0.5] {
+            let axis = if k == 0 { &mut ax } else { &mut ay };
+            axis.move_to(t, rng);
+            let Some((c, u, r)) = cam.look([ax.nozzle, ay.nozzle], rng)? else {
+                return Ok(None);
+            };
+            refused += r;
+            sightings[k].push(Sighting {
+                commanded_mm: t,
+                centre_px: c,
+                uncertainty_px: u,
+            });
+        }
+        let axis = if k == 0 { &mut ax } else { &mut ay };
+        axis.move_to(0.0, rng);
+    }
+    let (Ok(sx), Ok(sy)) = (
+        camera_scale::fit_axis("x", &sightings[0]),
+        camera_scale::fit_axis("y", &sightings[1]),
+    ) else {
+        return Ok(None);
+    };
+    let Ok(scale) = CameraScale::from_axes(sx, sy) else {
+        return Ok(None);
+    };
+    // The reference: where the nozzle sits at the measurement point, from the X set.
+    reference.copy_from_slice(&sightings[0][1].centre_px);
+    let mut cyc = Vec::new();
+    for _ in 0..cycles {
+        ax.move_to(-1.0, rng);
+        ax.move_to(0.0, rng);
+        let Some((plus, u1, r1)) = cam.look([ax.nozzle, ay.nozzle], rng)? else {
+            return Ok(None);
+        };
+        ax.move_to(1.0, rng);
+        ax.move_to(0.0, rng);
+        let Some((minus, u2, r2)) = cam.look([ax.nozzle, ay.nozzle], rng)? else {
+            return Ok(None);
+        };
+        refused += r1 + r2;
+        ref_u = f64::max(ref_u, u1.max(u2));
+        cyc.push(camera_scale::cycle(
+            &scale,
+            camera_scale::Axis::X,
+            0.0,
+            plus,
+            minus,
+            reference,
+        ));
+    }
+    let p = camera_scale::camera_params(params, ref_u, scale.x.scale_px_per_mm);
+    Ok(backlash::analyse("x", &cyc, None, &p)
+        .ok()
+        .map(|r| (r.backlash_mm, refused)))
+}
+
+/// The camera's lines of `klipcal bench backlash`. Returns whether every target is met.
+fn bench_camera(
+    args: &BenchBacklashArgs,
+    params: &BacklashParams,
+    guided: &[(&'static str, f64, f64)],
+) -> anyhow::Result<bool> {
+    let mut ok = true;
+    let mark = |b: bool| if b { "PASS" } else { "FAIL" };
+    let n = args.camera_images.max(5);
+    println!(
+        "  camera (issue 27): {n} rendered {CAM_W}×{CAM_H} pictures per family (JPEG q 60–95, \
+         blur sd 0.6–2.5 px, noise sd 1–5, uneven light); µm at {REALISTIC_PX_PER_MM} px/mm"
+    );
+    let det = bench_detection(n, args.seed)?;
+    for (fam, t) in &det {
+        if fam.must_refuse() {
+            let good = t.wrong == 0;
+            ok &= good;
+            println!(
+                "    {:<28} refused {:3}/{:<3} wrong {} (target 0) {}   reasons {:?}",
+                fam.name(),
+                t.refused,
+                t.n,
+                t.wrong,
+                mark(good),
+                t.reasons
+            );
+        } else {
+            let e95 = p95(&t.errors_px);
+            let c95 = p95(&t.centroid_errors_px);
+            let fail_pct = 100.0 * t.refused as f64 / t.n as f64;
+            let cover = 100.0 * t.covered as f64 / t.errors_px.len().max(1) as f64;
+            let good = t.wrong == 0 && e95 <= 0.3 && fail_pct <= 5.0;
+            ok &= good;
+            println!(
+                "    {:<28} p95 error {e95:.3} px = {:.1} µm (target ≤ 0.3 px) [anchor: region \
+                 centroid {c95:.3} px]   refused {fail_pct:.1} % (target ≤ 5 %) {:?}   wrong \
+                 (> {WRONG_PX} px) {} (target 0)   ±2u covers {cover:.0} %   {}",
+                fam.name(),
+                1000.0 * e95 / REALISTIC_PX_PER_MM,
+                t.reasons,
+                t.wrong,
+                mark(good)
+            );
+        }
+    }
+    let axes = args.camera_axes.max(5);
+    for (mi, model) in MODELS.iter().enumerate() {
+        let mut rng = fastrand::Rng::with_seed(args.seed.wrapping_add(mi as u64 * 7919));
+        let (mut errors, mut eff_errors, mut floor) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut unfinished, mut refused) = (0, 0);
+        for i in 0..axes {
+            let b = 0.15 * rng.f64();
+            let fam = if i % 2 == 0 {
+                Family::Ring
+            } else {
+                Family::DarkTip
+            };
+            // The same axis read by a perfect camera: what the mechanics alone allow.
+            let mut twin = rng.clone();
+            if let Some((est, _)) = camera_procedure(model, b, 5, fam, true, params, &mut twin)? {
+                floor.push(est - b);
+            }
+            match camera_procedure(model, b, 5, fam, false, params, &mut rng)? {
+                Some((est, r)) => {
+                    errors.push(est - b);
+                    // Stick-slip stops each move short by slip·U (U uniform 0–1) whichever the
+                    // direction, so the lost motion between the two approaches is b + slip on
+                    // average: the value compensation must cancel.
+                    eff_errors.push(est - b - model.slip_mm);
+                    refused += r;
+                }
+                None => unfinished += 1,
+            }
+        }
+        let e95 = p95(&errors);
+        let good = e95 <= 0.003 && unfinished == 0;
+        ok &= good;
+        let (g5, s1) = guided.get(mi).map_or((f64::NAN, f64::NAN), |g| (g.1, g.2));
+        let bias = errors.iter().sum::<f64>() / errors.len().max(1) as f64;
+        println!(
+            "    model {}: camera 5 cycles p95 |error| {:.1} µm (target ≤ 3 µm) {}   mean error \
+             {:+.1} µm   presses 0   [anchors, same model: a perfect camera (the mechanics alone) \
+             {:.1} µm, guided 5 cycles {:.1} µm, seed single pass {:.1} µm]   {axes} axes, \
+             unfinished {unfinished}, frames retaken {refused}",
+            mi + 1,
+            1000.0 * e95,
+            mark(good),
+            1000.0 * bias,
+            1000.0 * p95(&floor),
+            1000.0 * g5,
+            1000.0 * s1,
+        );
+        if model.slip_mm > 0.0 {
+            println!(
+                "      against the lost motion the compensation must cancel (b + stick-slip's mean \
+                 {:.1} µm): p95 |error| {:.1} µm (information)",
+                1000.0 * model.slip_mm,
+                1000.0 * p95(&eff_errors)
+            );
+        }
+    }
+    Ok(ok)
 }
 
 #[cfg(test)]

@@ -4,6 +4,7 @@
 pub mod backlash;
 #[cfg(feature = "bench")]
 pub mod bench;
+pub(crate) mod camera_render;
 pub mod install;
 pub mod mesh;
 pub mod pylons;
