@@ -169,18 +169,21 @@ cross_toolchain_setup() {
 }
 
 # Builds klipcal for TRIPLE with cargo profile PROFILE using Debian's toolchain; prints the
-# binary's path. With CROSS_TIME_FILE set, GNU time writes there the build's wall, user and
+# binary's path (armv7 with its std compiled: target dir $CROSS_TARGET_DIR-std). With CROSS_TIME_FILE set, GNU time writes there the build's wall, user and
 # system seconds and the peak resident memory (kB) of its largest single process. Target dir: $CROSS_TARGET_DIR (under target/, out of git).
 cross_build() {
-    local triple="$1" profile="$2" gnu u extra=()
+    local triple="$1" profile="$2" gnu u extra=() dir="$CROSS_TARGET_DIR"
     gnu="$(_cross_gnu "$triple")"
     u="$(tr 'a-z-' 'A-Z_' <<<"$triple")"
     if [[ "$triple" == armv7-* && $CROSS_ARMV7_BUILD_STD -eq 1 ]]; then
         extra=(-Zbuild-std=std,panic_abort)
+        # Its own target dir: build scripts see RUSTC_BOOTSTRAP (proc-macro2's reruns when it
+        # changes), and sharing the host artifacts would rebuild everything at each switch.
+        dir="$CROSS_TARGET_DIR-std"
     fi
     (
         unset RUSTUP_TOOLCHAIN RUSTFLAGS CARGO_BUILD_TARGET
-        export RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc CARGO_TARGET_DIR="$CROSS_TARGET_DIR"
+        export RUSTC=/usr/bin/rustc RUSTDOC=/usr/bin/rustdoc CARGO_TARGET_DIR="$dir"
         export "CC_${triple//-/_}=$gnu-gcc" "AR_${triple//-/_}=$gnu-ar"
         export "CARGO_TARGET_${u}_LINKER=$gnu-gcc"
         [[ ${#extra[@]} -gt 0 ]] && export RUSTC_BOOTSTRAP=1
@@ -189,7 +192,7 @@ cross_build() {
         "${timer[@]}" /usr/bin/cargo build --locked --profile "$profile" --target "$triple" --bin klipcal \
             "${extra[@]}" --quiet 1>&2
     ) || return 1
-    local dir="$profile"
-    [[ "$profile" == dev ]] && dir=debug
-    echo "$CROSS_TARGET_DIR/$triple/$dir/klipcal"
+    local pdir="$profile"
+    [[ "$profile" == dev ]] && pdir=debug
+    echo "$dir/$triple/$pdir/klipcal"
 }
