@@ -31,7 +31,9 @@ t_setup=$(($(date +%s) - t0))
 
 # The reference: the x86_64 binary the rest of the tests run (no-op after `cargo test`).
 cargo build --quiet --bin klipcal
-args=(--ref target/debug/klipcal --work "$CROSS_TARGET_DIR/check" --install-arch aarch64)
+# Outside the repository: Moonraker refuses an update_manager path inside a git repository.
+work="$(mktemp -d /tmp/klipcal-cross.XXXXXX)"
+args=(--ref target/debug/klipcal --work "$work" --install-arch aarch64)
 builds=""
 for triple in aarch64-unknown-linux-gnu armv7-unknown-linux-gnueabihf; do
     has "$triple" || continue
@@ -45,7 +47,12 @@ t_build=$(($(date +%s) - t0 - t_setup))
 say "built:${builds%,} (toolchain setup ${t_setup} s)"
 
 status=0
-python3 tests/cross/check.py "${args[@]}" || status=1
+if python3 tests/cross/check.py "${args[@]}"; then
+    rm -rf "$work"
+else
+    status=1
+    say "kept $work (bench logs, outputs)"
+fi
 for m in "${CROSS_MISSING[@]}"; do
     say "MISSING $m"
 done
