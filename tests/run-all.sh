@@ -4,7 +4,9 @@
 #      with Moonraker and Klipper's host from PyPI, cached under .bench/),
 #   2. builds the crate and runs `cargo test` for everything: unit tests, the integration tests
 #      that start the bench (a real Moonraker + a real klippy on loopback) and the daemon,
-#   3. runs the documentation examples (`cargo test --doc`; `--all-targets` skips them).
+#   3. runs the documentation examples (`cargo test --doc`; `--all-targets` skips them),
+#   4. runs the cross test (tests/cross/run.sh): the aarch64 and armv7 builds under qemu-user
+#      beside the x86_64 one, installing Debian's cross toolchain and qemu when missing.
 # A bench that cannot start fails the tests; nothing is skipped silently.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -28,3 +30,7 @@ cargo test --all-targets -- --test-threads="${KLIPCAL_TEST_THREADS:-4}"
 
 echo "== cargo test --doc"
 cargo test --doc
+
+echo "== cross (aarch64, armv7 under qemu-user)"
+# KLIPCAL_CROSS_TEST: a stand-in for tests/it/runall.rs only.
+"${KLIPCAL_CROSS_TEST:-tests/cross/run.sh}"

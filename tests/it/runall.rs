@@ -1,5 +1,6 @@
 //! tests/run-all.sh, the one test command README names, runs every kind of test: checked by
-//! running the script with a recording stand-in for `cargo` first on PATH.
+//! running the script with a recording stand-in for `cargo` first on PATH, and one for the
+//! cross test (tests/cross/run.sh, which uses Debian's cargo, not the one on PATH).
 
 use std::os::unix::fs::PermissionsExt;
 use std::process::Command;
@@ -17,6 +18,14 @@ fn run_all_also_runs_the_documentation_examples() {
     )
     .unwrap();
     std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let cross_log = dir.path().join("cross.log");
+    let cross = dir.path().join("cross-run.sh");
+    std::fs::write(
+        &cross,
+        format!("#!/bin/sh\necho cross >> '{}'\n", cross_log.display()),
+    )
+    .unwrap();
+    std::fs::set_permissions(&cross, std::fs::Permissions::from_mode(0o755)).unwrap();
     let path = format!(
         "{}:{}",
         dir.path().display(),
@@ -25,6 +34,7 @@ fn run_all_also_runs_the_documentation_examples() {
     let out = Command::new("bash")
         .arg(repo().join("tests/run-all.sh"))
         .env("PATH", path)
+        .env("KLIPCAL_CROSS_TEST", &cross)
         .output()
         .unwrap();
     assert!(
@@ -45,6 +55,13 @@ fn run_all_also_runs_the_documentation_examples() {
             .any(|c| c.split_whitespace().eq(["test", "--doc"])),
         "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
     );
+    assert_eq!(
+        std::fs::read_to_string(&cross_log).unwrap_or_default(),
+        "cross\n",
+        "run-all.sh must run the cross test (tests/cross/run.sh) once"
+    );
+    let script = std::fs::read_to_string(repo().join("tests/run-all.sh")).unwrap();
+    assert!(script.contains("tests/cross/run.sh"), "{script}");
     // README names the script as the test command.
     let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
     assert!(readme.contains("./tests/run-all.sh"));
