@@ -31,15 +31,7 @@ use crate::klipper::{self, PrinterFacts};
 use crate::layout::Layout;
 use crate::store::SessionRow;
 
-const BED: crate::jobs::table::ArgSpec = arg(
-    "bed",
-    ArgKind::Number {
-        min: 0.0,
-        max: 130.0,
-    },
-    "60",
-    "a bed temperature from 0 (unheated) to 130 °C",
-    "",
+const BED: crate::jobs::table::ArgSpec = crate::jobs::table::bed_arg(
     "bed temperature, °C (0: unheated, no soak; default ab.bed_temp_c)",
 );
 const PAIR: crate::jobs::table::ArgSpec = arg(

@@ -39,15 +39,7 @@ pub static OPS: &[Op<MeshCall>] = &[
             "KLIPCAL_MESH_CAPTURE",
             "mesh/capture",
             "thermal bed mesh: heat the bed, then take meshes as the frame warms and write klipcal_<T> profiles (BED=0 for an unheated bed)",
-            &[arg(
-                "bed",
-                ArgKind::Number {
-                    min: 0.0,
-                    max: 130.0,
-                },
-                "60",
-                "a bed temperature from 0 (unheated) to 130 °C",
-                "",
+            &[crate::jobs::table::bed_arg(
                 "bed temperature, °C (0: unheated; default mesh.bed_temp_c)",
             )],
         ),

@@ -393,6 +393,23 @@ pub const fn arg(
     }
 }
 
+/// `BED=`: a bed temperature from 0 (unheated) to 130 °C; `help` names the calibration's
+/// own default.
+#[must_use]
+pub const fn bed_arg(help: &'static str) -> ArgSpec {
+    arg(
+        "bed",
+        ArgKind::Number {
+            min: 0.0,
+            max: 130.0,
+        },
+        "60",
+        "a bed temperature from 0 (unheated) to 130 °C",
+        "",
+        help,
+    )
+}
+
 /// The line every remote macro says first: if nothing follows, the service is not running.
 pub const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
 
