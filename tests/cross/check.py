@@ -293,13 +293,14 @@ def offline(work, ref, bins, printer_dir):
                 rrc, ro, re_ = results[(refname, name)]
                 if rc != rrc:
                     bad.append((name, f"exit {rc}, {refname} {rrc}: {e.decode()[-600:]}"))
-                elif o != ro:
+                elif not same_but_last_bits(o, ro):
                     bad.append((name, first_difference(ro, o, "stdout")))
-                elif e != re_:
+                elif not same_but_last_bits(e, re_):
                     bad.append((name, first_difference(re_, e, "stderr")))
             files = results[(arch, "files")]
             rfiles = results[(refname, "files")]
-            diff = sorted(k for k in set(files) | set(rfiles) if files.get(k) != rfiles.get(k))
+            diff = sorted(k for k in set(files) | set(rfiles)
+                          if not same_but_last_bits(files.get(k), rfiles.get(k)))
             if diff:
                 bad.append((f"written files {diff}", first_difference(
                     rfiles.get(diff[0], b""), files.get(diff[0], b""), diff[0])))
@@ -307,8 +308,32 @@ def offline(work, ref, bins, printer_dir):
                 best = (refname, bad)
         refname, bad = best
         check(f"{arch}: {len(cases)} offline commands' stdout, stderr, exit status and "
-              f"{len(ref_files)} written files identical to {refname}'s", not bad,
+              f"{len(ref_files)} written files identical to {refname}'s (numbers to 9 digits)",
+              not bad,
               "\n      ".join(f"{n}: {d}" for n, d in bad[:4]))
+
+
+NUMBER = re.compile(rb"-?\d+\.\d+(?:[eE][-+]?\d+)?")
+
+
+def same_but_last_bits(a, b):
+    """The same text, and the same numbers to 9 significant digits: the math library's last
+    bits differ between FMA and plain code paths (aarch64's libm takes other paths than
+    x86_64's), and a difference of readings that agree to 0.01 mm amplifies them (solve's
+    uncertainty differed by 2e-10 relative), and a quantity that is zero but for rounding
+    (a perfect fit's chi2, 9e-24 against 5e-24) differs in every digit, hence the 1e-15 floor;
+    an overflow, a size assumption or a wrong branch on 32 bits would differ far more."""
+    if a == b:
+        return True
+    if a is None or b is None:
+        return False
+    if NUMBER.sub(b"#", a) != NUMBER.sub(b"#", b):
+        return False
+    for x, y in zip(NUMBER.findall(a), NUMBER.findall(b)):
+        fx, fy = float(x), float(y)
+        if abs(fx - fy) > 1e-9 * max(abs(fx), abs(fy)) + 1e-15:
+            return False
+    return True
 
 
 # ---------------------------------------------------------------- the bench
@@ -446,7 +471,7 @@ def on_bench(work, bins, install_arch):
             out = (o + e).decode("utf-8", "replace")
             asset = f"klipcal-{arch}-linux"
             check(f"{arch} install --dry-run: prints the update_manager entry and names "
-                  f"{asset}", rc == 0 and "+[update_manager klipcal]" in out and
+                  f"{asset}", rc == 0 and "+[update_manager klipcal" in out and
                   "+type: executable" in out and f'"asset_name": "{asset}"' in out and
                   f"klipcal-bin-{arch}/{asset}" in out, out[-2000:])
             check(f"{arch} install --dry-run writes nothing", snapshot(run_dir) == before,
@@ -492,16 +517,20 @@ def install(mr, info, pd, binary, arch, toml):
     check(f"{copy} is the {arch} binary, byte for byte", same, os.listdir(bin_dir))
     with open(os.path.join(cfg, "moonraker.conf")) as f:
         conf = f.read()
-    sect = conf[conf.find("[update_manager klipcal]"):]
-    check("moonraker.conf has [update_manager klipcal] of type executable with repo: and path:",
-          "[update_manager klipcal]" in conf and "type: executable" in sect and
+    # The section is named after the printer's service: klipcal for ~/printer_data, klipcal-<folder>
+    # for another folder (issue 25 D: two printers on one host).
+    m = re.search(r"\[update_manager (klipcal[^\]]*)\]", conf)
+    um_name = m.group(1) if m else "klipcal"
+    sect = conf[conf.find(f"[update_manager {um_name}]"):]
+    check("moonraker.conf has [update_manager klipcal…] of type executable with repo: and path:",
+          m is not None and "type: executable" in sect and
           "\nrepo: " in sect and f"path: {bin_dir}" in sect, conf[-600:])
     check("Moonraker and Klipper back after install's restart", mr.ready(), "")
     warnings = json.dumps(mr.get("/server/info").get("warnings", []))
     check("Moonraker has no warning about klipcal", "klipcal" not in warnings.lower(), warnings)
 
     def listed():
-        v = mr.get("/machine/update/status")["version_info"].get("klipcal")
+        v = mr.get("/machine/update/status")["version_info"].get(um_name)
         return v or None
     upd = mr.poll(60, listed) or {}
     check("Moonraker's update manager accepts it: executable, version "
