@@ -59,6 +59,12 @@ pub trait Calibration: Send + Sync {
     }
 }
 
+/// A dialog button's macro: Klipper closes the dialog first (even with klipcal gone), then asks.
+const CLOSE_THEN_ASK: MacroBody = MacroBody::Remote {
+    before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
+    after: &[],
+};
+
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
@@ -114,10 +120,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
     },
     Op {
         spec: OpSpec {
-            body: MacroBody::Remote {
-                before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
-                after: &[],
-            },
+            body: CLOSE_THEN_ASK,
             ..OpSpec::remote(
                 "klipcal_prompt_back",
                 "_KLIPCAL_PROMPT_BACK",
@@ -130,10 +133,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
     },
     Op {
         spec: OpSpec {
-            body: MacroBody::Remote {
-                before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
-                after: &[],
-            },
+            body: CLOSE_THEN_ASK,
             ..OpSpec::remote(
                 "klipcal_prompt_close",
                 "_KLIPCAL_PROMPT_CLOSE",

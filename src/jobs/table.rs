@@ -589,17 +589,7 @@ mod tests {
     use crate::jobs::is_user_error;
     use serde_json::json;
 
-    const BED: ArgSpec = arg(
-        "bed",
-        ArgKind::Number {
-            min: 0.0,
-            max: 130.0,
-        },
-        "60",
-        "a bed temperature from 0 (unheated) to 130 °C",
-        "",
-        "bed temperature",
-    );
+    const BED: ArgSpec = bed_arg("bed temperature");
     const LAYOUT: ArgSpec = arg(
         "layout",
         ArgKind::Choice(&["paper", "full"]),
