@@ -53,6 +53,9 @@ pub struct BedSoak {
     max_s: f64,
     max_setting: &'static str,
     best_progress: f64,
+    /// The last plausible print-now cost, K: shown until a newer one replaces it, so the offer
+    /// does not flicker off the page when one poll's fit is not trusted.
+    last_print_now_c: Option<f64>,
     soaking_since_s: Option<f64>,
     last_console_s: f64,
     primed: bool,
@@ -95,6 +98,7 @@ impl BedSoak {
             max_s,
             max_setting,
             best_progress: 0.0,
+            last_print_now_c: None,
             soaking_since_s: None,
             last_console_s: f64::NEG_INFINITY,
             primed: false,
@@ -291,6 +295,10 @@ impl BedSoak {
                         self.best_progress * 100.0
                     ),
                 };
+                if print_now_c.is_some() {
+                    self.last_print_now_c = print_now_c;
+                }
+                let print_now_c = self.last_print_now_c;
                 if let Some(c) = print_now_c {
                     text.push_str(&format!(
                         "; printing now costs up to {} of surface warming (95 %)",
