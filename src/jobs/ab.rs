@@ -15,8 +15,8 @@ use serde_json::{json, Value};
 use tracing::{info, warn};
 
 use super::console::{Button, Prompt};
+use super::core::{Calibration, Hold};
 use super::printer_config::{self, ApplyReport, ValueSet};
-use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
 use super::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};

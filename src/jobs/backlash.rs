@@ -16,8 +16,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use super::console::{Button, Prompt};
+use super::core::{Calibration, Hold};
 use super::printer_config::{self, ValueSet};
-use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use super::user;

@@ -18,8 +18,8 @@ use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
 use tracing::{info, warn};
 
+use super::core::{Calibration, Hold};
 use super::printer_config::FileWrite;
-use super::registry::{Calibration, Hold};
 use super::session::{now_unix, Core, Doc};
 use super::soak::{BedSoak, SoakUpdate};
 use super::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};

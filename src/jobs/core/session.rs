@@ -74,7 +74,7 @@ struct Inner {
 }
 
 impl Core {
-    /// Builds the core; calibrations are registered on top of it by [`super::Calibrations`].
+    /// Builds the core; calibrations are registered on top of it by [`crate::jobs::Calibrations`].
     pub fn new(m: Moonraker, files: Files, store: Store, shutdown: CancellationToken) -> Self {
         Self {
             inner: Arc::new(Inner {
