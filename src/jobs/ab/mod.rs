@@ -55,7 +55,7 @@ const PAIR: crate::jobs::core::table::ArgSpec = arg(
     "the pair measured, as the layout names it (A-D1)",
 );
 
-/// The A/B calibration's operations, each declared once (see [`crate::jobs::table`]).
+/// The A/B calibration's operations, each declared once (see [`crate::jobs::core::table`]).
 pub static OPS: &[Op<AbCall>] = &[
     Op {
         spec: OpSpec::remote(

@@ -41,7 +41,7 @@ use crate::jobs::user;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
 
-/// The thermal mesh's operations, each declared once (see [`crate::jobs::table`]).
+/// The thermal mesh's operations, each declared once (see [`crate::jobs::core::table`]).
 pub static OPS: &[Op<MeshCall>] = &[
     Op {
         spec: OpSpec::remote(
@@ -49,7 +49,7 @@ pub static OPS: &[Op<MeshCall>] = &[
             "KLIPCAL_MESH_CAPTURE",
             "mesh/capture",
             "thermal bed mesh: heat the bed, then take meshes as the frame warms and write klipcal_<T> profiles (BED=0 for an unheated bed)",
-            &[crate::jobs::table::bed_arg(
+            &[crate::jobs::core::table::bed_arg(
                 "bed temperature, °C (0: unheated; default mesh.bed_temp_c)",
             )],
         ),
@@ -496,7 +496,7 @@ impl Calibration for Mesh {
     }
 
     fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::table::specs(OPS).collect()
+        crate::jobs::core::table::specs(OPS).collect()
     }
 
     fn call<'a>(
