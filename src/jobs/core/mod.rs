@@ -1,10 +1,10 @@
-//! The session core every calibration shares: stored session documents, one active session,
-//! the runner and the printer guards (`session`); answers and prompts on the console
-//! (`console`); the bed soak step (`soak`); the command table and the typed arguments read
-//! against it (`table`); the config transaction (`printer_config`); the [`Calibration`] trait a
-//! calibration implements (`calibration`) and the operations every daemon answers besides the
-//! calibrations' own (`ops`). Nothing here knows a calibration: the routing over them is
-//! `jobs::registry`.
+//! The session core every calibration shares: stored session documents, one active session
+//! and the runner (`session`), the printer guards and the dialog (`session::guards`); answers
+//! and prompts on the console (`console`); the bed soak step (`soak`); the command table and
+//! the typed arguments read against it (`table`); the config transaction (`printer_config`);
+//! the [`Calibration`] trait a calibration implements (`calibration`) and the operations every
+//! daemon answers besides the calibrations' own (`ops`). Nothing here knows a calibration: the
+//! routing over them is `jobs::registry`.
 
 pub mod calibration;
 pub mod console;
