@@ -84,6 +84,7 @@ impl Calibrations {
         ];
         for c in &list {
             core.register_kind(c.kind(), c.title());
+            core.store().add_final_states(c.final_states());
         }
         Self { core, list }
     }

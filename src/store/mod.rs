@@ -33,9 +33,6 @@ pub enum Error {
     },
 }
 
-/// States after which a session no longer runs.
-pub const FINAL_STATES: &[&str] = &["converged", "failed", "cancelled", "done"];
-
 /// One stored session.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SessionRow {
@@ -81,6 +78,9 @@ pub struct ReadingRow {
 #[derive(Debug)]
 pub struct Store {
     conn: Mutex<Connection>,
+    /// State names after which a session no longer runs, as the calibrations declare them
+    /// (`jobs::core::envelope::SessionState`).
+    finals: std::sync::RwLock<std::collections::BTreeSet<String>>,
 }
 
 const SCHEMA: &str = "
@@ -131,7 +131,16 @@ impl Store {
         conn.execute_batch(SCHEMA)?;
         Ok(Self {
             conn: Mutex::new(conn),
+            finals: std::sync::RwLock::new(std::collections::BTreeSet::new()),
         })
+    }
+
+    /// Adds state names after which a session no longer runs (each calibration's final
+    /// states, registered as the daemon builds them).
+    pub fn add_final_states(&self, names: impl IntoIterator<Item = String>) {
+        if let Ok(mut f) = self.finals.write() {
+            f.extend(names);
+        }
     }
 
     fn conn(&self) -> std::sync::MutexGuard<'_, Connection> {
@@ -199,11 +208,16 @@ impl Store {
     /// # Errors
     /// SQLite failure or a damaged document.
     pub fn active_session(&self) -> Result<Option<SessionRow>, Error> {
-        let placeholders = FINAL_STATES
-            .iter()
-            .map(|s| format!("'{s}'"))
-            .collect::<Vec<_>>()
-            .join(",");
+        let placeholders = self
+            .finals
+            .read()
+            .map(|f| {
+                f.iter()
+                    .map(|s| format!("'{}'", s.replace('\'', "''")))
+                    .collect::<Vec<_>>()
+                    .join(",")
+            })
+            .unwrap_or_default();
         let sql = format!(
             "SELECT id, kind, state, doc FROM sessions WHERE state NOT IN ({placeholders}) \
              ORDER BY id DESC LIMIT 1"
@@ -379,6 +393,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let id = {
             let s = Store::open(dir.path()).unwrap();
+            s.add_final_states(["cancelled".to_string()]);
             let id = s
                 .create_session("ab", "preflight", &json!({"round": 1}))
                 .unwrap();
@@ -389,6 +404,7 @@ mod tests {
             id
         };
         let s = Store::open(dir.path()).unwrap();
+        s.add_final_states(["cancelled".to_string()]);
         let row = s.active_session().unwrap().unwrap();
         assert_eq!((row.id, row.state.as_str()), (id, "measuring"));
         assert_eq!(row.doc["x"], 2);
@@ -402,6 +418,7 @@ mod tests {
     #[test]
     fn a_finished_session_is_not_active() {
         let s = Store::in_memory().unwrap();
+        s.add_final_states(["cancelled".to_string()]);
         let id = s.create_session("ab", "preflight", &json!({})).unwrap();
         s.save_session(id, "cancelled", &json!({})).unwrap();
         assert!(s.active_session().unwrap().is_none());

@@ -34,10 +34,10 @@ use crate::config::AbConfig;
 use crate::gcode::{self, LayoutKind};
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
-use crate::jobs::core::session::{now_unix, Core, Doc};
+use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
-use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::{self, PrinterFacts};
 use crate::layout::Layout;
@@ -264,13 +264,29 @@ pub enum State {
     Cancelled,
 }
 
-impl State {
-    /// Whether the session is over.
-    pub fn is_final(self) -> bool {
+impl SessionState for State {
+    const ALL: &'static [Self] = &[
+        State::Preflight,
+        State::Uploaded,
+        State::Heating,
+        State::Soaking,
+        State::Printing,
+        State::Holding,
+        State::Measuring,
+        State::Solved,
+        State::Applying,
+        State::Applied,
+        State::Converged,
+        State::Failed,
+        State::Cancelled,
+    ];
+    const FAILED: Self = State::Failed;
+    const CANCELLED: Self = State::Cancelled;
+
+    fn is_final(self) -> bool {
         matches!(self, State::Converged | State::Failed | State::Cancelled)
     }
 
-    /// Whether the daemon drives this state by itself (as opposed to waiting for the user).
     fn is_automatic(self) -> bool {
         matches!(
             self,
@@ -281,14 +297,6 @@ impl State {
                 | State::Printing
                 | State::Holding
         )
-    }
-
-    /// The state's name as stored.
-    pub fn name(self) -> String {
-        serde_json::to_value(self)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_string))
-            .unwrap_or_default()
     }
 }
 
@@ -334,23 +342,16 @@ pub struct Round {
     pub picture: Option<String>,
 }
 
-/// The whole session document, stored as JSON.
+/// The whole session document, stored as JSON: the envelope around [`AbBody`].
+pub type Session = Envelope<State, AbBody>;
+
+/// The A/B session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Session {
-    /// Store id.
-    pub id: i64,
-    /// State.
-    pub state: State,
-    /// Why it failed or was cancelled.
-    pub reason: Option<String>,
-    /// The current step in words (with an ETA while soaking).
-    pub progress: String,
+pub struct AbBody {
     /// Settings: `[ab]` with the start call's arguments.
     pub options: AbConfig,
     /// Rounds so far; the last is the current one.
     pub rounds: Vec<Round>,
-    /// Things the user should know (skew cleared, heaters turned off, …).
-    pub notes: Vec<String>,
     /// Klipper's XY skew factor before the session cleared it.
     pub skew_before: Option<f64>,
     /// Unix time the print finished.
@@ -371,12 +372,6 @@ pub struct Session {
     /// new readings by it).
     #[serde(default)]
     pub last_entry: Option<(String, Vec<f64>)>,
-}
-
-impl Doc for Session {
-    fn state_name(&self) -> String {
-        self.state.name()
-    }
 }
 
 /// The A/B calibration's settings: `[ab]` and `[soak]`.
@@ -419,14 +414,9 @@ impl Ab {
     }
 
     async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
-        info!(session = id, state = %state.name(), "{progress}");
-        let progress = progress.to_string();
-        self.update(id, |s| {
-            s.state = state;
-            s.progress = progress;
-            Ok(())
-        })
-        .await
+        self.core
+            .set_state::<State, AbBody>(id, state, progress)
+            .await
     }
 
     /// Cancels the session: its print cancelled, heaters off, skew restored, prompt closed.
@@ -436,17 +426,18 @@ impl Ab {
             let _ = self.core.m().gcode("CANCEL_PRINT").await;
         }
         let _ = self.core.heaters_off().await;
-        self.update(s.id, |s| {
-            s.state = State::Cancelled;
-            s.reason = Some(reason.to_string());
-            s.progress = "cancelled; heaters off".into();
-            Ok(())
-        })
-        .await?;
+        let answer = self
+            .core
+            .cancel_session::<State, AbBody>(
+                s.id,
+                reason,
+                "cancelled; heaters off",
+                format!("session {} cancelled ({reason}); heaters off", s.id),
+            )
+            .await?;
         self.restore_skew(s.skew_before).await;
         self.core.prompt_end().await;
-        Ok(json!({"session": s.id, "state": "cancelled",
-                  "message": format!("session {} cancelled ({reason}); heaters off", s.id)}))
+        Ok(answer)
     }
 
     /// A session as `klipcal_status` shows it.
@@ -495,6 +486,10 @@ impl Ab {
 impl Calibration for Ab {
     fn kind(&self) -> &'static str {
         KIND
+    }
+
+    fn final_states(&self) -> Vec<String> {
+        State::final_names()
     }
 
     fn title(&self) -> &'static str {

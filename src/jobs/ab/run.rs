@@ -75,27 +75,8 @@ impl Ab {
     }
 
     pub(super) async fn fail(&self, id: i64, why: &str) {
-        let off = self
-            .core
-            .heaters_off_once_back(&format!("{TITLE} failed: {why}"))
-            .await;
-        if let Err(e) = &off {
-            warn!(session = id, error = %format!("{e:#}"), "heaters not turned off");
-        }
-        let _ = self
-            .update(id, |s| {
-                if !s.state.is_final() {
-                    s.state = State::Failed;
-                    s.reason = Some(why.to_string());
-                    s.progress = "failed".into();
-                }
-                Ok(())
-            })
-            .await;
-        self.core.prompt_end().await;
-        let heaters = if off.is_ok() { "; heaters off" } else { "" };
         self.core
-            .console_error(&format!("{TITLE} failed: {why}{heaters}"))
+            .fail_session::<State, AbBody>(id, TITLE, why, true)
             .await;
     }
 
@@ -493,22 +474,21 @@ impl Ab {
                     nozzle_temp_c: nozzle,
                     ..d.clone()
                 };
-                let mut s = Session {
-                    id: 0,
-                    state: State::Preflight,
-                    reason: None,
-                    progress: "preflight".into(),
-                    options,
-                    rounds: Vec::new(),
-                    notes: Vec::new(),
-                    skew_before: None,
-                    print_done_unix: None,
-                    heaters_off: false,
-                    soak_asking: false,
-                    soak_choice: None,
-                    preheat_since_unix: None,
-                    last_entry: None,
-                };
+                let mut s = Session::new(
+                    State::Preflight,
+                    "preflight",
+                    AbBody {
+                        options,
+                        rounds: Vec::new(),
+                        skew_before: None,
+                        print_done_unix: None,
+                        heaters_off: false,
+                        soak_asking: false,
+                        soak_choice: None,
+                        preheat_since_unix: None,
+                        last_entry: None,
+                    },
+                );
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
         };

@@ -386,6 +386,10 @@ impl Calibration for Backlash {
         KIND
     }
 
+    fn final_states(&self) -> Vec<String> {
+        ["done", "failed", "cancelled"].map(String::from).to_vec()
+    }
+
     fn title(&self) -> &'static str {
         "a backlash measurement"
     }

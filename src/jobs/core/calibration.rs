@@ -21,6 +21,9 @@ pub struct Hold {
 pub trait Calibration: Send + Sync {
     /// The store's kind (`ab`, `mesh`, `backlash`).
     fn kind(&self) -> &'static str;
+    /// The names of its final states (from its [`super::envelope::SessionState`]): the store
+    /// counts a session in one of them as ended.
+    fn final_states(&self) -> Vec<String>;
     /// How a user calls it, with its article ("an A/B calibration").
     fn title(&self) -> &'static str;
     /// Its operations (see [`table`]).

@@ -8,6 +8,7 @@
 
 pub mod calibration;
 pub mod console;
+pub mod envelope;
 pub mod ops;
 pub mod printer_config;
 pub mod session;
@@ -15,6 +16,7 @@ pub mod soak;
 pub mod table;
 
 pub use calibration::{Calibration, Hold};
+pub use envelope::{Envelope, SessionState, StatusHead};
 pub use ops::{CoreCall, CORE_OPS};
 pub use session::Core;
 

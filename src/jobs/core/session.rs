@@ -510,6 +510,7 @@ mod tests {
     #[tokio::test]
     async fn a_second_calibration_of_another_kind_is_refused_naming_the_running_one() {
         let core = offline_core();
+        core.store().add_final_states(["cancelled".to_string()]);
         core.register_kind("ab", "an A/B calibration");
         core.register_kind("mesh", "a thermal mesh calibration");
         let mut doc = TestDoc {

@@ -491,6 +491,10 @@ impl Calibration for Mesh {
         KIND
     }
 
+    fn final_states(&self) -> Vec<String> {
+        ["done", "failed", "cancelled"].map(String::from).to_vec()
+    }
+
     fn title(&self) -> &'static str {
         "a thermal mesh capture"
     }
