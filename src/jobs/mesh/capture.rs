@@ -25,20 +25,19 @@ impl Mesh {
             .as_str()
             .unwrap_or("")
             .to_string();
-        let mut doc = Session {
-            id: 0,
-            state: State::Preflight,
-            reason: None,
-            progress: "starting".into(),
-            options,
-            params: None,
-            captures: Vec::new(),
-            started_unix: None,
-            result: None,
-            notes: Vec::new(),
-            user_mesh: Some(user_mesh),
-            imported: false,
-        };
+        let mut doc = Session::new(
+            State::Preflight,
+            "starting",
+            MeshBody {
+                options,
+                params: None,
+                captures: Vec::new(),
+                started_unix: None,
+                result: None,
+                user_mesh: Some(user_mesh),
+                imported: false,
+            },
+        );
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
         let msg = format!(
@@ -95,26 +94,8 @@ impl Mesh {
                 async move { me.run(id).await }
             },
             move |msg| async move {
-                let off = me2
-                    .core
-                    .heaters_off_once_back(&format!("{TITLE} failed: {msg}"))
-                    .await;
-                if let Err(e) = &off {
-                    warn!(session = id, error = %format!("{e:#}"), "heaters not turned off");
-                }
-                let heaters = if off.is_ok() { "; heaters off" } else { "" };
-                let _ = me2
-                    .update(id, |s| {
-                        if !s.state.is_final() {
-                            s.state = State::Failed;
-                            s.reason = Some(msg.clone());
-                            s.progress = format!("failed{heaters}");
-                        }
-                        Ok(())
-                    })
-                    .await;
                 me2.core
-                    .console_error(&format!("{TITLE} failed: {msg}{heaters}"))
+                    .fail_session::<State, MeshBody>(id, TITLE, &msg, false)
                     .await;
             },
         );

@@ -131,20 +131,20 @@ impl Mesh {
                 replaced.join(", ")
             ));
         }
-        let mut doc = Session {
-            id: 0,
-            state: State::Writing,
-            reason: None,
-            progress: format!("fitting {} imported VGB profiles", names.len()),
-            options: self.settings.clone(),
-            params: Some(fitted[0].0.params.clone()),
-            captures,
-            started_unix: Some(now),
-            result: None,
-            notes,
-            user_mesh: None,
-            imported: true,
-        };
+        let mut doc = Session::new(
+            State::Writing,
+            format!("fitting {} imported VGB profiles", names.len()),
+            MeshBody {
+                options: self.settings.clone(),
+                params: Some(fitted[0].0.params.clone()),
+                captures,
+                started_unix: Some(now),
+                result: None,
+                user_mesh: None,
+                imported: true,
+            },
+        );
+        doc.notes = notes;
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
         let tests_msg = if test_words.is_empty() {

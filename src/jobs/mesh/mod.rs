@@ -33,10 +33,10 @@ use crate::calib::mesh_follow::{Branch, Decision, Follower};
 use crate::calib::soak::SoakParams;
 use crate::config::MeshConfig;
 use crate::jobs::core::printer_config::FileWrite;
-use crate::jobs::core::session::{now_unix, Core, Doc};
+use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
-use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
@@ -225,13 +225,18 @@ pub enum State {
     Cancelled,
 }
 
-impl State {
-    fn name(self) -> String {
-        serde_json::to_value(self)
-            .ok()
-            .and_then(|v| v.as_str().map(str::to_string))
-            .unwrap_or_default()
-    }
+impl SessionState for State {
+    const ALL: &'static [Self] = &[
+        State::Preflight,
+        State::Soaking,
+        State::Capturing,
+        State::Writing,
+        State::Done,
+        State::Failed,
+        State::Cancelled,
+    ];
+    const FAILED: Self = State::Failed;
+    const CANCELLED: Self = State::Cancelled;
 
     fn is_final(self) -> bool {
         matches!(self, State::Done | State::Failed | State::Cancelled)
@@ -297,17 +302,12 @@ pub struct CoolingDoc {
     pub max_quantisation_um: f64,
 }
 
-/// The session document.
+/// The session document: the envelope around [`MeshBody`].
+pub type Session = Envelope<State, MeshBody>;
+
+/// The thermal mesh session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Session {
-    /// Store id.
-    pub id: i64,
-    /// State.
-    pub state: State,
-    /// Why it failed or was cancelled.
-    pub reason: Option<String>,
-    /// The current step in words.
-    pub progress: String,
+pub struct MeshBody {
     /// `[mesh]` as the session runs it.
     pub options: MeshConfig,
     /// The mesh parameters (from Klipper's `klipcal_capture` profile after the first mesh).
@@ -318,8 +318,6 @@ pub struct Session {
     pub started_unix: Option<f64>,
     /// The result, once written.
     pub result: Option<ResultDoc>,
-    /// Things the user should know.
-    pub notes: Vec<String>,
     /// The bed mesh active in Klipper when the capture started (`Some("")`: none), loaded
     /// again after each mesh and at the end; `None` for an import or an older session.
     #[serde(default)]
@@ -338,12 +336,6 @@ pub const CAPTURE_PROFILE: &str = "klipcal_capture";
 /// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
 fn params_from_status(p: &Value) -> Option<MeshParams> {
     serde_json::from_value(p.clone()).ok()
-}
-
-impl Doc for Session {
-    fn state_name(&self) -> String {
-        self.state.name()
-    }
 }
 
 /// The thermal mesh over the shared core.
@@ -378,14 +370,9 @@ impl Mesh {
     }
 
     async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
-        info!(session = id, state = %state.name(), "{progress}");
-        let p = progress.to_string();
-        self.update(id, |s| {
-            s.state = state;
-            s.progress = p;
-            Ok(())
-        })
-        .await
+        self.core
+            .set_state::<State, MeshBody>(id, state, progress)
+            .await
     }
 
     async fn frame_temp(&self, sensor: &str) -> anyhow::Result<f64> {
@@ -412,15 +399,14 @@ impl Mesh {
             self.core
                 .spawn(async move { me.put_back_user_mesh(&s, true).await });
         }
-        self.update(id, |s| {
-            s.state = State::Cancelled;
-            s.reason = Some(reason.to_string());
-            s.progress = "cancelled; heaters off (meshes taken so far are kept)".into();
-            Ok(())
-        })
-        .await?;
-        Ok(json!({"session": id, "state": "cancelled",
-                  "message": format!("thermal mesh session {id} cancelled ({reason}); heaters off")}))
+        self.core
+            .cancel_session::<State, MeshBody>(
+                id,
+                reason,
+                "cancelled; heaters off (meshes taken so far are kept)",
+                format!("thermal mesh session {id} cancelled ({reason}); heaters off"),
+            )
+            .await
     }
 
     fn session_status(&self, s: &Session) -> Value {
@@ -492,7 +478,7 @@ impl Calibration for Mesh {
     }
 
     fn final_states(&self) -> Vec<String> {
-        ["done", "failed", "cancelled"].map(String::from).to_vec()
+        State::final_names()
     }
 
     fn title(&self) -> &'static str {

@@ -257,31 +257,32 @@ mod tests {
             let t = 39.0 - 1.5 * k as f64;
             captures.push(mesh(12 + k, t, t + lag_c, false));
         }
-        Session {
-            id: 1,
-            state: State::Writing,
-            reason: None,
-            progress: String::new(),
-            options: MeshConfig::default(),
-            params: Some(MeshParams {
-                x_count: 3,
-                y_count: 3,
-                mesh_x_pps: 2,
-                mesh_y_pps: 2,
-                algo: "lagrange".into(),
-                tension: 0.2,
-                min_x: 20.0,
-                max_x: 280.0,
-                min_y: 20.0,
-                max_y: 280.0,
-            }),
-            captures,
-            started_unix: Some(0.0),
-            result: None,
-            notes: Vec::new(),
-            user_mesh: None,
-            imported: false,
-        }
+        let mut s = Session::new(
+            State::Writing,
+            "",
+            MeshBody {
+                options: MeshConfig::default(),
+                params: Some(MeshParams {
+                    x_count: 3,
+                    y_count: 3,
+                    mesh_x_pps: 2,
+                    mesh_y_pps: 2,
+                    algo: "lagrange".into(),
+                    tension: 0.2,
+                    min_x: 20.0,
+                    max_x: 280.0,
+                    min_y: 20.0,
+                    max_y: 280.0,
+                }),
+                captures,
+                started_unix: Some(0.0),
+                result: None,
+                user_mesh: None,
+                imported: false,
+            },
+        );
+        s.id = 1;
+        s
     }
 
     #[test]
