@@ -298,21 +298,20 @@ impl Backlash {
         let s = match existing {
             Some(s) => s,
             None => {
-                let mut s = Session {
-                    id: 0,
-                    state: State::Measuring,
-                    reason: None,
-                    progress: format!("measuring {}", axis.name()),
-                    point,
-                    detection,
-                    active_mm,
-                    guide: Some(guide),
-                    cycles: BTreeMap::new(),
-                    max_accel_mm_s2: max_accel,
-                    notes: Vec::new(),
-                    carriage,
-                    kinematics: kin.to_string(),
-                };
+                let mut s = Session::new(
+                    State::Measuring,
+                    format!("measuring {}", axis.name()),
+                    BacklashBody {
+                        point,
+                        detection,
+                        active_mm,
+                        guide: Some(guide),
+                        cycles: BTreeMap::new(),
+                        max_accel_mm_s2: max_accel,
+                        carriage,
+                        kinematics: kin.to_string(),
+                    },
+                );
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
                 s
             }
@@ -346,12 +345,13 @@ impl Backlash {
                     )),
                 };
             let g = s
+                .body
                 .guide
                 .as_mut()
                 .ok_or_else(|| anyhow!("measuring without a guide"))?;
             let step = g.press(press).map_err(|e| user(e.to_string()))?;
             if step.phase == Phase::Done {
-                let key = result_key(g.axis, s.carriage);
+                let key = result_key(g.axis, s.body.carriage);
                 let cycles = g.cycles.clone();
                 s.cycles.insert(key.clone(), cycles);
                 s.guide = None;

@@ -27,6 +27,7 @@ use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core, Doc};
 use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::core::{Envelope, SessionState};
 use crate::jobs::user;
 use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
 use crate::klipper::GcodeCmd;
@@ -195,30 +196,29 @@ pub enum State {
     Cancelled,
 }
 
-impl State {
-    fn name(self) -> &'static str {
-        match self {
-            State::Measuring => "measuring",
-            State::Measured => "measured",
-            State::Applying => "applying",
-            State::Done => "done",
-            State::Failed => "failed",
-            State::Cancelled => "cancelled",
-        }
+impl SessionState for State {
+    const ALL: &'static [Self] = &[
+        State::Measuring,
+        State::Measured,
+        State::Applying,
+        State::Done,
+        State::Failed,
+        State::Cancelled,
+    ];
+    const FAILED: Self = State::Failed;
+    const CANCELLED: Self = State::Cancelled;
+
+    fn is_final(self) -> bool {
+        matches!(self, State::Done | State::Failed | State::Cancelled)
     }
 }
 
-/// The stored session.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct Session {
-    /// Session id.
-    pub id: i64,
-    /// State.
-    pub state: State,
-    /// Why it failed or was cancelled.
-    pub reason: Option<String>,
-    /// The current step in words.
-    pub progress: String,
+/// The stored session: the envelope around [`BacklashBody`].
+pub type Session = Envelope<State, BacklashBody>;
+
+/// The backlash session's own part of its document.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct BacklashBody {
     /// The camera point (toolhead X, Y, Z).
     pub point: [f64; 3],
     /// What the printer's Klipper has.
@@ -238,14 +238,6 @@ pub struct Session {
     /// `[printer] kinematics`, for the CoreXY answer.
     #[serde(default)]
     pub kinematics: String,
-    /// Things the user should know.
-    pub notes: Vec<String>,
-}
-
-impl Doc for Session {
-    fn state_name(&self) -> String {
-        self.state.name().to_string()
-    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -278,25 +270,19 @@ impl Backlash {
 
     async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
         self.core
-            .update::<Session, ()>(id, |s| {
-                s.state = state;
-                s.progress = progress.to_string();
-                Ok(())
-            })
+            .set_state::<State, BacklashBody>(id, state, progress)
             .await
     }
 
+    /// Ends a step in `state`, `why` its progress (and its reason, unless done).
     async fn finish(&self, id: i64, state: State, why: &str) -> anyhow::Result<()> {
-        self.core
-            .update::<Session, ()>(id, |s| {
-                s.state = state;
-                s.progress = why.to_string();
-                if state != State::Done {
-                    s.reason = Some(why.to_string());
-                }
-                Ok(())
-            })
-            .await
+        if state == State::Done {
+            self.set_state(id, state, why).await
+        } else {
+            self.core
+                .end_session::<State, BacklashBody>(id, state, why, why)
+                .await
+        }
     }
 
     async fn resume_session(&self, id: i64) {
@@ -345,10 +331,17 @@ impl Backlash {
     }
 
     async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
-        self.finish(id, State::Cancelled, reason).await?;
+        let answer = self
+            .core
+            .cancel_session::<State, BacklashBody>(
+                id,
+                reason,
+                reason,
+                format!("backlash session {id} cancelled ({reason})"),
+            )
+            .await?;
         self.core.prompt_end().await;
-        Ok(json!({"session": id, "state": "cancelled",
-                  "message": format!("backlash session {id} cancelled ({reason})")}))
+        Ok(answer)
     }
 }
 
@@ -387,7 +380,7 @@ impl Calibration for Backlash {
     }
 
     fn final_states(&self) -> Vec<String> {
-        ["done", "failed", "cancelled"].map(String::from).to_vec()
+        State::final_names()
     }
 
     fn title(&self) -> &'static str {
