@@ -101,7 +101,17 @@ CREATE TABLE IF NOT EXISTS readings (
     entered_at TEXT NOT NULL DEFAULT (datetime('now'))
 );
 CREATE INDEX IF NOT EXISTS readings_by_session ON readings(session_id, round);
+CREATE TABLE IF NOT EXISTS kv (
+    key TEXT PRIMARY KEY,
+    value TEXT NOT NULL,
+    updated_at TEXT NOT NULL DEFAULT (datetime('now'))
+);
 ";
+
+/// Values once stored as fake finished sessions of a kind of their own, now kept in the `kv`
+/// table under a key: (kind, key). Opening a database moves the newest such row's document
+/// to its key (unless the key holds a value already) and removes those rows.
+const SESSIONS_MOVED_TO_KV: &[(&str, &str)] = &[("backlash_point", "backlash_point")];
 
 impl Store {
     /// Opens (creating when needed) `dir/klipcal.sqlite`.
@@ -127,8 +137,18 @@ impl Store {
         Self::init(Connection::open_in_memory()?)
     }
 
-    fn init(conn: Connection) -> Result<Self, Error> {
+    fn init(mut conn: Connection) -> Result<Self, Error> {
         conn.execute_batch(SCHEMA)?;
+        let tx = conn.transaction()?;
+        for (kind, key) in SESSIONS_MOVED_TO_KV {
+            tx.execute(
+                "INSERT OR IGNORE INTO kv (key, value, updated_at) \
+                 SELECT ?2, doc, updated_at FROM sessions WHERE kind = ?1 ORDER BY id DESC LIMIT 1",
+                params![kind, key],
+            )?;
+            tx.execute("DELETE FROM sessions WHERE kind = ?1", params![kind])?;
+        }
+        tx.commit()?;
         Ok(Self {
             conn: Mutex::new(conn),
             finals: std::sync::RwLock::new(std::collections::BTreeSet::new()),
@@ -306,6 +326,40 @@ impl Store {
         r.map(|(id, k, s, d)| Self::row(id, k, s, d)).transpose()
     }
 
+    /// Stores `value` under `key` (replacing what was there): a setting klipcal keeps between
+    /// sessions, such as the backlash camera point.
+    ///
+    /// # Errors
+    /// SQLite failure.
+    pub fn set_value(&self, key: &str, value: &Value) -> Result<(), Error> {
+        self.conn().execute(
+            "INSERT INTO kv (key, value) VALUES (?1, ?2) \
+             ON CONFLICT(key) DO UPDATE SET value = ?2, updated_at = datetime('now')",
+            params![key, value.to_string()],
+        )?;
+        Ok(())
+    }
+
+    /// The value stored under `key`, if any.
+    ///
+    /// # Errors
+    /// SQLite failure or a damaged value.
+    pub fn value(&self, key: &str) -> Result<Option<Value>, Error> {
+        let v: Option<String> = self
+            .conn()
+            .query_row("SELECT value FROM kv WHERE key = ?1", params![key], |r| {
+                r.get(0)
+            })
+            .optional()?;
+        v.map(|text| {
+            serde_json::from_str(&text).map_err(|e| Error::Damaged {
+                id: 0,
+                message: format!("value {key}: {e}"),
+            })
+        })
+        .transpose()
+    }
+
     /// Saves one reading; returns its row id.
     ///
     /// # Errors
@@ -423,6 +477,63 @@ mod tests {
         s.save_session(id, "cancelled", &json!({})).unwrap();
         assert!(s.active_session().unwrap().is_none());
         assert_eq!(s.latest_session().unwrap().unwrap().state, "cancelled");
+    }
+
+    #[test]
+    fn a_value_is_kept_under_its_key_and_replaced_whole() {
+        let s = Store::in_memory().unwrap();
+        assert_eq!(s.value("backlash_point").unwrap(), None);
+        s.set_value("backlash_point", &json!({"point": [1.0, 2.0, 3.0]}))
+            .unwrap();
+        s.set_value("backlash_point", &json!({"point": [4.0, 5.0, 6.0]}))
+            .unwrap();
+        assert_eq!(
+            s.value("backlash_point").unwrap(),
+            Some(json!({"point": [4.0, 5.0, 6.0]}))
+        );
+        assert!(s.sessions(10).unwrap().is_empty(), "a value is no session");
+    }
+
+    #[test]
+    fn a_camera_point_saved_as_a_fake_session_moves_to_its_key_on_opening() {
+        let dir = tempfile::tempdir().unwrap();
+        {
+            // How klipcal up to 0.x saved it: a finished session of kind backlash_point, one
+            // per SET_POINT, beside a real session.
+            let s = Store::open(dir.path()).unwrap();
+            for p in [[1.0, 2.0, 3.0], [7.5, 8.5, 9.5]] {
+                s.create_session(
+                    "backlash_point",
+                    "done",
+                    &json!({"point": p, "state": "done"}),
+                )
+                .unwrap();
+            }
+            s.create_session("ab", "measuring", &json!({"x": 1}))
+                .unwrap();
+        }
+        let s = Store::open(dir.path()).unwrap();
+        assert_eq!(
+            s.value("backlash_point").unwrap().unwrap()["point"],
+            json!([7.5, 8.5, 9.5]),
+            "the newest point is kept"
+        );
+        let kinds: Vec<String> = s
+            .sessions(10)
+            .unwrap()
+            .into_iter()
+            .map(|r| r.kind)
+            .collect();
+        assert_eq!(kinds, vec!["ab"]);
+        // Opening again changes nothing; a point saved since is not overwritten.
+        s.set_value("backlash_point", &json!({"point": [0.0, 0.0, 0.0]}))
+            .unwrap();
+        drop(s);
+        let s = Store::open(dir.path()).unwrap();
+        assert_eq!(
+            s.value("backlash_point").unwrap().unwrap()["point"],
+            json!([0.0, 0.0, 0.0])
+        );
     }
 
     #[test]

@@ -186,13 +186,9 @@ impl Backlash {
         if p.iter().any(|v| !v.is_finite()) {
             return Err(anyhow!("Klipper reports no toolhead position: {pos}"));
         }
-        let doc = PointDoc {
-            point: p,
-            state: "done".into(),
-        };
         self.core
             .store()
-            .create_session(POINT_KIND, "done", &serde_json::to_value(&doc)?)?;
+            .set_value(POINT_KEY, &serde_json::to_value(PointDoc { point: p })?)?;
         let msg = format!(
             "camera point saved: X{:.3} Y{:.3} Z{:.3}; KLIPCAL_BACKLASH_START AXIS=X begins",
             p[0], p[1], p[2]
@@ -219,8 +215,12 @@ impl Backlash {
         self.homed(axis).await?;
         let point = self
             .core
-            .latest_of::<PointDoc>(POINT_KIND)?
-            .map(|(_, d)| d.point)
+            .store()
+            .value(POINT_KEY)?
+            .map(serde_json::from_value::<PointDoc>)
+            .transpose()
+            .context("reading the saved camera point")?
+            .map(|d| d.point)
             .ok_or_else(|| {
                 user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
             })?;

@@ -24,7 +24,7 @@ use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
-use crate::jobs::core::session::{now_unix, Core, Doc};
+use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use crate::jobs::core::{Calibration, Hold};
 use crate::jobs::core::{Envelope, SessionState};
@@ -172,8 +172,8 @@ impl StartRequest {
 
 /// The store's kind.
 pub const KIND: &str = "backlash";
-/// The store's kind of the saved camera point (a finished document, one per SET_POINT).
-pub const POINT_KIND: &str = "backlash_point";
+/// The store's key of the saved camera point (`{"point": [x, y, z]}`).
+pub const POINT_KEY: &str = "backlash_point";
 const TITLE: &str = "backlash measurement";
 /// Jog and approach feed rate, mm/min.
 const JOG_F: f64 = 1200.0;
@@ -240,16 +240,10 @@ pub struct BacklashBody {
     pub kinematics: String,
 }
 
+/// The saved camera point, as the store keeps it under [`POINT_KEY`].
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct PointDoc {
     point: [f64; 3],
-    state: String,
-}
-
-impl Doc for PointDoc {
-    fn state_name(&self) -> String {
-        self.state.clone()
-    }
 }
 
 /// The backlash calibration.
