@@ -6,6 +6,7 @@ use serde_json::{json, Value};
 use tracing::{info, warn};
 
 use crate::jobs::console::{self, answer_script, holding_prompts};
+use crate::jobs::core::status::SessionsStatus;
 use crate::jobs::{is_user_error, Calibrations};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
@@ -122,45 +123,114 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     }
 }
 
+/// `klipcal_status`'s answer (the agent's, `/api/status`'s and the page's).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct StatusAnswer {
+    /// klipcal's name and version.
+    pub daemon: DaemonInfo,
+    /// Moonraker's connection.
+    pub connection: Connection,
+    /// The printer's summary; `None` while Moonraker is unreachable or it cannot be read.
+    pub printer: Option<printer::Summary>,
+    /// The sessions: the active (or newest) one and each kind's last.
+    #[serde(flatten)]
+    pub sessions: SessionsStatus,
+}
+
+/// klipcal's name and version.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct DaemonInfo {
+    /// `klipcal`.
+    pub name: &'static str,
+    /// The crate's version.
+    pub version: &'static str,
+}
+
+/// Moonraker's connection as the status shows it.
+#[derive(Debug, Clone, Default, serde::Serialize)]
+pub struct Connection {
+    /// `connected`, `unreachable` or `stopped`.
+    pub moonraker: &'static str,
+    /// Klipper's state, when connected.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub klippy_state: Option<String>,
+    /// The last error (present, maybe null, while unreachable; present when the summary
+    /// failed).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub last_error: Option<Option<String>>,
+    /// What unreachable means for a user, in words.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub message: Option<String>,
+}
+
 /// The status answers at once, whatever Moonraker's state: while it is unreachable, the
 /// printer's part is null and `connection` says why (the sessions come from the database).
 async fn status(m: &Moonraker, cals: Option<&Calibrations>) -> Result<Value, RpcError> {
+    let answer = status_answer(m, cals).await?;
+    serde_json::to_value(answer).map_err(|e| rpc_error(&anyhow::Error::from(e)))
+}
+
+async fn status_answer(
+    m: &Moonraker,
+    cals: Option<&Calibrations>,
+) -> Result<StatusAnswer, RpcError> {
     if m.socket_open() {
         // Just connected, still identifying (a call can arrive meanwhile): moments away.
         let _ = m.wait_connected(std::time::Duration::from_secs(2)).await;
     }
     let (connection, summary) = match m.state() {
         ConnState::Connected { klippy_state } => {
-            let mut c = json!({"moonraker": "connected", "klippy_state": klippy_state});
+            let mut c = Connection {
+                moonraker: "connected",
+                klippy_state: Some(klippy_state),
+                ..Connection::default()
+            };
             let summary = match printer::gather(m).await {
-                Ok(s) => json!(s),
+                Ok(s) => Some(s),
                 Err(e) => {
-                    c["last_error"] = json!(e.to_string());
-                    Value::Null
+                    c.last_error = Some(Some(e.to_string()));
+                    None
                 }
             };
             (c, summary)
         }
         ConnState::Connecting(why) => (
-            json!({"moonraker": "unreachable", "last_error": why,
-                   "message": format!("Moonraker is unreachable at {}{}; klipcal keeps \
-                                       retrying, and a running session waits for it",
-                                      m.url(), why.as_deref().map(|w| format!(" ({w})")).unwrap_or_default())}),
-            Value::Null,
+            Connection {
+                moonraker: "unreachable",
+                message: Some(format!(
+                    "Moonraker is unreachable at {}{}; klipcal keeps retrying, and a running \
+                     session waits for it",
+                    m.url(),
+                    why.as_deref()
+                        .map(|w| format!(" ({w})"))
+                        .unwrap_or_default()
+                )),
+                last_error: Some(why),
+                ..Connection::default()
+            },
+            None,
         ),
-        ConnState::Stopped => (json!({"moonraker": "stopped"}), Value::Null),
+        ConnState::Stopped => (
+            Connection {
+                moonraker: "stopped",
+                ..Connection::default()
+            },
+            None,
+        ),
     };
     let sessions = match cals {
         Some(c) => c.status().map_err(|e| rpc_error(&e))?,
-        None => json!({"session": null, "last": {}}),
+        None => SessionsStatus::default(),
     };
-    Ok(json!({
-        "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
-        "connection": connection,
-        "printer": summary,
-        "session": sessions["session"],
-        "last": sessions["last"],
-    }))
+    Ok(StatusAnswer {
+        daemon: DaemonInfo {
+            name: "klipcal",
+            version: env!("CARGO_PKG_VERSION"),
+        },
+        connection,
+        printer: summary,
+        sessions,
+    })
 }
 
 fn console_text(method: &str, v: &Value) -> String {

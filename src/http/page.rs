@@ -682,6 +682,174 @@ mod tests {
     use super::*;
     use serde_json::json;
 
+    /// Every key anywhere in `v`.
+    fn keys_of(v: &Value, out: &mut std::collections::BTreeSet<String>) {
+        match v {
+            Value::Object(o) => {
+                for (k, x) in o {
+                    out.insert(k.clone());
+                    keys_of(x, out);
+                }
+            }
+            Value::Array(a) => a.iter().for_each(|x| keys_of(x, out)),
+            _ => {}
+        }
+    }
+
+    /// A status of each kind, built from the typed structs the agent serializes, with every
+    /// nested part filled in.
+    fn typed_status_keys() -> std::collections::BTreeSet<String> {
+        use crate::agent::{Connection, DaemonInfo, StatusAnswer};
+        use crate::jobs::ab::{AbRoundStatus, AbStatus};
+        use crate::jobs::backlash::BacklashStatus;
+        use crate::jobs::core::status::{SessionStatus, SessionsStatus};
+        use crate::jobs::core::StatusHead;
+        use crate::jobs::mesh::{MeshStatus, ResultDoc};
+        let head = StatusHead {
+            id: 1,
+            state: "measuring".into(),
+            progress: String::new(),
+            reason: None,
+            notes: vec![],
+        };
+        let ab = AbStatus {
+            pairs: Some(vec![crate::layout::Pair {
+                id: "A-D1".into(),
+                group: "A".into(),
+                from: "A1".into(),
+                to: "A2".into(),
+                direction_deg: 0.0,
+                nominal_mm: 10.0,
+            }]),
+            rounds: vec![AbRoundStatus::default()],
+            ..AbStatus::default()
+        };
+        let mesh = MeshStatus {
+            result: Some(ResultDoc {
+                model: "linear".into(),
+                models: vec![],
+                vgb: None,
+                range_c: (25.0, 40.0),
+                profiles_c: vec![],
+                max_quantisation_um: 0.0,
+                backup: None,
+                replaced: vec![],
+                directions: String::new(),
+                cooling: None,
+            }),
+            ..MeshStatus::default()
+        };
+        let cycles = vec![0.1, 0.11, 0.1, 0.12, 0.1]
+            .into_iter()
+            .map(|b| crate::calib::backlash::Cycle {
+                x1_mm: b,
+                x2_mm: 0.0,
+                fine_mm: None,
+            })
+            .collect::<Vec<_>>();
+        let result = crate::calib::backlash::analyse(
+            "x",
+            &cycles,
+            None,
+            &crate::config::BacklashConfig::default().params(),
+        )
+        .unwrap();
+        let backlash = BacklashStatus {
+            point: [0.0; 3],
+            branch: crate::klipper::backlash::detect(&json!({}), &json!({})).unwrap(),
+            axis: None,
+            cycle: None,
+            cycles: [("x".to_string(), cycles)].into(),
+            corexy_answer: None,
+            results: [("x".to_string(), result)].into(),
+            active_mm: Default::default(),
+        };
+        let mut last = std::collections::BTreeMap::new();
+        last.insert(
+            "ab".into(),
+            SessionStatus::new("ab", head.clone(), &ab).unwrap(),
+        );
+        last.insert(
+            "mesh".into(),
+            SessionStatus::new("mesh", head.clone(), &mesh).unwrap(),
+        );
+        last.insert(
+            "backlash".into(),
+            SessionStatus::new("backlash", head.clone(), &backlash).unwrap(),
+        );
+        let answer = StatusAnswer {
+            daemon: DaemonInfo {
+                name: "klipcal",
+                version: "0",
+            },
+            connection: Connection {
+                moonraker: "unreachable",
+                klippy_state: Some("ready".into()),
+                last_error: Some(None),
+                message: Some(String::new()),
+            },
+            printer: None,
+            sessions: SessionsStatus {
+                session: last.get("ab").cloned(),
+                last,
+            },
+        };
+        let mut keys = std::collections::BTreeSet::new();
+        keys_of(&serde_json::to_value(answer).unwrap(), &mut keys);
+        keys
+    }
+
+    #[test]
+    fn every_status_key_the_page_reads_is_a_field_of_the_typed_status() {
+        let source = include_str!("page.rs");
+        let source = &source[..source.find("#[cfg(test)]").unwrap()];
+        let mut read = std::collections::BTreeSet::new();
+        // The Rust side: `x["key"]`, `x["a"]["key"]` (not an array literal `["a", "b"]`).
+        for (at, _) in source.match_indices("[\"") {
+            let before = source[..at].chars().next_back().unwrap_or(' ');
+            if !(before.is_ascii_alphanumeric() || before == '_' || before == ']') {
+                continue;
+            }
+            let part = &source[at + 2..];
+            if let Some(end) = part.find("\"]") {
+                read.insert(part[..end].to_string());
+            }
+        }
+        // The script's poll: `s.key` (the session), `j.key` and `j.connection.key`.
+        let poll = &SCRIPT[SCRIPT.find("async function poll").unwrap()..];
+        let poll = &poll[..poll.find("setInterval(poll").unwrap()];
+        for prefix in ["s.", "j.", "j.connection."] {
+            for part in poll.split(prefix).skip(1) {
+                let key: String = part
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                if !key.is_empty() && !["textContent", "style", "json"].contains(&key.as_str()) {
+                    read.insert(key);
+                }
+            }
+        }
+        assert!(
+            read.len() > 40,
+            "the page reads {} keys: {read:?}",
+            read.len()
+        );
+        // `ok`, `error` and `message` are the answer's wrapping (`http::answer`), not the
+        // status; the follower's fields sit in `follow`, still the follower's own JSON.
+        let wrapping = ["ok", "error", "message"];
+        let follower = ["following", "stopped", "loaded", "residual_um"];
+        let have = typed_status_keys();
+        let missing: Vec<&String> = read
+            .iter()
+            .filter(|k| !have.contains(*k))
+            .filter(|k| !wrapping.contains(&k.as_str()) && !follower.contains(&k.as_str()))
+            .collect();
+        assert!(
+            missing.is_empty(),
+            "the page reads keys no typed status has: {missing:?}"
+        );
+    }
+
     fn measuring() -> Value {
         json!({"ok": true, "daemon": {"version": "0.1.0"}, "connection": {"klippy_state": "ready"},
             "session": {"kind": "ab", "id": 4, "state": "measuring", "round": 1,

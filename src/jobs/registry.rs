@@ -7,10 +7,13 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use serde_json::{json, Map, Value};
+use std::collections::BTreeMap;
+
+use serde_json::{json, Value};
 use tracing::{info, warn};
 
 use crate::jobs::core::session::{hold_expired, now_unix, Core};
+use crate::jobs::core::status::SessionsStatus;
 use crate::jobs::core::table::{self, OpSpec};
 use crate::jobs::core::{Calibration, CoreCall, CORE_OPS};
 use crate::jobs::user;
@@ -195,25 +198,25 @@ impl Calibrations {
     ///
     /// # Errors
     /// A damaged database.
-    pub fn status(&self) -> anyhow::Result<Value> {
+    pub fn status(&self) -> anyhow::Result<SessionsStatus> {
         let row = match self.core.active()? {
             Some(row) => Some(row),
             None => self.core.store().latest_session()?,
         };
         let session = match row {
             Some(row) => match self.by_kind(&row.kind) {
-                Some(c) => with_kind(c.status(&row)?, &row.kind),
-                None => Value::Null,
+                Some(c) => Some(c.status(&row)?),
+                None => None,
             },
-            None => Value::Null,
+            None => None,
         };
-        let mut last = Map::new();
+        let mut last = BTreeMap::new();
         for c in &self.list {
             if let Some(row) = self.core.store().latest_session_of(c.kind())? {
-                last.insert(c.kind().into(), with_kind(c.status(&row)?, c.kind()));
+                last.insert(c.kind().into(), c.status(&row)?);
             }
         }
-        Ok(json!({"session": session, "last": last}))
+        Ok(SessionsStatus { session, last })
     }
 
     /// One session as [`Calibrations::status`] shows it, whatever its state; `None` when there
@@ -226,7 +229,7 @@ impl Calibrations {
             return Ok(None);
         };
         Ok(match self.by_kind(&row.kind) {
-            Some(c) => Some(with_kind(c.status(&row)?, &row.kind)),
+            Some(c) => Some(serde_json::to_value(c.status(&row)?)?),
             None => Some(json!({"id": row.id, "kind": row.kind, "state": row.state})),
         })
     }
@@ -263,13 +266,6 @@ impl Calibrations {
             }
         }
     }
-}
-
-fn with_kind(mut v: Value, kind: &str) -> Value {
-    if let Value::Object(o) = &mut v {
-        o.insert("kind".into(), json!(kind));
-    }
-    v
 }
 
 #[cfg(test)]

@@ -36,6 +36,7 @@ use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
+use crate::jobs::core::status::SessionStatus;
 use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
 use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
 use crate::jobs::user;
@@ -441,46 +442,103 @@ impl Ab {
     }
 
     /// A session as `klipcal_status` shows it.
-    fn session_status(&self, s: &Session) -> anyhow::Result<Value> {
-        let readings = self.readings(s)?;
-        let rounds: Vec<Value> = s
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
+        let rounds = s
             .rounds
             .iter()
             .map(|r| {
                 let sol = r.solution.as_ref();
-                json!({
-                    "n": r.n,
-                    "file": r.file,
-                    "rotation_distance": [r.stepper_x.rotation_distance_mm, r.stepper_y.rotation_distance_mm],
-                    "rotation_distance_new": sol.map(|s| json!([s.stepper_x.rotation_distance_new, s.stepper_y.rotation_distance_new])),
-                    "scale": sol.map(|s| json!([s.stepper_x.scale, s.stepper_y.scale])),
-                    "error_um_per_100mm": sol.map(|s| {
-                        ((s.stepper_x.scale - 1.0) * 1e5).abs().max(((s.stepper_y.scale - 1.0) * 1e5).abs())
+                AbRoundStatus {
+                    n: r.n,
+                    file: r.file.clone(),
+                    rotation_distance: [
+                        r.stepper_x.rotation_distance_mm,
+                        r.stepper_y.rotation_distance_mm,
+                    ],
+                    rotation_distance_new: sol.map(|s| {
+                        [
+                            s.stepper_x.rotation_distance_new,
+                            s.stepper_y.rotation_distance_new,
+                        ]
                     }),
-                    "uncertainty": sol.map(|s| json!([s.stepper_x.uncertainty, s.stepper_y.uncertainty])),
-                    "converged": sol.map(|s| s.converged),
-                    "applied": r.applied,
-                })
+                    scale: sol.map(|s| [s.stepper_x.scale, s.stepper_y.scale]),
+                    error_um_per_100mm: sol.map(|s| {
+                        ((s.stepper_x.scale - 1.0) * 1e5)
+                            .abs()
+                            .max(((s.stepper_y.scale - 1.0) * 1e5).abs())
+                    }),
+                    uncertainty: sol.map(|s| [s.stepper_x.uncertainty, s.stepper_y.uncertainty]),
+                    converged: sol.map(|s| s.converged),
+                    applied: r.applied.clone(),
+                }
             })
             .collect();
-        Ok(json!({
-            "id": s.id,
-            "state": s.state.name(),
-            "progress": s.progress,
-            "reason": s.reason,
-            "round": s.rounds.len(),
-            "pairs": s.rounds.last().map(|r| json!(r.layout.pairs)),
-            "file": s.rounds.last().map(|r| r.file.clone()),
-            "readings": readings,
-            "readings_per_pair": s.options.readings_per_pair,
-            "bed_temp_c": s.options.bed_temp_c,
-            "diagram": s.rounds.last().and_then(|r| r.diagram.clone()),
-            "missing": if matches!(s.state, State::Measuring | State::Solved) { json!(self.missing_lines(s)?) } else { json!([]) },
-            "rounds": rounds,
-            "notes": s.notes,
-            "heaters_off": s.heaters_off,
-        }))
+        let body = AbStatus {
+            round: s.rounds.len(),
+            pairs: s.rounds.last().map(|r| r.layout.pairs.clone()),
+            file: s.rounds.last().map(|r| r.file.clone()),
+            readings: self.readings(s)?,
+            readings_per_pair: s.options.readings_per_pair,
+            bed_temp_c: s.options.bed_temp_c,
+            diagram: s.rounds.last().and_then(|r| r.diagram.clone()),
+            missing: if matches!(s.state, State::Measuring | State::Solved) {
+                self.missing_lines(s)?
+            } else {
+                Vec::new()
+            },
+            rounds,
+            heaters_off: s.heaters_off,
+        };
+        SessionStatus::new(KIND, s.head(), &body)
     }
+}
+
+/// An A/B session's own part of its status.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct AbStatus {
+    /// The current round, 1-based (0 before the first).
+    pub round: usize,
+    /// The current round's pairs.
+    pub pairs: Option<Vec<crate::layout::Pair>>,
+    /// The current round's job.
+    pub file: Option<String>,
+    /// The current round's readings per pair, mm.
+    pub readings: BTreeMap<String, Vec<f64>>,
+    /// Readings a pair needs.
+    pub readings_per_pair: usize,
+    /// Bed temperature, °C.
+    pub bed_temp_c: f64,
+    /// The layout diagram under the config root.
+    pub diagram: Option<String>,
+    /// What is still to measure, in words (while measuring or solved).
+    pub missing: Vec<String>,
+    /// Every round so far.
+    pub rounds: Vec<AbRoundStatus>,
+    /// The hold limit turned the heaters off.
+    pub heaters_off: bool,
+}
+
+/// One round as the status shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct AbRoundStatus {
+    /// 1-based.
+    pub n: u32,
+    /// The job.
+    pub file: String,
+    /// rotation_distance as printed, mm (X, Y).
+    pub rotation_distance: [f64; 2],
+    /// The solved rotation_distance, mm (X, Y).
+    pub rotation_distance_new: Option<[f64; 2]>,
+    /// The solved scale (X, Y).
+    pub scale: Option<[f64; 2]>,
+    /// The larger error of the two, µm per 100 mm.
+    pub error_um_per_100mm: Option<f64>,
+    /// The scale's uncertainty (X, Y).
+    pub uncertainty: Option<[f64; 2]>,
+    /// Whether the round converged.
+    pub converged: Option<bool>,
+    /// What apply wrote.
+    pub applied: Option<ApplyReport>,
 }
 
 impl Calibration for Ab {
@@ -530,7 +588,7 @@ impl Calibration for Ab {
         self.cancel_session(row.id, reason).boxed()
     }
 
-    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
         let s: Session = serde_json::from_value(row.doc.clone())
             .with_context(|| format!("reading stored session {}", row.id))?;
         self.session_status(&s)

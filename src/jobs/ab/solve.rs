@@ -60,7 +60,7 @@ impl Ab {
         })
         .await?;
         // The rounds so far as a picture where Mainsail/Fluidd's file browser shows it.
-        let doc = self.session_status(&self.load(s.id)?)?;
+        let doc = serde_json::to_value(self.session_status(&self.load(s.id)?)?)?;
         if let Ok(svg) = crate::plots::convergence_of_status(&doc) {
             let path = format!("klipcal/ab-s{}-convergence.svg", s.id);
             if let Some(shown) = self.core.save_picture(&path, svg).await {

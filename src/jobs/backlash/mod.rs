@@ -25,6 +25,7 @@ use crate::config::BacklashConfig;
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
+use crate::jobs::core::status::SessionStatus;
 use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
 use crate::jobs::core::{Calibration, Hold};
 use crate::jobs::core::{Envelope, SessionState};
@@ -246,6 +247,27 @@ struct PointDoc {
     point: [f64; 3],
 }
 
+/// A backlash session's own part of its status.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct BacklashStatus {
+    /// The camera point (toolhead X, Y, Z).
+    pub point: [f64; 3],
+    /// What the printer's Klipper has.
+    pub branch: Detection,
+    /// The axis being measured.
+    pub axis: Option<String>,
+    /// Its cycle in progress, 1-based.
+    pub cycle: Option<usize>,
+    /// Finished axes: their cycles.
+    pub cycles: BTreeMap<String, Vec<crate::calib::backlash::Cycle>>,
+    /// For CoreXY: whether the motors or the axes carry the backlash, in words.
+    pub corexy_answer: Option<String>,
+    /// Finished axes: their results.
+    pub results: BTreeMap<String, AxisResult>,
+    /// The compensation active while measuring, per axis, mm.
+    pub active_mm: BTreeMap<String, f64>,
+}
+
 /// The backlash calibration.
 pub struct Backlash {
     core: Core,
@@ -413,25 +435,21 @@ impl Calibration for Backlash {
         self.cancel_session(row.id, reason).boxed()
     }
 
-    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
         let s: Session = serde_json::from_value(row.doc.clone())
             .with_context(|| format!("reading stored session {}", row.id))?;
         let results = self.results(&s).unwrap_or_default();
-        Ok(json!({
-            "id": s.id,
-            "state": s.state.name(),
-            "progress": s.progress,
-            "reason": s.reason,
-            "point": s.point,
-            "branch": s.detection,
-            "axis": s.guide.as_ref().map(|g| g.axis.name()),
-            "cycle": s.guide.as_ref().map(|g| g.cycles.len() + 1),
-            "cycles": s.cycles,
-            "corexy_answer": Self::corexy_answer(&s, &results),
-            "results": results,
-            "active_mm": s.active_mm,
-            "notes": s.notes,
-        }))
+        let body = BacklashStatus {
+            point: s.point,
+            branch: s.detection.clone(),
+            axis: s.guide.as_ref().map(|g| g.axis.name().to_string()),
+            cycle: s.guide.as_ref().map(|g| g.cycles.len() + 1),
+            cycles: s.cycles.clone(),
+            corexy_answer: Self::corexy_answer(&s, &results),
+            results,
+            active_mm: s.active_mm.clone(),
+        };
+        SessionStatus::new(KIND, s.head(), &body)
     }
 
     fn held(&self, _row: &SessionRow) -> Option<Hold> {

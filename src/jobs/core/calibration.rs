@@ -43,7 +43,7 @@ pub trait Calibration: Send + Sync {
     ///
     /// # Errors
     /// A damaged document.
-    fn status(&self, row: &SessionRow) -> anyhow::Result<Value>;
+    fn status(&self, row: &SessionRow) -> anyhow::Result<super::status::SessionStatus>;
     /// When its session holds heaters on while waiting on the user: since when, how long.
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.

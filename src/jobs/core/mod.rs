@@ -13,6 +13,7 @@ pub mod ops;
 pub mod printer_config;
 pub mod session;
 pub mod soak;
+pub mod status;
 pub mod table;
 
 pub use calibration::{Calibration, Hold};

@@ -35,6 +35,7 @@ use crate::config::MeshConfig;
 use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
+use crate::jobs::core::status::SessionStatus;
 use crate::jobs::core::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
 use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
 use crate::jobs::user;
@@ -409,24 +410,38 @@ impl Mesh {
             .await
     }
 
-    fn session_status(&self, s: &Session) -> Value {
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
         let follow = self
             .follow_status
             .lock()
             .map(|v| v.clone())
             .unwrap_or(Value::Null);
-        json!({
-            "id": s.id,
-            "state": s.state.name(),
-            "progress": s.progress,
-            "reason": s.reason,
-            "meshes": s.captures.len(),
-            "frame_c": s.captures.iter().map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64).collect::<Vec<_>>(),
-            "result": s.result,
-            "notes": s.notes,
-            "follow": follow,
-        })
+        let body = MeshStatus {
+            meshes: s.captures.len(),
+            frame_c: s
+                .captures
+                .iter()
+                .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64)
+                .collect(),
+            result: s.result.clone(),
+            follow,
+        };
+        SessionStatus::new(KIND, s.head(), &body)
     }
+}
+
+/// A thermal mesh session's own part of its status.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct MeshStatus {
+    /// Meshes taken.
+    pub meshes: usize,
+    /// Each mesh's mean frame temperature, °C.
+    pub frame_c: Vec<f64>,
+    /// The fit and the profiles written, once written.
+    pub result: Option<ResultDoc>,
+    /// The follower: `{"following": false}`, or while following its frame temperature, trend,
+    /// loaded profile, offset and residual; `{"following": false, "stopped": why}` once stopped.
+    pub follow: Value,
 }
 
 /// The probe's section in Klipper's settings: `[probe]`, `[bltouch]`, `[smart_effector]`, an
@@ -526,10 +541,10 @@ impl Calibration for Mesh {
         self.cancel_session(row.id, reason).boxed()
     }
 
-    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
         let s: Session = serde_json::from_value(row.doc.clone())
             .with_context(|| format!("reading stored session {}", row.id))?;
-        Ok(self.session_status(&s))
+        self.session_status(&s)
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {
