@@ -637,7 +637,45 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
          every 0.3 s, ADC noise, 0.01 °C), judged on the surface ({budget:.1} K), {per_kind} \
          beds per kind:"
     );
-    let mut ok = true;
+    // The port of Klipper's control against Klipper's own Python, on the same readings.
+    let ok_port = match crate::cmd::soak_four_node::klippy_python() {
+        Err(e) => {
+            println!("    the port against Klipper's own heaters.py: FAIL: {e}");
+            false
+        }
+        Ok((python, script)) => {
+            use crate::cmd::soak_four_node::{klipper_check, GAIN_TOL, PWM_TOL};
+            match klipper_check(&python, &script, 8, 1800.0, seed + 77) {
+                Err(e) => {
+                    println!("    the port against Klipper's own heaters.py: FAIL: {e:#}");
+                    false
+                }
+                Ok(r) => {
+                    let good = r.pwm_mismatches == 0
+                        && r.autotune_mismatches == 0
+                        && r.max_gain_rel <= GAIN_TOL;
+                    println!(
+                        "    the port against Klipper's own Python (heaters.py Heater + ControlPID, \
+                         pid_calibrate.py ControlAutoTune, bench venv) on the same readings, {} \
+                         runs (an autotune and 30 min of PID per bed, one bed of each kind): pwm \
+                         differs after {} of {} readings (max {:.1e}; tolerance {PWM_TOL:.0e})   \
+                         target 0   {}; autotune gains differ by {:.1e} relative (tolerance \
+                         {GAIN_TOL:.0e}), {} autotunes ended apart   target 0   {}",
+                        r.runs,
+                        r.pwm_mismatches,
+                        r.updates,
+                        r.max_pwm_diff,
+                        pass(r.pwm_mismatches == 0),
+                        r.max_gain_rel,
+                        r.autotune_mismatches,
+                        pass(r.autotune_mismatches == 0 && r.max_gain_rel <= GAIN_TOL),
+                    );
+                    good
+                }
+            }
+        }
+    };
+    let mut ok = ok_port;
     for (k, kind) in Kind::all().into_iter().enumerate() {
         let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + k as u64);
         let until = if kind.enclosed {
