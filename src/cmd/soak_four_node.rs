@@ -650,10 +650,14 @@ pub struct BedResult {
     pub slope: Option<f64>,
     /// See `rule`.
     pub r_stat: Option<f64>,
-    /// The coupling was identified, and its interval held the true one.
+    /// The coupling was identified (its lower end from the bed's own data).
     pub identified: bool,
-    /// See `identified`.
+    /// The heat-up gave an upper end of the coupling (identified, or bounding the fallback).
+    pub bounded: bool,
+    /// The reported interval (the G used to the upper end) held the true G.
     pub covered: bool,
+    /// The G the rule used was at or below the true one (the conservative side).
+    pub g_safe: bool,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
 }
@@ -745,7 +749,9 @@ pub fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedRe
         slope,
         r_stat,
         identified,
-        covered: identified && c.low <= g && g <= c.high,
+        bounded: identified || c.high > c.g,
+        covered: c.low <= g && g <= c.high,
+        g_safe: c.g <= g,
         left_c,
     }
 }
