@@ -408,11 +408,25 @@ impl<'a> Ui<'a> {
                    return [3, Math.max(y, 3)]; })()"
             }
         };
-        let at = self.b.eval(js).await;
-        let xy = at.as_array().expect("no dialog to dismiss");
-        self.b
-            .tap(xy[0].as_f64().unwrap(), xy[1].as_f64().unwrap())
-            .await;
+        // A tap while Vuetify still moves the dialog (after a resize, on a busy machine) can
+        // miss: tap again while it shows, at most three times.
+        for _ in 0..3 {
+            let at = self.b.eval(js).await;
+            let Some(xy) = at.as_array() else { return };
+            self.b
+                .tap(xy[0].as_f64().unwrap(), xy[1].as_f64().unwrap())
+                .await;
+            let gone = self
+                .b
+                .wait_for(
+                    "!document.querySelector('.v-dialog--active')",
+                    Duration::from_secs(2),
+                )
+                .await;
+            if gone {
+                return;
+            }
+        }
     }
 
     /// Shows the same dialog at phone size (asserting it is drawn whole there), screenshots
