@@ -28,6 +28,8 @@ use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, 
 use crate::klipper::GcodeCmd;
 use crate::store::SessionRow;
 
+pub mod camera;
+
 /// The backlash measurement's operations, each declared once (see [`crate::jobs::table`]).
 pub static OPS: &[Op<BacklashCall>] = &[
     Op {
@@ -75,6 +77,7 @@ pub static OPS: &[Op<BacklashCall>] = &[
         ),
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
+    camera::OP,
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
@@ -117,6 +120,8 @@ pub enum BacklashCall {
     Start(StartRequest),
     /// `klipcal_backlash_jog`.
     Jog(Press),
+    /// `klipcal_backlash_camera`.
+    Camera(camera::CameraRequest),
     /// `klipcal_backlash_apply`.
     Apply,
 }
@@ -236,6 +241,9 @@ pub struct Session {
     pub kinematics: String,
     /// Things the user should know.
     pub notes: Vec<String>,
+    /// Axes read through the nozzle camera (KLIPCAL_BACKLASH_CAMERA): how, per result key.
+    #[serde(default)]
+    pub camera: BTreeMap<String, camera::CameraReport>,
 }
 
 impl Doc for Session {
@@ -384,7 +392,14 @@ impl Backlash {
         let params = self.settings.params();
         s.cycles
             .iter()
-            .map(|(axis, c)| Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &params)?)))
+            .map(|(axis, c)| {
+                // Camera cycles are read to the camera's precision, not a jog's.
+                let p = s
+                    .camera
+                    .get(axis)
+                    .map_or(params.clone(), |r| r.params(&params));
+                Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &p)?))
+            })
             .collect()
     }
 
@@ -576,6 +591,7 @@ impl Backlash {
                     notes: Vec::new(),
                     carriage,
                     kinematics: kin.to_string(),
+                    camera: BTreeMap::new(),
                 };
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
                 s
@@ -618,6 +634,7 @@ impl Backlash {
                 let key = result_key(g.axis, s.carriage);
                 let cycles = g.cycles.clone();
                 s.cycles.insert(key.clone(), cycles);
+                s.camera.remove(&key);
                 s.guide = None;
                 s.carriage = None;
                 s.state = State::Measured;
@@ -1121,6 +1138,7 @@ impl Backlash {
             return;
         };
         match s.state {
+            State::Measuring if s.guide.is_none() => self.camera_interrupted(&s).await,
             State::Measuring => {
                 // Position and last direction are unknown after a restart: start the approach
                 // over from 1 mm back (the readings taken so far are kept).
@@ -1221,6 +1239,7 @@ impl Calibration for Backlash {
                 BacklashCall::SetPoint => self.set_point().await,
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
+                BacklashCall::Camera(r) => self.camera(&r).await,
                 BacklashCall::Apply => self.apply().await,
             }
         }
@@ -1257,6 +1276,7 @@ impl Calibration for Backlash {
             "results": results,
             "active_mm": s.active_mm,
             "notes": s.notes,
+            "camera": s.camera,
         }))
     }
 
