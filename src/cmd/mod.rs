@@ -18,5 +18,7 @@ pub mod soak_families;
 #[cfg(feature = "bench")]
 pub mod soak_four_node;
 #[cfg(feature = "bench")]
+pub(crate) mod soak_noise;
+#[cfg(feature = "bench")]
 pub mod soak_real;
 pub mod solve;

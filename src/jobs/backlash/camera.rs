@@ -31,7 +31,7 @@ use crate::calib::backlash::{BacklashParams, Cycle};
 use crate::calib::backlash_guide::GuideAxis;
 use crate::calib::camera_scale::{self, CameraScale, Sighting};
 use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
-use crate::jobs::table::{arg, ArgKind, Args, Op, OpSpec};
+use crate::jobs::core::table::{arg, ArgKind, Args, Op, OpSpec};
 use crate::jobs::user;
 use crate::klipper::GcodeCmd;
 
