@@ -58,8 +58,8 @@ async fn answer(
 ) -> Result<Value, RpcError> {
     if crate::jobs::registry::is_core_method(method) {
         // Read whole first: a status call with an unknown argument is refused like any other.
-        if crate::jobs::registry::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
-            == crate::jobs::registry::CoreCall::Status
+        if crate::jobs::core::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
+            == crate::jobs::core::CoreCall::Status
         {
             return status(m, cals).await;
         }

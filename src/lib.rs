@@ -11,9 +11,13 @@
 //! - [`config`]: daemon settings, TOML with embedded defaults; unknown keys are errors.
 //! - [`moonraker`]: the Moonraker client — protocol types (pure), the websocket actor that owns
 //!   the socket, the cloneable handle, the agent's remote methods, HTTP file transfer.
-//! - [`jobs`]: the only place Moonraker I/O meets the math: the session core every calibration
-//!   shares (stored sessions, one active session, runner, guards, console and prompts, bed soak,
-//!   config transaction, routing) and one file per calibration (`jobs::ab`).
+//! - [`jobs`]: the only place Moonraker I/O meets the math. `jobs::core`, the session core
+//!   every calibration shares (stored sessions, one active session, runner, printer guards,
+//!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
+//!   trait); one folder per calibration (`jobs::ab`, `jobs::mesh`: capture, import, follow,
+//!   check; `jobs::backlash`: guide, dual carriage, apply); and `jobs::registry`, the one module
+//!   that lists the calibrations (routing, status, cancel, resume, the hold watchdog). The
+//!   calibrations import the core, never the registry.
 //! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place),
 //!   G-code command text built from typed values, never from pasted user text, and the bed's
 //!   history read from klippy.log text. Files reach it through the `klipper::Files` trait;
@@ -21,7 +25,7 @@
 //! - [`gcode`]: PURE. The pylon job generator (printer facts → geometry → toolpaths → G-code
 //!   text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget,
-//!   thermal soak detection.
+//!   thermal soak detection, the bed-mesh fit and the frame temperature of each probe point.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`plots`]: PURE. The plots people look at (bed soak with its fitted decay, convergence
 //!   over rounds) as SVG text, drawn with plotters.

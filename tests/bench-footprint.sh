@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Footprint benchmark: starts a bench (real Moonraker + klippy + thermal plant) and the release
-# daemon connected and subscribed to it, then `klipcal bench footprint` samples for SECONDS
+# Footprint benchmark: starts a bench (real Moonraker + klippy + thermal plant) and the printer's
+# release daemon (built as release.sh builds it: --no-default-features, no benchmarks) connected and subscribed to it, then `klipcal bench footprint` samples for SECONDS
 # (default 60) and prints klipcal's RSS and CPU beside Moonraker's and klippy's RSS.
 # Targets: klipcal RSS <= 1/10 of Moonraker's with the page open; CPU < 0.5 % of one core on
 # average; release binary <= 20 MiB; start to "connected to Moonraker" <= 2 s.
@@ -8,7 +8,10 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 seconds="${1:-60}"
 bash tests/bench/setup.sh >/dev/null
-cargo build --release --quiet
+# The daemon measured is the printer's binary; the measuring tool is the checkout's own build.
+cargo build --release --quiet --no-default-features --target-dir target/printer
+cargo build --quiet
+printer_bin=target/printer/release/klipcal
 run="$(mktemp -d /tmp/kc-fp-XXXXXX)"
 cleanup() {
     [[ -n "${daemon:-}" ]] && kill "$daemon" 2>/dev/null || true
@@ -25,7 +28,7 @@ curl -s -X POST "$(field '["http_url"]')/printer/gcode/script?script=SET_HEATER_
 port="$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1",0)); print(s.getsockname()[1])')"
 printf '[http]\nbind = "127.0.0.1:%s"\n' "$port" >"$run/klipcal.toml"
 t0="$(date +%s%N)"
-HOME="$run" ./target/release/klipcal --config "$run/klipcal.toml" --moonraker "$ws" serve 2>"$run/klipcal.log" &
+HOME="$run" "$printer_bin" --config "$run/klipcal.toml" --moonraker "$ws" serve 2>"$run/klipcal.log" &
 daemon=$!
 for _ in $(seq 1 200); do
     grep -q "connected to Moonraker" "$run/klipcal.log" 2>/dev/null && break
@@ -34,7 +37,7 @@ done
 t1="$(date +%s%N)"
 startup_ms=$(( (t1 - t0) / 1000000 ))
 sleep 3
-./target/release/klipcal bench footprint --klipcal-pid "$daemon" \
+./target/debug/klipcal bench footprint --klipcal-pid "$daemon" \
     --moonraker-pid "$(field '["pids"]["moonraker"]')" --klippy-pid "$(field '["pids"]["klippy"]')" \
-    --seconds "$seconds" --binary target/release/klipcal --startup-ms "$startup_ms" \
+    --seconds "$seconds" --binary "$printer_bin" --startup-ms "$startup_ms" \
     --page-url "http://127.0.0.1:$port"

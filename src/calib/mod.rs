@@ -13,6 +13,7 @@
 //! - [`soak`]: thermal equilibrium of the bed from its heater power (paper §3.1), with an ETA.
 //! - [`mesh`]: thermal bed-mesh model (seed 002): per-point z(T), LOMO cross-validation, VGB's
 //!   two-mesh method beside it, the fewest profiles within a tolerance.
+//! - [`mesh_capture`]: the frame temperature each probe point of a mesh was taken at.
 //! - [`mesh_follow`]: when to load which profile while printing (tolerance, hysteresis, interval,
 //!   jump limit, stale sensor).
 //! - [`backlash`]: backlash per axis from the seed's camera cycles (seed 004): median, spread,
@@ -33,6 +34,7 @@ pub mod camera_scale;
 pub mod differential;
 pub mod entry;
 pub mod mesh;
+pub mod mesh_capture;
 pub mod mesh_follow;
 pub mod metric;
 pub mod nozzle;

@@ -4,6 +4,8 @@
 pub mod backlash;
 #[cfg(feature = "bench")]
 pub mod bench;
+#[cfg(feature = "bench")]
+pub(crate) mod bench_camera;
 pub(crate) mod camera_render;
 pub mod install;
 pub mod mesh;
@@ -15,6 +17,8 @@ pub mod soak_bench;
 pub mod soak_families;
 #[cfg(feature = "bench")]
 pub mod soak_four_node;
+#[cfg(feature = "bench")]
+pub(crate) mod soak_noise;
 #[cfg(feature = "bench")]
 pub mod soak_real;
 pub mod solve;

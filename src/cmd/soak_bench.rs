@@ -10,6 +10,7 @@ use std::time::Instant;
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 use crate::cli::BenchSoakArgs;
 use crate::cmd::soak_families::{information_bound, weakest_threshold};
+use crate::cmd::soak_noise::{gauss, uniform};
 
 // ---------------------------------------------------------------------------------------------
 // The simulated bed of `klipcal bench soak`.
@@ -44,19 +45,6 @@ struct Noise {
     ar_sd: f64,
     ar_tau_s: f64,
     white_sd: f64,
-}
-
-/// A uniform draw in `[lo, hi)`.
-pub(crate) fn uniform(rng: &mut fastrand::Rng, lo: f64, hi: f64) -> f64 {
-    lo + (hi - lo) * rng.f64()
-}
-
-/// A standard normal draw (Box–Muller).
-pub(crate) fn gauss(rng: &mut fastrand::Rng) -> f64 {
-    // Box–Muller; 1 − f64() is in (0, 1].
-    let u = 1.0 - rng.f64();
-    let v = rng.f64();
-    (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
 }
 
 impl Bed {

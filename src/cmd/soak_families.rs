@@ -15,7 +15,7 @@
 //! noise-free power (for bang-bang its duty over the whole on/off cycles of 10 minutes) was more
 //! than 1 % of full power from its final value.
 
-use super::soak_bench::{gauss, uniform};
+use super::soak_noise::{gauss, uniform};
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// One simulated bed run, as the detector sees it.

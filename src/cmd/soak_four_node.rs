@@ -15,7 +15,7 @@
 //! held at the target, and a declaration is early when the surface was still more than the
 //! budget below it.
 
-use super::soak_bench::{gauss, uniform};
+use super::soak_noise::{gauss, uniform};
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// Klipper's `PID_PARAM_BASE`, `MAX_HEAT_TIME`, `TUNE_PID_DELTA` and the thermistor's report

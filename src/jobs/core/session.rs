@@ -3,6 +3,8 @@
 //! printer guards (idle, ready, heaters off, hold limit). Nothing of any one calibration lives
 //! here: a calibration keeps its own document type and its own steps (`jobs/ab.rs`, …).
 
+mod guards;
+
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::sync::Arc;
@@ -66,6 +68,9 @@ struct Inner {
     /// What klipcal's dialog shows, as far as klipcal knows: `None` after a start (unknown),
     /// `Some(None)` closed, `Some(Some(script))` showing that script.
     shown: std::sync::Mutex<Option<Option<String>>>,
+    /// klipcal's dialog open now (as last sent), with a count of dialog changes: a close seen
+    /// on the console is the user's when nothing changed since (see [`Core::watch_closes`]).
+    open: std::sync::Mutex<Open>,
     /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
     /// shutdown waits for them.
     tasks: tokio_util::task::TaskTracker,
@@ -74,7 +79,7 @@ struct Inner {
 }
 
 impl Core {
-    /// Builds the core; calibrations are registered on top of it by [`super::Calibrations`].
+    /// Builds the core; calibrations are registered on top of it by [`crate::jobs::Calibrations`].
     pub fn new(m: Moonraker, files: Files, store: Store, shutdown: CancellationToken) -> Self {
         Self {
             inner: Arc::new(Inner {
@@ -86,6 +91,7 @@ impl Core {
                 runner: std::sync::Mutex::new(None),
                 titles: std::sync::RwLock::new(BTreeMap::new()),
                 shown: std::sync::Mutex::new(None),
+                open: std::sync::Mutex::new(Open::default()),
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
             }),
@@ -432,213 +438,17 @@ impl Core {
             }
         }
     }
+}
 
-    /// Refuses unless Klipper is ready and no print is printing or paused.
-    ///
-    /// # Errors
-    /// A user error saying what the printer is doing; Moonraker failures.
-    pub async fn printer_idle(&self) -> anyhow::Result<()> {
-        let info = self.inner.m.printer_info().await?;
-        if info["state"] != "ready" {
-            return Err(user(format!(
-                "Klipper is not ready ({}): {}",
-                info["state"].as_str().unwrap_or("?"),
-                info["state_message"].as_str().unwrap_or("").trim()
-            )));
-        }
-        let st = self
-            .inner
-            .m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await?;
-        let ps = st["print_stats"]["state"].as_str().unwrap_or("");
-        if ps == "printing" || ps == "paused" {
-            return Err(user(format!(
-                "a print is {ps}; klipcal does not move, heat, restart or edit while a print runs"
-            )));
-        }
-        Ok(())
-    }
-
-    /// Whether Klipper answers ready.
-    pub async fn klipper_ready(&self) -> bool {
-        matches!(self.inner.m.printer_info().await, Ok(i) if i["state"] == "ready")
-    }
-
-    /// Heaters off, and Klipper's idle timeout back to its configured value (a session may
-    /// have stretched it over a hold window).
-    ///
-    /// # Errors
-    /// Moonraker failures.
-    pub async fn heaters_off(&self) -> anyhow::Result<()> {
-        self.inner.m.gcode("TURN_OFF_HEATERS").await?;
-        self.restore_idle_timeout().await
-    }
-
-    /// [`Core::heaters_off`], waiting out a Moonraker outage however long it lasts (a failed or
-    /// cancelled session's heaters go off once Moonraker is back). Says on the console that the
-    /// heaters are off, after `what` ("A/B calibration failed: …").
-    ///
-    /// # Errors
-    /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
-    pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
-        let mut waited = false;
-        loop {
-            match self.heaters_off().await {
-                Ok(()) => break,
-                Err(e) if self.unreachable(&e) => {
-                    waited = true;
-                    if !self.wait_back().await {
-                        return Err(e);
-                    }
-                }
-                Err(e) => return Err(e),
-            }
-        }
-        if waited {
-            self.console_error(&format!("{what}; now that Moonraker is back: heaters off"))
-                .await;
-        }
-        Ok(())
-    }
-
-    async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
-        let cf = self.inner.m.configfile().await?;
-        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
-            self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
-        }
-        Ok(())
-    }
-
-    /// Lets Klipper itself turn the heaters off after `hold_s` of idling from now, even if
-    /// klipcal (or Moonraker) is gone: the heater's owner while klipcal cannot be. Each call
-    /// starts the count again. A 1 ms dwell follows, so that Klipper's idle timer runs even from
-    /// its `Idle` state (where it only starts again with the next move).
-    ///
-    /// # Errors
-    /// Moonraker failures.
-    pub async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
-        let script = format!(
-            "{}\nG4 P1",
-            gcode_cmd::set_idle_timeout(hold_s.max(1.0).ceil())?
-        );
-        self.inner
-            .m
-            .gcode(&script)
-            .await
-            .context("setting Klipper's idle timeout to the hold limit")?;
-        Ok(())
-    }
-
-    /// A console message.
-    pub async fn console(&self, msg: &str) {
-        console::say(&self.inner.m, msg).await;
-    }
-
-    /// A console error (`RESPOND TYPE=error`, coloured by Mainsail and Fluidd).
-    pub async fn console_error(&self, msg: &str) {
-        console::error(&self.inner.m, msg).await;
-    }
-
-    /// Opens (or replaces) the prompt dialog. Within a call it goes to the console after the
-    /// call's answer; the same dialog as the one showing is not sent again (a jog press does not
-    /// repeat the whole dialog on the console).
-    pub async fn prompt(&self, p: &Prompt) {
-        let script = p.script();
-        {
-            let mut shown = self.shown();
-            if shown
-                .as_ref()
-                .is_some_and(|s| s.as_deref() == Some(script.as_str()))
-            {
-                return;
-            }
-            *shown = Some(Some(script.clone()));
-        }
-        let change = console::PromptChange::Show(script);
-        if !console::hold(change.clone()) {
-            console::send_script(&self.inner.m, &change.script()).await;
-        }
-    }
-
-    /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
-    /// sent when klipcal's dialog is known to be closed already.
-    pub async fn prompt_end(&self) {
-        if !self.mark_closed() {
-            return;
-        }
-        if !console::hold(console::PromptChange::End) {
-            console::send_script(&self.inner.m, console::PROMPT_END).await;
-        }
-    }
-
-    /// Closes klipcal's dialog now, even within a call (before a long operation, so that its
-    /// buttons cannot be pressed again meanwhile).
-    pub async fn prompt_end_now(&self) {
-        console::drop_held();
-        if self.mark_closed() {
-            console::send_script(&self.inner.m, console::PROMPT_END).await;
-        }
-    }
-
-    /// Says `msg` on the console and opens a dialog, as one console script.
-    pub async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
-        let script = p.script();
-        let fresh = {
-            let mut shown = self.shown();
-            let fresh = !shown
-                .as_ref()
-                .is_some_and(|s| s.as_deref() == Some(script.as_str()));
-            *shown = Some(Some(script.clone()));
-            fresh
-        };
-        let change = console::PromptChange::Show(script);
-        let change = fresh.then_some(change);
-        if let Some(c) = &change {
-            if console::hold(c.clone()) {
-                self.console(msg).await;
-                return;
-            }
-        }
-        let script =
-            console::answer_then_prompt(&console::answer_script(msg, false), change.as_ref());
-        console::send_script(&self.inner.m, &script).await;
-    }
-
-    /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
-    /// false when klipcal has no dialog open.
-    pub async fn prompt_again(&self) -> bool {
-        let script = match &*self.shown() {
-            Some(Some(script)) => script.clone(),
-            _ => return false,
-        };
-        let change = console::PromptChange::Show(script);
-        if !console::hold(change.clone()) {
-            console::send_script(&self.inner.m, &change.script()).await;
-        }
-        true
-    }
-
-    /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
-    /// close itself, so a dialog klipcal shows next is sent whole again).
-    pub fn prompt_closed_by_user(&self) {
-        self.mark_closed();
-    }
-
-    /// Marks klipcal's dialog closed; false when it was known to be closed already.
-    fn mark_closed(&self) -> bool {
-        let mut shown = self.shown();
-        let was_closed = matches!(*shown, Some(None));
-        *shown = Some(None);
-        !was_closed
-    }
-
-    fn shown(&self) -> std::sync::MutexGuard<'_, Option<Option<String>>> {
-        self.inner
-            .shown
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-    }
+/// klipcal's dialog as the close watcher sees it.
+#[derive(Default)]
+pub(super) struct Open {
+    /// Changes of klipcal's dialog so far.
+    changes: u64,
+    /// The dialog open now, as last sent.
+    prompt: Option<Prompt>,
+    /// The dialog the user closed without answering, until klipcal's dialog changes.
+    user_closed: Option<Prompt>,
 }
 
 fn read_doc<D: DeserializeOwned>(row: SessionRow) -> anyhow::Result<D> {

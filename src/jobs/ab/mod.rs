@@ -1,0 +1,580 @@
+//! The differential A/B (X/Y) rotation_distance calibration (paper 000): preflight → uploaded →
+//! heating → soaking → printing → holding → measuring → solved → applying → applied → next
+//! round or converged (and failed / cancelled, with the reason). Its states, its steps and its
+//! remote methods; the session store, runner, guards, console and config transaction are the
+//! shared core's (`session`, `console`, `soak`, `printer_config`).
+
+mod apply;
+mod readings;
+mod requests;
+mod run;
+mod soak;
+mod solve;
+#[cfg(test)]
+mod tests;
+
+use readings::{measuring_dialog, measuring_guide};
+pub use requests::{ApplyRequest, CheckRequest, MeasureRequest, StartRequest};
+
+use std::collections::BTreeMap;
+use std::time::Duration;
+
+use anyhow::{anyhow, Context};
+use futures_util::future::BoxFuture;
+use futures_util::FutureExt;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+use tracing::{info, warn};
+
+use crate::calib::entry;
+use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
+use crate::calib::soak::SoakParams;
+use crate::calib::solve::{solve, MotionFacts, Solution, SolveOptions, StepperFacts};
+use crate::config::AbConfig;
+use crate::gcode::{self, LayoutKind};
+use crate::jobs::core::console::{Button, Prompt};
+use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
+use crate::jobs::core::session::{now_unix, Core, Doc};
+use crate::jobs::core::soak::{BedSoak, SoakUpdate};
+use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
+use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::user;
+use crate::klipper::{self, PrinterFacts};
+use crate::layout::Layout;
+use crate::store::SessionRow;
+
+const BED: crate::jobs::core::table::ArgSpec = crate::jobs::core::table::bed_arg(
+    "bed temperature, °C (0: unheated, no soak; default ab.bed_temp_c)",
+);
+const PAIR: crate::jobs::core::table::ArgSpec = arg(
+    "pair",
+    ArgKind::Text,
+    "A-D1",
+    "a pair of the layout, e.g. A-D1",
+    "",
+    "the pair measured, as the layout names it (A-D1)",
+);
+
+/// The A/B calibration's operations, each declared once (see [`crate::jobs::core::table`]).
+pub static OPS: &[Op<AbCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_ab_start",
+            "KLIPCAL_AB_START",
+            "ab/start",
+            "print the pylons and calibrate stepper_x/stepper_y rotation_distance (BED=0 for an unheated bed, LAYOUT=paper or full)",
+            &[
+                BED,
+                arg(
+                    "extruder",
+                    ArgKind::Number {
+                        min: 150.0,
+                        max: 320.0,
+                    },
+                    "215",
+                    "a nozzle temperature from 150 to 320 °C",
+                    "",
+                    "nozzle temperature, °C (default ab.nozzle_temp_c)",
+                ),
+                arg(
+                    "layout",
+                    ArgKind::Choice(&["paper", "full"]),
+                    "paper",
+                    "paper or full",
+                    "",
+                    "paper: the paper's pylons; full: also observes shear",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Start(StartRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_measure",
+            "KLIPCAL_MEASURE",
+            "ab/measure",
+            "enter caliper readings for one pair, e.g. PAIR=A-D1 VALUES=10.02,10.03,10.01,10.02,10.04 (CLEAR=1 removes the pair's readings)",
+            &[
+                PAIR,
+                arg(
+                    "values",
+                    ArgKind::Readings,
+                    "10.02,10.03,10.01",
+                    "readings separated by commas, e.g. 10.02,10.03",
+                    "",
+                    "the readings as the caliper shows them: commas between, a dot as the decimal mark",
+                ),
+                arg(
+                    "value",
+                    ArgKind::Readings,
+                    "10.02",
+                    "one reading, e.g. 10.02",
+                    "",
+                    "one reading (its comma is the decimal mark: 10,02 is 10.02)",
+                ),
+                arg(
+                    "clear",
+                    ArgKind::Flag,
+                    "1",
+                    "1 or 0",
+                    "0",
+                    "1: remove the pair's readings first",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Measure(MeasureRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_ab_check",
+            "KLIPCAL_AB_CHECK",
+            "ab/check",
+            "check readings for one pair without saving them, e.g. PAIR=A-D1 VALUES=10.02,10.03",
+            &[
+                PAIR,
+                arg(
+                    "values",
+                    ArgKind::Readings,
+                    "10.02,10.03",
+                    "readings separated by commas, e.g. 10.02,10.03",
+                    "",
+                    "the readings, separated by commas",
+                ),
+            ],
+        ),
+        parse: |a| Ok(AbCall::Check(CheckRequest::from_args(a)?)),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_soak_choice",
+            "KLIPCAL_SOAK_CHOICE",
+            "ab/soak_choice",
+            "the bed soak: CHOICE=print prints now (offered from the moment the bed is in its band, with what the surface may still warm) or CHOICE=wait (10 min more, at the soak limit's prompt)",
+            &[arg(
+                "choice",
+                ArgKind::Choice(&["print", "wait"]),
+                "wait",
+                "print or wait",
+                "wait",
+                "print: print now; wait: 10 min more",
+            )],
+        ),
+        parse: |a| {
+            Ok(AbCall::SoakChoice(a.choice("choice")?.ok_or_else(|| {
+                user("no CHOICE given; expected CHOICE=print or CHOICE=wait (KLIPCAL_CANCEL cancels)")
+            })?))
+        },
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_solve",
+            "KLIPCAL_AB_SOLVE",
+            "ab/solve",
+            "compute the new rotation distances from the readings",
+            &[],
+        ),
+        parse: |_| Ok(AbCall::Solve),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_apply",
+            "KLIPCAL_AB_APPLY",
+            "ab/apply",
+            "write the new rotation distances (backup, restart, verify, FORCE=1 for a change beyond the limit)",
+            &[arg(
+                "force",
+                ArgKind::Flag,
+                "1",
+                "1 or 0",
+                "0",
+                "1: apply a change beyond ab.max_change_pct",
+            )],
+        ),
+        parse: |a| Ok(AbCall::Apply(ApplyRequest::from_args(a)?)),
+    },
+];
+
+/// An A/B call, typed at the boundary.
+#[derive(Debug, Clone, PartialEq)]
+pub enum AbCall {
+    /// `klipcal_ab_start`.
+    Start(StartRequest),
+    /// `klipcal_measure`.
+    Measure(MeasureRequest),
+    /// `klipcal_ab_check`.
+    Check(CheckRequest),
+    /// `klipcal_soak_choice`: `print` or `wait`.
+    SoakChoice(&'static str),
+    /// `klipcal_solve`.
+    Solve,
+    /// `klipcal_apply`.
+    Apply(ApplyRequest),
+}
+
+impl AbCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(OPS, method, args)
+    }
+}
+
+/// The store's kind.
+pub const KIND: &str = "ab";
+
+/// "Wait 10 min more" after a soak that ran past `soak_max_s`.
+const SOAK_MORE_S: f64 = 600.0;
+
+/// How the console names it.
+const TITLE: &str = "A/B calibration";
+
+/// A session's state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum State {
+    /// Checking the printer.
+    Preflight,
+    /// The job is on the printer.
+    Uploaded,
+    /// Bed heating to its target.
+    Heating,
+    /// Waiting for thermal equilibrium (bed power stops falling).
+    Soaking,
+    /// The job prints.
+    Printing,
+    /// Print done; the part cools on the hot bed.
+    Holding,
+    /// Waiting for caliper readings.
+    Measuring,
+    /// New values computed; waiting for Apply.
+    Solved,
+    /// Writing the values, restarting Klipper.
+    Applying,
+    /// Applied; the next round may start.
+    Applied,
+    /// Converged: done.
+    Converged,
+    /// Failed, with the reason.
+    Failed,
+    /// Cancelled, with the reason.
+    Cancelled,
+}
+
+impl State {
+    /// Whether the session is over.
+    pub fn is_final(self) -> bool {
+        matches!(self, State::Converged | State::Failed | State::Cancelled)
+    }
+
+    /// Whether the daemon drives this state by itself (as opposed to waiting for the user).
+    fn is_automatic(self) -> bool {
+        matches!(
+            self,
+            State::Preflight
+                | State::Uploaded
+                | State::Heating
+                | State::Soaking
+                | State::Printing
+                | State::Holding
+        )
+    }
+
+    /// The state's name as stored.
+    pub fn name(self) -> String {
+        serde_json::to_value(self)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_string))
+            .unwrap_or_default()
+    }
+}
+
+/// The stepper facts a round was printed with.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct StepperDoc {
+    /// mm.
+    pub rotation_distance_mm: f64,
+    /// Microsteps.
+    pub microsteps: u32,
+    /// Full steps per rotation.
+    pub full_steps_per_rotation: u32,
+    /// Gear ratio product.
+    pub gear_ratio: f64,
+}
+
+/// One print-measure-solve-apply round.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Round {
+    /// 1-based.
+    pub n: u32,
+    /// The job under Moonraker's gcodes root.
+    pub file: String,
+    /// The printed layout.
+    pub layout: Layout,
+    /// `corexy` or `cartesian`.
+    pub kinematics: String,
+    /// stepper_x as printed.
+    pub stepper_x: StepperDoc,
+    /// stepper_y as printed.
+    pub stepper_y: StepperDoc,
+    /// The solver's result (stored in the `klipcal solve --json` shape).
+    pub solution: Option<Solution>,
+    /// What apply wrote.
+    pub applied: Option<ApplyReport>,
+    /// The layout diagram under the config root (where Mainsail/Fluidd's file browser shows
+    /// it), when it was uploaded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub diagram: Option<String>,
+    /// How the prompt names the diagram to a user: its PNG twin (`config/klipcal/….png`), or
+    /// the SVG when no PNG could be made.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub picture: Option<String>,
+}
+
+/// The whole session document, stored as JSON.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Session {
+    /// Store id.
+    pub id: i64,
+    /// State.
+    pub state: State,
+    /// Why it failed or was cancelled.
+    pub reason: Option<String>,
+    /// The current step in words (with an ETA while soaking).
+    pub progress: String,
+    /// Settings: `[ab]` with the start call's arguments.
+    pub options: AbConfig,
+    /// Rounds so far; the last is the current one.
+    pub rounds: Vec<Round>,
+    /// Things the user should know (skew cleared, heaters turned off, …).
+    pub notes: Vec<String>,
+    /// Klipper's XY skew factor before the session cleared it.
+    pub skew_before: Option<f64>,
+    /// Unix time the print finished.
+    pub print_done_unix: Option<f64>,
+    /// The heaters were turned off by the hold limit.
+    pub heaters_off: bool,
+    /// The soak ran past `soak_max_s` and waits for the user's choice.
+    #[serde(default)]
+    pub soak_asking: bool,
+    /// The user's answer (`print` or `wait`), taken by the runner.
+    #[serde(default)]
+    pub soak_choice: Option<String>,
+    /// Since when the bed heats again after an apply that did not converge, so the next round's
+    /// soak starts warm (Unix s); the hold limit bounds it.
+    #[serde(default)]
+    pub preheat_since_unix: Option<f64>,
+    /// The last entry of readings saved: its pair and readings (a line sent again is told from
+    /// new readings by it).
+    #[serde(default)]
+    pub last_entry: Option<(String, Vec<f64>)>,
+}
+
+impl Doc for Session {
+    fn state_name(&self) -> String {
+        self.state.name()
+    }
+}
+
+/// The A/B calibration's settings: `[ab]` and `[soak]`.
+#[derive(Debug, Clone, Default)]
+pub struct AbSettings {
+    /// `[ab]`: defaults of a session's options.
+    pub defaults: AbConfig,
+    /// `[soak]`: the bed soak detector.
+    pub soak: SoakParams,
+}
+
+/// The A/B calibration over the shared core.
+#[derive(Clone)]
+pub struct Ab {
+    core: Core,
+    settings: AbSettings,
+}
+
+impl Ab {
+    /// The calibration over `core`.
+    #[must_use]
+    pub fn new(core: Core, settings: AbSettings) -> Self {
+        Self { core, settings }
+    }
+
+    fn load(&self, id: i64) -> anyhow::Result<Session> {
+        self.core.load(id)
+    }
+
+    fn active(&self) -> anyhow::Result<Option<Session>> {
+        Ok(self.core.active_of::<Session>(KIND)?.map(|(_, s)| s))
+    }
+
+    async fn update<T>(
+        &self,
+        id: i64,
+        f: impl FnOnce(&mut Session) -> anyhow::Result<T>,
+    ) -> anyhow::Result<T> {
+        self.core.update(id, f).await
+    }
+
+    async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
+        info!(session = id, state = %state.name(), "{progress}");
+        let progress = progress.to_string();
+        self.update(id, |s| {
+            s.state = state;
+            s.progress = progress;
+            Ok(())
+        })
+        .await
+    }
+
+    /// Cancels the session: its print cancelled, heaters off, skew restored, prompt closed.
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+        let s = self.load(id)?;
+        if s.state == State::Printing {
+            let _ = self.core.m().gcode("CANCEL_PRINT").await;
+        }
+        let _ = self.core.heaters_off().await;
+        self.update(s.id, |s| {
+            s.state = State::Cancelled;
+            s.reason = Some(reason.to_string());
+            s.progress = "cancelled; heaters off".into();
+            Ok(())
+        })
+        .await?;
+        self.restore_skew(s.skew_before).await;
+        self.core.prompt_end().await;
+        Ok(json!({"session": s.id, "state": "cancelled",
+                  "message": format!("session {} cancelled ({reason}); heaters off", s.id)}))
+    }
+
+    /// A session as `klipcal_status` shows it.
+    fn session_status(&self, s: &Session) -> anyhow::Result<Value> {
+        let readings = self.readings(s)?;
+        let rounds: Vec<Value> = s
+            .rounds
+            .iter()
+            .map(|r| {
+                let sol = r.solution.as_ref();
+                json!({
+                    "n": r.n,
+                    "file": r.file,
+                    "rotation_distance": [r.stepper_x.rotation_distance_mm, r.stepper_y.rotation_distance_mm],
+                    "rotation_distance_new": sol.map(|s| json!([s.stepper_x.rotation_distance_new, s.stepper_y.rotation_distance_new])),
+                    "scale": sol.map(|s| json!([s.stepper_x.scale, s.stepper_y.scale])),
+                    "error_um_per_100mm": sol.map(|s| {
+                        ((s.stepper_x.scale - 1.0) * 1e5).abs().max(((s.stepper_y.scale - 1.0) * 1e5).abs())
+                    }),
+                    "uncertainty": sol.map(|s| json!([s.stepper_x.uncertainty, s.stepper_y.uncertainty])),
+                    "converged": sol.map(|s| s.converged),
+                    "applied": r.applied,
+                })
+            })
+            .collect();
+        Ok(json!({
+            "id": s.id,
+            "state": s.state.name(),
+            "progress": s.progress,
+            "reason": s.reason,
+            "round": s.rounds.len(),
+            "pairs": s.rounds.last().map(|r| json!(r.layout.pairs)),
+            "file": s.rounds.last().map(|r| r.file.clone()),
+            "readings": readings,
+            "readings_per_pair": s.options.readings_per_pair,
+            "bed_temp_c": s.options.bed_temp_c,
+            "diagram": s.rounds.last().and_then(|r| r.diagram.clone()),
+            "missing": if matches!(s.state, State::Measuring | State::Solved) { json!(self.missing_lines(s)?) } else { json!([]) },
+            "rounds": rounds,
+            "notes": s.notes,
+            "heaters_off": s.heaters_off,
+        }))
+    }
+}
+
+impl Calibration for Ab {
+    fn kind(&self) -> &'static str {
+        KIND
+    }
+
+    fn title(&self) -> &'static str {
+        "an A/B calibration"
+    }
+
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        crate::jobs::core::table::specs(OPS).collect()
+    }
+
+    fn call<'a>(
+        &'a self,
+        method: &'a str,
+        args: &'a Value,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        async move {
+            match AbCall::parse(method, args)? {
+                AbCall::Start(r) => self.start(&r).await,
+                AbCall::Measure(r) => self.measure(&r).await,
+                AbCall::Solve => self.solve().await,
+                AbCall::Apply(r) => self.apply(&r).await,
+                AbCall::Check(r) => self.check(&r),
+                AbCall::SoakChoice(c) => self.soak_choice(c).await,
+            }
+        }
+        .boxed()
+    }
+
+    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        self.resume_session(row.id).boxed()
+    }
+
+    fn cancel<'a>(
+        &'a self,
+        row: &'a SessionRow,
+        reason: &'a str,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        self.cancel_session(row.id, reason).boxed()
+    }
+
+    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+        let s: Session = serde_json::from_value(row.doc.clone())
+            .with_context(|| format!("reading stored session {}", row.id))?;
+        self.session_status(&s)
+    }
+
+    fn held(&self, row: &SessionRow) -> Option<Hold> {
+        let s: Session = serde_json::from_value(row.doc.clone()).ok()?;
+        let waiting = matches!(s.state, State::Holding | State::Measuring | State::Solved);
+        if s.heaters_off {
+            return None;
+        }
+        if s.state == State::Applied {
+            // The bed heating again for the next round.
+            return Some(Hold {
+                since_unix: s.preheat_since_unix?,
+                max_s: s.options.hold_max_s,
+            });
+        }
+        waiting.then_some(Hold {
+            since_unix: s.print_done_unix?,
+            max_s: s.options.hold_max_s,
+        })
+    }
+
+    fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        async move {
+            let _ = self
+                .update(row.id, |s| {
+                    s.heaters_off = true;
+                    s.notes.push(format!(
+                        "heaters turned off: the hold limit of {} s after the {} passed (ab.hold_max_s)",
+                        s.options.hold_max_s,
+                        if s.state == State::Applied { "apply" } else { "print" }
+                    ));
+                    Ok(())
+                })
+                .await;
+            self.core
+                .console(&format!("{TITLE}: hold limit reached, heaters off"))
+                .await;
+        }
+        .boxed()
+    }
+}

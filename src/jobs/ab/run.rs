@@ -1,0 +1,519 @@
+//! Starting a calibration and its runner: the preflight, the round's pylon job printed, the
+//! skew applied for the print and restored, the next round's preheat, resume after a restart.
+
+use super::*;
+
+impl Ab {
+    /// After an apply that did not converge: Klipper's restart turned the bed off, so it heats
+    /// again at once (the next round's soak then starts warm), owned by the session and bounded
+    /// by the hold limit (klipcal's watchdog, and Klipper's idle timeout if klipcal is gone);
+    /// a dialog offers the next round. Returns what the apply answer adds.
+    pub(super) async fn preheat_next_round(&self, s: &Session, round: usize) -> String {
+        let bed = s.options.bed_temp_c;
+        let hold_min = s.options.hold_max_s / 60.0;
+        let mut said = String::new();
+        if bed > 0.0 {
+            let heated = async {
+                BedSoak::heat(&self.core, bed).await?;
+                self.core.hold_heaters_for(s.options.hold_max_s).await
+            }
+            .await;
+            match heated {
+                Ok(()) => {
+                    let _ = self
+                        .update(s.id, |d| {
+                            d.preheat_since_unix = Some(now_unix());
+                            d.heaters_off = false;
+                            Ok(())
+                        })
+                        .await;
+                    said = format!(
+                        " The bed heats to {bed} °C again so that round {round} starts warm; \
+                         it goes off after {hold_min:.0} min without KLIPCAL_AB_START \
+                         (ab.hold_max_s), or with KLIPCAL_CANCEL."
+                    );
+                }
+                Err(e) => {
+                    warn!(error = %e, "no preheat for the next round");
+                    let _ = self.core.heaters_off().await;
+                }
+            }
+        }
+        self.core
+            .prompt(&Prompt {
+                title: format!("klipcal: round {round}?"),
+                lines: vec![format!(
+                    "Not yet converged: round {round} prints new pylons with the new values{}.",
+                    if said.is_empty() {
+                        ""
+                    } else {
+                        " (the bed is heating again)"
+                    }
+                )],
+                buttons: vec![Button::new(
+                    &format!("Print round {round}"),
+                    "KLIPCAL_AB_START",
+                    "primary",
+                )],
+                footer: vec![Button::new("End", "_KLIPCAL_CANCEL_ASK", "secondary")],
+            })
+            .await;
+        said
+    }
+
+    pub(super) fn spawn_runner(&self, id: i64) {
+        let (ab, ab2) = (self.clone(), self.clone());
+        self.core.spawn_session(
+            id,
+            TITLE,
+            move || {
+                let ab = ab.clone();
+                async move { ab.run(id).await }
+            },
+            move |msg| async move { ab2.fail(id, &msg).await },
+        );
+    }
+
+    pub(super) async fn fail(&self, id: i64, why: &str) {
+        let off = self
+            .core
+            .heaters_off_once_back(&format!("{TITLE} failed: {why}"))
+            .await;
+        if let Err(e) = &off {
+            warn!(session = id, error = %format!("{e:#}"), "heaters not turned off");
+        }
+        let _ = self
+            .update(id, |s| {
+                if !s.state.is_final() {
+                    s.state = State::Failed;
+                    s.reason = Some(why.to_string());
+                    s.progress = "failed".into();
+                }
+                Ok(())
+            })
+            .await;
+        self.core.prompt_end().await;
+        let heaters = if off.is_ok() { "; heaters off" } else { "" };
+        self.core
+            .console_error(&format!("{TITLE} failed: {why}{heaters}"))
+            .await;
+    }
+
+    /// Resumes a session after a daemon start or a reconnect.
+    pub(super) async fn resume_session(&self, id: i64) {
+        let s = match self.load(id) {
+            Ok(s) => s,
+            Err(e) => {
+                warn!(error = %e, "cannot read the active session");
+                return;
+            }
+        };
+        if s.state == State::Applying {
+            // The apply was cut off: the files may or may not be edited; solve state is safe
+            // to return to because apply checks what Klipper runs.
+            let _ = self
+                .update(s.id, |s| {
+                    s.state = State::Solved;
+                    s.notes.push(
+                        "an apply was interrupted by a restart; check the values with \
+                         KLIPCAL_STATUS and apply again"
+                            .into(),
+                    );
+                    Ok(())
+                })
+                .await;
+            return;
+        }
+        if s.state.is_automatic() {
+            info!(session = s.id, state = %s.state.name(), "resuming session");
+            self.spawn_runner(s.id);
+        }
+    }
+
+    /// Sets the solved skew in Klipper, saves it as profile `klipcal` with SAVE_CONFIG, loads
+    /// it, and says whether PRINT_START loads it at the next print (Klipper does not load skew
+    /// profiles at start).
+    pub(super) async fn apply_skew(
+        &self,
+        set_skew: &str,
+        start_macro: &str,
+    ) -> anyhow::Result<String> {
+        let m = self.core.m();
+        m.gcode(set_skew).await?;
+        m.gcode("SKEW_PROFILE SAVE=klipcal").await?;
+        let (state, msg) =
+            printer_config::restart_with(m, "SAVE_CONFIG", Duration::from_secs(60)).await?;
+        if state != "ready" {
+            return Err(anyhow!("Klipper is {state} after SAVE_CONFIG: {msg}"));
+        }
+        m.gcode("SKEW_PROFILE LOAD=klipcal").await?;
+        let pc = printer_config::fetch(m, self.core.files()).await?;
+        let configured = (!start_macro.is_empty()).then_some(start_macro);
+        let saved = format!("skew saved as profile klipcal ({set_skew}) and loaded now");
+        let add = "Klipper does not load skew profiles at start: add the line \
+                   `SKEW_PROFILE LOAD=klipcal`";
+        Ok(match klipper::find_start_macro(&pc.config, configured) {
+            Ok(klipper::StartMacro::Found {
+                command, section, ..
+            }) => {
+                let loads = pc
+                    .config
+                    .get(&section, "gcode")
+                    .is_some_and(|g| g.to_uppercase().contains("SKEW_PROFILE LOAD=KLIPCAL"));
+                if loads {
+                    format!("skew saved as profile klipcal ({set_skew}); {command} loads it")
+                } else {
+                    format!("{saved}; {add} to your {command} macro")
+                }
+            }
+            Ok(klipper::StartMacro::Ambiguous(names)) => format!(
+                "{saved}; {add} to the start macro your slicer calls ({}; set ab.start_macro \
+                 to name it)",
+                names.join(" or ")
+            ),
+            Ok(klipper::StartMacro::NotFound) | Err(_) => {
+                format!("{saved}; {add} to the start macro your slicer calls")
+            }
+        })
+    }
+
+    /// Sets Klipper's XY skew back to what it was before the session cleared it.
+    pub(super) async fn restore_skew(&self, xy_before: Option<f64>) {
+        if let Some(cmd) = xy_before
+            .filter(|v| *v != 0.0)
+            .and_then(crate::calib::skew::set_skew_command)
+        {
+            if let Err(e) = self.core.m().gcode(&cmd).await {
+                warn!(error = %e, "could not restore the skew correction");
+            }
+        }
+    }
+
+    /// Drives the automatic states until the session waits for the user or ends.
+    pub(super) async fn run(&self, id: i64) -> anyhow::Result<()> {
+        loop {
+            let s = self.load(id)?;
+            match s.state {
+                State::Preflight => self.preflight(s).await?,
+                State::Uploaded => {
+                    BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                    self.set_state(id, State::Heating, "bed heating").await?;
+                }
+                State::Heating | State::Soaking => self.soak(s).await?,
+                State::Printing => self.print(s).await?,
+                State::Holding => self.hold(s).await?,
+                _ => return Ok(()),
+            }
+        }
+    }
+
+    /// Reads Klipper's current XY skew factor (GET_CURRENT_SKEW answers on the console).
+    pub(super) async fn current_skew(&self) -> Option<f64> {
+        let mut rx = self.core.m().events();
+        self.core.m().gcode("GET_CURRENT_SKEW").await.ok()?;
+        let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
+        while let Ok(Ok(e)) = tokio::time::timeout_at(deadline, rx.recv()).await {
+            if let crate::moonraker::Event::GcodeResponse(text) = e {
+                if let Some(rest) = text.split("XY Skew:").nth(1) {
+                    return rest.split_whitespace().next()?.parse().ok();
+                }
+            }
+        }
+        None
+    }
+
+    pub(super) async fn preflight(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        self.core.printer_idle().await?;
+        let pc = printer_config::fetch(self.core.m(), self.core.files()).await?;
+        let facts = PrinterFacts::from_config(&pc.config)?;
+        let mut missing = Vec::new();
+        if !facts.has_virtual_sdcard {
+            missing.push("[virtual_sdcard] (with path: ~/printer_data/gcodes)");
+        }
+        if !facts.has_respond {
+            missing.push("[respond]");
+        }
+        if !facts.has_exclude_object {
+            missing.push("[exclude_object]");
+        }
+        if s.options.shear_to == "klipper_skew" && !facts.has_skew_correction {
+            missing.push("[skew_correction] (ab.shear_to = \"klipper_skew\")");
+        }
+        if !facts.has_heater_bed && s.options.bed_temp_c > 0.0 {
+            missing.push("[heater_bed] (or start with BED=0)");
+        }
+        if !missing.is_empty() {
+            return Err(user(format!(
+                "the printer config lacks what the calibration needs; add to printer.cfg: {}",
+                missing.join(", ")
+            )));
+        }
+        let kinematics = match facts.kinematics {
+            klipper::Kinematics::CoreXy => "corexy",
+            klipper::Kinematics::Cartesian => "cartesian",
+            klipper::Kinematics::Other(ref k) => {
+                return Err(user(format!(
+                    "kinematics `{k}`: klipcal calibrates corexy and cartesian printers"
+                )))
+            }
+        };
+        let mut notes = Vec::new();
+        let mut skew_before = s.skew_before;
+        if facts.has_skew_correction {
+            let xy = self.current_skew().await.unwrap_or(0.0);
+            if s.rounds.is_empty() {
+                skew_before = Some(xy);
+            }
+            if xy != 0.0 {
+                notes.push(format!(
+                    "skew correction (XY factor {xy:.6}) cleared for the calibration print; it is restored afterwards"
+                ));
+            }
+            self.core.m().gcode("SET_SKEW CLEAR=1").await?;
+        }
+        let gk = if kinematics == "corexy" {
+            gcode::Kinematics::CoreXy
+        } else {
+            gcode::Kinematics::Cartesian
+        };
+        let machine = gcode::Machine::from_config(
+            &pc.config,
+            Some(gk),
+            None,
+            None,
+            Some(s.options.start_macro.as_str()),
+        )
+        .map_err(|e| user(e.to_string()))?;
+        let opts = gcode::Options {
+            layout: if s.options.layout == "full" {
+                LayoutKind::Full
+            } else {
+                LayoutKind::Paper
+            },
+            bed_temp_c: s.options.bed_temp_c,
+            nozzle_temp_c: s.options.nozzle_temp_c,
+            generated_at_unix_s: now_unix() as i64,
+            ..gcode::Options::default()
+        };
+        let job = match gcode::generate(&machine, &opts) {
+            Ok(j) => j,
+            Err(gcode::Error::DoesNotFit {
+                suggested_d2_mm: Some(d2),
+                message,
+            }) => {
+                notes.push(format!(
+                    "the default D2 does not fit this bed; using D2 = {d2} mm ({message})"
+                ));
+                gcode::generate(&machine, &gcode::Options { d2_mm: d2, ..opts })?
+            }
+            Err(e) => return Err(user(e.to_string())),
+        };
+        let n = s.rounds.len() as u32 + 1;
+        let file = format!("klipcal/ab-s{id}-r{n}.gcode");
+        let stepper = |st: &klipper::Stepper| StepperDoc {
+            rotation_distance_mm: st.rotation_distance_mm,
+            microsteps: st.microsteps,
+            full_steps_per_rotation: st.full_steps_per_rotation,
+            gear_ratio: st.gear_ratio,
+        };
+        let round = Round {
+            n,
+            file: file.clone(),
+            layout: job.layout.clone(),
+            kinematics: kinematics.into(),
+            stepper_x: stepper(&facts.stepper_x),
+            stepper_y: stepper(&facts.stepper_y),
+            solution: None,
+            applied: None,
+            diagram: None,
+            picture: None,
+        };
+        self.core
+            .files()
+            .upload("gcodes", &file, job.gcode.into_bytes())
+            .await
+            .context("uploading the pylon job")?;
+        let diagram = format!("klipcal/ab-s{id}-r{n}.svg");
+        let round = match self.core.save_picture(&diagram, job.svg).await {
+            Some(shown) => Round {
+                diagram: Some(diagram),
+                picture: Some(shown),
+                ..round
+            },
+            None => round,
+        };
+        let bed = if s.options.bed_temp_c > 0.0 {
+            format!("heating the bed to {} °C", s.options.bed_temp_c)
+        } else {
+            "the bed stays unheated (BED=0)".to_string()
+        };
+        let msg = format!(
+            "round {n}: {} pylons uploaded as {file}; {bed}",
+            job.layout.pylons.len()
+        );
+        self.update(id, |s| {
+            s.rounds.push(round);
+            s.notes.extend(notes);
+            s.skew_before = skew_before;
+            s.state = State::Uploaded;
+            s.progress = msg.clone();
+            Ok(())
+        })
+        .await?;
+        self.core.console(&format!("A/B calibration {msg}")).await;
+        Ok(())
+    }
+
+    pub(super) async fn print(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        let round = s
+            .rounds
+            .last()
+            .ok_or_else(|| anyhow!("session has no round"))?;
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"print_stats": ["state", "filename"]}))
+            .await?;
+        let ps = &st["print_stats"];
+        let ours = ps["filename"].as_str() == Some(round.file.as_str());
+        let state = ps["state"].as_str().unwrap_or("");
+        if !(ours && matches!(state, "printing" | "paused" | "complete")) {
+            self.core.printer_idle().await?;
+            // Klipper keeps the heaters on while it prints; once the print ends, it turns them
+            // off by itself after the hold limit if klipcal is not there to do it.
+            self.core.hold_heaters_for(s.options.hold_max_s).await?;
+            self.core.m().print_start(&round.file).await?;
+            self.core
+                .console(&format!("A/B calibration: printing {}", round.file))
+                .await;
+        }
+        let mut standby = 0;
+        loop {
+            tokio::time::sleep(Duration::from_millis(500)).await;
+            let st = match self
+                .core
+                .m()
+                .objects_query(json!({"print_stats": ["state", "filename", "message"]}))
+                .await
+            {
+                Ok(st) => st,
+                Err(e) => {
+                    // Klipper restarting or Moonraker away: keep watching; a shutdown shows up
+                    // as print_stats error once Klipper is back.
+                    warn!(error = %e, "print status unavailable");
+                    continue;
+                }
+            };
+            let ps = &st["print_stats"];
+            match ps["state"].as_str().unwrap_or("") {
+                "complete" => {
+                    self.update(id, |s| {
+                        s.state = State::Holding;
+                        s.print_done_unix = Some(now_unix());
+                        s.progress = "print done; the part cools on the hot bed".into();
+                        Ok(())
+                    })
+                    .await?;
+                    return Ok(());
+                }
+                "cancelled" => {
+                    let _ = self.core.heaters_off().await;
+                    self.update(id, |s| {
+                        s.state = State::Cancelled;
+                        s.reason = Some("the calibration print was cancelled".into());
+                        s.progress = "cancelled".into();
+                        Ok(())
+                    })
+                    .await?;
+                    self.core
+                        .console("A/B calibration cancelled: the print was cancelled; heaters off")
+                        .await;
+                    return Ok(());
+                }
+                "error" => {
+                    return Err(anyhow!(
+                        "the calibration print failed: {}",
+                        ps["message"].as_str().unwrap_or("Klipper error")
+                    ))
+                }
+                "standby" => {
+                    // Klipper forgot the print: it shut down or restarted mid-print. Two looks
+                    // a moment apart, so a print just being started is not mistaken for it.
+                    standby += 1;
+                    if standby >= 3 {
+                        return Err(anyhow!(if self.core.klipper_ready().await {
+                            "the calibration print stopped: Klipper restarted during the print"
+                        } else {
+                            "Klipper shut down during the calibration print"
+                        }));
+                    }
+                }
+                _ => standby = 0,
+            }
+        }
+    }
+
+    /// `klipcal_ab_start`: starts a session (or the next round of an applied one).
+    ///
+    /// # Errors
+    /// A session already running, bad arguments, or a printer that is printing.
+    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+        let d = &self.settings.defaults;
+        let bed = req.bed_temp_c.unwrap_or(d.bed_temp_c);
+        let nozzle = req.nozzle_temp_c.unwrap_or(d.nozzle_temp_c);
+        let layout = req.layout.clone().unwrap_or_else(|| d.layout.clone());
+        self.core.refuse_other_kind(KIND)?;
+        self.core.printer_idle().await?;
+        let next_round = {
+            let _g = self.core.lock().await;
+            match self.active()? {
+                Some(mut s) if s.state == State::Applied => {
+                    s.state = State::Preflight;
+                    s.progress = format!("round {}: preflight", s.rounds.len() + 1);
+                    s.options.bed_temp_c = bed;
+                    s.options.nozzle_temp_c = nozzle;
+                    s.options.layout.clone_from(&layout);
+                    s.print_done_unix = None;
+                    s.heaters_off = false;
+                    s.preheat_since_unix = None;
+                    self.core.save(s.id, &s)?;
+                    Some(s.id)
+                }
+                _ => None,
+            }
+        };
+        let id = match next_round {
+            Some(id) => id,
+            None => {
+                let options = AbConfig {
+                    layout,
+                    bed_temp_c: bed,
+                    nozzle_temp_c: nozzle,
+                    ..d.clone()
+                };
+                let mut s = Session {
+                    id: 0,
+                    state: State::Preflight,
+                    reason: None,
+                    progress: "preflight".into(),
+                    options,
+                    rounds: Vec::new(),
+                    notes: Vec::new(),
+                    skew_before: None,
+                    print_done_unix: None,
+                    heaters_off: false,
+                    soak_asking: false,
+                    soak_choice: None,
+                    preheat_since_unix: None,
+                    last_entry: None,
+                };
+                self.core.create(KIND, &mut s, |s, id| s.id = id).await?
+            }
+        };
+        self.spawn_runner(id);
+        Ok(json!({"session": id, "state": "preflight",
+                  "message": format!("{TITLE} session {id} started: checking the printer")}))
+    }
+}

@@ -1,0 +1,265 @@
+//! The bed soak before a round's print (with the user's choice when it takes long) and the
+//! hold after it while the user measures.
+
+use super::*;
+
+impl Ab {
+    pub(super) async fn soak(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        let hold_s = s.options.hold_max_s;
+        let mut soak = BedSoak::new(
+            self.settings.soak.clone(),
+            s.options.bed_temp_c,
+            s.options.soak_max_s,
+            "ab.soak_max_s",
+        );
+        let mut last = String::new();
+        let mut cost: Option<f64> = None;
+        // Since when the soak question waits for an answer, and what it said.
+        let mut asked: Option<(tokio::time::Instant, String)> = None;
+        loop {
+            let doc = self.load(id)?;
+            // Print now, chosen while soaking (issue 29): from the moment the bed is in its band.
+            if doc.soak_choice.as_deref() == Some("print") {
+                if asked.is_some() {
+                    self.core.prompt_end().await;
+                }
+                let words = cost.map_or_else(
+                    || "what the surface may still warm is not known yet".to_string(),
+                    |c| {
+                        format!(
+                            "the surface may still warm by up to {} (95 %)",
+                            crate::calib::soak::kelvin_words(c)
+                        )
+                    },
+                );
+                let note = format!("the user chose to print now, before the bed settled: {words}");
+                self.update(id, |s| {
+                    s.soak_choice = None;
+                    s.soak_asking = false;
+                    s.notes.push(note.clone());
+                    s.state = State::Printing;
+                    s.progress = format!("printing now, as chosen ({words})");
+                    Ok(())
+                })
+                .await?;
+                self.core.console(&format!("{TITLE}: {note}")).await;
+                return Ok(());
+            }
+            if let Some((_, line)) = &asked {
+                if doc.soak_choice.as_deref() == Some("wait") {
+                    self.core.prompt_end().await;
+                    let note = format!("{line}; the user chose to wait 10 min more");
+                    self.update(id, |s| {
+                        s.soak_asking = false;
+                        s.soak_choice = None;
+                        s.notes.push(note);
+                        s.progress = "soaking 10 min more, as chosen".into();
+                        Ok(())
+                    })
+                    .await?;
+                    soak.extend(SOAK_MORE_S);
+                    asked = None;
+                    last.clear();
+                }
+            }
+            match soak.poll(&self.core, TITLE).await? {
+                SoakUpdate::Stable { why } => {
+                    if let Some((_, line)) = asked.take() {
+                        // Settled while the question waited: what the user was waiting for.
+                        self.core.prompt_end().await;
+                        self.update(id, |s| {
+                            s.soak_asking = false;
+                            s.soak_choice = None;
+                            s.notes
+                                .push(format!("{line}; the bed settled while the question waited"));
+                            Ok(())
+                        })
+                        .await?;
+                    }
+                    let n = s.rounds.len();
+                    let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
+                    let plot = crate::jobs::core::soak::save_soak_picture(
+                        &self.core,
+                        &self.settings.soak,
+                        &path,
+                    )
+                    .await
+                    .map(|p| format!("; plot: {p}"))
+                    .unwrap_or_default();
+                    self.set_state(
+                        id,
+                        State::Printing,
+                        &format!("bed stable ({why}){plot}; printing"),
+                    )
+                    .await?;
+                    return Ok(());
+                }
+                SoakUpdate::Heating => {
+                    if last != "heating" {
+                        self.set_state(id, State::Heating, "bed heating").await?;
+                        last = "heating".into();
+                    }
+                }
+                SoakUpdate::Soaking {
+                    text, print_now_c, ..
+                } => {
+                    cost = print_now_c.or(cost);
+                    if asked.is_none() && last != text {
+                        self.set_state(id, State::Soaking, &text).await?;
+                        last = text;
+                    }
+                }
+                SoakUpdate::TooLong {
+                    minutes,
+                    falling_pct_per_10min,
+                } => match &asked {
+                    None => {
+                        // The question waits within the hold limit; the bed stays hot and the
+                        // soak goes on meanwhile (Klipper owns the bed for that long: the
+                        // extension sets its idle timeout), so that no answer costs nothing
+                        // but time (issue 26 A.1).
+                        soak.extend(hold_s);
+                        let line = self
+                            .ask_soak_choice(id, minutes, falling_pct_per_10min, hold_s)
+                            .await?;
+                        asked = Some((tokio::time::Instant::now(), line));
+                    }
+                    Some((since, line)) => {
+                        self.core.prompt_end().await;
+                        return Err(user(format!(
+                            "no answer to the soak question within {:.0} min (ab.hold_max_s) \
+                             and the bed has not settled ({line})",
+                            since.elapsed().as_secs_f64() / 60.0
+                        )));
+                    }
+                },
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+
+    /// The bed is at its target but its power still moves after `soak_max_s`: asks print now
+    /// / wait 10 min more / cancel, and says what happens without an answer (the bed stays hot
+    /// and the soak goes on up to `hold_s`). The runner takes the answer; returns the line
+    /// that says why it asks.
+    ///
+    /// # Errors
+    /// Store failures.
+    pub(super) async fn ask_soak_choice(
+        &self,
+        id: i64,
+        minutes: f64,
+        falling: Option<f64>,
+        hold_s: f64,
+    ) -> anyhow::Result<String> {
+        let line = match falling {
+            Some(f) => format!(
+                "bed power still {} by {:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)",
+                if f < 0.0 { "rising" } else { "falling" },
+                f.abs()
+            ),
+            None => format!("the bed has not settled after {minutes:.0} min (ab.soak_max_s)"),
+        };
+        let hold_min = (hold_s / 60.0).ceil();
+        let how = format!(
+            "waiting for your answer: KLIPCAL_SOAK_CHOICE CHOICE=print prints now, CHOICE=wait \
+             waits 10 min more, KLIPCAL_CANCEL ends the session. Without an answer the bed stays \
+             hot and the soak goes on (printing once it settles) for up to {hold_min:.0} min \
+             (ab.hold_max_s), then the heaters go off"
+        );
+        self.update(id, |s| {
+            s.soak_asking = true;
+            s.soak_choice = None;
+            s.progress = format!("{line}: {how}");
+            Ok(())
+        })
+        .await?;
+        self.core
+            .say_and_prompt(
+                &format!("{TITLE}: {line}: {how}"),
+                &Prompt {
+                    title: "klipcal: the bed has not settled".into(),
+                    lines: vec![
+                        line.clone(),
+                        format!(
+                            "Print now: the readings may carry some thermal drift. Wait: 10 more \
+                             minutes. No answer: the bed stays hot and klipcal keeps waiting, up \
+                             to {hold_min:.0} min. Cancel: heaters off."
+                        ),
+                    ],
+                    buttons: vec![
+                        Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                        Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+                    ],
+                    footer: vec![Button::cancel_asking()],
+                },
+            )
+            .await;
+        Ok(line)
+    }
+
+    /// `klipcal_soak_choice CHOICE=print|wait`: answers the soak prompt.
+    ///
+    /// # Errors
+    /// A bad CHOICE, or no soak waiting for one.
+    pub async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
+        let s = match self.active()? {
+            Some(s) if s.soak_asking => s,
+            // Print now is offered from the moment the bed is in its band (issue 29).
+            Some(s) if s.state == State::Soaking && choice == "print" => s,
+            _ => {
+                return Err(user(
+                    "nothing to choose: no bed soak is waiting for an answer (CHOICE=print is \
+                     taken while the bed soaks at its target)",
+                ))
+            }
+        };
+        self.update(s.id, |d| {
+            d.soak_choice = Some(choice.to_string());
+            Ok(())
+        })
+        .await?;
+        Ok(json!({"session": s.id, "choice": choice,
+                  "message": if choice == "print" { "printing now" } else { "waiting 10 min more" }}))
+    }
+
+    pub(super) async fn hold(&self, s: Session) -> anyhow::Result<()> {
+        let id = s.id;
+        // Klipper itself turns the heaters off at the hold limit (counted from the print's
+        // end, also when the hold resumes after an outage), even if klipcal stops.
+        let done = s.print_done_unix.unwrap_or_else(now_unix);
+        let hold = (done + s.options.hold_max_s - now_unix()).max(1.0);
+        self.core.hold_heaters_for(hold).await?;
+        let wait = (done + s.options.cooldown_s - now_unix()).max(0.0);
+        if wait > 0.0 {
+            self.core.console(&format!(
+                "A/B calibration: print done; the part cools on the hot bed for {wait:.0} s before measuring"
+            ))
+            .await;
+            tokio::time::sleep(Duration::from_secs_f64(wait)).await;
+        }
+        self.set_state(id, State::Measuring, "waiting for caliper readings")
+            .await?;
+        let s = self.load(id)?;
+        // The console carries the whole guide; the dialog only what to do and where to look,
+        // so the console does not read the guide twice.
+        let guide = measuring_guide(&s, self.core.page());
+        self.core
+            .say_and_prompt(
+                &guide.join("\n"),
+                &Prompt {
+                    title: format!("klipcal: measure the pylons (round {})", s.rounds.len()),
+                    lines: measuring_dialog(&s),
+                    buttons: vec![Button::new(
+                        "Close and type readings",
+                        "_KLIPCAL_PROMPT_CLOSE",
+                        "primary",
+                    )],
+                    footer: Vec::new(),
+                },
+            )
+            .await;
+        Ok(())
+    }
+}

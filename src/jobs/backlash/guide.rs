@@ -1,0 +1,413 @@
+//! The guided measurement: the camera point (`KLIPCAL_BACKLASH_SET_POINT`), the start
+//! (`KLIPCAL_BACKLASH_START`), the jog buttons that walk `calib::backlash_guide`, the moves
+//! and prompts, and the results in words.
+
+use super::*;
+
+impl Backlash {
+    pub(super) async fn detect(&self) -> anyhow::Result<(Detection, Value)> {
+        let help = self.core.m().call("printer.gcode.help", json!({})).await?;
+        let cf = self.core.m().configfile().await?;
+        Ok((kb::detect(&help, &cf["config"])?, cf))
+    }
+
+    /// The G-code console lines since the last call, newest last (for command replies).
+    pub(super) async fn console_tail(&self) -> anyhow::Result<String> {
+        let store = self
+            .core
+            .m()
+            .call("server.gcode_store", json!({"count": 30}))
+            .await?;
+        Ok(store["gcode_store"]
+            .as_array()
+            .into_iter()
+            .flatten()
+            .filter_map(|e| e["message"].as_str())
+            .collect::<Vec<_>>()
+            .join("\n"))
+    }
+
+    /// PR 7259's values now: the bare command's reply.
+    pub(super) async fn seed_values(&self) -> anyhow::Result<kb::BacklashReply> {
+        self.core.m().gcode(kb::SET_CMD).await?;
+        Ok(kb::parse_reply(&self.console_tail().await?)?)
+    }
+
+    pub(super) async fn homed(&self, axis: GuideAxis) -> anyhow::Result<()> {
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"toolhead": ["homed_axes"]}))
+            .await?;
+        let homed = st["toolhead"]["homed_axes"].as_str().unwrap_or("");
+        let need = match axis {
+            GuideAxis::Z => "xyz",
+            _ => "xy",
+        };
+        if need.chars().all(|c| homed.contains(c)) {
+            Ok(())
+        } else {
+            Err(user(format!(
+                "the printer is not homed ({need} needed, homed: '{homed}'); run G28 first"
+            )))
+        }
+    }
+
+    pub(super) async fn move_along(&self, s: &Session, step: &Step) -> anyhow::Result<()> {
+        let Some(g) = &s.guide else { return Ok(()) };
+        for &along in &step.moves_mm {
+            let p = g.axis.point_at(s.point, along);
+            let line = GcodeCmd::new("G1")
+                .axis('X', p[0])
+                .axis('Y', p[1])
+                .axis('Z', p[2])
+                .axis('F', JOG_F)
+                .build()?;
+            self.core.m().gcode(&format!("G90\n{line}")).await?;
+        }
+        Ok(())
+    }
+
+    pub(super) fn prompt_for(s: &Session, step: &Step) -> Prompt {
+        let Some(g) = &s.guide else {
+            return Prompt::default();
+        };
+        let (sign, dir) = if step.phase == Phase::Minus {
+            ("-", "−")
+        } else {
+            ("+", "+")
+        };
+        let axis = g.axis.name().to_uppercase();
+        Prompt {
+            title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
+            lines: vec![
+                format!(
+                    "Jog {axis}{sign} until the nozzle is centred on the camera mark; never back."
+                ),
+                format!(
+                    "Coarse {} mm, fine {} mm. Past the centre? Press Overshot: it starts the approach over from {} mm back.",
+                    g.params.coarse_mm,
+                    g.fine_mm(),
+                    g.params.approach_mm
+                ),
+            ],
+            buttons: vec![
+                Button::new(
+                    &format!("Coarse {axis}{sign}"),
+                    "_KLIPCAL_BACKLASH_JOG PRESS=coarse",
+                    "secondary",
+                ),
+                Button::new(
+                    &format!("Fine {axis}{sign}"),
+                    "_KLIPCAL_BACKLASH_JOG PRESS=fine",
+                    "secondary",
+                ),
+                Button::new("Centred", "_KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
+                Button::new(
+                    "Overshot - start over",
+                    "_KLIPCAL_BACKLASH_JOG PRESS=overshot",
+                    "warning",
+                ),
+            ],
+            footer: vec![Button::cancel_asking()],
+        }
+    }
+
+    pub(super) fn results(&self, s: &Session) -> anyhow::Result<BTreeMap<String, AxisResult>> {
+        let params = self.settings.params();
+        s.cycles
+            .iter()
+            .map(|(axis, c)| {
+                // Camera cycles are read to the camera's precision, not a jog's.
+                let p = s
+                    .camera
+                    .get(axis)
+                    .map_or(params.clone(), |r| r.params(&params));
+                Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &p)?))
+            })
+            .collect()
+    }
+
+    pub(super) fn result_lines(&self, s: &Session) -> anyhow::Result<Vec<String>> {
+        let mut out = Vec::new();
+        let results = self.results(s)?;
+        let corexy = Self::corexy_answer(s, &results);
+        for (axis, r) in results {
+            let active = s.active_mm.get(&axis).copied().unwrap_or(0.0);
+            out.push(format!(
+                "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
+                key_words(&axis),
+                r.backlash_mm,
+                r.uncertainty_mm,
+                r.cycles,
+                if r.outliers.is_empty() {
+                    String::new()
+                } else {
+                    format!(" (outlier cycles {:?})", r.outliers)
+                },
+                if active > 0.0 {
+                    format!(" left with {active} mm compensation active")
+                } else {
+                    String::new()
+                },
+                if r.compensate {
+                    format!(
+                        "compensate; smooth_time {:.4} s adds {:.0} mm/s²",
+                        r.smooth_time_s, r.extra_accel_mm_s2
+                    )
+                } else {
+                    "no compensation needed".to_string()
+                }
+            ));
+        }
+        if let Some(t) = corexy {
+            out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
+        }
+        Ok(out)
+    }
+
+    /// The seed's CoreXY question answered from the results (CoreXY printers only).
+    pub(super) fn corexy_answer(
+        s: &Session,
+        results: &BTreeMap<String, AxisResult>,
+    ) -> Option<String> {
+        (s.kinematics == "corexy")
+            .then(|| crate::calib::backlash::corexy_xy_answer(results))
+            .flatten()
+    }
+
+    /// `klipcal_backlash_set_point`: the current toolhead position becomes the camera point.
+    ///
+    /// # Errors
+    /// A printer that is printing or not homed.
+    pub async fn set_point(&self) -> anyhow::Result<Value> {
+        self.core.printer_idle().await?;
+        self.homed(GuideAxis::X).await?;
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"gcode_move": ["position"]}))
+            .await?;
+        let pos = &st["gcode_move"]["position"];
+        let p = [0, 1, 2].map(|i| pos[i].as_f64().unwrap_or(f64::NAN));
+        if p.iter().any(|v| !v.is_finite()) {
+            return Err(anyhow!("Klipper reports no toolhead position: {pos}"));
+        }
+        let doc = PointDoc {
+            point: p,
+            state: "done".into(),
+        };
+        self.core
+            .store()
+            .create_session(POINT_KIND, "done", &serde_json::to_value(&doc)?)?;
+        let msg = format!(
+            "camera point saved: X{:.3} Y{:.3} Z{:.3}; KLIPCAL_BACKLASH_START AXIS=X begins",
+            p[0], p[1], p[2]
+        );
+        Ok(json!({"point": p, "message": msg}))
+    }
+
+    /// `klipcal_backlash_start`: measures one axis (a new session, or the next axis of a
+    /// measured one).
+    ///
+    /// # Errors
+    /// Bad arguments, no camera point, another calibration running, a printing or unhomed
+    /// printer, or A/B on a printer that is not CoreXY.
+    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+        let carriage_arg = req.carriage;
+        let axis = req.axis;
+        let mut params = self.settings.guide();
+        if let Some(c) = req.cycles {
+            params.cycles = c;
+        }
+        params.validate().map_err(|e| user(e.to_string()))?;
+        self.core.refuse_other_kind(KIND)?;
+        self.core.printer_idle().await?;
+        self.homed(axis).await?;
+        let point = self
+            .core
+            .latest_of::<PointDoc>(POINT_KIND)?
+            .map(|(_, d)| d.point)
+            .ok_or_else(|| {
+                user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
+            })?;
+        let (detection, cf) = self.detect().await?;
+        let kin = cf["settings"]["printer"]["kinematics"]
+            .as_str()
+            .unwrap_or("");
+        if axis.is_motor() && kin != "corexy" {
+            return Err(user(format!(
+                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
+                axis.name().to_uppercase()
+            )));
+        }
+        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let carriage = self
+            .carriage_for(&detection, &cf, axis, carriage_arg)
+            .await?;
+        if let Some(n) = carriage {
+            self.park_and_select(n).await?;
+        }
+        let key = result_key(axis, carriage);
+        let mut active_mm = BTreeMap::new();
+        match detection.branch {
+            Branch::Seed => {
+                let r = self.seed_values().await?;
+                active_mm.insert("x".into(), r.x_mm);
+                active_mm.insert("y".into(), r.y_mm);
+                active_mm.insert("z".into(), r.z_mm);
+                if carriage.is_some() {
+                    let own = match axis {
+                        GuideAxis::Y => r.y_mm,
+                        _ => r.x_mm,
+                    };
+                    active_mm.insert(key.clone(), own);
+                }
+            }
+            Branch::Pr7157 { .. } => {
+                if let Some(o) = cf["settings"]["backlash"].as_object() {
+                    for (k, v) in o {
+                        if let Some(f) = v.as_f64() {
+                            active_mm.insert(k.clone(), f);
+                        }
+                    }
+                }
+            }
+            Branch::Neither => {}
+        }
+        let (guide, step) =
+            Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
+        let existing = {
+            let _g = self.core.lock().await;
+            match self.active()? {
+                Some(mut s) if s.state == State::Measured => {
+                    s.state = State::Measuring;
+                    s.progress = format!("measuring {}", axis.name());
+                    s.guide = Some(guide.clone());
+                    s.point = point;
+                    s.detection = detection.clone();
+                    s.active_mm.extend(active_mm.clone());
+                    s.carriage = carriage;
+                    s.kinematics = kin.to_string();
+                    self.core.save(s.id, &s)?;
+                    Some(s)
+                }
+                Some(s) => {
+                    return Err(user(format!(
+                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
+                        s.id,
+                        s.state.name()
+                    )))
+                }
+                None => None,
+            }
+        };
+        let s = match existing {
+            Some(s) => s,
+            None => {
+                let mut s = Session {
+                    id: 0,
+                    state: State::Measuring,
+                    reason: None,
+                    progress: format!("measuring {}", axis.name()),
+                    point,
+                    detection,
+                    active_mm,
+                    guide: Some(guide),
+                    cycles: BTreeMap::new(),
+                    max_accel_mm_s2: max_accel,
+                    notes: Vec::new(),
+                    carriage,
+                    kinematics: kin.to_string(),
+                    camera: BTreeMap::new(),
+                };
+                s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
+                s
+            }
+        };
+        self.move_along(&s, &step).await?;
+        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        let msg = format!(
+            "{TITLE} session {}: {} from {} mm in −, jog only in + until centred",
+            s.id,
+            key_words(&key),
+            s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
+        );
+        Ok(
+            json!({"session": s.id, "state": "measuring", "axis": axis.name(), "carriage": carriage, "message": msg}),
+        )
+    }
+
+    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|overshot`.
+    ///
+    /// # Errors
+    /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
+    pub async fn jog(&self, press: Press) -> anyhow::Result<Value> {
+        // The press and its reading are saved before the machine moves.
+        let (s, step) = {
+            let _g = self.core.lock().await;
+            let mut s =
+                match self.active()? {
+                    Some(s) if s.state == State::Measuring => s,
+                    _ => return Err(user(
+                        "no backlash axis is being measured; KLIPCAL_BACKLASH_START AXIS=X first",
+                    )),
+                };
+            let g = s
+                .guide
+                .as_mut()
+                .ok_or_else(|| anyhow!("measuring without a guide"))?;
+            let step = g.press(press).map_err(|e| user(e.to_string()))?;
+            if step.phase == Phase::Done {
+                let key = result_key(g.axis, s.carriage);
+                let cycles = g.cycles.clone();
+                s.cycles.insert(key.clone(), cycles);
+                s.camera.remove(&key);
+                s.guide = None;
+                s.carriage = None;
+                s.state = State::Measured;
+                s.progress = format!(
+                    "{} measured; start another axis or KLIPCAL_BACKLASH_APPLY",
+                    key_words(&key)
+                );
+            }
+            self.core.save(s.id, &s)?;
+            (s, step)
+        };
+        if step.phase == Phase::Done {
+            self.core.prompt_end().await;
+            let lines = self.result_lines(&s)?;
+            let text = format!(
+                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_START AXIS=… for another axis, or KLIPCAL_BACKLASH_APPLY",
+                lines.join("\n")
+            );
+            return Ok(
+                json!({"session": s.id, "state": "measured", "results": self.results(&s)?, "message": text}),
+            );
+        }
+        self.move_along(&s, &step).await?;
+        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        // A jog answers nothing on the console (the camera shows it); a recorded position and a
+        // new approach are said in one line.
+        let message = match (step.recorded, press) {
+            (Some(v), _) => format!(
+                "{TITLE}: {v:.4} mm recorded; now cycle {}, moving only {}",
+                step.cycle,
+                if step.phase == Phase::Minus {
+                    "−"
+                } else {
+                    "+"
+                }
+            ),
+            (None, Press::Overshot) => format!(
+                "{TITLE}: approaching again from {} mm back",
+                s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
+            ),
+            (None, _) => String::new(),
+        };
+        Ok(
+            json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
+                  "phase": format!("{:?}", step.phase), "cycle": step.cycle, "message": message}),
+        )
+    }
+}

@@ -1,0 +1,463 @@
+//! The guided backlash measurement (seed 004) through a nozzle camera: measuring → measured →
+//! applying → done (and failed / cancelled, with the reason). KLIPCAL_BACKLASH_SET_POINT saves
+//! the camera point once; KLIPCAL_BACKLASH_START AXIS=X|Y|Z|A|B [CYCLES=] runs
+//! `calib::backlash_guide` with a prompt whose jog buttons (_KLIPCAL_BACKLASH_JOG PRESS=…) move
+//! only in the approach direction, each step saved before the machine moves;
+//! KLIPCAL_BACKLASH_APPLY sets the values (SET_BACKLASH_COMPENSATION with its reply checked on
+//! PR 7259; PR 7157's `[backlash]` by config) and persists them through the shared config
+//! transaction. Session store, runner, guards, console and config transaction are the core's.
+
+mod apply;
+pub mod camera;
+mod dual;
+mod guide;
+
+use std::collections::BTreeMap;
+
+use anyhow::{anyhow, Context};
+use futures_util::future::BoxFuture;
+use futures_util::FutureExt;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult, SEED_SMOOTH_TIME_S};
+use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
+use crate::config::BacklashConfig;
+use crate::jobs::core::console::{Button, Prompt};
+use crate::jobs::core::printer_config::{self, ValueSet};
+use crate::jobs::core::session::{now_unix, Core, Doc};
+use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
+use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::user;
+use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
+use crate::klipper::GcodeCmd;
+use crate::store::SessionRow;
+
+/// The backlash measurement's operations, each declared once (see [`crate::jobs::core::table`]).
+pub static OPS: &[Op<BacklashCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_set_point",
+            "KLIPCAL_BACKLASH_SET_POINT",
+            "backlash/set_point",
+            "save the current position (nozzle centred on the camera mark) as the backlash camera point",
+            &[],
+        ),
+        parse: |_| Ok(BacklashCall::SetPoint),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_start",
+            "KLIPCAL_BACKLASH_START",
+            "backlash/start",
+            "measure backlash through the nozzle camera, AXIS=X, Y, Z, or A/B (CoreXY motors), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
+            &[
+                arg(
+                    "axis",
+                    ArgKind::Text,
+                    "X",
+                    "X, Y, Z, A or B",
+                    "",
+                    "the axis: X, Y, Z, or A/B (CoreXY motors)",
+                ),
+                arg(
+                    "cycles",
+                    ArgKind::Whole { min: 1, max: 50 },
+                    "5",
+                    "1..50",
+                    "",
+                    "approach cycles (default backlash.cycles)",
+                ),
+                arg(
+                    "carriage",
+                    ArgKind::Whole { min: 0, max: 1 },
+                    "1",
+                    "0 or 1",
+                    "",
+                    "the carriage on a dual_carriage printer",
+                ),
+            ],
+        ),
+        parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
+    },
+    camera::OP,
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_jog",
+            "_KLIPCAL_BACKLASH_JOG",
+            "backlash/jog",
+            "backlash prompt button, PRESS=coarse, fine, centred or overshot (moves only in the approach direction)",
+            &[arg(
+                "press",
+                ArgKind::Text,
+                "fine",
+                "coarse, fine, centred or overshot",
+                "",
+                "coarse, fine, centred or overshot",
+            )],
+        ),
+        parse: |a| {
+            Press::parse(&a.text("press").unwrap_or_default())
+                .map(BacklashCall::Jog)
+                .map_err(|e| user(e.to_string()))
+        },
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_backlash_apply",
+            "KLIPCAL_BACKLASH_APPLY",
+            "backlash/apply",
+            "set the measured backlash compensation and write it to the config (backup, restart, verify)",
+            &[],
+        ),
+        parse: |_| Ok(BacklashCall::Apply),
+    },
+];
+
+/// A backlash call, typed at the boundary.
+#[derive(Debug, Clone, PartialEq)]
+pub enum BacklashCall {
+    /// `klipcal_backlash_set_point`.
+    SetPoint,
+    /// `klipcal_backlash_start`.
+    Start(StartRequest),
+    /// `klipcal_backlash_jog`.
+    Jog(Press),
+    /// `klipcal_backlash_camera`.
+    Camera(camera::CameraRequest),
+    /// `klipcal_backlash_apply`.
+    Apply,
+}
+
+impl BacklashCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(OPS, method, args)
+    }
+}
+
+/// `klipcal_backlash_start` / `KLIPCAL_BACKLASH_START`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StartRequest {
+    /// The axis measured.
+    pub axis: GuideAxis,
+    /// Approach cycles, when given.
+    pub cycles: Option<usize>,
+    /// The dual_carriage carriage, when given.
+    pub carriage: Option<i64>,
+}
+
+impl StartRequest {
+    /// Reads the call's arguments.
+    ///
+    /// # Errors
+    /// No or a bad axis, bad cycles or carriage.
+    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+        let carriage = a.int("carriage")?;
+        let axis_text = a.text("axis").ok_or_else(|| {
+            user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
+        })?;
+        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+        let cycles = a
+            .int("cycles")?
+            .map(|c| usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50"))))
+            .transpose()?;
+        Ok(Self {
+            axis,
+            cycles,
+            carriage,
+        })
+    }
+}
+
+/// The store's kind.
+pub const KIND: &str = "backlash";
+/// The store's kind of the saved camera point (a finished document, one per SET_POINT).
+pub const POINT_KIND: &str = "backlash_point";
+const TITLE: &str = "backlash measurement";
+/// Jog and approach feed rate, mm/min.
+const JOG_F: f64 = 1200.0;
+
+/// A session's state.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum State {
+    /// The guided procedure runs for `axis`.
+    Measuring,
+    /// Every cycle of the last axis is in; another axis may start, or apply.
+    Measured,
+    /// Setting and writing the values.
+    Applying,
+    /// Applied (or nothing to apply).
+    Done,
+    /// Failed, with the reason.
+    Failed,
+    /// Cancelled, with the reason.
+    Cancelled,
+}
+
+impl State {
+    fn name(self) -> &'static str {
+        match self {
+            State::Measuring => "measuring",
+            State::Measured => "measured",
+            State::Applying => "applying",
+            State::Done => "done",
+            State::Failed => "failed",
+            State::Cancelled => "cancelled",
+        }
+    }
+}
+
+/// The stored session.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Session {
+    /// Session id.
+    pub id: i64,
+    /// State.
+    pub state: State,
+    /// Why it failed or was cancelled.
+    pub reason: Option<String>,
+    /// The current step in words.
+    pub progress: String,
+    /// The camera point (toolhead X, Y, Z).
+    pub point: [f64; 3],
+    /// What the printer's Klipper has.
+    pub detection: Detection,
+    /// The compensation active while measuring, per axis (measurements are residuals).
+    pub active_mm: BTreeMap<String, f64>,
+    /// The procedure in progress (its readings included).
+    pub guide: Option<Guide>,
+    /// Finished axes: their cycles.
+    pub cycles: BTreeMap<String, Vec<crate::calib::backlash::Cycle>>,
+    /// [printer] max_accel, mm/s².
+    pub max_accel_mm_s2: Option<f64>,
+    /// The dual carriage selected for the axis in progress (`SET_DUAL_CARRIAGE CARRIAGE=`);
+    /// its results are kept as `<axis>@<carriage>`, e.g. `x@1`.
+    #[serde(default)]
+    pub carriage: Option<u32>,
+    /// `[printer] kinematics`, for the CoreXY answer.
+    #[serde(default)]
+    pub kinematics: String,
+    /// Things the user should know.
+    pub notes: Vec<String>,
+    /// Axes read through the nozzle camera (KLIPCAL_BACKLASH_CAMERA): how, per result key.
+    #[serde(default)]
+    pub camera: BTreeMap<String, camera::CameraReport>,
+}
+
+impl Doc for Session {
+    fn state_name(&self) -> String {
+        self.state.name().to_string()
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct PointDoc {
+    point: [f64; 3],
+    state: String,
+}
+
+impl Doc for PointDoc {
+    fn state_name(&self) -> String {
+        self.state.clone()
+    }
+}
+
+/// The backlash calibration.
+pub struct Backlash {
+    core: Core,
+    settings: BacklashConfig,
+}
+
+impl Backlash {
+    /// Over the shared core, with `[backlash]`.
+    pub fn new(core: Core, settings: BacklashConfig) -> Self {
+        Self { core, settings }
+    }
+
+    fn active(&self) -> anyhow::Result<Option<Session>> {
+        Ok(self.core.active_of::<Session>(KIND)?.map(|(_, s)| s))
+    }
+
+    async fn set_state(&self, id: i64, state: State, progress: &str) -> anyhow::Result<()> {
+        self.core
+            .update::<Session, ()>(id, |s| {
+                s.state = state;
+                s.progress = progress.to_string();
+                Ok(())
+            })
+            .await
+    }
+
+    async fn finish(&self, id: i64, state: State, why: &str) -> anyhow::Result<()> {
+        self.core
+            .update::<Session, ()>(id, |s| {
+                s.state = state;
+                s.progress = why.to_string();
+                if state != State::Done {
+                    s.reason = Some(why.to_string());
+                }
+                Ok(())
+            })
+            .await
+    }
+
+    async fn resume_session(&self, id: i64) {
+        let Ok(s) = self.core.load::<Session>(id) else {
+            return;
+        };
+        match s.state {
+            State::Measuring if s.guide.is_none() => self.camera_interrupted(&s).await,
+            State::Measuring => {
+                // Position and last direction are unknown after a restart: start the approach
+                // over from 1 mm back (the readings taken so far are kept).
+                let mut s2 = s.clone();
+                let Some(g) = s2.guide.as_mut() else { return };
+                let step = g.resume();
+                let axis = g.axis;
+                if self.core.save(id, &s2).is_err() {
+                    return;
+                }
+                if self.homed(axis).await.is_err() {
+                    self.core
+                        .console(&format!(
+                            "{TITLE} session {id}: home (G28), then _KLIPCAL_BACKLASH_JOG PRESS=overshot to continue"
+                        ))
+                        .await;
+                    return;
+                }
+                if let Some(n) = s2.carriage {
+                    if self.park_and_select(n).await.is_err() {
+                        return;
+                    }
+                }
+                if self.move_along(&s2, &step).await.is_ok() {
+                    self.core.prompt(&Self::prompt_for(&s2, &step)).await;
+                }
+            }
+            State::Applying => {
+                let _ = self
+                    .finish(
+                        id,
+                        State::Measured,
+                        "apply interrupted; KLIPCAL_BACKLASH_APPLY again",
+                    )
+                    .await;
+            }
+            _ => {}
+        }
+    }
+
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+        self.finish(id, State::Cancelled, reason).await?;
+        self.core.prompt_end().await;
+        Ok(json!({"session": id, "state": "cancelled",
+                  "message": format!("backlash session {id} cancelled ({reason})")}))
+    }
+}
+
+/// Where an axis's cycles are kept: `x`, or `x@1` for dual carriage 1's X.
+fn result_key(axis: GuideAxis, carriage: Option<u32>) -> String {
+    match carriage {
+        Some(n) => format!("{}@{n}", axis.name()),
+        None => axis.name().to_string(),
+    }
+}
+
+/// A result key in words: `X`, `X (carriage 1)`.
+/// A jog dialog's title, what matters first: Mainsail cuts titles at its 400 px dialog width
+/// (about 34 characters), and "backlash X — cycle 1/2, mo" lost the direction (issue 26 A.3).
+fn title_for(axis: &str, dir: &str, carriage: Option<u32>, cycle: usize, cycles: usize) -> String {
+    match carriage {
+        Some(c) => format!("{axis}{dir} only · carriage {c} · {cycle}/{cycles}"),
+        None => format!("{axis}{dir} only · backlash {cycle}/{cycles}"),
+    }
+}
+
+fn key_words(key: &str) -> String {
+    match key.split_once('@') {
+        Some((axis, n)) => format!("{} (carriage {n})", axis.to_uppercase()),
+        None => key.to_uppercase(),
+    }
+}
+
+fn round_um(mm: f64) -> f64 {
+    (mm * 1e4).round() / 1e4
+}
+
+impl Calibration for Backlash {
+    fn kind(&self) -> &'static str {
+        KIND
+    }
+
+    fn title(&self) -> &'static str {
+        "a backlash measurement"
+    }
+
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        crate::jobs::core::table::specs(OPS).collect()
+    }
+
+    fn call<'a>(
+        &'a self,
+        method: &'a str,
+        args: &'a Value,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        async move {
+            match BacklashCall::parse(method, args)? {
+                BacklashCall::SetPoint => self.set_point().await,
+                BacklashCall::Start(r) => self.start(&r).await,
+                BacklashCall::Jog(p) => self.jog(p).await,
+                BacklashCall::Camera(r) => self.camera(&r).await,
+                BacklashCall::Apply => self.apply().await,
+            }
+        }
+        .boxed()
+    }
+
+    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        self.resume_session(row.id).boxed()
+    }
+
+    fn cancel<'a>(
+        &'a self,
+        row: &'a SessionRow,
+        reason: &'a str,
+    ) -> BoxFuture<'a, anyhow::Result<Value>> {
+        self.cancel_session(row.id, reason).boxed()
+    }
+
+    fn status(&self, row: &SessionRow) -> anyhow::Result<Value> {
+        let s: Session = serde_json::from_value(row.doc.clone())
+            .with_context(|| format!("reading stored session {}", row.id))?;
+        let results = self.results(&s).unwrap_or_default();
+        Ok(json!({
+            "id": s.id,
+            "state": s.state.name(),
+            "progress": s.progress,
+            "reason": s.reason,
+            "point": s.point,
+            "branch": s.detection,
+            "axis": s.guide.as_ref().map(|g| g.axis.name()),
+            "cycle": s.guide.as_ref().map(|g| g.cycles.len() + 1),
+            "cycles": s.cycles,
+            "corexy_answer": Self::corexy_answer(&s, &results),
+            "results": results,
+            "active_mm": s.active_mm,
+            "notes": s.notes,
+            "camera": s.camera,
+        }))
+    }
+
+    fn held(&self, _row: &SessionRow) -> Option<Hold> {
+        None
+    }
+
+    fn heaters_turned_off<'a>(&'a self, _row: &'a SessionRow) -> BoxFuture<'a, ()> {
+        async {}.boxed()
+    }
+}

@@ -1,0 +1,116 @@
+//! The operations every daemon answers besides the calibrations' own ([`CORE_OPS`]), and
+//! their call typed at the boundary ([`CoreCall`]).
+
+use serde_json::Value;
+
+use super::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
+
+/// A dialog button's macro: Klipper closes the dialog first (even with klipcal gone), then asks.
+const CLOSE_THEN_ASK: MacroBody = MacroBody::Remote {
+    before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
+    after: &[],
+};
+
+/// The operations every daemon answers besides the calibrations' own.
+pub static CORE_OPS: &[Op<CoreCall>] = &[
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_status",
+            "KLIPCAL_STATUS",
+            "status",
+            "show the daemon's state and what it sees of the printer",
+            &[],
+        ),
+        parse: |_| Ok(CoreCall::Status),
+    },
+    Op {
+        spec: OpSpec::remote(
+            "klipcal_cancel",
+            "KLIPCAL_CANCEL",
+            "cancel",
+            "cancel the calibration session (cancels its print, turns the heaters off)",
+            &[arg(
+                "reason",
+                ArgKind::Text,
+                "aborted",
+                "a word or a quoted text",
+                "",
+                "why, noted in the session (optional)",
+            )],
+        ),
+        parse: |a| {
+            Ok(CoreCall::Cancel(
+                a.text("reason")
+                    .unwrap_or_else(|| "cancelled by the user".into()),
+            ))
+        },
+    },
+    Op {
+        spec: OpSpec {
+            method: None,
+            macro_name: "_KLIPCAL_CANCEL_ASK",
+            http: None,
+            summary: "ask before ending the session (the Cancel of klipcal's dialogs)",
+            args: &[],
+            body: MacroBody::Local(&[
+                "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL|error\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|secondary\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_show\"",
+            ]),
+            variables: &[],
+            comment: &[],
+        },
+        parse: |_| Err(anyhow::anyhow!("_KLIPCAL_CANCEL_ASK runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec {
+            body: CLOSE_THEN_ASK,
+            ..OpSpec::remote(
+                "klipcal_prompt_back",
+                "_KLIPCAL_PROMPT_BACK",
+                "prompt/back",
+                "back to klipcal's dialog (from the cancel question)",
+                &[],
+            )
+        },
+        parse: |_| Ok(CoreCall::PromptBack),
+    },
+    Op {
+        spec: OpSpec {
+            body: CLOSE_THEN_ASK,
+            ..OpSpec::remote(
+                "klipcal_prompt_close",
+                "_KLIPCAL_PROMPT_CLOSE",
+                "prompt/close",
+                "close klipcal's dialog (then type readings on the console)",
+                &[],
+            )
+        },
+        parse: |_| Ok(CoreCall::PromptClose),
+    },
+];
+
+/// A call of the common operations, typed at the boundary.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum CoreCall {
+    /// `klipcal_status` (answered by the agent, around [`crate::jobs::Calibrations::status`]).
+    Status,
+    /// `klipcal_cancel` with its reason.
+    Cancel(String),
+    /// `klipcal_prompt_back`.
+    PromptBack,
+    /// `klipcal_prompt_close`.
+    PromptClose,
+}
+
+impl CoreCall {
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// Not a common method, or a bad or unknown argument, named.
+    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+        parse_call(CORE_OPS, method, args)
+    }
+}

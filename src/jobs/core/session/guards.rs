@@ -1,0 +1,299 @@
+//! The printer guards (idle, Klipper ready, heaters off, the heater hold) and klipcal's
+//! console lines and dialog, on the [`Core`].
+
+use super::*;
+
+impl Core {
+    /// Refuses unless Klipper is ready and no print is printing or paused.
+    ///
+    /// # Errors
+    /// A user error saying what the printer is doing; Moonraker failures.
+    pub async fn printer_idle(&self) -> anyhow::Result<()> {
+        let info = self.inner.m.printer_info().await?;
+        if info["state"] != "ready" {
+            return Err(user(format!(
+                "Klipper is not ready ({}): {}",
+                info["state"].as_str().unwrap_or("?"),
+                info["state_message"].as_str().unwrap_or("").trim()
+            )));
+        }
+        let st = self
+            .inner
+            .m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await?;
+        let ps = st["print_stats"]["state"].as_str().unwrap_or("");
+        if ps == "printing" || ps == "paused" {
+            return Err(user(format!(
+                "a print is {ps}; klipcal does not move, heat, restart or edit while a print runs"
+            )));
+        }
+        Ok(())
+    }
+
+    /// Whether Klipper answers ready.
+    pub async fn klipper_ready(&self) -> bool {
+        matches!(self.inner.m.printer_info().await, Ok(i) if i["state"] == "ready")
+    }
+
+    /// Heaters off, and Klipper's idle timeout back to its configured value (a session may
+    /// have stretched it over a hold window).
+    ///
+    /// # Errors
+    /// Moonraker failures.
+    pub async fn heaters_off(&self) -> anyhow::Result<()> {
+        self.inner.m.gcode("TURN_OFF_HEATERS").await?;
+        self.restore_idle_timeout().await
+    }
+
+    /// [`Core::heaters_off`], waiting out a Moonraker outage however long it lasts (a failed or
+    /// cancelled session's heaters go off once Moonraker is back). Says on the console that the
+    /// heaters are off, after `what` ("A/B calibration failed: …").
+    ///
+    /// # Errors
+    /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
+    pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
+        let mut waited = false;
+        loop {
+            match self.heaters_off().await {
+                Ok(()) => break,
+                Err(e) if self.unreachable(&e) => {
+                    waited = true;
+                    if !self.wait_back().await {
+                        return Err(e);
+                    }
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        if waited {
+            self.console_error(&format!("{what}; now that Moonraker is back: heaters off"))
+                .await;
+        }
+        Ok(())
+    }
+
+    async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
+        let cf = self.inner.m.configfile().await?;
+        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
+            self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
+        }
+        Ok(())
+    }
+
+    /// Lets Klipper itself turn the heaters off after `hold_s` of idling from now, even if
+    /// klipcal (or Moonraker) is gone: the heater's owner while klipcal cannot be. Each call
+    /// starts the count again. A 1 ms dwell follows, so that Klipper's idle timer runs even from
+    /// its `Idle` state (where it only starts again with the next move).
+    ///
+    /// # Errors
+    /// Moonraker failures.
+    pub async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
+        let script = format!(
+            "{}\nG4 P1",
+            gcode_cmd::set_idle_timeout(hold_s.max(1.0).ceil())?
+        );
+        self.inner
+            .m
+            .gcode(&script)
+            .await
+            .context("setting Klipper's idle timeout to the hold limit")?;
+        Ok(())
+    }
+
+    /// A console message.
+    pub async fn console(&self, msg: &str) {
+        console::say(&self.inner.m, msg).await;
+    }
+
+    /// A console error (`RESPOND TYPE=error`, coloured by Mainsail and Fluidd).
+    pub async fn console_error(&self, msg: &str) {
+        console::error(&self.inner.m, msg).await;
+    }
+
+    /// Opens (or replaces) the prompt dialog. Within a call it goes to the console after the
+    /// call's answer; the same dialog as the one showing is not sent again (a jog press does not
+    /// repeat the whole dialog on the console).
+    pub async fn prompt(&self, p: &Prompt) {
+        let script = p.script();
+        {
+            let mut shown = self.shown();
+            if shown
+                .as_ref()
+                .is_some_and(|s| s.as_deref() == Some(script.as_str()))
+            {
+                return;
+            }
+            *shown = Some(Some(script.clone()));
+        }
+        self.set_open(Some(p.clone()));
+        let change = console::PromptChange::Show(script);
+        if !console::hold(change.clone()) {
+            console::send_script(&self.inner.m, &change.script()).await;
+        }
+    }
+
+    /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
+    /// sent when klipcal's dialog is known to be closed already.
+    pub async fn prompt_end(&self) {
+        if !self.mark_closed() {
+            return;
+        }
+        if !console::hold(console::PromptChange::End) {
+            console::send_script(&self.inner.m, console::PROMPT_END).await;
+        }
+    }
+
+    /// Closes klipcal's dialog now, even within a call (before a long operation, so that its
+    /// buttons cannot be pressed again meanwhile).
+    pub async fn prompt_end_now(&self) {
+        console::drop_held();
+        if self.mark_closed() {
+            console::send_script(&self.inner.m, console::PROMPT_END).await;
+        }
+    }
+
+    /// Says `msg` on the console and opens a dialog, as one console script.
+    pub async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
+        let script = p.script();
+        let fresh = {
+            let mut shown = self.shown();
+            let fresh = !shown
+                .as_ref()
+                .is_some_and(|s| s.as_deref() == Some(script.as_str()));
+            *shown = Some(Some(script.clone()));
+            fresh
+        };
+        self.set_open(Some(p.clone()));
+        let change = console::PromptChange::Show(script);
+        let change = fresh.then_some(change);
+        if let Some(c) = &change {
+            if console::hold(c.clone()) {
+                self.console(msg).await;
+                return;
+            }
+        }
+        let script =
+            console::answer_then_prompt(&console::answer_script(msg, false), change.as_ref());
+        console::send_script(&self.inner.m, &script).await;
+    }
+
+    /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
+    /// false when klipcal has no dialog open.
+    pub async fn prompt_again(&self) -> bool {
+        let shown = self.shown().clone();
+        let script = match shown {
+            Some(Some(script)) => script,
+            // Closed by the user's ✕ or tap outside: the helper the console named shows it.
+            _ => match take_user_closed(self) {
+                Some(p) => {
+                    let script = p.script();
+                    *self.shown() = Some(Some(script.clone()));
+                    self.set_open(Some(p));
+                    script
+                }
+                None => return false,
+            },
+        };
+        // Shown again: a close seen before this is not a close of this dialog.
+        self.bump_open();
+        let change = console::PromptChange::Show(script);
+        if !console::hold(change.clone()) {
+            console::send_script(&self.inner.m, &change.script()).await;
+        }
+        true
+    }
+
+    /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
+    /// close itself, so a dialog klipcal shows next is sent whole again).
+    pub fn prompt_closed_by_user(&self) {
+        self.mark_closed();
+    }
+
+    /// Marks klipcal's dialog closed; false when it was known to be closed already.
+    fn mark_closed(&self) -> bool {
+        let was_closed = {
+            let mut shown = self.shown();
+            let was_closed = matches!(*shown, Some(None));
+            *shown = Some(None);
+            was_closed
+        };
+        self.set_open(None);
+        !was_closed
+    }
+
+    fn open(&self) -> std::sync::MutexGuard<'_, Open> {
+        self.inner
+            .open
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn set_open(&self, p: Option<Prompt>) {
+        let mut open = self.open();
+        open.changes += 1;
+        open.prompt = p;
+        open.user_closed = None;
+    }
+
+    fn bump_open(&self) {
+        self.open().changes += 1;
+    }
+
+    /// Watches the console for a close of klipcal's dialog that klipcal did not send: the
+    /// user's ✕ in Mainsail or tap outside in Fluidd (both send `action:prompt_end`). Then the
+    /// console says what still waits and how to answer (issue 26 A.1). klipcal's own helpers
+    /// (Close, Back) close in Klipper and call klipcal at once; a change of klipcal's dialog
+    /// within a moment of the close tells them apart. Runs until shutdown.
+    pub async fn watch_closes(self) {
+        use tokio::sync::broadcast::error::RecvError;
+        let mut rx = self.inner.m.events();
+        loop {
+            let ev = tokio::select! {
+                () = self.inner.shutdown.cancelled() => return,
+                ev = rx.recv() => ev,
+            };
+            match ev {
+                Ok(crate::moonraker::Event::GcodeResponse(l))
+                    if l.trim() == "// action:prompt_end" => {}
+                Err(RecvError::Closed) => return,
+                _ => continue,
+            }
+            let gen = match &*self.open() {
+                Open {
+                    changes,
+                    prompt: Some(_),
+                    ..
+                } => *changes,
+                // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
+                _ => continue,
+            };
+            tokio::select! {
+                () = self.inner.shutdown.cancelled() => return,
+                () = tokio::time::sleep(std::time::Duration::from_millis(1500)) => {}
+            }
+            let closed = {
+                let open = self.open();
+                (open.changes == gen).then(|| open.prompt.clone()).flatten()
+            };
+            if let Some(p) = closed {
+                self.mark_closed();
+                console::say(&self.inner.m, &console::closed_notice(&p)).await;
+                self.open().user_closed = Some(p);
+            }
+        }
+    }
+
+    fn shown(&self) -> std::sync::MutexGuard<'_, Option<Option<String>>> {
+        self.inner
+            .shown
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+}
+
+/// The dialog the user closed, taken (the lock released before the caller goes on).
+fn take_user_closed(core: &Core) -> Option<Prompt> {
+    let mut open = core.open();
+    open.user_closed.take()
+}
