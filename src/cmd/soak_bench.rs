@@ -805,17 +805,24 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
         }
         println!(
             "      coupling: identified (lower end from the bed's own heat-up) on {} of {} beds; \
-             the G used at or below the true G on {safe} of {}   target all   {}; the heat-up \
-             gave an upper end on {} beds, and the true G lay between the G used and it on {} \
-             ({:.0} %)   target ≥ 95 %   {}",
+             the G used at or below the true G on {safe} of {}   target all   {}; {}",
             ident.len(),
             res.len(),
             res.len(),
             pass(safe == res.len()),
-            bounded.len(),
-            covered,
-            pct(covered, bounded.len()),
-            pass(pct(covered, bounded.len()) >= 95.0)
+            if bounded.is_empty() {
+                "no heat-up gave an upper end (the surface's lag does not show: the G used is \
+                 the preset's or the weakest), coverage target not applicable"
+                    .to_string()
+            } else {
+                format!(
+                    "the heat-up gave an upper end on {} beds, and the true G lay between the G \
+                     used and it on {covered} ({:.0} %)   target ≥ 95 %   {}",
+                    bounded.len(),
+                    pct(covered, bounded.len()),
+                    pass(pct(covered, bounded.len()) >= 95.0)
+                )
+            }
         );
         let fixed = |m: f64| {
             res.iter()
