@@ -763,6 +763,7 @@ mod tests {
             corexy_answer: None,
             results: [("x".to_string(), result)].into(),
             active_mm: Default::default(),
+            camera: Default::default(),
         };
         let mut last = std::collections::BTreeMap::new();
         last.insert(

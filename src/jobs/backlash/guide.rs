@@ -117,7 +117,14 @@ impl Backlash {
         let params = self.settings.params();
         s.cycles
             .iter()
-            .map(|(axis, c)| Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &params)?)))
+            .map(|(axis, c)| {
+                // Camera cycles are read to the camera's precision, not a jog's.
+                let p = s
+                    .camera
+                    .get(axis)
+                    .map_or(params.clone(), |r| r.params(&params));
+                Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &p)?))
+            })
             .collect()
     }
 
@@ -214,13 +221,7 @@ impl Backlash {
         self.core.printer_idle().await?;
         self.homed(axis).await?;
         let point = self
-            .core
-            .store()
-            .value(POINT_KEY)?
-            .map(serde_json::from_value::<PointDoc>)
-            .transpose()
-            .context("reading the saved camera point")?
-            .map(|d| d.point)
+            .saved_point()?
             .ok_or_else(|| {
                 user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
             })?;
@@ -310,6 +311,7 @@ impl Backlash {
                         max_accel_mm_s2: max_accel,
                         carriage,
                         kinematics: kin.to_string(),
+                        camera: BTreeMap::new(),
                     },
                 );
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
@@ -354,6 +356,7 @@ impl Backlash {
                 let key = result_key(g.axis, s.body.carriage);
                 let cycles = g.cycles.clone();
                 s.cycles.insert(key.clone(), cycles);
+                s.camera.remove(&key);
                 s.guide = None;
                 s.carriage = None;
                 s.state = State::Measured;

@@ -8,6 +8,7 @@
 //! transaction. Session store, runner, guards, console and config transaction are the core's.
 
 mod apply;
+pub mod camera;
 mod dual;
 mod guide;
 
@@ -81,6 +82,7 @@ pub static OPS: &[Op<BacklashCall>] = &[
         ),
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
+    camera::OP,
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
@@ -123,6 +125,8 @@ pub enum BacklashCall {
     Start(StartRequest),
     /// `klipcal_backlash_jog`.
     Jog(Press),
+    /// `klipcal_backlash_camera`.
+    Camera(camera::CameraRequest),
     /// `klipcal_backlash_apply`.
     Apply,
 }
@@ -239,6 +243,9 @@ pub struct BacklashBody {
     /// `[printer] kinematics`, for the CoreXY answer.
     #[serde(default)]
     pub kinematics: String,
+    /// Axes read through the nozzle camera (KLIPCAL_BACKLASH_CAMERA): how, per result key.
+    #[serde(default)]
+    pub camera: BTreeMap<String, camera::CameraReport>,
 }
 
 /// The saved camera point, as the store keeps it under [`POINT_KEY`].
@@ -266,6 +273,8 @@ pub struct BacklashStatus {
     pub results: BTreeMap<String, AxisResult>,
     /// The compensation active while measuring, per axis, mm.
     pub active_mm: BTreeMap<String, f64>,
+    /// Axes read through the nozzle camera: how, per result key.
+    pub camera: BTreeMap<String, camera::CameraReport>,
 }
 
 /// The backlash calibration.
@@ -278,6 +287,17 @@ impl Backlash {
     /// Over the shared core, with `[backlash]`.
     pub fn new(core: Core, settings: BacklashConfig) -> Self {
         Self { core, settings }
+    }
+
+    /// The camera point saved by KLIPCAL_BACKLASH_SET_POINT, if any.
+    fn saved_point(&self) -> anyhow::Result<Option<[f64; 3]>> {
+        self.core
+            .store()
+            .value(POINT_KEY)?
+            .map(serde_json::from_value::<PointDoc>)
+            .transpose()
+            .context("reading the saved camera point")
+            .map(|d| d.map(|d| d.point))
     }
 
     fn active(&self) -> anyhow::Result<Option<Session>> {
@@ -306,6 +326,7 @@ impl Backlash {
             return;
         };
         match s.state {
+            State::Measuring if s.guide.is_none() => self.camera_interrupted(&s).await,
             State::Measuring => {
                 // Position and last direction are unknown after a restart: start the approach
                 // over from 1 mm back (the readings taken so far are kept).
@@ -417,6 +438,7 @@ impl Calibration for Backlash {
                 BacklashCall::SetPoint => self.set_point().await,
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
+                BacklashCall::Camera(r) => self.camera(&r).await,
                 BacklashCall::Apply => self.apply().await,
             }
         }
@@ -448,6 +470,7 @@ impl Calibration for Backlash {
             corexy_answer: Self::corexy_answer(&s, &results),
             results,
             active_mm: s.active_mm.clone(),
+            camera: s.camera.clone(),
         };
         SessionStatus::new(KIND, s.head(), &body)
     }
