@@ -14,7 +14,7 @@
 //! - [`jobs`]: the only place Moonraker I/O meets the math. `jobs::core`, the session core
 //!   every calibration shares (stored sessions, one active session, runner, printer guards,
 //!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
-//!   trait); one folder per calibration (`jobs::ab`, `jobs::mesh`: capture, import, follow,
+//!   trait, the session envelope and its `SessionState` trait, the typed status); one folder per calibration (`jobs::ab`, `jobs::mesh`: capture, import, follow,
 //!   check; `jobs::backlash`: guide, dual carriage, apply); and `jobs::registry`, the one module
 //!   that lists the calibrations (routing, status, cancel, resume, the hold watchdog). The
 //!   calibrations import the core, never the registry.

@@ -1,7 +1,8 @@
 //! Persistence of calibration sessions and readings in an embedded SQLite database under the
 //! data directory. A session is stored as a JSON document with its state beside it, written
-//! before each step acts; readings are rows of their own, saved the moment they arrive. It
-//! knows nothing of what a state means.
+//! before each step acts; readings are rows of their own, saved the moment they arrive; a small
+//! key/value table keeps what outlives sessions (the backlash camera point). It knows nothing of
+//! what a state means: the calibrations tell it which states are final.
 
 use std::path::Path;
 use std::sync::Mutex;

@@ -2,6 +2,8 @@
 //! and the runner (`session`), the printer guards and the dialog (`session::guards`); answers
 //! and prompts on the console (`console`); the bed soak step (`soak`); the command table and
 //! the typed arguments read against it (`table`); the config transaction (`printer_config`);
+//! the session envelope every stored document shares and what a calibration says of its states
+//! (`envelope`); the status as typed structs (`status`);
 //! the [`Calibration`] trait a calibration implements (`calibration`) and the operations every
 //! daemon answers besides the calibrations' own (`ops`). Nothing here knows a calibration: the
 //! routing over them is `jobs::registry`.
