@@ -94,6 +94,7 @@ fn bench(
         BenchCommand::Soak(a) => crate::cmd::soak_bench::bench(&a, &config.soak),
         BenchCommand::Mesh(a) => crate::cmd::mesh::bench(&a),
         BenchCommand::Backlash(a) => crate::cmd::backlash::bench(&a, &config.backlash),
+        BenchCommand::Camera(a) => rt.block_on(crate::cmd::bench_camera::serve(&a)),
     }
 }
 
