@@ -25,7 +25,8 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use super::{key_words, result_key, Backlash, BacklashCall, PointDoc, Session, State};
+use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall, PointDoc};
+use super::{Session, State};
 use super::{JOG_F, KIND, POINT_KIND, TITLE};
 use crate::calib::backlash::{BacklashParams, Cycle};
 use crate::calib::backlash_guide::GuideAxis;
@@ -422,6 +423,7 @@ impl Backlash {
             )));
         }
         let (detection, cf) = self.detect().await?;
+        let note = start_note(&detection);
         let kin = cf["settings"]["printer"]["kinematics"]
             .as_str()
             .unwrap_or("")
@@ -517,9 +519,10 @@ impl Backlash {
         );
         let msg = format!(
             "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles, no tapping; the result \
-             follows on the console",
+             follows on the console{}",
             key_words(&key),
-            cam.name
+            cam.name,
+            note
         );
         Ok(
             json!({"session": id, "state": "measuring", "axis": axis.name(),
@@ -676,8 +679,9 @@ impl Backlash {
             s.carriage = None;
             s.state = State::Measured;
             s.progress = format!(
-                "{} measured from the camera; start another axis or KLIPCAL_BACKLASH_APPLY",
-                key_words(&key)
+                "{} measured from the camera; {}",
+                key_words(&key),
+                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
             );
             self.core.save(id, &s)?;
             s
@@ -685,9 +689,9 @@ impl Backlash {
         let lines = self.result_lines(&s)?;
         self.core
             .console(&format!(
-                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_CAMERA AXIS=… for another axis, or \
-                 KLIPCAL_BACKLASH_APPLY",
-                lines.join("\n")
+                "{TITLE}: {}\n{}",
+                lines.join("\n"),
+                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
             ))
             .await;
         Ok(())
