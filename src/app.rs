@@ -200,6 +200,7 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     };
     if let Some(c) = cals.clone() {
         c.core().spawn(c.clone().hold_watchdog());
+        c.core().spawn(c.core().clone().watch_closes());
         let m2 = m.clone();
         let c2 = c.clone();
         let stop = cancel.clone();

@@ -133,6 +133,20 @@ impl Files {
         json_body("GET", &url, resp).await
     }
 
+    /// DELETE an API path (e.g. `/server/webcams/item?uid=…`) and return the `result` field.
+    ///
+    /// # Errors
+    /// HTTP failure or Moonraker's refusal.
+    pub async fn delete_api(&self, path: &str) -> Result<Value, Error> {
+        let url = format!("{}{path}", self.base);
+        let resp = self
+            .req(self.client.delete(&url))
+            .send()
+            .await
+            .map_err(|e| http_err("DELETE", &url, e))?;
+        json_body("DELETE", &url, resp).await
+    }
+
     /// POST a JSON body to an API path and return the `result` field.
     ///
     /// # Errors
