@@ -114,7 +114,8 @@ pub struct Webcam {
 }
 
 /// Picks the nozzle camera from `server.webcams.list`'s answer: the one named `wanted`, or the
-/// only enabled one. The error says what to do.
+/// only enabled one. Web pages shown in a webcam panel (service `iframe`, such as klipcal's own
+/// page that install registers) are not cameras and are left out. The error says what to do.
 pub(crate) fn choose_webcam(
     list: &Value,
     wanted: &str,
@@ -122,7 +123,11 @@ pub(crate) fn choose_webcam(
 ) -> Result<Webcam, String> {
     let cams: Vec<&Value> = list["webcams"]
         .as_array()
-        .map(|a| a.iter().filter(|c| c["enabled"] != json!(false)).collect())
+        .map(|a| {
+            a.iter()
+                .filter(|c| c["enabled"] != json!(false) && c["service"] != "iframe")
+                .collect()
+        })
         .unwrap_or_default();
     let names: Vec<&str> = cams.iter().filter_map(|c| c["name"].as_str()).collect();
     let cam = if wanted.is_empty() {
@@ -745,6 +750,12 @@ mod tests {
             e.contains("no webcam") && e.contains("KLIPCAL_BACKLASH_START"),
             "{e}"
         );
+        // klipcal's own page, registered by install as an iframe "webcam", is not a camera.
+        let with_page = json!({"webcams": [
+            {"name": "klipcal", "service": "iframe", "snapshot_url": "", "stream_url": "http://h:7150/"},
+            {"name": "nozzle", "service": "mjpegstreamer-adaptive",
+             "snapshot_url": "/webcam/?action=snapshot"}]});
+        assert_eq!(choose_webcam(&with_page, "", base).unwrap().name, "nozzle");
         let off = json!({"webcams": [{"name": "n", "enabled": false, "snapshot_url": "/s"}]});
         assert!(choose_webcam(&off, "", base).is_err());
         let empty = json!({"webcams": [{"name": "n", "snapshot_url": ""}]});
