@@ -40,6 +40,12 @@ impl Files {
         })
     }
 
+    /// Moonraker's HTTP base, `http://host:port`.
+    #[must_use]
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
     fn req(&self, r: reqwest::RequestBuilder) -> reqwest::RequestBuilder {
         match &self.api_key {
             Some(k) => r.header("X-Api-Key", k),

@@ -3,6 +3,7 @@
 //! ports in its own folder, and stops them when done.
 
 mod backlash;
+mod backlash_camera;
 mod backlash_image;
 mod backlash_job;
 mod bench;
@@ -10,6 +11,7 @@ mod browser;
 mod cli;
 mod daemon;
 mod fake;
+mod frontends;
 mod http;
 mod install;
 mod mainsail;
