@@ -412,7 +412,12 @@ impl Ab {
                     self.update(id, |s| {
                         s.state = State::Holding;
                         s.print_done_unix = Some(now_unix());
-                        s.progress = "print done; the part cools on the hot bed".into();
+                        s.progress = if s.options.bed_temp_c > 0.0 {
+                            "print done; the part cools on the hot bed"
+                        } else {
+                            "print done; the part cools on the bed"
+                        }
+                        .into();
                         Ok(())
                     })
                     .await?;
