@@ -738,6 +738,13 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
             .any(|(_, msg)| msg.contains("round 2: measure the pylons now")),
         "{h:#?}"
     );
+    // Its start says round 2 of the session, not "session N started" (issue 26 B.7).
+    let id = s["id"].as_u64().unwrap();
+    assert!(
+        h.iter()
+            .any(|(_, msg)| msg.contains(&format!("session {id}, round 2 started"))),
+        "{h:#?}"
+    );
     let shown = crate::mainsail::after_reload(&m).await;
     assert!(
         shown

@@ -518,7 +518,14 @@ impl Ab {
             }
         };
         self.spawn_runner(id);
-        Ok(json!({"session": id, "state": "preflight",
-                  "message": format!("{TITLE} session {id} started: checking the printer")}))
+        // The next round of a session is that round, not a new session (issue 26 B.7).
+        let message = match next_round {
+            Some(_) => {
+                let n = self.load(id).map_or(0, |s| s.rounds.len()) + 1;
+                format!("{TITLE} session {id}, round {n} started: checking the printer")
+            }
+            None => format!("{TITLE} session {id} started: checking the printer"),
+        };
+        Ok(json!({"session": id, "state": "preflight", "message": message}))
     }
 }
