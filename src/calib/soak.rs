@@ -66,9 +66,9 @@ pub struct SoakParams {
     /// to surface (see [`Coupling`]). Default 1.0 (1.2 µm/100 mm on steel, 2.3 on aluminium:
     /// half the paper's ±2 K).
     pub surface_budget_c: f64,
-    /// The bed's build, used when its coupling cannot be identified from its own heat-up (a
-    /// warm start, a noisy heat-up): one of [`BED_PRESETS`] by name, or "" (unknown: the
-    /// weakest coupling is assumed). Default "".
+    /// The bed's build, whose coupling the rule uses (capped at the most a cold heat-up of this
+    /// bed allows, which bounds it only from above): one of [`BED_PRESETS`] by name, or ""
+    /// (unknown: the weakest coupling is assumed). Default "".
     pub bed: String,
     /// The slowest time constant the bed and its surroundings (plate, enclosure) may have: a
     /// decay this slow is ruled out before the bed is declared stable, so a longer value waits
@@ -190,7 +190,8 @@ pub fn kelvin_words(k: f64) -> String {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum CouplingSource {
-    /// Identified from this bed's own heat-up and first minutes of hold.
+    /// Identified from this bed's own data, lower end included. A heat-up bounds the coupling
+    /// only from above (see `bounded_by_heat_up`), so the rule does not use this today.
     Identified,
     /// The user's `soak.bed` preset.
     Preset,
@@ -902,7 +903,7 @@ impl SoakDetector {
     }
 
     /// Once the bed has held its band for [`ID_HOLD_S`], the coupling is settled for this
-    /// target: identified from a cold heat-up, else the preset or the weakest.
+    /// target: the preset or the weakest, capped by what a cold heat-up allows.
     fn update_coupling(&mut self, now_s: f64) {
         if self.coupling_final {
             return;

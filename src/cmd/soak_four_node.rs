@@ -658,6 +658,14 @@ pub struct BedResult {
     pub covered: bool,
     /// The G the rule used was at or below the true one (the conservative side).
     pub g_safe: bool,
+    /// The true G and the G the rule used, full power per K.
+    pub g_true: f64,
+    /// See `g_true`.
+    pub g_used: f64,
+    /// The bin noise the detector's test used at its declaration (or the run's end).
+    pub sigma: f64,
+    /// klipcal's rule with `soak.bed` set to this kind's preset, when asked for.
+    pub with_preset: Option<f64>,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
 }
@@ -752,17 +760,34 @@ pub fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedRe
         bounded: identified || c.high > c.g,
         covered: c.low <= g && g <= c.high,
         g_safe: c.g <= g,
+        g_true: g,
+        g_used: c.g,
+        sigma: d.fit().map_or(0.0, |f| f.test_sd),
+        with_preset: None,
         left_c,
     }
 }
 
-/// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`.
+/// The `soak.bed` preset a user of this kind of bed would set.
+#[must_use]
+pub fn preset_name(kind: Kind) -> &'static str {
+    match (kind.glass, kind.pad_sensed) {
+        (false, false) => "steel-plate",
+        (false, true) => "steel-pad",
+        (true, false) => "glass-plate",
+        (true, true) => "glass-pad",
+    }
+}
+
+/// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`; with
+/// `preset`, klipcal's rule is also run with `soak.bed` set to the kind's preset.
 #[must_use]
 pub fn run_bed(
     kind: Kind,
     knobs: Option<Knobs>,
     until_s: f64,
     params: &SoakParams,
+    preset: bool,
     rng: &mut fastrand::Rng,
 ) -> Option<BedResult> {
     let bed = match knobs {
@@ -771,7 +796,15 @@ pub fn run_bed(
     };
     let gains = autotune(&bed, rng)?;
     let samples = heat_up(&bed, gains, until_s, rng);
-    Some(judge(&bed, &samples, params))
+    let mut r = judge(&bed, &samples, params);
+    if preset {
+        let with = SoakParams {
+            bed: preset_name(kind).into(),
+            ..params.clone()
+        };
+        r.with_preset = detector(&samples, &with).0;
+    }
+    Some(r)
 }
 
 #[cfg(test)]
