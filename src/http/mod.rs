@@ -458,7 +458,23 @@ async fn run_operation(
         o.insert(flag.into(), json!(1));
     }
     tracing::info!(%op, "HTTP call");
-    answer(dispatch(&h.m, h.cals.as_ref(), method, &args).await)
+    let outcome = dispatch(&h.m, h.cals.as_ref(), method, &args).await;
+    // A cancel from the page is said on the console too: a user at the printer's front end
+    // sees why the session stopped (a macro's answer reaches the console by the agent).
+    if method == "klipcal_cancel" {
+        if let Ok(v) = &outcome {
+            let said = v["message"].as_str().unwrap_or("cancelled").to_string();
+            let m = h.m.clone();
+            tokio::spawn(async move {
+                crate::jobs::core::console::say(
+                    &m,
+                    &format!("klipcal: {said} (cancelled from klipcal's page)"),
+                )
+                .await;
+            });
+        }
+    }
+    answer(outcome)
 }
 
 #[cfg(test)]

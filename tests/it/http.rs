@@ -529,3 +529,37 @@ async fn a_taken_page_port_is_said_on_the_console_and_in_the_status() {
     );
     drop(taken);
 }
+
+/// Issue 26 B.7: a cancel from klipcal's page leaves a console line (a macro's cancel is
+/// answered there by the agent; the page's was not).
+#[tokio::test]
+async fn a_cancel_from_the_page_is_said_on_the_console() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, _s) = measuring_session(&bench).await;
+    let base = d.page_url().await;
+    let (code, v) = post(
+        &client_from("127.0.0.1"),
+        &format!("{base}/api/cancel"),
+        "{}",
+    )
+    .await;
+    assert_eq!(code, 200, "{v}");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let said = crate::bench::poll(Duration::from_secs(15), || {
+        let m = m.clone();
+        async move {
+            crate::mainsail::history(&m)
+                .await
+                .into_iter()
+                .any(|(_, msg)| msg.contains("cancelled from klipcal's page"))
+                .then_some(())
+        }
+    })
+    .await;
+    assert!(
+        said.is_some(),
+        "no console line for the page's cancel: {:#?}",
+        crate::mainsail::history(&m).await
+    );
+}
