@@ -13,11 +13,7 @@ impl Ab {
         let hold_min = s.options.hold_max_s / 60.0;
         let mut said = String::new();
         if bed > 0.0 {
-            let heated = async {
-                BedSoak::heat(&self.core, bed).await?;
-                self.core.hold_heaters_for(s.options.hold_max_s).await
-            }
-            .await;
+            let heated = BedSoak::heat(&self.core, bed, s.options.hold_max_s).await;
             match heated {
                 Ok(()) => {
                     let _ = self
@@ -196,7 +192,12 @@ impl Ab {
             match s.state {
                 State::Preflight => self.preflight(s).await?,
                 State::Uploaded => {
-                    BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                    BedSoak::heat(
+                        &self.core,
+                        s.options.bed_temp_c,
+                        s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
+                    )
+                    .await?;
                     self.set_state(id, State::Heating, "bed heating").await?;
                 }
                 State::Heating | State::Soaking => self.soak(s).await?,

@@ -138,7 +138,12 @@ impl Mesh {
             match s.state {
                 State::Preflight => {
                     if s.options.bed_temp_c > 0.0 {
-                        BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                        BedSoak::heat(
+                            &self.core,
+                            s.options.bed_temp_c,
+                            s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
+                        )
+                        .await?;
                     }
                     self.set_state(id, State::Soaking, "heating the bed")
                         .await?;
@@ -154,7 +159,12 @@ impl Mesh {
     pub(super) async fn soak_bed(&self, s: &Session) -> anyhow::Result<()> {
         if s.options.bed_temp_c > 0.0 {
             // After a restart the bed may be cold again: heat (again) before watching.
-            BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+            BedSoak::heat(
+                &self.core,
+                s.options.bed_temp_c,
+                s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
+            )
+            .await?;
             let mut soak = BedSoak::new(
                 self.soak.clone(),
                 s.options.bed_temp_c,
