@@ -329,6 +329,7 @@ impl Ab {
             applied: None,
             diagram: None,
             picture: None,
+            print_started_unix: None,
         };
         self.core
             .files()
@@ -380,12 +381,38 @@ impl Ab {
         let ps = &st["print_stats"];
         let ours = ps["filename"].as_str() == Some(round.file.as_str());
         let state = ps["state"].as_str().unwrap_or("");
-        if !(ours && matches!(state, "printing" | "paused" | "complete")) {
+        // Once started, the print is followed to its end, whatever became of it while klipcal
+        // could not watch (Moonraker down, the daemon restarted): it is never started again.
+        let started = round.print_started_unix.is_some();
+        let follow = ours
+            && (matches!(state, "printing" | "paused" | "complete")
+                || (started && matches!(state, "cancelled" | "error")));
+        if !follow && started {
+            return Err(anyhow!(
+                "the calibration print {} stopped while klipcal could not follow it: Klipper \
+                 shows {} (it restarted or shut down meanwhile, or another print ran); start \
+                 the round again with KLIPCAL_AB_START",
+                round.file,
+                match ps["filename"].as_str() {
+                    Some(f) if !f.is_empty() => format!("{state} {f}"),
+                    _ => format!("{state}, no print"),
+                }
+            ));
+        }
+        if !follow {
             self.core.printer_idle().await?;
             // Klipper keeps the heaters on while it prints; once the print ends, it turns them
             // off by itself after the hold limit if klipcal is not there to do it.
             self.core.hold_heaters_for(s.options.hold_max_s).await?;
             self.core.m().print_start(&round.file).await?;
+            let now = now_unix();
+            self.update(id, |s| {
+                if let Some(r) = s.rounds.last_mut() {
+                    r.print_started_unix = Some(now);
+                }
+                Ok(())
+            })
+            .await?;
             self.core
                 .console(&format!("A/B calibration: printing {}", round.file))
                 .await;
@@ -401,9 +428,15 @@ impl Ab {
             {
                 Ok(st) => st,
                 Err(e) => {
-                    // Klipper restarting or Moonraker away: keep watching; a shutdown shows up
-                    // as print_stats error once Klipper is back.
-                    warn!(error = %e, "print status unavailable");
+                    let e = anyhow::Error::new(e);
+                    // Moonraker away: the runner waits for it, says so, and follows the print
+                    // again from what Klipper shows then (above).
+                    if self.core.unreachable(&e) {
+                        return Err(e);
+                    }
+                    // Klipper restarting: keep watching; a shutdown shows up as print_stats
+                    // error once Klipper is back.
+                    warn!(error = %format!("{e:#}"), "print status unavailable");
                     continue;
                 }
             };
