@@ -38,6 +38,7 @@ impl Mesh {
             notes: Vec::new(),
             user_mesh: Some(user_mesh),
             imported: false,
+            following: false,
         };
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
