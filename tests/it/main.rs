@@ -10,6 +10,7 @@ mod browser;
 mod cli;
 mod daemon;
 mod fake;
+mod faults;
 mod http;
 mod install;
 mod mainsail;
