@@ -94,6 +94,7 @@ fn bench(
         BenchCommand::Soak(a) => crate::cmd::soak_bench::bench(&a, &config.soak),
         BenchCommand::Mesh(a) => crate::cmd::mesh::bench(&a),
         BenchCommand::Backlash(a) => crate::cmd::backlash::bench(&a, &config.backlash),
+        BenchCommand::Camera(a) => rt.block_on(crate::cmd::bench_camera::serve(&a)),
     }
 }
 
@@ -199,6 +200,7 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     };
     if let Some(c) = cals.clone() {
         c.core().spawn(c.clone().hold_watchdog());
+        c.core().spawn(c.core().clone().watch_closes());
         let m2 = m.clone();
         let c2 = c.clone();
         let stop = cancel.clone();

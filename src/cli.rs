@@ -144,6 +144,25 @@ pub enum BenchCommand {
     Mesh(BenchMeshArgs),
     /// The guided backlash procedure on simulated axes and people, beside the seed's single pass.
     Backlash(BenchBacklashArgs),
+    /// The bench's nozzle camera: an HTTP snapshot server (`/?action=snapshot`, `/snapshot`)
+    /// drawing the simulated nozzle (tests/bench/bench.py --camera starts it).
+    Camera(BenchCameraArgs),
+}
+
+/// `klipcal bench camera`
+#[derive(Debug, Args)]
+pub struct BenchCameraArgs {
+    /// The bench's simulated nozzle (`[klipcal_backlash_sim] state_file`).
+    #[arg(long, value_name = "PATH")]
+    pub state_file: PathBuf,
+    /// Loopback port to serve on.
+    #[arg(long)]
+    pub port: u16,
+    /// The camera as JSON: look (ring, dark_tip, empty, two_nozzles, saturated, flat), width,
+    /// height, px_per_mm, rotation_deg, mirror, centre_mm, offset_px, radius_px, seed, ring_mm,
+    /// ring_tau_s, drop_every.
+    #[arg(long, default_value = "{}")]
+    pub spec: String,
 }
 
 /// `klipcal backlash …`

@@ -241,6 +241,11 @@ pub struct BacklashConfig {
     pub accel_budget_fraction: f64,
     /// Outlier cut, robust sd from the median.
     pub outlier_sigmas: f64,
+    /// The nozzle camera's name in Moonraker's webcam list (KLIPCAL_BACKLASH_CAMERA); empty:
+    /// the only webcam there is.
+    pub webcam: String,
+    /// After a move, wait this long before the first frame (vibration, camera latency), s.
+    pub camera_settle_s: f64,
 }
 
 impl Default for BacklashConfig {
@@ -261,6 +266,8 @@ impl Default for BacklashConfig {
             prior_cycle_sd_mm: p.prior_cycle_sd_mm,
             accel_budget_fraction: p.accel_budget_fraction,
             outlier_sigmas: p.outlier_sigmas,
+            webcam: String::new(),
+            camera_settle_s: 0.3,
         }
     }
 }

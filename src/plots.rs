@@ -52,8 +52,45 @@ fn err<E: std::fmt::Display>(e: E) -> String {
     format!("plot: {e}")
 }
 
+/// Size of the plots' text (plotters' points): at the plots' 600 px width it stays 10 px or more
+/// when a phone shows the picture 360 px wide.
+const TEXT_PT: u32 = 22;
+/// The soak plot's width and height, px.
+pub(crate) const SOAK_SIZE: (u32, u32) = (600, 460);
+
+/// The fitted decay as points (minutes from `t0`, power %) from one time constant before the
+/// fit's "now" (not before the first sample) to `to_s`; `None` when the fit is not one a bed can
+/// have (a power beyond 0..`max_power`, as the detector says early in a soak): nothing is drawn
+/// then rather than a line clamped at 100 % or 0 %.
+pub(crate) fn decay_points(
+    fit: &DecayCurve,
+    t0: f64,
+    to_s: f64,
+    max_power: f64,
+) -> Option<Vec<(f64, f64)>> {
+    let plausible = fit.tau_s > 0.0
+        && fit.tau_s.is_finite()
+        && (-0.05..=max_power + 0.05).contains(&fit.final_power)
+        && (0.0..=max_power).contains(&fit.remaining);
+    if !plausible {
+        return None;
+    }
+    let from = (fit.now_s - fit.tau_s).max(t0);
+    let n = 120;
+    Some(
+        (0..=n)
+            .map(|i| {
+                let t = from + (to_s - from) * f64::from(i) / f64::from(n);
+                let p = fit.final_power + fit.remaining * (-(t - fit.now_s) / fit.tau_s).exp();
+                ((t - t0) / 60.0, (p * 100.0).clamp(0.0, 100.0))
+            })
+            .collect(),
+    )
+}
+
 /// The soak plot: bed temperature and target (left axis, °C) and power (right axis, %) over
-/// minutes, with the fitted decay dashed up to `eta_s` past the last sample.
+/// minutes, with the fitted decay dashed up to `eta_s` past the last sample; the legend in a
+/// row under the plot, where it covers no data.
 ///
 /// # Errors
 /// No samples, or plotters failed (the message says which).
@@ -82,16 +119,27 @@ pub fn soak_svg(
         return Err("plot: no finite temperatures".into());
     }
     let (lo, hi) = ((lo - 2.0).floor(), (hi + 2.0).ceil());
+    let max_power = samples
+        .iter()
+        .map(|s| s.power)
+        .filter(|p| p.is_finite())
+        .fold(0.0_f64, f64::max)
+        .max(0.05);
+    let curve = fit.and_then(|f| decay_points(&f, t0, last.t_s + ahead_s, max_power));
+    let text = ("sans-serif", TEXT_PT);
     let mut out = String::new();
     {
-        let root = SVGBackend::with_string(&mut out, (720, 340)).into_drawing_area();
+        let root = SVGBackend::with_string(&mut out, SOAK_SIZE).into_drawing_area();
         root.fill(&WHITE).map_err(err)?;
-        let mut chart = ChartBuilder::on(&root)
-            .caption(title, ("sans-serif", 16))
-            .margin(10)
-            .x_label_area_size(32)
-            .y_label_area_size(44)
-            .right_y_label_area_size(44)
+        let legend_h = 2 * TEXT_PT + 16;
+        let (plot, legend) = root.split_vertically(SOAK_SIZE.1 - legend_h);
+        let mut chart = ChartBuilder::on(&plot)
+            .caption(title, ("sans-serif", TEXT_PT + 2))
+            .margin(8)
+            .margin_right(4)
+            .x_label_area_size(2 * TEXT_PT + 8)
+            .y_label_area_size(2 * TEXT_PT + 14)
+            .right_y_label_area_size(2 * TEXT_PT + 10)
             .build_cartesian_2d(0.0..x1, lo..hi)
             .map_err(err)?
             .set_secondary_coord(0.0..x1, 0.0..100.0);
@@ -99,12 +147,22 @@ pub fn soak_svg(
             .configure_mesh()
             .x_desc("minutes")
             .y_desc("bed °C")
+            .x_labels(5)
+            .y_labels(5)
+            .x_label_formatter(&|x| format!("{x:.0}"))
+            .y_label_formatter(&|y| format!("{y:.0}"))
+            .label_style(text)
+            .axis_desc_style(text)
             .light_line_style(WHITE.mix(0.0))
             .draw()
             .map_err(err)?;
         chart
             .configure_secondary_axes()
-            .y_desc("bed power %")
+            .y_desc("power %")
+            .y_labels(5)
+            .y_label_formatter(&|y| format!("{y:.0}"))
+            .label_style(text)
+            .axis_desc_style(text)
             .draw()
             .map_err(err)?;
         let minutes = |t: f64| (t - t0) / 60.0;
@@ -113,17 +171,13 @@ pub fn soak_svg(
                 samples.iter().map(|s| (minutes(s.t_s), s.target_c)),
                 GREY.stroke_width(1),
             ))
-            .map_err(err)?
-            .label("target °C")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], GREY));
+            .map_err(err)?;
         chart
             .draw_series(LineSeries::new(
                 samples.iter().map(|s| (minutes(s.t_s), s.temp_c)),
                 RED_.stroke_width(2),
             ))
-            .map_err(err)?
-            .label("bed °C")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], RED_));
+            .map_err(err)?;
         chart
             .draw_secondary_series(LineSeries::new(
                 samples
@@ -131,33 +185,52 @@ pub fn soak_svg(
                     .map(|s| (minutes(s.t_s), (s.power * 100.0).clamp(0.0, 100.0))),
                 BLUE_.stroke_width(1),
             ))
-            .map_err(err)?
-            .label("power %")
-            .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLUE_));
-        if let Some(f) = fit.filter(|f| f.tau_s > 0.0 && f.tau_s.is_finite()) {
-            let from = (f.now_s - 3.0 * f.tau_s).max(t0);
-            let to = last.t_s + ahead_s;
-            let n = 120;
-            let curve: Vec<(f64, f64)> = (0..=n)
-                .map(|i| {
-                    let t = from + (to - from) * f64::from(i) / f64::from(n);
-                    let p = f.final_power + f.remaining * (-(t - f.now_s) / f.tau_s).exp();
-                    (minutes(t), (p * 100.0).clamp(0.0, 100.0))
-                })
-                .collect();
-            chart
-                .draw_secondary_series(DashedLineSeries::new(curve, 6, 4, BLACK.stroke_width(1)))
-                .map_err(err)?
-                .label(format!("fitted decay, τ {:.0} min", f.tau_s / 60.0))
-                .legend(|(x, y)| PathElement::new(vec![(x, y), (x + 16, y)], BLACK));
-        }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.85))
-            .border_style(GREY)
-            .position(SeriesLabelPosition::LowerRight)
-            .draw()
             .map_err(err)?;
+        let mut keys: Vec<(String, RGBColor, bool)> = vec![
+            ("target °C".into(), GREY, false),
+            ("bed °C".into(), RED_, false),
+            ("power %".into(), BLUE_, false),
+        ];
+        if let (Some(points), Some(f)) = (curve, fit) {
+            chart
+                .draw_secondary_series(DashedLineSeries::new(points, 6, 4, BLACK.stroke_width(2)))
+                .map_err(err)?;
+            keys.push((
+                format!("fitted decay, τ {:.0} min", f.tau_s / 60.0),
+                BLACK,
+                true,
+            ));
+        }
+        // The legend: two rows under the plot, a short line and the words for each series.
+        let (w, _) = legend.dim_in_pixel();
+        let col = i32::try_from(w / 2).unwrap_or(300);
+        let row = i32::try_from(TEXT_PT + 6).unwrap_or(28);
+        for (k, (words, colour, dashed)) in keys.iter().enumerate() {
+            let k = i32::try_from(k).unwrap_or(0);
+            let (x, y) = (12 + (k % 2) * col, 6 + (k / 2) * row + row / 2);
+            let style = colour.stroke_width(if *dashed { 2 } else { 3 });
+            if *dashed {
+                for seg in 0..3 {
+                    legend
+                        .draw(&PathElement::new(
+                            vec![(x + seg * 10, y), (x + seg * 10 + 6, y)],
+                            style,
+                        ))
+                        .map_err(err)?;
+                }
+            } else {
+                legend
+                    .draw(&PathElement::new(vec![(x, y), (x + 26, y)], style))
+                    .map_err(err)?;
+            }
+            legend
+                .draw(&Text::new(
+                    words.clone(),
+                    (x + 34, y - i32::try_from(TEXT_PT).unwrap_or(22) * 2 / 5),
+                    text,
+                ))
+                .map_err(err)?;
+        }
         root.present().map_err(err)?;
     }
     Ok(out)
@@ -263,8 +336,33 @@ pub fn convergence_of_status(doc: &Value) -> Result<String, String> {
     )
 }
 
-/// The bed samples of a `server.temperature_store` entry (1 s apart, the last one now) and
-/// what a soak detector fed with them says: its fitted decay and ETA while soaking.
+/// Where the current heat-up begins in a series of targets (1 s apart): a minute before the
+/// target last changed to the one it has now, so an earlier session's heat-up and cool-down
+/// are not drawn (nor fed to the detector); 0 when it never changed.
+pub(crate) fn current_heat_start(targets: &[f64]) -> usize {
+    let Some(now) = targets.iter().rev().find(|t| t.is_finite()).copied() else {
+        return 0;
+    };
+    let changed = targets
+        .iter()
+        .rposition(|t| t.is_finite() && (t - now).abs() > 0.05)
+        .map_or(0, |i| i + 1);
+    changed.saturating_sub(60)
+}
+
+/// The soak plot's title: the target and the minutes `samples` really span.
+#[must_use]
+pub fn soak_title(samples: &[BedSample]) -> String {
+    let (target, minutes) = match (samples.first(), samples.last()) {
+        (Some(a), Some(b)) => (b.target_c, ((b.t_s - a.t_s) / 60.0).max(0.0)),
+        _ => (f64::NAN, 0.0),
+    };
+    format!("bed soak at {target:.0} °C: the last {minutes:.0} min")
+}
+
+/// The bed samples of a `server.temperature_store` entry (1 s apart, the last one now) since
+/// the current heat-up began ([`current_heat_start`]) and what a soak detector fed with them
+/// says: its fitted decay and ETA while soaking.
 #[must_use]
 pub fn replay_soak(
     bed: &Value,
@@ -283,10 +381,11 @@ pub fn replay_soak(
     let targets = series("targets").unwrap_or_else(|| vec![f64::NAN; temps.len()]);
     let powers = series("powers").unwrap_or_else(|| vec![0.0; temps.len()]);
     let n = temps.len().min(targets.len()).min(powers.len());
+    let start = current_heat_start(&targets[..n]);
     let mut det = SoakDetector::new(params.clone());
-    let mut samples = Vec::with_capacity(n);
+    let mut samples = Vec::with_capacity(n - start);
     let mut eta = None;
-    for i in 0..n {
+    for i in start..n {
         let s = BedSample {
             t_s: i as f64,
             temp_c: temps[i],
@@ -355,6 +454,140 @@ mod tests {
         assert!(svg.matches("<polyline").count() + svg.matches("<path").count() >= 4);
         let without = soak_svg(&samples, None, None, "bed soak").unwrap();
         assert!(!without.contains("fitted decay"));
+    }
+
+    /// A temperature store as Moonraker keeps it (1 Hz): an earlier session's heat-up to 60 °C
+    /// and cool-down (20 min), then the current one to 70 °C (38 min).
+    fn store_with_an_earlier_session() -> Value {
+        let (mut temps, mut targets, mut powers) = (vec![], vec![], vec![]);
+        for i in 0..1200 {
+            let t = f64::from(i);
+            let on = i < 600;
+            temps.push(if on {
+                60.0
+            } else {
+                25.0 + 35.0 * (-(t - 600.0) / 300.0).exp()
+            });
+            targets.push(if on { 60.0 } else { 0.0 });
+            powers.push(if on { 0.3 } else { 0.0 });
+        }
+        for i in 0..(38 * 60) {
+            let t = f64::from(i);
+            temps.push(70.0 - 45.0 * (-t / 200.0).exp());
+            targets.push(70.0);
+            powers.push(if t < 400.0 {
+                1.0
+            } else {
+                0.3 + 0.3 * (-(t - 400.0) / 600.0).exp()
+            });
+        }
+        serde_json::json!({"temperatures": temps, "targets": targets, "powers": powers})
+    }
+
+    #[test]
+    fn the_soak_plot_shows_the_current_heat_up_only_and_says_the_span_it_shows() {
+        let (samples, _, _) =
+            replay_soak(&store_with_an_earlier_session(), &SoakParams::default()).unwrap();
+        assert!(
+            samples.iter().all(|s| s.target_c != 60.0),
+            "the earlier session's heat-up is drawn"
+        );
+        assert_eq!(samples.iter().filter(|s| s.target_c == 0.0).count(), 60);
+        // 38 min of the current heat-up and the minute before it.
+        assert_eq!(soak_title(&samples), "bed soak at 70 °C: the last 39 min");
+        let svg = soak_svg(&samples, None, None, &soak_title(&samples)).unwrap();
+        assert!(svg.contains("the last 39 min"));
+        // A store that never changed target: all of it.
+        let flat = serde_json::json!({"temperatures": vec![60.0; 300], "targets": vec![60.0; 300], "powers": vec![0.3; 300]});
+        let (all, _, _) = replay_soak(&flat, &SoakParams::default()).unwrap();
+        assert_eq!(all.len(), 300);
+    }
+
+    #[test]
+    fn the_fitted_decay_is_drawn_as_a_curve_or_not_at_all() {
+        // What the detector fits early on a real bed (burneypromod-voron2-4-1, max_power 0.6):
+        // a power the heater cannot give. The old plot clamped it into a line at 100 %.
+        let wild = DecayCurve {
+            now_s: 2541.0,
+            tau_s: 317.7,
+            final_power: 8.22,
+            remaining: 0.0,
+        };
+        assert_eq!(decay_points(&wild, 0.0, 4000.0, 0.6), None);
+        let fit = DecayCurve {
+            now_s: 2000.0,
+            tau_s: 600.0,
+            final_power: 0.3,
+            remaining: 0.05,
+        };
+        let pts = decay_points(&fit, 0.0, 3000.0, 0.6).unwrap();
+        assert!(pts.windows(2).all(|w| w[1].1 < w[0].1), "falls throughout");
+        // From 0.3 + 0.05·e at now − τ to near 0.3: within what the bed's power does.
+        assert!(pts.iter().all(|p| (30.0..=43.6).contains(&p.1)), "{pts:?}");
+        assert!(
+            (pts[0].0 - 1400.0 / 60.0).abs() < 1e-9,
+            "starts one τ before now"
+        );
+    }
+
+    /// The font sizes of an SVG's texts, px, and each text's y and words.
+    fn texts(svg: &str) -> Vec<(f64, f64, String)> {
+        svg.split("<text ")
+            .skip(1)
+            .map(|t| {
+                let num = |k: &str| -> f64 {
+                    let key = format!(" {k}=\"");
+                    let at = format!(" {t}").find(&key).unwrap() + key.len() - 1;
+                    let rest = &t[at..];
+                    rest[..rest.find('"').unwrap()].parse().unwrap()
+                };
+                let words = t[t.find('>').unwrap() + 1..t.find('<').unwrap()]
+                    .trim()
+                    .to_string();
+                (num("font-size"), num("y"), words)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_soak_plot_reads_on_a_phone_and_its_legend_covers_no_data() {
+        let samples = bed(240);
+        let fit = DecayCurve {
+            now_s: samples.last().unwrap().t_s,
+            tau_s: 600.0,
+            final_power: 0.3,
+            remaining: 0.05,
+        };
+        let svg = soak_svg(&samples, Some(fit), Some(300.0), "bed soak").unwrap();
+        let width: f64 = svg
+            .split("width=\"")
+            .nth(1)
+            .and_then(|r| r.split('"').next())
+            .unwrap()
+            .parse()
+            .unwrap();
+        let all = texts(&svg);
+        assert!(all.len() > 10);
+        for (size, _, words) in &all {
+            let phone = size * 360.0 / width;
+            assert!(
+                phone >= 10.0,
+                "'{words}' is {phone:.1} px on a 360 px wide phone"
+            );
+        }
+        // The legend stands under the x axis's "minutes", outside the plotted area.
+        let axis_y = all.iter().find(|t| t.2 == "minutes").unwrap().1;
+        for key in ["target °C", "bed °C", "power %", "fitted decay, τ 10 min"] {
+            // (the last text of those words: "bed °C" also names the left axis)
+            let (_, y, _) = all
+                .iter()
+                .rfind(|t| t.2 == key)
+                .unwrap_or_else(|| panic!("no legend entry {key}"));
+            assert!(
+                *y > axis_y,
+                "the legend entry {key} at y {y}, inside the plot"
+            );
+        }
     }
 
     #[test]

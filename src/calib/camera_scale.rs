@@ -12,7 +12,7 @@
 //! Each axis gets its own line and offset: the other axis's play may sit on either side
 //! between the two sets, which would shift a shared offset but not a slope.
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use super::backlash::{BacklashParams, Cycle};
 use super::Error;
@@ -29,7 +29,7 @@ pub struct Sighting {
 }
 
 /// One axis's direction in the image.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct AxisScale {
     /// Image displacement per mm of this axis, px/mm (x, y).
     pub direction_px_per_mm: [f64; 2],
@@ -142,7 +142,7 @@ pub fn fit_axis(axis: &str, s: &[Sighting]) -> Result<AxisScale, Error> {
 }
 
 /// The camera against two machine axes.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct CameraScale {
     pub x: AxisScale,
     pub y: AxisScale,

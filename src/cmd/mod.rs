@@ -4,6 +4,8 @@
 pub mod backlash;
 #[cfg(feature = "bench")]
 pub mod bench;
+#[cfg(feature = "bench")]
+pub(crate) mod bench_camera;
 pub(crate) mod camera_render;
 pub mod install;
 pub mod mesh;

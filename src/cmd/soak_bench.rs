@@ -625,8 +625,48 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
          every 0.3 s, ADC noise, 0.01 °C), judged on the surface ({budget:.1} K), {per_kind} \
          beds per kind:"
     );
-    let mut ok = true;
+    // The port of Klipper's control against Klipper's own Python, on the same readings.
+    let ok_port = match crate::cmd::soak_four_node::klippy_python() {
+        Err(e) => {
+            println!("    the port against Klipper's own heaters.py: FAIL: {e}");
+            false
+        }
+        Ok((python, script)) => {
+            use crate::cmd::soak_four_node::{klipper_check, GAIN_TOL, PWM_TOL};
+            match klipper_check(&python, &script, 8, 1800.0, seed + 77) {
+                Err(e) => {
+                    println!("    the port against Klipper's own heaters.py: FAIL: {e:#}");
+                    false
+                }
+                Ok(r) => {
+                    let good = r.pwm_mismatches == 0
+                        && r.autotune_mismatches == 0
+                        && r.max_gain_rel <= GAIN_TOL;
+                    println!(
+                        "    the port against Klipper's own Python (heaters.py Heater + ControlPID, \
+                         pid_calibrate.py ControlAutoTune, bench venv) on the same readings, {} \
+                         runs (an autotune and 30 min of PID per bed, one bed of each kind): pwm \
+                         differs after {} of {} readings (max {:.1e}; tolerance {PWM_TOL:.0e})   \
+                         target 0   {}; autotune gains differ by {:.1e} relative (tolerance \
+                         {GAIN_TOL:.0e}), {} autotunes ended apart   target 0   {}",
+                        r.runs,
+                        r.pwm_mismatches,
+                        r.updates,
+                        r.max_pwm_diff,
+                        pass(r.pwm_mismatches == 0),
+                        r.max_gain_rel,
+                        r.autotune_mismatches,
+                        pass(r.autotune_mismatches == 0 && r.max_gain_rel <= GAIN_TOL),
+                    );
+                    good
+                }
+            }
+        }
+    };
+    let mut ok = ok_port;
     for (k, kind) in Kind::all().into_iter().enumerate() {
+        // The families with the timeliness target are also run with their soak.bed preset.
+        let steel_open = !kind.enclosed && !kind.glass;
         let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + k as u64);
         let until = if kind.enclosed {
             5.0 * 3600.0
@@ -634,7 +674,7 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
             3.0 * 3600.0
         };
         let res: Vec<BedResult> = (0..per_kind)
-            .filter_map(|_| run_bed(kind, None, until, params, &mut rng))
+            .filter_map(|_| run_bed(kind, None, until, params, steel_open, &mut rng))
             .collect();
         let n = res.len().max(1) as f64;
         let early = |f: &dyn Fn(&BedResult) -> Option<f64>| {
@@ -663,48 +703,126 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
         let e = early(&rule);
         ok &= e == 0;
         let ident: Vec<&BedResult> = res.iter().filter(|r| r.identified).collect();
-        let within = ident
-            .iter()
-            .filter(|r| {
-                r.rule
-                    .is_some_and(|d| d >= r.moment_s && d <= 1.5 * r.moment_s + 300.0)
-            })
-            .count();
-        let covered = ident.iter().filter(|r| r.covered).count();
+        let in_time = |r: &BedResult| {
+            r.rule
+                .is_some_and(|d| d >= r.moment_s && d <= 1.5 * r.moment_s + 300.0)
+        };
+        let within = ident.iter().filter(|r| in_time(r)).count();
+        let within_all = res.iter().filter(|r| in_time(r)).count();
+        let bounded: Vec<&BedResult> = res.iter().filter(|r| r.bounded).collect();
+        let covered = bounded.iter().filter(|r| r.covered).count();
+        let safe = res.iter().filter(|r| r.g_safe).count();
         let pct = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
         let surf = median(
             res.iter()
                 .map(|r| (r.moment_s - r.reach_s) / 60.0)
                 .collect(),
         );
+        // The information bound of this rule: the earliest a 3 σ test knowing all but the
+        // final power could rule out a tau_max_s decay still holding the budget's power (the
+        // budget times G), from the end of the settling on, at the detector's own noise.
+        let bound_min = |g: &dyn Fn(&BedResult) -> f64| {
+            median(
+                res.iter()
+                    .map(|r| {
+                        (information_bound(
+                            r.reach_s + params.settle_s,
+                            r.sigma,
+                            params.tau_max_s,
+                            budget * g(r),
+                            params,
+                        )
+                        .max(r.reach_s + params.settle_s + params.min_soak_s)
+                            - r.reach_s)
+                            / 60.0
+                    })
+                    .collect(),
+            )
+        };
+        let (bound_true, bound_used) = (bound_min(&|r| r.g_true), bound_min(&|r| r.g_used));
+        let soak = soak_min(&rule);
         println!("    {} ({} beds; surface within {budget:.1} K after {:.1} min past reaching the target, median):", kind.name(), res.len(), surf);
         println!(
-            "      klipcal: early {e} ({:.0} %)   target 0   {}; within 1.5 × surface moment + 5 min \
-             {within} of {} identified ({:.0} %)   target ≥ 90 %   {}; soak after reaching \
-             the target {}{}",
+            "      klipcal: early {e} ({:.0} %)   target 0   {}; soak after reaching the target {}{}",
             100.0 * e as f64 / n,
             pass(e == 0),
-            ident.len(),
-            pct(within, ident.len()),
-            pass(pct(within, ident.len()) >= 90.0),
-            words(soak_min(&rule)),
-            if !kind.enclosed && !kind.glass {
-                format!(
-                    "   target ≤ 15 min   {}",
-                    pass(soak_min(&rule) <= 15.0)
-                )
+            words(soak),
+            if steel_open {
+                if soak <= 15.0 {
+                    "   target ≤ 15 min   PASS".to_string()
+                } else {
+                    format!("   target ≤ 15 min   MISS by {:.1} min", soak - 15.0)
+                }
             } else {
                 String::new()
-            }
+            },
         );
         println!(
-            "      coupling identified on {} of {} beds; the true G inside its interval on {} \
-             ({:.0} %)   target ≥ 95 %   {}",
+            "      information bound of the rule (a 3 σ test that knew all but the final power, \
+             ruling out a tau_max_s decay still holding the budget's power at the detector's \
+             noise, after the settling and minimum soak): {:.1} min with the true G, {:.1} min \
+             with the G used (median); klipcal is {:.1} min past the latter",
+            bound_true,
+            bound_used,
+            soak - bound_used
+        );
+        println!(
+            "      within 1.5 × surface moment + 5 min: {within_all} of {} beds ({:.0} %); where G \
+             is identified: {}",
+            res.len(),
+            pct(within_all, res.len()),
+            if ident.is_empty() {
+                "no bed (see the coupling), target ≥ 90 % not applicable".to_string()
+            } else {
+                format!(
+                    "{within} of {} ({:.0} %)   target ≥ 90 %   {}",
+                    ident.len(),
+                    pct(within, ident.len()),
+                    pass(pct(within, ident.len()) >= 90.0)
+                )
+            }
+        );
+        if steel_open {
+            let pe = early(&|r| r.with_preset);
+            ok &= pe == 0;
+            let ps = soak_min(&|r| r.with_preset);
+            println!(
+                "      with soak.bed = \"{}\" (G 1/{:.0}, capped by the heat-up): early {pe}   \
+                 target 0   {}; soak after reaching the target {}   target ≤ 15 min   {}",
+                crate::cmd::soak_four_node::preset_name(kind),
+                1.0 / crate::calib::soak::BED_PRESETS
+                    .iter()
+                    .find(|b| b.name == crate::cmd::soak_four_node::preset_name(kind))
+                    .map_or(f64::NAN, |b| b.g),
+                pass(pe == 0),
+                words(ps),
+                if ps <= 15.0 {
+                    "PASS".to_string()
+                } else {
+                    format!("MISS by {:.1} min", ps - 15.0)
+                }
+            );
+        }
+        println!(
+            "      coupling: identified (lower end from the bed's own heat-up) on {} of {} beds; \
+             the G used at or below the true G on {safe} of {}   target all   {}; {}",
             ident.len(),
             res.len(),
-            covered,
-            pct(covered, ident.len()),
-            pass(pct(covered, ident.len()) >= 95.0)
+            res.len(),
+            pass(safe == res.len()),
+            if bounded.is_empty() {
+                "no heat-up gave an upper end (the surface's lag does not show: the G used is \
+                 the preset's or the weakest), coverage target not applicable"
+                    .to_string()
+            } else {
+                format!(
+                    "the heat-up gave an upper end on {} beds, and the true G lay between the G \
+                     used and it on {covered} ({:.0} %)   target ≥ 95 %   {}",
+                    bounded.len(),
+                    pct(covered, bounded.len()),
+                    pass(pct(covered, bounded.len()) >= 95.0)
+                )
+            }
         );
         let fixed = |m: f64| {
             res.iter()
@@ -750,7 +868,9 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
                     } else {
                         3.0 * 3600.0
                     };
-                    if let Some(r) = run_bed(kind, Some(knobs), until, params, &mut rng) {
+                    let steel_open = !kind.enclosed && !kind.glass;
+                    if let Some(r) = run_bed(kind, Some(knobs), until, params, steel_open, &mut rng)
+                    {
                         grid_n += 1;
                         if r.rule.is_some_and(|d| d < r.moment_s) {
                             grid_early.push(format!(
@@ -761,6 +881,16 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
                                 r.left_c
                             ));
                         }
+                        if r.with_preset.is_some_and(|d| d < r.moment_s) {
+                            grid_early.push(format!(
+                                "{} {knobs:?} with soak.bed = {:?}: declared {:.1} min, surface \
+                                 moment {:.1} min",
+                                kind.name(),
+                                crate::cmd::soak_four_node::preset_name(kind),
+                                r.with_preset.unwrap_or(0.0) / 60.0,
+                                r.moment_s / 60.0,
+                            ));
+                        }
                     }
                 }
             }
@@ -768,7 +898,8 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
     }
     println!(
         "    grid of the four-node knobs (coupling, plate thickness, enclosure, noise at their \
-         ends, every kind): early {} of {grid_n}   target 0   {}",
+         ends, every kind; open-frame steel also with its soak.bed preset): early {} of {grid_n}   \
+         target 0   {}",
         grid_early.len(),
         pass(grid_early.is_empty())
     );
@@ -842,4 +973,24 @@ fn report_real(params: &SoakParams, show_failures: bool) -> bool {
         pass(violations == 0)
     );
     violations == 0
+}
+
+#[cfg(test)]
+mod tests {
+    /// The four-node part of `klipcal bench soak` on its own, with fewer beds
+    /// (`KLIPCAL_FOUR_NODE_BEDS` per kind, default 4): `cargo test --lib four_node_report --
+    /// --ignored --nocapture`. It asserts what the bench's exit code does: never early.
+    #[test]
+    #[ignore]
+    fn four_node_report() {
+        let per_kind = std::env::var("KLIPCAL_FOUR_NODE_BEDS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(4);
+        assert!(super::report_four_node(
+            &crate::calib::soak::SoakParams::default(),
+            per_kind,
+            1
+        ));
+    }
 }

@@ -334,10 +334,25 @@ fn step(bed: &FourNode, t: &mut [f64; 4], p: f64, dt: f64) {
     }
 }
 
+/// One reading Klipper's control saw and the pwm it set after it: `(read_time, temp, pwm)`.
+pub(crate) type Trace = Vec<(f64, f64, f64)>;
+
+/// PID gains (Kp, Ki, Kd) in Klipper's units.
+type Gains = (f64, f64, f64);
+
 /// pid_calibrate.ControlAutoTune on the bed from room temperature at its target: the PID
 /// gains (Klipper's units) a user's PID_CALIBRATE would write, or None if it did not finish.
 #[must_use]
 pub fn autotune(bed: &FourNode, rng: &mut fastrand::Rng) -> Option<(f64, f64, f64)> {
+    autotune_traced(bed, rng, None)
+}
+
+/// [`autotune`], recording every reading and the pwm set after it into `trace`.
+pub(crate) fn autotune_traced(
+    bed: &FourNode,
+    rng: &mut fastrand::Rng,
+    mut trace: Option<&mut Trace>,
+) -> Option<(f64, f64, f64)> {
     let mut t = [bed.room_c; 4];
     let mut k = Klipper::new(1.0, (0.0, 0.0, 0.0));
     let calibrate_temp = bed.target_c;
@@ -345,10 +360,14 @@ pub fn autotune(bed: &FourNode, rng: &mut fastrand::Rng) -> Option<(f64, f64, f6
     let (mut heating, mut peak, mut peak_time) = (false, 0.0, 0.0);
     let mut peaks: Vec<(f64, f64)> = Vec::new();
     let mut time = 0.0;
+    // The pwm the heater runs at: Klipper's set_pwm schedules a new value pwm_delay (the
+    // report time) after the reading it answers.
+    let mut applied = 0.0;
     while time < 4.0 * 3600.0 {
         time += REPORT_S;
-        step(bed, &mut t, k.last_pwm_value, REPORT_S);
+        step(bed, &mut t, applied, REPORT_S);
         let temp = read(bed, &t, rng);
+        applied = k.last_pwm_value;
         let target_temp = k.target;
         if heating && temp >= target_temp {
             heating = false;
@@ -373,6 +392,9 @@ pub fn autotune(bed: &FourNode, rng: &mut fastrand::Rng) -> Option<(f64, f64, f6
                 peak = temp;
                 peak_time = time;
             }
+        }
+        if let Some(tr) = trace.as_deref_mut() {
+            tr.push((time, temp, k.last_pwm_value));
         }
         if !heating && peaks.len() >= 12 {
             break;
@@ -407,6 +429,17 @@ pub fn heat_up(
     until_s: f64,
     rng: &mut fastrand::Rng,
 ) -> Vec<[f64; 5]> {
+    heat_up_traced(bed, gains, until_s, rng, None)
+}
+
+/// [`heat_up`], recording every reading and the pwm set after it into `trace`.
+pub(crate) fn heat_up_traced(
+    bed: &FourNode,
+    gains: (f64, f64, f64),
+    until_s: f64,
+    rng: &mut fastrand::Rng,
+    mut trace: Option<&mut Trace>,
+) -> Vec<[f64; 5]> {
     let mut t = [bed.room_c; 4];
     let mut k = Klipper::new(1.0, gains);
     k.target = bed.target_c;
@@ -414,17 +447,191 @@ pub fn heat_up(
     let mut time = 0.0;
     let mut next_out = 0.0;
     let mut temp = bed.room_c;
+    let mut applied = 0.0;
     while time <= until_s {
         if time >= next_out {
+            // The power Klipper reports is the last value it set.
             out.push([time, k.last_pwm_value, temp, bed.target_c, t[2]]);
             next_out += 1.0;
         }
         time += REPORT_S;
-        step(bed, &mut t, k.last_pwm_value, REPORT_S);
+        step(bed, &mut t, applied, REPORT_S);
         temp = read(bed, &t, rng);
+        applied = k.last_pwm_value;
         k.pid_update(time, temp);
+        if let Some(tr) = trace.as_deref_mut() {
+            tr.push((time, temp, k.last_pwm_value));
+        }
     }
     out
+}
+
+/// The klippy venv's python (`$KLIPCAL_BENCH_HOME`, else the checkout's `.bench`, as
+/// tests/bench/setup.sh installs it) and the checker script, from a source checkout.
+///
+/// # Errors
+/// Where they were looked for, and how to install them.
+pub fn klippy_python() -> Result<(std::path::PathBuf, std::path::PathBuf), String> {
+    let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    let home = std::env::var_os("KLIPCAL_BENCH_HOME")
+        .map_or_else(|| repo.join(".bench"), std::path::PathBuf::from);
+    let python = home.join("venv-klippy/bin/python");
+    let script = repo.join("tests/bench/klipper_control_check.py");
+    if !python.exists() {
+        return Err(format!(
+            "no klippy venv at {} (run tests/bench/setup.sh, or set KLIPCAL_BENCH_HOME)",
+            python.display()
+        ));
+    }
+    if !script.exists() {
+        return Err(format!("{} is missing", script.display()));
+    }
+    Ok((python, script))
+}
+
+/// The port checked against Klipper's own Python on the same readings (`klipcal bench soak`).
+#[derive(Debug, Clone, Default)]
+pub struct KlipperCheck {
+    /// Runs compared (an autotune and a PID heat-up per bed).
+    pub runs: usize,
+    /// Readings replayed, and those after which the pwm differed by more than `PWM_TOL`.
+    pub updates: usize,
+    /// See `updates`.
+    pub pwm_mismatches: usize,
+    /// The largest pwm difference seen.
+    pub max_pwm_diff: f64,
+    /// The largest relative difference of the autotune gains (Kp, Ki, Kd).
+    pub max_gain_rel: f64,
+    /// Autotunes where one side finished and the other did not, or at another reading.
+    pub autotune_mismatches: usize,
+}
+
+/// The pwm tolerance of [`klipper_check`]: both sides compute the same f64 expressions in
+/// the same order, so anything above rounding is a difference in the port.
+pub const PWM_TOL: f64 = 1e-9;
+/// The relative tolerance on the autotune gains.
+pub const GAIN_TOL: f64 = 1e-9;
+
+/// Runs Klipper's own heaters.py / pid_calibrate.py (`python`, the klippy venv's, on
+/// `script`, tests/bench/klipper_control_check.py) on the readings of `beds` four-node beds
+/// (one of each kind in turn): the autotune and `heat_s` of PID heat-up each, and compares
+/// the pwm after every reading and the gains with the port's.
+///
+/// # Errors
+/// Python could not run or answered something unreadable.
+pub fn klipper_check(
+    python: &std::path::Path,
+    script: &std::path::Path,
+    beds: usize,
+    heat_s: f64,
+    seed: u64,
+) -> anyhow::Result<KlipperCheck> {
+    use anyhow::Context;
+    use std::io::Write;
+    let mut rng = fastrand::Rng::with_seed(seed);
+    let kinds = Kind::all();
+    let mut runs = Vec::new();
+    let mut expect: Vec<(Trace, Option<Gains>)> = Vec::new();
+    for i in 0..beds {
+        let bed = FourNode::random(kinds[i % kinds.len()], &mut rng);
+        let mut tr = Trace::new();
+        let gains = autotune_traced(&bed, &mut rng, Some(&mut tr));
+        let readings: Vec<[f64; 2]> = tr.iter().map(|x| [x.0, x.1]).collect();
+        runs.push(serde_json::json!({
+            "mode": "autotune", "max_power": 1.0, "smooth_time": SMOOTH_TIME,
+            "pwm_delay": REPORT_S, "target": bed.target_c, "readings": readings,
+        }));
+        expect.push((tr, gains));
+        // Gains as a user's config holds them (PID_CALIBRATE writes 3 decimals).
+        let g = gains.unwrap_or((50.0, 1.0, 300.0));
+        let g = (
+            (g.0 * 1e3).round() / 1e3,
+            (g.1 * 1e3).round() / 1e3,
+            (g.2 * 1e3).round() / 1e3,
+        );
+        let mut tr = Trace::new();
+        heat_up_traced(&bed, g, heat_s, &mut rng, Some(&mut tr));
+        let readings: Vec<[f64; 2]> = tr.iter().map(|x| [x.0, x.1]).collect();
+        runs.push(serde_json::json!({
+            "mode": "pid", "max_power": 1.0, "smooth_time": SMOOTH_TIME,
+            "pwm_delay": REPORT_S, "target": bed.target_c, "gains": [g.0, g.1, g.2],
+            "readings": readings,
+        }));
+        expect.push((tr, None));
+    }
+    let input = serde_json::json!({ "runs": runs }).to_string();
+    let mut child = std::process::Command::new(python)
+        .arg(script)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .with_context(|| format!("cannot run {}", python.display()))?;
+    let mut stdin = child.stdin.take().context("python's stdin")?;
+    let writer = std::thread::spawn(move || stdin.write_all(input.as_bytes()));
+    let out = child.wait_with_output()?;
+    writer
+        .join()
+        .map_err(|_| anyhow::anyhow!("writing to python"))??;
+    if !out.status.success() {
+        anyhow::bail!(
+            "{} failed: {}",
+            script.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let v: serde_json::Value =
+        serde_json::from_slice(&out.stdout).context("klipper_control_check.py's answer")?;
+    let answers = v["runs"].as_array().context("no runs in the answer")?;
+    anyhow::ensure!(
+        answers.len() == expect.len(),
+        "runs answered: {}",
+        answers.len()
+    );
+    let mut r = KlipperCheck {
+        runs: expect.len(),
+        ..KlipperCheck::default()
+    };
+    for ((tr, gains), a) in expect.iter().zip(answers) {
+        let pwm: Vec<f64> = a["pwm"]
+            .as_array()
+            .context("no pwm")?
+            .iter()
+            .map(|x| x.as_f64().unwrap_or(f64::NAN))
+            .collect();
+        if pwm.len() != tr.len() {
+            r.autotune_mismatches += 1;
+        }
+        for (x, p) in tr.iter().zip(&pwm) {
+            let d = (x.2 - p).abs();
+            r.updates += 1;
+            if d.is_nan() || d > PWM_TOL {
+                r.pwm_mismatches += 1;
+            }
+            r.max_pwm_diff = r
+                .max_pwm_diff
+                .max(if d.is_nan() { f64::INFINITY } else { d });
+        }
+        let theirs = a["gains"].as_array().map(|g| {
+            g.iter()
+                .map(|x| x.as_f64().unwrap_or(f64::NAN))
+                .collect::<Vec<f64>>()
+        });
+        if a.get("gains").is_some_and(|g| !g.is_null()) || gains.is_some() {
+            match (gains, theirs) {
+                (Some(ours), Some(t)) if t.len() == 3 => {
+                    for (o, k) in [ours.0, ours.1, ours.2].iter().zip(&t) {
+                        let rel = ((o - k) / k).abs();
+                        r.max_gain_rel =
+                            r.max_gain_rel
+                                .max(if rel.is_nan() { f64::INFINITY } else { rel });
+                    }
+                }
+                _ => r.autotune_mismatches += 1,
+            }
+        }
+    }
+    Ok(r)
 }
 
 /// What each rule said on one bed, s (None: not within the run).
@@ -443,10 +650,22 @@ pub struct BedResult {
     pub slope: Option<f64>,
     /// See `rule`.
     pub r_stat: Option<f64>,
-    /// The coupling was identified, and its interval held the true one.
+    /// The coupling was identified (its lower end from the bed's own data).
     pub identified: bool,
-    /// See `identified`.
+    /// The heat-up gave an upper end of the coupling (identified, or bounding the fallback).
+    pub bounded: bool,
+    /// The reported interval (the G used to the upper end) held the true G.
     pub covered: bool,
+    /// The G the rule used was at or below the true one (the conservative side).
+    pub g_safe: bool,
+    /// The true G and the G the rule used, full power per K.
+    pub g_true: f64,
+    /// See `g_true`.
+    pub g_used: f64,
+    /// The bin noise the detector's test used at its declaration (or the run's end).
+    pub sigma: f64,
+    /// klipcal's rule with `soak.bed` set to this kind's preset, when asked for.
+    pub with_preset: Option<f64>,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
 }
@@ -538,18 +757,37 @@ pub fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedRe
         slope,
         r_stat,
         identified,
-        covered: identified && c.low <= g && g <= c.high,
+        bounded: identified || c.high > c.g,
+        covered: c.low <= g && g <= c.high,
+        g_safe: c.g <= g,
+        g_true: g,
+        g_used: c.g,
+        sigma: d.fit().map_or(0.0, |f| f.test_sd),
+        with_preset: None,
         left_c,
     }
 }
 
-/// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`.
+/// The `soak.bed` preset a user of this kind of bed would set.
+#[must_use]
+pub fn preset_name(kind: Kind) -> &'static str {
+    match (kind.glass, kind.pad_sensed) {
+        (false, false) => "steel-plate",
+        (false, true) => "steel-pad",
+        (true, false) => "glass-plate",
+        (true, true) => "glass-pad",
+    }
+}
+
+/// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`; with
+/// `preset`, klipcal's rule is also run with `soak.bed` set to the kind's preset.
 #[must_use]
 pub fn run_bed(
     kind: Kind,
     knobs: Option<Knobs>,
     until_s: f64,
     params: &SoakParams,
+    preset: bool,
     rng: &mut fastrand::Rng,
 ) -> Option<BedResult> {
     let bed = match knobs {
@@ -558,12 +796,36 @@ pub fn run_bed(
     };
     let gains = autotune(&bed, rng)?;
     let samples = heat_up(&bed, gains, until_s, rng);
-    Some(judge(&bed, &samples, params))
+    let mut r = judge(&bed, &samples, params);
+    if preset {
+        let with = SoakParams {
+            bed: preset_name(kind).into(),
+            ..params.clone()
+        };
+        r.with_preset = detector(&samples, &with).0;
+    }
+    Some(r)
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The port against Klipper's own Python (the bench venv's klippy, which the test command
+    /// installs first): the same readings give the same pwm and the same autotune gains.
+    #[test]
+    fn the_port_matches_klippers_own_heaters_py_on_the_same_readings() {
+        let (python, script) = klippy_python().unwrap_or_else(|e| panic!("{e}"));
+        let r = klipper_check(&python, &script, 2, 900.0, 5).expect("the check ran");
+        assert_eq!(r.runs, 4);
+        assert!(r.updates > 5000, "{r:?}");
+        assert_eq!(r.pwm_mismatches, 0, "{r:?}");
+        assert_eq!(r.autotune_mismatches, 0, "{r:?}");
+        assert!(
+            r.max_pwm_diff <= PWM_TOL && r.max_gain_rel <= GAIN_TOL,
+            "{r:?}"
+        );
+    }
 
     #[test]
     fn klippers_autotune_gives_gains_that_hold_the_bed_at_its_target() {

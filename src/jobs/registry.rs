@@ -456,8 +456,9 @@ mod tests {
             );
             assert!(!visible.contains(&&helper[1..]), "{helper} shows");
         }
+        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA (issue 27).
         assert!(
-            visible.len() <= 16,
+            visible.len() <= 17,
             "{} buttons: {visible:?}",
             visible.len()
         );

@@ -40,6 +40,12 @@ impl Files {
         })
     }
 
+    /// Moonraker's HTTP base, `http://host:port`.
+    #[must_use]
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
     fn req(&self, r: reqwest::RequestBuilder) -> reqwest::RequestBuilder {
         match &self.api_key {
             Some(k) => r.header("X-Api-Key", k),
@@ -125,6 +131,20 @@ impl Files {
             .await
             .map_err(|e| http_err("GET", &url, e))?;
         json_body("GET", &url, resp).await
+    }
+
+    /// DELETE an API path (e.g. `/server/webcams/item?uid=…`) and return the `result` field.
+    ///
+    /// # Errors
+    /// HTTP failure or Moonraker's refusal.
+    pub async fn delete_api(&self, path: &str) -> Result<Value, Error> {
+        let url = format!("{}{path}", self.base);
+        let resp = self
+            .req(self.client.delete(&url))
+            .send()
+            .await
+            .map_err(|e| http_err("DELETE", &url, e))?;
+        json_body("DELETE", &url, resp).await
     }
 
     /// POST a JSON body to an API path and return the `result` field.

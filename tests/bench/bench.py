@@ -17,6 +17,12 @@ command line before any signal).
                  [--play '{"x": 0.08, "y": 0.05}'] [--dual-carriage]
                  (--dual-carriage, cartesian only: a second X carriage,
                  [dual_carriage] homing to X max; its play is joint "x1")
+                 [--camera '{"look": "ring", "px_per_mm": 80, ...}']
+                 [--klipcal-bin PATH]
+                 (--camera: the nozzle camera, `klipcal bench camera`
+                 serving /?action=snapshot, registered in Moonraker as
+                 [webcam nozzle]; the binary from --klipcal-bin, $KLIPCAL_BIN
+                 or target/debug/klipcal)
   bench.py stop --run-dir DIR
   bench.py start-one klippy|moonraker|plant --run-dir DIR
   bench.py stop-one klippy|moonraker|plant --run-dir DIR [--kill]
@@ -50,6 +56,8 @@ DICT_PATH = os.path.join(HERE, "mcu_dict.json")
 EXTRAS_DIR = os.path.join(HERE, "klippy_extras")
 BACKLASH_MODULES = ("none", "seed", "pr7157")
 NAMES = ("plant", "klippy", "moonraker")
+# Started only when asked for (--camera).
+OPTIONAL = ("camera",)
 DEFAULT_SIZE = {"corexy": 300, "cartesian": 235}
 READY_TIMEOUT_S = 60.0
 UNIX_PATH_MAX = 100  # sun_path is 108 bytes; keep a margin
@@ -115,7 +123,7 @@ homing_speed: 50
 
 
 def backlash_sections(kinematics, module, play, comms_dir,
-                      dual_carriage=False, size_mm=0):
+                      dual_carriage=False, size_mm=0, camera=False):
     """printer.cfg text for the backlash variant: `module` is none, seed
     (PR 7259's [backlash_compensation]) or pr7157 ([backlash]); `play` maps
     joints (cartesian x/y/z, corexy a/b/z; x1 for the dual carriage) to
@@ -133,7 +141,7 @@ def backlash_sections(kinematics, module, play, comms_dir,
             raise BenchError("--play %s=%r: expected joints %s with mm >= 0 "
                              "on %s" % (k, v, "/".join(joints), kinematics))
     text = ""
-    if play or module != "none":
+    if play or module != "none" or camera:
         text += ("# Simulated mechanical play (tests read the true nozzle\n"
                  "# position from state_file).\n[klipcal_backlash_sim]\n"
                  "state_file: %s\n" % os.path.join(comms_dir,
@@ -150,6 +158,50 @@ def backlash_sections(kinematics, module, play, comms_dir,
         text += "[backlash]\nkinematics: %s\n" % kinematics
         text += "".join("%s: 0.0\n" % k for k in joints[:2]) + "\n"
     return text
+
+
+def klipcal_bin(arg):
+    """The klipcal binary that serves the bench camera."""
+    path = arg or os.environ.get("KLIPCAL_BIN") or os.path.join(
+        REPO, "target", "debug", "klipcal")
+    if not os.access(path, os.X_OK):
+        raise BenchError("--camera needs the klipcal binary: %s is not an "
+                         "executable (build it, or pass --klipcal-bin)"
+                         % path)
+    return os.path.abspath(path)
+
+
+def webcam_section(camera):
+    """moonraker.conf's [webcam nozzle] for the bench camera ('' without)."""
+    if not camera:
+        return ""
+    return ("\n# The bench's nozzle camera (klipcal bench camera).\n"
+            "[webcam nozzle]\nservice: mjpegstreamer-adaptive\n"
+            "stream_url: %s/?action=stream\nsnapshot_url: %s\n"
+            % (camera["url"], camera["snapshot_url"]))
+
+
+def wait_camera(info, timeout_s=15.0):
+    """Waits until the camera answers a snapshot (a JPEG)."""
+    deadline = time.time() + timeout_s
+    last = "no answer"
+    while time.time() < deadline:
+        pid = info["pids"].get("camera")
+        if pid and not is_alive(pid):
+            log = os.path.join(info["run_dir"], "logs", "camera.out")
+            raise BenchError("camera (pid %d) exited during start:\n%s"
+                             % (pid, tail(log)))
+        try:
+            with urllib.request.urlopen(info["camera"]["snapshot_url"],
+                                        timeout=2.0) as r:
+                if r.read(2) == b"\xff\xd8":
+                    return
+                last = "not a JPEG"
+        except Exception as e:  # not up yet
+            last = str(e)
+        time.sleep(0.1)
+    raise BenchError("the camera did not answer a snapshot within %.0f s "
+                     "(%s)" % (timeout_s, last))
 
 
 def clean_env():
@@ -239,7 +291,7 @@ VARIANTS = ("plain", "mesh")
 
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
                    plant_params, variant="plain", backlash_module="none",
-                   play=None, dual_carriage=False):
+                   play=None, dual_carriage=False, camera=False):
     """Writes printer.cfg, steppers.cfg and klipcal.cfg into config_dir, with
     PID gains tuned for the run's plant (parameters and time acceleration)."""
     values = {}
@@ -259,7 +311,8 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
         # quantised to 2.5 um when the fit is judged in microns.
         "Z_MICROSTEPS": 128 if variant == "mesh" else 16,
         "BACKLASH": backlash_sections(kinematics, backlash_module, play or {},
-                                      comms_dir, dual_carriage, size_mm),
+                                      comms_dir, dual_carriage, size_mm,
+                                      camera),
     })
     text = render("printer.cfg", values)
     if variant == "mesh":
@@ -361,12 +414,17 @@ def command_for(name, info):
         return [venv_python("moonraker"), mr, "-d", rd,
                 "-c", os.path.join(info["config_dir"], "moonraker.conf"),
                 "-l", info["moonraker_log"], "-u", info["moonraker_sock"]]
+    if name == "camera":
+        return [info["camera"]["bin"], "bench", "camera", "--state-file",
+                os.path.join(info["comms_dir"], "nozzle_true.json"),
+                "--port", str(info["camera"]["port"]),
+                "--spec", json.dumps(info["camera"]["spec"])]
     if name == "plant":
         return [sys.executable, os.path.join(HERE, "plant.py"),
                 "--run-dir", rd, "--klippy-sock", info["klippy_sock"],
                 "--params", os.path.join(rd, "comms", "plant_params.json")]
     raise BenchError("unknown process name %r (expected one of %s)"
-                     % (name, ", ".join(NAMES)))
+                     % (name, ", ".join(NAMES + OPTIONAL)))
 
 
 def spawn(name, info):
@@ -528,7 +586,8 @@ def load_info(run_dir):
 PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
                "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
                "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
-               "comms_dir", "plant_state", "watchdog_pid", "variant")
+               "comms_dir", "plant_state", "watchdog_pid", "variant",
+               "camera")
 
 
 def public(info):
@@ -594,9 +653,16 @@ def cmd_start(args):
     elif args.surface_json:
         raise BenchError("--surface-json needs --variant mesh")
     play = load_plant_params(args.play, "--play") if args.play else {}
+    camera = None
+    if args.camera is not None:
+        spec = load_plant_params(args.camera, "--camera")
+        camera = {"spec": spec, "bin": klipcal_bin(args.klipcal_bin),
+                  "port": pick_port()}
+        camera["url"] = "http://127.0.0.1:%d" % camera["port"]
+        camera["snapshot_url"] = camera["url"] + "/?action=snapshot"
     render_printer(dirs["config"], dirs["comms"], dirs["gcodes"], kin, size,
                    plant_params, args.variant, args.backlash_module, play,
-                   args.dual_carriage)
+                   args.dual_carriage, camera is not None)
     info = {
         "variant": args.variant,
         "run_dir": rd,
@@ -612,12 +678,14 @@ def cmd_start(args):
         "plant_state": os.path.join(dirs["comms"], "plant_state.json"),
         "klippy_sock": short_sock(rd, "klippy.sock"),
         "moonraker_sock": short_sock(rd, "moonraker.sock"),
-        "pids": {n: None for n in NAMES},
+        "pids": {n: None for n in NAMES + (("camera",) if camera else ())},
+        "camera": camera,
         # Substrings that must appear in a pid's cmdline before we signal it.
         "markers": {
             "klippy": os.path.join(dirs["config"], "printer.cfg"),
             "moonraker": os.path.join(dirs["config"], "moonraker.conf"),
             "plant": os.path.join(dirs["comms"], "plant_params.json"),
+            "camera": os.path.join(dirs["comms"], "nozzle_true.json"),
         },
     }
     try:
@@ -629,7 +697,8 @@ def cmd_start(args):
             write(os.path.join(dirs["config"], "moonraker.conf"),
                   render("moonraker.conf", {
                       "MOONRAKER_PORT": port,
-                      "KLIPPY_SOCK": info["klippy_sock"]}))
+                      "KLIPPY_SOCK": info["klippy_sock"]})
+                  + webcam_section(camera))
             save_info(info)
             if not info["pids"]["plant"]:
                 spawn("plant", info)
@@ -638,6 +707,9 @@ def cmd_start(args):
             spawn("moonraker", info)
             try:
                 wait_ready(info, NAMES)
+                if camera and not info["pids"].get("camera"):
+                    spawn("camera", info)
+                    wait_camera(info)
                 break
             except BenchError as e:
                 port_taken = "Address already in use" in tail(
@@ -649,7 +721,7 @@ def cmd_start(args):
                 sys.stderr.write("bench: port %d taken, retrying (%s)\n"
                                  % (port, str(e).splitlines()[0]))
     except BaseException:
-        for n in reversed(NAMES):
+        for n in reversed(NAMES + OPTIONAL):
             try:
                 terminate(n, info)
             except Exception:
@@ -701,7 +773,7 @@ def cmd_watchdog(args):
     info = load_info(rd)
     sys.stdout.write("watchdog: owner %d gone, stopping %s\n"
                      % (args.owner_pid, rd))
-    for name in ("moonraker", "klippy", "plant"):
+    for name in ("camera", "moonraker", "klippy", "plant"):
         sys.stdout.write("  %s: %s\n" % (name, terminate(name, info)))
     remove_short_sock_dir(info)
     info["watchdog_pid"] = None
@@ -722,7 +794,7 @@ def cmd_stop(args):
     info = load_info(os.path.abspath(args.run_dir))
     stop_watchdog(info)
     report = {}
-    for name in ("moonraker", "klippy", "plant"):
+    for name in ("camera", "moonraker", "klippy", "plant"):
         report[name] = terminate(name, info)
     remove_short_sock_dir(info)
     print(json.dumps({"run_dir": info["run_dir"], "stopped": report}))
@@ -752,7 +824,13 @@ def cmd_start_one(args):
     if pid and owns(pid, info, name):
         raise BenchError("%s already running (pid %d) in %s"
                          % (name, pid, info["run_dir"]))
+    if name == "camera" and not info.get("camera"):
+        raise BenchError("this run has no camera: start it with --camera")
     spawn(name, info)
+    if name == "camera":
+        wait_camera(info)
+        print(json.dumps(public(info)))
+        return
     running = [n for n in NAMES if info["pids"].get(n)]
     if "klippy" in running and "moonraker" in running:
         wait_ready(info, running)
@@ -883,6 +961,12 @@ def main():
     p.add_argument("--dual-carriage", action="store_true",
                    help="cartesian only: a second X carriage "
                    "([dual_carriage]); its play is joint x1")
+    p.add_argument("--camera", default=None,
+                   help="the nozzle camera, JSON (inline or a file) of "
+                   "`klipcal bench camera --spec` fields; '{}' for defaults")
+    p.add_argument("--klipcal-bin", default=None,
+                   help="the klipcal binary serving the camera (default "
+                   "$KLIPCAL_BIN, else target/debug/klipcal)")
     p = sub.add_parser("watchdog")
     p.add_argument("--run-dir", required=True)
     p.add_argument("--owner-pid", type=int, required=True)
@@ -890,7 +974,7 @@ def main():
     p.add_argument("--run-dir", required=True)
     for verb in ("start-one", "stop-one"):
         p = sub.add_parser(verb)
-        p.add_argument("name", choices=NAMES)
+        p.add_argument("name", choices=NAMES + OPTIONAL)
         p.add_argument("--run-dir", required=True)
         if verb == "stop-one":
             p.add_argument("--kill", action="store_true",

@@ -18,6 +18,8 @@ pub struct Browser {
     ws: Socket,
     session: String,
     next_id: u64,
+    /// The tab's size in CSS pixels, and whether it is a phone's (touch, mobile layout).
+    viewport: (u32, u32, bool),
     _profile: tempfile::TempDir,
 }
 
@@ -62,6 +64,7 @@ impl Browser {
             ws,
             session: String::new(),
             next_id: 0,
+            viewport: (430, 900, true),
             _profile: profile,
         };
         let target = b
@@ -78,12 +81,51 @@ impl Browser {
         b.cmd("Page.enable", json!({})).await;
         b.cmd("Runtime.enable", json!({})).await;
         // A phone-sized window.
-        b.cmd(
+        b.set_viewport(430, 900, true).await;
+        b
+    }
+
+    /// Resizes the tab: `mobile` emulates a phone (its layout and touch).
+    pub async fn set_viewport(&mut self, width: u32, height: u32, mobile: bool) {
+        self.viewport = (width, height, mobile);
+        self.apply_viewport(height).await;
+    }
+
+    async fn apply_viewport(&mut self, height: u32) {
+        let (width, _, mobile) = self.viewport;
+        self.cmd(
             "Emulation.setDeviceMetricsOverride",
-            json!({"width": 430, "height": 900, "deviceScaleFactor": 1, "mobile": true}),
+            json!({"width": width, "height": height, "deviceScaleFactor": 1, "mobile": mobile}),
         )
         .await;
-        b
+    }
+
+    /// Types `text` into the focused field, as a keyboard would.
+    pub async fn type_text(&mut self, text: &str) {
+        self.cmd("Input.insertText", json!({ "text": text })).await;
+    }
+
+    /// Presses and releases Enter.
+    pub async fn press_enter(&mut self) {
+        for (ty, text) in [("keyDown", "\r"), ("keyUp", "")] {
+            self.cmd(
+                "Input.dispatchKeyEvent",
+                json!({"type": ty, "key": "Enter", "code": "Enter",
+                       "windowsVirtualKeyCode": 13, "text": text}),
+            )
+            .await;
+        }
+    }
+
+    /// A click (a tap) at a point of the window, as the mouse gives it.
+    pub async fn tap(&mut self, x: f64, y: f64) {
+        for ty in ["mousePressed", "mouseReleased"] {
+            self.cmd(
+                "Input.dispatchMouseEvent",
+                json!({"type": ty, "x": x, "y": y, "button": "left", "clickCount": 1}),
+            )
+            .await;
+        }
     }
 
     async fn send(&mut self, session: Option<&str>, method: &str, params: Value) -> Value {
@@ -189,19 +231,25 @@ impl Browser {
             .as_u64()
             .unwrap_or(900)
             .clamp(300, 8000);
-        self.cmd(
-            "Emulation.setDeviceMetricsOverride",
-            json!({"width": 430, "height": height, "deviceScaleFactor": 1, "mobile": true}),
-        )
-        .await;
+        self.apply_viewport(u32::try_from(height).unwrap_or(900))
+            .await;
         let r = self
             .cmd("Page.captureScreenshot", json!({"format": "png"}))
             .await;
-        self.cmd(
-            "Emulation.setDeviceMetricsOverride",
-            json!({"width": 430, "height": 900, "deviceScaleFactor": 1, "mobile": true}),
-        )
-        .await;
+        self.apply_viewport(self.viewport.1).await;
+        self.save_png(&r, path);
+    }
+
+    /// Saves a PNG screenshot of what the window shows now (its size, not the whole page:
+    /// an app such as Mainsail or Fluidd that scrolls inside its own panels).
+    pub async fn screenshot_window(&mut self, path: &std::path::Path) {
+        let r = self
+            .cmd("Page.captureScreenshot", json!({"format": "png"}))
+            .await;
+        self.save_png(&r, path);
+    }
+
+    fn save_png(&self, r: &Value, path: &std::path::Path) {
         let data = r["data"].as_str().unwrap();
         let png = data_encoding::BASE64.decode(data.as_bytes()).unwrap();
         assert!(png.starts_with(b"\x89PNG"), "not a PNG");

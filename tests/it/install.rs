@@ -525,3 +525,120 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
     );
     drop(d2);
 }
+
+/// The webcams Moonraker lists: (name, service, stream_url), sorted.
+async fn webcams(b: &Bench) -> Vec<(String, String, String)> {
+    let v = b.files().get("/server/webcams/list").await.unwrap();
+    let mut out: Vec<(String, String, String)> = v["webcams"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| {
+            let s = |k: &str| c[k].as_str().unwrap_or("").to_string();
+            (s("name"), s("service"), s("stream_url"))
+        })
+        .collect();
+    out.sort();
+    out
+}
+
+/// Issue 26 A.6: install offers klipcal's page as an iframe webcam of Moonraker (what Mainsail
+/// and Fluidd show in their webcam panels): without a terminal it says how (--webcam) and adds
+/// nothing; --webcam adds it with the page's address; a second install changes nothing; a
+/// "klipcal" webcam install did not make is left alone; uninstall removes it; the other
+/// printer's webcams are untouched throughout.
+#[tokio::test]
+async fn install_shows_the_page_as_an_iframe_webcam_and_uninstall_removes_it() {
+    let b1 = Bench::start("corexy");
+    let b2 = Bench::start("corexy");
+    let f2 = b2.files();
+    f2.post(
+        "/server/webcams/item",
+        &json!({"name": "Front", "service": "mjpegstreamer", "stream_url": "/webcam/?action=stream"}),
+    )
+    .await
+    .unwrap();
+    let other = webcams(&b2).await;
+    assert_eq!(other.len(), 1, "{other:?}");
+    let ours = |cams: &[(String, String, String)]| {
+        cams.iter()
+            .filter(|c| c.0 == "klipcal")
+            .cloned()
+            .collect::<Vec<_>>()
+    };
+
+    // No terminal, no flag: offered, not added.
+    let (ok, out) = run(&b1, &install_args(&b1, &["--no-restart"]));
+    assert!(ok, "{out}");
+    assert!(out.contains("run with --webcam"), "{out}");
+    assert!(ours(&webcams(&b1).await).is_empty());
+
+    // --webcam: added, with the address klipcal's page answers at.
+    let (ok, out) = run(&b1, &install_args(&b1, &["--no-restart", "--webcam"]));
+    assert!(ok, "{out}");
+    let toml = std::fs::read_to_string(b1.dir.path().join("config/klipcal.toml")).unwrap();
+    let bind: std::net::SocketAddr = klipcal::config::Config::parse(&toml)
+        .unwrap()
+        .http
+        .bind
+        .parse()
+        .unwrap();
+    let url = klipcal::http::page_address_here(bind);
+    assert!(url.starts_with("http://") && url.ends_with(&format!(":{}/", bind.port())));
+    assert!(out.contains("webcam   klipcal added"), "{out}");
+    assert_eq!(
+        ours(&webcams(&b1).await),
+        vec![("klipcal".to_string(), "iframe".to_string(), url.clone())]
+    );
+    let (ok, out) = run(&b1, &install_args(&b1, &["--no-restart", "--webcam"]));
+    assert!(ok && out.contains("nothing to change"), "{out}");
+    assert_eq!(ours(&webcams(&b1).await).len(), 1);
+    assert_eq!(
+        webcams(&b2).await,
+        other,
+        "the other printer's webcams changed"
+    );
+
+    // A "klipcal" webcam the user made on the other printer is theirs: left alone.
+    f2.post(
+        "/server/webcams/item",
+        &json!({"name": "klipcal", "service": "iframe", "stream_url": "http://10.9.9.9:7150/"}),
+    )
+    .await
+    .unwrap();
+    let other = webcams(&b2).await;
+    let (ok, out) = run(&b2, &install_args(&b2, &["--no-restart", "--webcam"]));
+    assert!(ok && out.contains("left as it is"), "{out}");
+    assert_eq!(webcams(&b2).await, other);
+
+    // Uninstall removes it; the other printer's are untouched.
+    let (ok, out) = run(
+        &b1,
+        &[
+            "uninstall".to_string(),
+            "--printer-data".into(),
+            b1.dir.path().display().to_string(),
+            "--no-restart".into(),
+        ],
+    );
+    assert!(
+        ok && out.contains("removed  Moonraker webcam klipcal"),
+        "{out}"
+    );
+    assert!(ours(&webcams(&b1).await).is_empty(), "{out}");
+    let (ok, out) = run(
+        &b2,
+        &[
+            "uninstall".to_string(),
+            "--printer-data".into(),
+            b2.dir.path().display().to_string(),
+            "--no-restart".into(),
+        ],
+    );
+    assert!(ok, "{out}");
+    assert_eq!(
+        webcams(&b2).await,
+        other,
+        "uninstall removed the user's webcam"
+    );
+}

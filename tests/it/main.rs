@@ -3,6 +3,7 @@
 //! ports in its own folder, and stops them when done.
 
 mod backlash;
+mod backlash_camera;
 mod backlash_image;
 mod backlash_job;
 mod bench;
@@ -11,6 +12,7 @@ mod cli;
 mod daemon;
 mod fake;
 mod faults;
+mod frontends;
 mod http;
 mod install;
 mod mainsail;

@@ -1158,7 +1158,7 @@ async fn a_soak_past_its_limit_asks_print_now_or_wait_instead_of_failing() {
         let s = session(&bench).await;
         s["progress"]
             .as_str()
-            .is_some_and(|p| p.contains("waiting for your choice"))
+            .is_some_and(|p| p.contains("waiting for your answer"))
             .then_some(s)
     })
     .await

@@ -6,6 +6,7 @@
 //! only klipcal's own lines. `--dry-run` prints every change as a diff and writes nothing.
 
 pub mod plan;
+mod webcam;
 
 use std::collections::BTreeMap;
 use std::io::{BufRead, IsTerminal, Write};
@@ -45,9 +46,17 @@ pub struct InstallArgs {
     /// Do not restart Klipper and Moonraker afterwards.
     #[arg(long)]
     pub no_restart: bool,
-    /// Add `[respond]` to printer.cfg when missing without asking.
+    /// Answer yes to every question: add `[respond]` to printer.cfg when missing, and show
+    /// klipcal's page in Mainsail and Fluidd as an iframe webcam.
     #[arg(long)]
     pub yes: bool,
+    /// Show klipcal's page in Mainsail and Fluidd without asking: register it with Moonraker
+    /// as the webcam `klipcal`, service iframe (uninstall removes it).
+    #[arg(long, conflicts_with = "no_webcam")]
+    pub webcam: bool,
+    /// Do not offer the webcam.
+    #[arg(long)]
+    pub no_webcam: bool,
     /// The GitHub repository (owner/name) Moonraker fetches releases from.
     #[arg(long, default_value = "klipcal/klipcal")]
     pub repo: String,
@@ -95,6 +104,9 @@ struct Manifest {
     created: Vec<PathBuf>,
     /// The systemd unit, when install wrote one.
     unit: Option<PathBuf>,
+    /// The uid of the iframe webcam install registered with Moonraker (klipcal's page).
+    #[serde(default)]
+    webcam: Option<String>,
 }
 
 /// A planned text change.
@@ -429,6 +441,8 @@ pub async fn install(
         None,
     );
     let settings = cfg_dir.join("klipcal.toml");
+    // The settings the daemon will run with (for the page's address).
+    let mut settings_text = read_opt(&settings)?;
     if let Some(before) = read_opt(&settings)? {
         match Config::parse(&before) {
             Err(e) => println!(
@@ -448,6 +462,7 @@ pub async fn install(
         // This printer's Moonraker, its own data folder and a page port of its own.
         let port = plan::http_port(p.port, &taken_http_ports(&pd));
         let text = plan::settings(SETTINGS, &p.url, &tilde(&pd.join("klipcal")), port);
+        settings_text = Some(text.clone());
         push(settings, None, text, vec![], None);
     }
     // printer.cfg: the include (and [respond]), checked against what Klipper reads now.
@@ -535,7 +550,9 @@ pub async fn install(
     let write_unit =
         use_systemd && read_opt(&unit_path).ok().flatten().as_deref() != Some(unit.as_str());
 
-    if changes.is_empty() && !copy_binary && !write_unit {
+    let webcam = webcam_plan(a, moonraker.as_ref(), &manifest, settings_text.as_deref()).await;
+
+    if changes.is_empty() && !copy_binary && !write_unit && webcam.is_none() {
         println!(
             "klipcal is installed in {}; nothing to change",
             pd.display()
@@ -562,6 +579,9 @@ pub async fn install(
                 "systemctl daemon-reload && systemctl enable --now {}",
                 p.service
             );
+        }
+        if let Some(w) = &webcam {
+            println!("{}", w.describe());
         }
         println!("(dry run: nothing written)");
         return Ok(ExitCode::SUCCESS);
@@ -652,6 +672,19 @@ pub async fn install(
             pd.join("config/klipcal.toml").display()
         );
     }
+    if let (Some(w), Some(files)) = (&webcam, &moonraker) {
+        match webcam::register(files, w.uid.as_deref(), &w.url).await {
+            Ok(uid) => {
+                println!("{}", w.done());
+                manifest.webcam = Some(uid);
+            }
+            Err(e) => println!(
+                "note: Moonraker did not take the webcam {} ({e:#}); add it by hand (README: \
+                 Inside Mainsail or Fluidd)",
+                webcam::NAME
+            ),
+        }
+    }
     write_atomic(
         &manifest_path(&pd),
         serde_json::to_string_pretty(&manifest)?.as_bytes(),
@@ -668,6 +701,125 @@ pub async fn install(
         .await;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// A webcam install adds or updates.
+struct WebcamChange {
+    /// The webcam to update (klipcal's own, from an earlier install); `None` adds one.
+    uid: Option<String>,
+    url: String,
+    /// The address it had.
+    from: Option<String>,
+}
+
+impl WebcamChange {
+    fn describe(&self) -> String {
+        match &self.from {
+            None => format!(
+                "add Moonraker webcam {} (service {}): {}",
+                webcam::NAME,
+                webcam::SERVICE,
+                self.url
+            ),
+            Some(from) => format!(
+                "update Moonraker webcam {}: {from} -> {}",
+                webcam::NAME,
+                self.url
+            ),
+        }
+    }
+
+    fn done(&self) -> String {
+        format!(
+            "webcam   {} {} in Moonraker: klipcal's page {} shows in Mainsail (\"HTML Iframe\") \
+             and Fluidd's webcam panels",
+            webcam::NAME,
+            if self.from.is_some() {
+                "updated"
+            } else {
+                "added"
+            },
+            self.url
+        )
+    }
+}
+
+/// Whether install adds (or updates) klipcal's page as an iframe webcam: asked on a terminal,
+/// `--webcam`/`--yes` add it, `--no-webcam` skips it; needs Moonraker and the page on.
+async fn webcam_plan(
+    a: &InstallArgs,
+    moonraker: Option<&crate::moonraker::Files>,
+    manifest: &Manifest,
+    settings: Option<&str>,
+) -> Option<WebcamChange> {
+    if a.no_webcam {
+        return None;
+    }
+    let files = moonraker?;
+    let Some(c) = settings.and_then(|t| Config::parse(t).ok()) else {
+        println!("note: klipcal.toml does not read; no webcam for klipcal's page");
+        return None;
+    };
+    if !c.http.enabled {
+        println!("note: klipcal's page is off ([http] enabled = false); no webcam for it");
+        return None;
+    }
+    let Ok(bind) = c.http.bind.parse::<std::net::SocketAddr>() else {
+        return None;
+    };
+    let url = crate::http::page_address_here(bind);
+    if !url.starts_with("http://") || url.contains(' ') {
+        println!(
+            "note: klipcal's page is at {url}, which a browser elsewhere cannot open; no webcam \
+             for it"
+        );
+        return None;
+    }
+    let list = match webcam::list(files).await {
+        Ok(l) => l,
+        Err(e) => {
+            println!("note: Moonraker's webcam list did not answer ({e:#}); no webcam added");
+            return None;
+        }
+    };
+    match webcam::decide(&list, manifest.webcam.as_deref(), &url) {
+        webcam::Decision::Nothing { .. } => None,
+        webcam::Decision::Foreign { url: theirs } => {
+            println!(
+                "note: Moonraker has a webcam named {} already ({theirs}) that klipcal did not \
+                 add: left as it is",
+                webcam::NAME
+            );
+            None
+        }
+        webcam::Decision::Update { uid, from } => Some(WebcamChange {
+            uid: Some(uid),
+            url,
+            from: Some(from),
+        }),
+        webcam::Decision::Add => {
+            let add = if a.webcam || a.yes || a.dry_run {
+                true
+            } else if std::io::stdin().is_terminal() {
+                ask(&format!(
+                    "Show klipcal's page ({url}) inside Mainsail and Fluidd, as the iframe webcam \
+                     \"{}\"?",
+                    webcam::NAME
+                ))
+            } else {
+                println!(
+                    "note: klipcal's page ({url}) can show inside Mainsail and Fluidd as an \
+                     iframe webcam: run with --webcam to add it"
+                );
+                false
+            };
+            add.then_some(WebcamChange {
+                uid: None,
+                url,
+                from: None,
+            })
+        }
+    }
 }
 
 /// Files under `dir` and their bytes (0, 0 when it does not exist).
@@ -776,6 +928,9 @@ pub async fn uninstall(
         if let Some(u) = &manifest.unit {
             println!("systemctl disable --now {service}; remove {}", u.display());
         }
+        if manifest.webcam.is_some() {
+            println!("remove Moonraker webcam {}", webcam::NAME);
+        }
         println!("(dry run: nothing written)");
         return Ok(ExitCode::SUCCESS);
     }
@@ -815,6 +970,24 @@ pub async fn uninstall(
         }
         if let Some(dir) = p.parent() {
             let _ = std::fs::remove_dir(dir); // only when empty
+        }
+    }
+    if let Some(uid) = &manifest.webcam {
+        match &moonraker {
+            Some(files) => match webcam::remove(files, uid).await {
+                Ok(true) => println!("removed  Moonraker webcam {}", webcam::NAME),
+                Ok(false) => {}
+                Err(e) => println!(
+                    "note: Moonraker did not remove the webcam {} ({e:#}); remove it in \
+                     Mainsail's or Fluidd's webcam settings",
+                    webcam::NAME
+                ),
+            },
+            None => println!(
+                "note: remove the webcam {} in Mainsail's or Fluidd's webcam settings (Moonraker \
+                 did not answer)",
+                webcam::NAME
+            ),
         }
     }
     std::fs::remove_file(manifest_path(&pd))?;

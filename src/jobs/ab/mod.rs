@@ -226,8 +226,6 @@ pub const KIND: &str = "ab";
 
 /// "Wait 10 min more" after a soak that ran past `soak_max_s`.
 const SOAK_MORE_S: f64 = 600.0;
-/// Longest the soak prompt waits for an answer (the bed stays hot meanwhile).
-const SOAK_ANSWER_S: f64 = 900.0;
 
 /// How the console names it.
 const TITLE: &str = "A/B calibration";

@@ -6,6 +6,7 @@ use super::*;
 impl Ab {
     pub(super) async fn soak(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
+        let hold_s = s.options.hold_max_s;
         let mut soak = BedSoak::new(
             self.settings.soak.clone(),
             s.options.bed_temp_c,
@@ -14,9 +15,15 @@ impl Ab {
         );
         let mut last = String::new();
         let mut cost: Option<f64> = None;
+        // Since when the soak question waits for an answer, and what it said.
+        let mut asked: Option<(tokio::time::Instant, String)> = None;
         loop {
+            let doc = self.load(id)?;
             // Print now, chosen while soaking (issue 29): from the moment the bed is in its band.
-            if self.load(id)?.soak_choice.as_deref() == Some("print") {
+            if doc.soak_choice.as_deref() == Some("print") {
+                if asked.is_some() {
+                    self.core.prompt_end().await;
+                }
                 let words = cost.map_or_else(
                     || "what the surface may still warm is not known yet".to_string(),
                     |c| {
@@ -29,6 +36,7 @@ impl Ab {
                 let note = format!("the user chose to print now, before the bed settled: {words}");
                 self.update(id, |s| {
                     s.soak_choice = None;
+                    s.soak_asking = false;
                     s.notes.push(note.clone());
                     s.state = State::Printing;
                     s.progress = format!("printing now, as chosen ({words})");
@@ -38,8 +46,37 @@ impl Ab {
                 self.core.console(&format!("{TITLE}: {note}")).await;
                 return Ok(());
             }
+            if let Some((_, line)) = &asked {
+                if doc.soak_choice.as_deref() == Some("wait") {
+                    self.core.prompt_end().await;
+                    let note = format!("{line}; the user chose to wait 10 min more");
+                    self.update(id, |s| {
+                        s.soak_asking = false;
+                        s.soak_choice = None;
+                        s.notes.push(note);
+                        s.progress = "soaking 10 min more, as chosen".into();
+                        Ok(())
+                    })
+                    .await?;
+                    soak.extend(SOAK_MORE_S);
+                    asked = None;
+                    last.clear();
+                }
+            }
             match soak.poll(&self.core, TITLE).await? {
                 SoakUpdate::Stable { why } => {
+                    if let Some((_, line)) = asked.take() {
+                        // Settled while the question waited: what the user was waiting for.
+                        self.core.prompt_end().await;
+                        self.update(id, |s| {
+                            s.soak_asking = false;
+                            s.soak_choice = None;
+                            s.notes
+                                .push(format!("{line}; the bed settled while the question waited"));
+                            Ok(())
+                        })
+                        .await?;
+                    }
                     let n = s.rounds.len();
                     let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
                     let plot = crate::jobs::core::soak::save_soak_picture(
@@ -68,7 +105,7 @@ impl Ab {
                     text, print_now_c, ..
                 } => {
                     cost = print_now_c.or(cost);
-                    if last != text {
+                    if asked.is_none() && last != text {
                         self.set_state(id, State::Soaking, &text).await?;
                         last = text;
                     }
@@ -76,36 +113,46 @@ impl Ab {
                 SoakUpdate::TooLong {
                     minutes,
                     falling_pct_per_10min,
-                } => {
-                    // The bed stays on while the user answers, and no longer.
-                    self.core
-                        .hold_heaters_for(SOAK_ANSWER_S + crate::jobs::core::soak::BOUND_SLACK_S)
-                        .await?;
-                    if self
-                        .ask_soak_choice(id, minutes, falling_pct_per_10min)
-                        .await?
-                    {
-                        return Ok(());
+                } => match &asked {
+                    None => {
+                        // The question waits within the hold limit; the bed stays hot and the
+                        // soak goes on meanwhile (Klipper owns the bed for that long: the
+                        // extension sets its idle timeout), so that no answer costs nothing
+                        // but time (issue 26 A.1).
+                        soak.extend(hold_s);
+                        let line = self
+                            .ask_soak_choice(id, minutes, falling_pct_per_10min, hold_s)
+                            .await?;
+                        asked = Some((tokio::time::Instant::now(), line));
                     }
-                    soak.extend(SOAK_MORE_S);
-                    last.clear();
-                }
+                    Some((since, line)) => {
+                        self.core.prompt_end().await;
+                        return Err(user(format!(
+                            "no answer to the soak question within {:.0} min (ab.hold_max_s) \
+                             and the bed has not settled ({line})",
+                            since.elapsed().as_secs_f64() / 60.0
+                        )));
+                    }
+                },
             }
             tokio::time::sleep(Duration::from_millis(250)).await;
         }
     }
 
     /// The bed is at its target but its power still moves after `soak_max_s`: asks print now
-    /// / wait 10 min more / cancel. Returns true when the user chose to print (state set).
+    /// / wait 10 min more / cancel, and says what happens without an answer (the bed stays hot
+    /// and the soak goes on up to `hold_s`). The runner takes the answer; returns the line
+    /// that says why it asks.
     ///
     /// # Errors
-    /// No answer within [`SOAK_ANSWER_S`] (heaters go off with the failure), store failures.
+    /// Store failures.
     pub(super) async fn ask_soak_choice(
         &self,
         id: i64,
         minutes: f64,
         falling: Option<f64>,
-    ) -> anyhow::Result<bool> {
+        hold_s: f64,
+    ) -> anyhow::Result<String> {
         let line = match falling {
             Some(f) => format!(
                 "bed power still {} by {:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)",
@@ -114,24 +161,32 @@ impl Ab {
             ),
             None => format!("the bed has not settled after {minutes:.0} min (ab.soak_max_s)"),
         };
+        let hold_min = (hold_s / 60.0).ceil();
+        let how = format!(
+            "waiting for your answer: KLIPCAL_SOAK_CHOICE CHOICE=print prints now, CHOICE=wait \
+             waits 10 min more, KLIPCAL_CANCEL ends the session. Without an answer the bed stays \
+             hot and the soak goes on (printing once it settles) for up to {hold_min:.0} min \
+             (ab.hold_max_s), then the heaters go off"
+        );
         self.update(id, |s| {
             s.soak_asking = true;
             s.soak_choice = None;
-            s.progress =
-                format!("{line}: waiting for your choice (print now / wait 10 min more / cancel)");
+            s.progress = format!("{line}: {how}");
             Ok(())
         })
         .await?;
         self.core
             .say_and_prompt(
-                &format!("{TITLE}: {line}"),
+                &format!("{TITLE}: {line}: {how}"),
                 &Prompt {
                     title: "klipcal: the bed has not settled".into(),
                     lines: vec![
                         line.clone(),
-                        "Print now: the readings may carry some thermal drift. Wait: 10 more \
-                     minutes. Cancel: heaters off."
-                            .into(),
+                        format!(
+                            "Print now: the readings may carry some thermal drift. Wait: 10 more \
+                             minutes. No answer: the bed stays hot and klipcal keeps waiting, up \
+                             to {hold_min:.0} min. Cancel: heaters off."
+                        ),
                     ],
                     buttons: vec![
                         Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
@@ -141,43 +196,7 @@ impl Ab {
                 },
             )
             .await;
-        let deadline = tokio::time::Instant::now() + Duration::from_secs_f64(SOAK_ANSWER_S);
-        while tokio::time::Instant::now() < deadline {
-            tokio::time::sleep(Duration::from_millis(250)).await;
-            let s = self.load(id)?;
-            let Some(choice) = s.soak_choice.clone() else {
-                continue;
-            };
-            self.core.prompt_end().await;
-            let print = choice == "print";
-            let note = format!(
-                "{line}; the user chose to {}",
-                if print {
-                    "print now"
-                } else {
-                    "wait 10 min more"
-                }
-            );
-            self.update(id, |s| {
-                s.soak_asking = false;
-                s.soak_choice = None;
-                s.notes.push(note);
-                if print {
-                    s.state = State::Printing;
-                    s.progress = "printing before the bed settled, as chosen".into();
-                } else {
-                    s.progress = "soaking 10 min more, as chosen".into();
-                }
-                Ok(())
-            })
-            .await?;
-            return Ok(print);
-        }
-        self.core.prompt_end().await;
-        Err(user(format!(
-            "no answer to the soak prompt within {:.0} min ({line})",
-            SOAK_ANSWER_S / 60.0
-        )))
+        Ok(line)
     }
 
     /// `klipcal_soak_choice CHOICE=print|wait`: answers the soak prompt.

@@ -117,7 +117,14 @@ impl Backlash {
         let params = self.settings.params();
         s.cycles
             .iter()
-            .map(|(axis, c)| Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &params)?)))
+            .map(|(axis, c)| {
+                // Camera cycles are read to the camera's precision, not a jog's.
+                let p = s
+                    .camera
+                    .get(axis)
+                    .map_or(params.clone(), |r| r.params(&params));
+                Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &p)?))
+            })
             .collect()
     }
 
@@ -312,6 +319,7 @@ impl Backlash {
                     notes: Vec::new(),
                     carriage,
                     kinematics: kin.to_string(),
+                    camera: BTreeMap::new(),
                 };
                 s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
                 s
@@ -354,6 +362,7 @@ impl Backlash {
                 let key = result_key(g.axis, s.carriage);
                 let cycles = g.cycles.clone();
                 s.cycles.insert(key.clone(), cycles);
+                s.camera.remove(&key);
                 s.guide = None;
                 s.carriage = None;
                 s.state = State::Measured;

@@ -8,6 +8,7 @@
 //! transaction. Session store, runner, guards, console and config transaction are the core's.
 
 mod apply;
+pub mod camera;
 mod dual;
 mod guide;
 
@@ -79,6 +80,7 @@ pub static OPS: &[Op<BacklashCall>] = &[
         ),
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
+    camera::OP,
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
@@ -121,6 +123,8 @@ pub enum BacklashCall {
     Start(StartRequest),
     /// `klipcal_backlash_jog`.
     Jog(Press),
+    /// `klipcal_backlash_camera`.
+    Camera(camera::CameraRequest),
     /// `klipcal_backlash_apply`.
     Apply,
 }
@@ -240,6 +244,9 @@ pub struct Session {
     pub kinematics: String,
     /// Things the user should know.
     pub notes: Vec<String>,
+    /// Axes read through the nozzle camera (KLIPCAL_BACKLASH_CAMERA): how, per result key.
+    #[serde(default)]
+    pub camera: BTreeMap<String, camera::CameraReport>,
 }
 
 impl Doc for Session {
@@ -304,6 +311,7 @@ impl Backlash {
             return;
         };
         match s.state {
+            State::Measuring if s.guide.is_none() => self.camera_interrupted(&s).await,
             State::Measuring => {
                 // Position and last direction are unknown after a restart: start the approach
                 // over from 1 mm back (the readings taken so far are kept).
@@ -404,6 +412,7 @@ impl Calibration for Backlash {
                 BacklashCall::SetPoint => self.set_point().await,
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
+                BacklashCall::Camera(r) => self.camera(&r).await,
                 BacklashCall::Apply => self.apply().await,
             }
         }
@@ -440,6 +449,7 @@ impl Calibration for Backlash {
             "results": results,
             "active_mm": s.active_mm,
             "notes": s.notes,
+            "camera": s.camera,
         }))
     }
 

@@ -119,6 +119,35 @@ impl Prompt {
     }
 }
 
+/// What the console says when the user closed klipcal's dialog without answering it (Mainsail's
+/// ✕, a tap outside it in Fluidd; both send `action:prompt_end`): what still waits and how to
+/// answer without the dialog (issue 26 A.1: a closed decision is never lost).
+#[must_use]
+pub fn closed_notice(p: &Prompt) -> String {
+    let title = p.title.strip_prefix("klipcal: ").unwrap_or(&p.title);
+    let answers: Vec<String> = p
+        .buttons
+        .iter()
+        .filter(|b| !b.gcode.starts_with('_'))
+        .map(|b| format!("{} = {}", b.label, b.gcode))
+        .collect();
+    let cancel = p
+        .buttons
+        .iter()
+        .chain(&p.footer)
+        .any(|b| b.gcode == Button::cancel_asking().gcode);
+    let mut said = format!("dialog \"{title}\" closed");
+    if !answers.is_empty() {
+        said.push_str(", still waiting for your answer: ");
+        said.push_str(&answers.join(", "));
+    }
+    if cancel {
+        said.push_str(", KLIPCAL_CANCEL ends the session");
+    }
+    said.push_str(". _KLIPCAL_PROMPT_BACK shows the dialog again");
+    said
+}
+
 /// A change to klipcal's dialog.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum PromptChange {
@@ -256,6 +285,45 @@ mod tests {
         assert!(lines[2].contains("prompt_button Apply|KLIPCAL_AB_APPLY|primary"));
         assert!(lines[3].contains("prompt_footer_button Close|_KLIPCAL_PROMPT_CLOSE|secondary"));
         assert!(lines[4].contains("action:prompt_show"));
+    }
+
+    #[test]
+    fn a_closed_dialog_says_what_waits_and_how_to_answer() {
+        let p = Prompt {
+            title: "klipcal: the bed has not settled".into(),
+            lines: vec!["x".into()],
+            buttons: vec![
+                Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+            ],
+            footer: vec![Button::cancel_asking()],
+        };
+        let said = closed_notice(&p);
+        assert_eq!(
+            said,
+            "dialog \"the bed has not settled\" closed, still waiting for your answer: \
+             Print now = KLIPCAL_SOAK_CHOICE CHOICE=print, Wait 10 min = KLIPCAL_SOAK_CHOICE \
+             CHOICE=wait, KLIPCAL_CANCEL ends the session. _KLIPCAL_PROMPT_BACK shows the \
+             dialog again"
+        );
+        // A console line Klipper takes whole.
+        let line = respond_line(&said);
+        assert_eq!(line.matches('"').count(), 2, "{line}");
+        // A dialog with only its own Close: nothing to answer, only how to see it again.
+        let measuring = Prompt {
+            title: "klipcal: measure the pylons (round 1)".into(),
+            buttons: vec![Button::new(
+                "Close and type readings",
+                "_KLIPCAL_PROMPT_CLOSE",
+                "primary",
+            )],
+            ..Prompt::default()
+        };
+        assert_eq!(
+            closed_notice(&measuring),
+            "dialog \"measure the pylons (round 1)\" closed. _KLIPCAL_PROMPT_BACK shows the \
+             dialog again"
+        );
     }
 
     #[tokio::test]

@@ -68,6 +68,9 @@ struct Inner {
     /// What klipcal's dialog shows, as far as klipcal knows: `None` after a start (unknown),
     /// `Some(None)` closed, `Some(Some(script))` showing that script.
     shown: std::sync::Mutex<Option<Option<String>>>,
+    /// klipcal's dialog open now (as last sent), with a count of dialog changes: a close seen
+    /// on the console is the user's when nothing changed since (see [`Core::watch_closes`]).
+    open: std::sync::Mutex<Open>,
     /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
     /// shutdown waits for them.
     tasks: tokio_util::task::TaskTracker,
@@ -88,6 +91,7 @@ impl Core {
                 runner: std::sync::Mutex::new(None),
                 titles: std::sync::RwLock::new(BTreeMap::new()),
                 shown: std::sync::Mutex::new(None),
+                open: std::sync::Mutex::new(Open::default()),
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
             }),
@@ -460,6 +464,17 @@ impl Core {
             }
         }
     }
+}
+
+/// klipcal's dialog as the close watcher sees it.
+#[derive(Default)]
+pub(super) struct Open {
+    /// Changes of klipcal's dialog so far.
+    changes: u64,
+    /// The dialog open now, as last sent.
+    prompt: Option<Prompt>,
+    /// The dialog the user closed without answering, until klipcal's dialog changes.
+    user_closed: Option<Prompt>,
 }
 
 fn read_doc<D: DeserializeOwned>(row: SessionRow) -> anyhow::Result<D> {

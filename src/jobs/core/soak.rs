@@ -325,8 +325,9 @@ impl BedSoak {
     }
 }
 
-/// The bed's last ~20 minutes (Moonraker's temperature store, 1 Hz) as an SVG plot, with the
-/// soak detector's fit replayed over the same samples.
+/// The bed since its current heat-up began, as far as Moonraker's temperature store goes back
+/// (1 Hz; 20 min by default, `temperature_store_size`), as an SVG plot titled with the span it
+/// shows, with the soak detector's fit replayed over the same samples.
 ///
 /// # Errors
 /// Moonraker unreachable, no heater_bed, or nothing to plot (the message says which).
@@ -343,7 +344,7 @@ pub async fn soak_picture(
         .map_err(|e| format!("Moonraker's temperature store: {e}"))?;
     let (samples, fit, eta) = crate::plots::replay_soak(&store["heater_bed"], params)
         .ok_or("the printer has no heater_bed in Moonraker's temperature store")?;
-    crate::plots::soak_svg(&samples, fit, eta, "bed soak (last 20 min)")
+    crate::plots::soak_svg(&samples, fit, eta, &crate::plots::soak_title(&samples))
 }
 
 /// Saves [`soak_picture`] under the config root; returns its name for the user.

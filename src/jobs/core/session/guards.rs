@@ -136,6 +136,7 @@ impl Core {
             }
             *shown = Some(Some(script.clone()));
         }
+        self.set_open(Some(p.clone()));
         let change = console::PromptChange::Show(script);
         if !console::hold(change.clone()) {
             console::send_script(&self.inner.m, &change.script()).await;
@@ -173,6 +174,7 @@ impl Core {
             *shown = Some(Some(script.clone()));
             fresh
         };
+        self.set_open(Some(p.clone()));
         let change = console::PromptChange::Show(script);
         let change = fresh.then_some(change);
         if let Some(c) = &change {
@@ -189,10 +191,22 @@ impl Core {
     /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
     /// false when klipcal has no dialog open.
     pub async fn prompt_again(&self) -> bool {
-        let script = match &*self.shown() {
-            Some(Some(script)) => script.clone(),
-            _ => return false,
+        let shown = self.shown().clone();
+        let script = match shown {
+            Some(Some(script)) => script,
+            // Closed by the user's ✕ or tap outside: the helper the console named shows it.
+            _ => match take_user_closed(self) {
+                Some(p) => {
+                    let script = p.script();
+                    *self.shown() = Some(Some(script.clone()));
+                    self.set_open(Some(p));
+                    script
+                }
+                None => return false,
+            },
         };
+        // Shown again: a close seen before this is not a close of this dialog.
+        self.bump_open();
         let change = console::PromptChange::Show(script);
         if !console::hold(change.clone()) {
             console::send_script(&self.inner.m, &change.script()).await;
@@ -208,10 +222,76 @@ impl Core {
 
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
     fn mark_closed(&self) -> bool {
-        let mut shown = self.shown();
-        let was_closed = matches!(*shown, Some(None));
-        *shown = Some(None);
+        let was_closed = {
+            let mut shown = self.shown();
+            let was_closed = matches!(*shown, Some(None));
+            *shown = Some(None);
+            was_closed
+        };
+        self.set_open(None);
         !was_closed
+    }
+
+    fn open(&self) -> std::sync::MutexGuard<'_, Open> {
+        self.inner
+            .open
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+    }
+
+    fn set_open(&self, p: Option<Prompt>) {
+        let mut open = self.open();
+        open.changes += 1;
+        open.prompt = p;
+        open.user_closed = None;
+    }
+
+    fn bump_open(&self) {
+        self.open().changes += 1;
+    }
+
+    /// Watches the console for a close of klipcal's dialog that klipcal did not send: the
+    /// user's ✕ in Mainsail or tap outside in Fluidd (both send `action:prompt_end`). Then the
+    /// console says what still waits and how to answer (issue 26 A.1). klipcal's own helpers
+    /// (Close, Back) close in Klipper and call klipcal at once; a change of klipcal's dialog
+    /// within a moment of the close tells them apart. Runs until shutdown.
+    pub async fn watch_closes(self) {
+        use tokio::sync::broadcast::error::RecvError;
+        let mut rx = self.inner.m.events();
+        loop {
+            let ev = tokio::select! {
+                () = self.inner.shutdown.cancelled() => return,
+                ev = rx.recv() => ev,
+            };
+            match ev {
+                Ok(crate::moonraker::Event::GcodeResponse(l))
+                    if l.trim() == "// action:prompt_end" => {}
+                Err(RecvError::Closed) => return,
+                _ => continue,
+            }
+            let gen = match &*self.open() {
+                Open {
+                    changes,
+                    prompt: Some(_),
+                    ..
+                } => *changes,
+                // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
+                _ => continue,
+            };
+            tokio::select! {
+                () = self.inner.shutdown.cancelled() => return,
+                () = tokio::time::sleep(std::time::Duration::from_millis(1500)) => {}
+            }
+            let closed = {
+                let open = self.open();
+                (open.changes == gen).then(|| open.prompt.clone()).flatten()
+            };
+            if let Some(p) = closed {
+                self.mark_closed();
+                console::say(&self.inner.m, &console::closed_notice(&p)).await;
+                self.open().user_closed = Some(p);
+            }
+        }
     }
 
     fn shown(&self) -> std::sync::MutexGuard<'_, Option<Option<String>>> {
@@ -220,4 +300,10 @@ impl Core {
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
+}
+
+/// The dialog the user closed, taken (the lock released before the caller goes on).
+fn take_user_closed(core: &Core) -> Option<Prompt> {
+    let mut open = core.open();
+    open.user_closed.take()
 }

@@ -1,0 +1,763 @@
+//! KLIPCAL_BACKLASH_CAMERA AXIS=X|Y|A|B [CYCLES=] (issue 27): the seed's backlash procedure done
+//! by the daemon, read from the nozzle camera with no tapping.
+//!
+//! The camera is Moonraker's: `server.webcams.list`, the webcam named in `[backlash] webcam`, or
+//! the only one; its snapshot URL (a relative one resolved against Moonraker's host, as
+//! Moonraker does). The first frame is checked before anything moves, so a missing camera or a
+//! picture with no sure nozzle is refused with the reason at once. Then, in the background:
+//! 1. **Scale and rotation**: X, then Y, at −0.5, 0, +0.5 mm about the camera point, every
+//!    position approached moving + so the play stays on one side
+//!    ([`crate::calib::camera_scale`]).
+//! 2. **Cycles**: approach the point from 1 mm below (moving +), read the nozzle; from 1 mm
+//!    above (moving −), read it. Backlash = the difference along the axis.
+//! 3. Each reading waits `camera_settle_s` after the move, then takes frames until two agree
+//!    within their uncertainty (the nozzle has stopped ringing); a frame that detection refuses
+//!    is taken again, five in a row end the measurement with the reason.
+//! 4. The cycles go into the session like the guided flow's, analysed with the camera's noise
+//!    floor ([`crate::calib::camera_scale::camera_params`]); KLIPCAL_BACKLASH_APPLY applies
+//!    them through the same verified path.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::Context;
+use serde::{Deserialize, Serialize};
+use serde_json::{json, Value};
+
+use super::{key_words, result_key, Backlash, BacklashCall, PointDoc, Session, State};
+use super::{JOG_F, KIND, POINT_KIND, TITLE};
+use crate::calib::backlash::{BacklashParams, Cycle};
+use crate::calib::backlash_guide::GuideAxis;
+use crate::calib::camera_scale::{self, CameraScale, Sighting};
+use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
+use crate::jobs::core::table::{arg, ArgKind, Args, Op, OpSpec};
+use crate::jobs::user;
+use crate::klipper::GcodeCmd;
+
+/// The camera measurement's operation, declared in the backlash table.
+pub(super) const OP: Op<BacklashCall> = Op {
+    spec: OpSpec::remote(
+        "klipcal_backlash_camera",
+        "KLIPCAL_BACKLASH_CAMERA",
+        "backlash/camera",
+        "measure backlash from the nozzle camera, no tapping: AXIS=X or Y (A/B on CoreXY), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
+        &[
+            arg(
+                "axis",
+                ArgKind::Text,
+                "X",
+                "X, Y, A or B",
+                "",
+                "the axis: X, Y, or A/B (CoreXY motors)",
+            ),
+            arg(
+                "cycles",
+                ArgKind::Whole { min: 1, max: 50 },
+                "5",
+                "1..50",
+                "",
+                "approach cycles (default backlash.cycles)",
+            ),
+            arg(
+                "carriage",
+                ArgKind::Whole { min: 0, max: 1 },
+                "1",
+                "0 or 1",
+                "",
+                "the carriage on a dual_carriage printer",
+            ),
+        ],
+    ),
+    parse: |a| Ok(BacklashCall::Camera(CameraRequest::from_args(a)?)),
+};
+
+/// `KLIPCAL_BACKLASH_CAMERA`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CameraRequest {
+    pub axis: GuideAxis,
+    pub cycles: Option<usize>,
+    pub carriage: Option<i64>,
+}
+
+impl CameraRequest {
+    fn from_args(a: &Args) -> anyhow::Result<Self> {
+        let axis_text = a.text("axis").ok_or_else(|| {
+            user("KLIPCAL_BACKLASH_CAMERA: AXIS is required; expected X, Y, A or B")
+        })?;
+        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+        if axis == GuideAxis::Z {
+            return Err(user(
+                "AXIS=Z: a camera under the nozzle cannot see Z move; measure Z with \
+                 KLIPCAL_BACKLASH_START AXIS=Z (guided), or X, Y, A, B here",
+            ));
+        }
+        let cycles = a
+            .int("cycles")?
+            .map(|c| usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50"))))
+            .transpose()?;
+        Ok(Self {
+            axis,
+            cycles,
+            carriage: a.int("carriage")?,
+        })
+    }
+}
+
+/// The chosen webcam.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Webcam {
+    pub name: String,
+    /// The absolute snapshot URL.
+    pub snapshot_url: String,
+}
+
+/// Picks the nozzle camera from `server.webcams.list`'s answer: the one named `wanted`, or the
+/// only enabled one. The error says what to do.
+pub(crate) fn choose_webcam(
+    list: &Value,
+    wanted: &str,
+    moonraker_base: &str,
+) -> Result<Webcam, String> {
+    let cams: Vec<&Value> = list["webcams"]
+        .as_array()
+        .map(|a| a.iter().filter(|c| c["enabled"] != json!(false)).collect())
+        .unwrap_or_default();
+    let names: Vec<&str> = cams.iter().filter_map(|c| c["name"].as_str()).collect();
+    let cam = if wanted.is_empty() {
+        match cams.as_slice() {
+            [] => {
+                return Err(
+                    "Moonraker lists no webcam: add the nozzle camera (Mainsail/Fluidd \
+                            webcam settings, or [webcam nozzle] in moonraker.conf with its \
+                            snapshot_url), or measure with KLIPCAL_BACKLASH_START (guided)"
+                        .into(),
+                )
+            }
+            [one] => *one,
+            _ => {
+                return Err(format!(
+                    "Moonraker lists {} webcams ({}); name the nozzle camera in klipcal.toml: \
+                     [backlash] webcam = \"…\"",
+                    cams.len(),
+                    names.join(", ")
+                ))
+            }
+        }
+    } else {
+        match cams.iter().find(|c| c["name"] == wanted) {
+            Some(c) => *c,
+            None => {
+                return Err(format!(
+                    "no webcam named '{wanted}' in Moonraker's list ({}); set [backlash] webcam \
+                     in klipcal.toml to one of them",
+                    if names.is_empty() {
+                        "it is empty".to_string()
+                    } else {
+                        names.join(", ")
+                    }
+                ))
+            }
+        }
+    };
+    let name = cam["name"].as_str().unwrap_or("").to_string();
+    let url = cam["snapshot_url"].as_str().unwrap_or("").trim();
+    if url.is_empty() {
+        return Err(format!(
+            "webcam '{name}' has no snapshot URL; set one (ustreamer and camera-streamer serve \
+             /?action=snapshot or /snapshot)"
+        ));
+    }
+    Ok(Webcam {
+        name,
+        snapshot_url: resolve_url(url, moonraker_base),
+    })
+}
+
+/// A snapshot URL as a full one: a relative URL (`/webcam/?action=snapshot`, served through the
+/// web server) is on Moonraker's host at the default port, as Moonraker itself resolves it.
+pub(crate) fn resolve_url(url: &str, moonraker_base: &str) -> String {
+    if url.contains("://") {
+        return url.to_string();
+    }
+    let rest = moonraker_base
+        .split_once("://")
+        .map_or(moonraker_base, |(_, r)| r);
+    let hostport = rest.split('/').next().unwrap_or("");
+    let host = if let Some(end) = hostport.strip_prefix('[').and_then(|h| h.find(']')) {
+        &hostport[..end + 2]
+    } else {
+        hostport.split(':').next().unwrap_or(hostport)
+    };
+    format!("http://{host}/{}", url.trim_start_matches('/'))
+}
+
+/// Two frames of a still nozzle agree within their uncertainty (3σ of the difference, and at
+/// least 0.05 px): the ringing after a move has died out.
+pub(crate) fn still(a: &Detection, b: &Detection) -> bool {
+    let lim = (3.0 * a.uncertainty_px.hypot(b.uncertainty_px)).max(0.05);
+    (a.centre_px[0] - b.centre_px[0]).abs() <= lim && (a.centre_px[1] - b.centre_px[1]).abs() <= lim
+}
+
+/// The axis coordinate of a machine displacement (A = x + y, B = x − y).
+fn along(axis: GuideAxis, d_mm: [f64; 2]) -> f64 {
+    axis.coord([d_mm[0], d_mm[1], 0.0])
+}
+
+/// One reading: the mean of two still frames.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Seen {
+    pub centre_px: [f64; 2],
+    pub uncertainty_px: f64,
+    /// Frames taken, and refused by detection.
+    pub frames: usize,
+    pub refused: usize,
+}
+
+/// One camera cycle, as the page and the status show it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraCycle {
+    pub plus_px: [f64; 2],
+    pub minus_px: [f64; 2],
+    pub backlash_mm: f64,
+}
+
+/// How an axis was read through the camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraReport {
+    pub webcam: Webcam,
+    pub scale: Option<CameraScale>,
+    /// The nozzle at the camera point (X approached moving +), px.
+    pub reference_px: Option<[f64; 2]>,
+    pub cycles: Vec<CameraCycle>,
+    /// The largest reading uncertainty, px, and the scale along the axis, px/mm: the
+    /// statistics' noise floor.
+    pub detection_sd_px: f64,
+    pub axis_px_per_mm: f64,
+    pub frames: usize,
+    pub refused_frames: usize,
+    /// The last reading, px (the page marks it).
+    pub last_px: Option<[f64; 2]>,
+}
+
+impl CameraReport {
+    /// The statistics' settings for these cycles: the camera's noise floor, not a jog's.
+    pub(super) fn params(&self, base: &BacklashParams) -> BacklashParams {
+        if self.axis_px_per_mm > 0.0 && self.detection_sd_px > 0.0 {
+            camera_scale::camera_params(base, self.detection_sd_px, self.axis_px_per_mm)
+        } else {
+            base.clone()
+        }
+    }
+}
+
+/// Why a frame gave no reading.
+enum Look {
+    Found(Detection),
+    Refused(Refusal),
+}
+
+impl Backlash {
+    fn http(&self) -> anyhow::Result<reqwest::Client> {
+        reqwest::Client::builder()
+            .timeout(Duration::from_secs(10))
+            .build()
+            .context("building the camera's HTTP client")
+    }
+
+    /// The nozzle camera from Moonraker's list.
+    async fn webcam(&self) -> anyhow::Result<Webcam> {
+        let list = self
+            .core
+            .m()
+            .call("server.webcams.list", json!({}))
+            .await
+            .context("asking Moonraker for its webcams")?;
+        choose_webcam(&list, self.settings.webcam.trim(), self.core.files().base()).map_err(user)
+    }
+
+    /// One frame, fetched and searched.
+    async fn look(&self, http: &reqwest::Client, cam: &Webcam) -> anyhow::Result<Look> {
+        let r = http
+            .get(&cam.snapshot_url)
+            .send()
+            .await
+            .map_err(|e| user(format!("webcam '{}' ({}): {e}", cam.name, cam.snapshot_url)))?;
+        let status = r.status();
+        if !status.is_success() {
+            return Err(user(format!(
+                "webcam '{}' answered {status} for its snapshot ({}); expected a JPEG",
+                cam.name, cam.snapshot_url
+            )));
+        }
+        let bytes = r.bytes().await.context("reading the snapshot")?;
+        let name = cam.name.clone();
+        tokio::task::spawn_blocking(move || {
+            let (w, h, grey) = crate::cmd::camera_render::decode_gray(&bytes)
+                .map_err(|e| user(format!("webcam '{name}': {e:#}")))?;
+            Ok(
+                match nozzle::detect(
+                    &Gray {
+                        width: w,
+                        height: h,
+                        data: &grey,
+                    },
+                    &DetectParams::default(),
+                ) {
+                    Ok(d) => Look::Found(d),
+                    Err(r) => Look::Refused(r),
+                },
+            )
+        })
+        .await?
+    }
+
+    /// The nozzle once it is still: waits out the move, then frames until two agree; a refused
+    /// frame is taken again (five in a row: the reason).
+    async fn sight(&self, http: &reqwest::Client, cam: &Webcam) -> anyhow::Result<Seen> {
+        self.core.m().gcode("M400").await?;
+        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
+        tokio::time::sleep(Duration::from_secs_f64(settle)).await;
+        let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
+        let mut prev: Option<Detection> = None;
+        while frames < 12 {
+            frames += 1;
+            match self.look(http, cam).await? {
+                Look::Found(d) => {
+                    in_a_row = 0;
+                    if let Some(p) = prev.as_ref().filter(|p| still(p, &d)) {
+                        return Ok(Seen {
+                            centre_px: [
+                                (p.centre_px[0] + d.centre_px[0]) / 2.0,
+                                (p.centre_px[1] + d.centre_px[1]) / 2.0,
+                            ],
+                            uncertainty_px: p.uncertainty_px.hypot(d.uncertainty_px) / 2.0,
+                            frames,
+                            refused,
+                        });
+                    }
+                    prev = Some(d);
+                }
+                Look::Refused(r) => {
+                    refused += 1;
+                    in_a_row += 1;
+                    if in_a_row >= 5 {
+                        return Err(user(format!(
+                            "webcam '{}': five frames in a row without a sure nozzle: {r}",
+                            cam.name
+                        )));
+                    }
+                }
+            }
+        }
+        Err(user(format!(
+            "webcam '{}': the nozzle did not keep still over {frames} frames; check that the \
+             camera is mounted firmly, or raise [backlash] camera_settle_s",
+            cam.name
+        )))
+    }
+
+    async fn go(&self, p: [f64; 3]) -> anyhow::Result<()> {
+        let line = GcodeCmd::new("G1")
+            .axis('X', p[0])
+            .axis('Y', p[1])
+            .axis('Z', p[2])
+            .axis('F', JOG_F)
+            .build()?;
+        self.core.m().gcode(&format!("G90\n{line}")).await?;
+        Ok(())
+    }
+
+    async fn progress(&self, id: i64, text: String, report: Option<(&str, &CameraReport)>) {
+        let _ = self
+            .core
+            .update::<Session, ()>(id, |s| {
+                s.progress = text;
+                if let Some((k, r)) = report {
+                    s.camera.insert(k.to_string(), r.clone());
+                }
+                Ok(())
+            })
+            .await;
+    }
+
+    /// `klipcal_backlash_camera`: checks the camera and the printer, then measures in the
+    /// background.
+    ///
+    /// # Errors
+    /// Bad arguments, another calibration, a printing or unhomed printer, no camera point, no
+    /// or several webcams, a first frame without a sure nozzle (the reason), A/B off CoreXY.
+    pub(super) async fn camera(&self, req: &CameraRequest) -> anyhow::Result<Value> {
+        let axis = req.axis;
+        let cycles = req.cycles.unwrap_or(self.settings.cycles);
+        if !(1..=50).contains(&cycles) {
+            return Err(user(format!("CYCLES={cycles}: expected 1..50")));
+        }
+        self.core.refuse_other_kind(KIND)?;
+        if let Some(s) = self.active()? {
+            if s.state != State::Measured {
+                return Err(user(format!(
+                    "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
+                    s.id,
+                    s.state.name()
+                )));
+            }
+        }
+        self.core.printer_idle().await?;
+        self.homed(axis).await?;
+        let point = self
+            .core
+            .latest_of::<PointDoc>(POINT_KIND)?
+            .map(|(_, d)| d.point)
+            .ok_or_else(|| {
+                user("no camera point saved: bring the nozzle over the camera, then KLIPCAL_BACKLASH_SET_POINT")
+            })?;
+        let cam = self.webcam().await?;
+        let http = self.http()?;
+        // The picture is checked before anything moves.
+        if let Look::Refused(r) = self.look(&http, &cam).await? {
+            return Err(user(format!(
+                "webcam '{}' shows no sure nozzle: {r}",
+                cam.name
+            )));
+        }
+        let (detection, cf) = self.detect().await?;
+        let kin = cf["settings"]["printer"]["kinematics"]
+            .as_str()
+            .unwrap_or("")
+            .to_string();
+        if axis.is_motor() && kin != "corexy" {
+            return Err(user(format!(
+                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
+                axis.name().to_uppercase()
+            )));
+        }
+        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let carriage = self
+            .carriage_for(&detection, &cf, axis, req.carriage)
+            .await?;
+        if let Some(n) = carriage {
+            self.park_and_select(n).await?;
+        }
+        let key = result_key(axis, carriage);
+        let active_mm = self
+            .active_values(&detection, &cf, axis, carriage, &key)
+            .await?;
+        let progress = format!("camera: measuring {}", key_words(&key));
+        let existing = {
+            let _g = self.core.lock().await;
+            match self.active()? {
+                Some(mut s) if s.state == State::Measured => {
+                    s.state = State::Measuring;
+                    s.progress = progress.clone();
+                    s.guide = None;
+                    s.point = point;
+                    s.detection = detection.clone();
+                    s.active_mm.extend(active_mm.clone());
+                    s.carriage = carriage;
+                    s.kinematics = kin.clone();
+                    self.core.save(s.id, &s)?;
+                    Some(s)
+                }
+                Some(s) => {
+                    return Err(user(format!(
+                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
+                        s.id,
+                        s.state.name()
+                    )))
+                }
+                None => None,
+            }
+        };
+        let id = match existing {
+            Some(s) => s.id,
+            None => {
+                let mut s = Session {
+                    id: 0,
+                    state: State::Measuring,
+                    reason: None,
+                    progress: progress.clone(),
+                    point,
+                    detection,
+                    active_mm,
+                    guide: None,
+                    cycles: BTreeMap::new(),
+                    max_accel_mm_s2: max_accel,
+                    notes: Vec::new(),
+                    carriage,
+                    kinematics: kin,
+                    camera: BTreeMap::new(),
+                };
+                self.core.create(KIND, &mut s, |s, id| s.id = id).await?
+            }
+        };
+        let me = Arc::new(Backlash::new(self.core.clone(), self.settings.clone()));
+        let fail_me = me.clone();
+        let cam2 = cam.clone();
+        self.core.spawn_session(
+            id,
+            TITLE,
+            move || {
+                let (me, cam) = (me.clone(), cam2.clone());
+                async move { me.camera_run(id, axis, cycles, point, carriage, &cam).await }
+            },
+            move |why| async move {
+                let _ = fail_me
+                    .finish(
+                        id,
+                        State::Failed,
+                        &format!("camera measurement failed: {why}"),
+                    )
+                    .await;
+                fail_me
+                    .core
+                    .console_error(&format!("{TITLE}: camera measurement failed: {why}"))
+                    .await;
+            },
+        );
+        let msg = format!(
+            "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles, no tapping; the result \
+             follows on the console",
+            key_words(&key),
+            cam.name
+        );
+        Ok(
+            json!({"session": id, "state": "measuring", "axis": axis.name(),
+                  "carriage": carriage, "webcam": cam, "message": msg}),
+        )
+    }
+
+    /// What compensation is active while measuring (measurements are residuals to it).
+    async fn active_values(
+        &self,
+        detection: &crate::klipper::backlash::Detection,
+        cf: &Value,
+        axis: GuideAxis,
+        carriage: Option<u32>,
+        key: &str,
+    ) -> anyhow::Result<BTreeMap<String, f64>> {
+        use crate::klipper::backlash::Branch;
+        let mut active_mm = BTreeMap::new();
+        match detection.branch {
+            Branch::Seed => {
+                let r = self.seed_values().await?;
+                active_mm.insert("x".into(), r.x_mm);
+                active_mm.insert("y".into(), r.y_mm);
+                active_mm.insert("z".into(), r.z_mm);
+                if carriage.is_some() {
+                    let own = match axis {
+                        GuideAxis::Y => r.y_mm,
+                        _ => r.x_mm,
+                    };
+                    active_mm.insert(key.to_string(), own);
+                }
+            }
+            Branch::Pr7157 { .. } => {
+                if let Some(o) = cf["settings"]["backlash"].as_object() {
+                    for (k, v) in o {
+                        if let Some(f) = v.as_f64() {
+                            active_mm.insert(k.clone(), f);
+                        }
+                    }
+                }
+            }
+            Branch::Neither => {}
+        }
+        Ok(active_mm)
+    }
+
+    /// The measurement itself (the runner's steps; run again from the start after an outage).
+    async fn camera_run(
+        &self,
+        id: i64,
+        axis: GuideAxis,
+        cycles: usize,
+        point: [f64; 3],
+        carriage: Option<u32>,
+        cam: &Webcam,
+    ) -> anyhow::Result<()> {
+        let http = self.http()?;
+        let key = result_key(axis, carriage);
+        let approach = self.settings.approach_mm;
+        let mut report = CameraReport {
+            webcam: cam.clone(),
+            scale: None,
+            reference_px: None,
+            cycles: Vec::new(),
+            detection_sd_px: 0.0,
+            axis_px_per_mm: 0.0,
+            frames: 0,
+            refused_frames: 0,
+            last_px: None,
+        };
+        let count = |r: &mut CameraReport, s: &Seen| {
+            r.frames += s.frames;
+            r.refused_frames += s.refused;
+            r.last_px = Some(s.centre_px);
+            r.detection_sd_px = r.detection_sd_px.max(s.uncertainty_px);
+        };
+        // 1. Scale and rotation: each axis at −0.5, 0, +0.5 mm, every one approached moving +.
+        let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
+        for (k, ax) in [GuideAxis::X, GuideAxis::Y].into_iter().enumerate() {
+            self.progress(
+                id,
+                format!(
+                    "camera: scale and rotation from {} ±0.5 mm",
+                    ax.name().to_uppercase()
+                ),
+                None,
+            )
+            .await;
+            self.go(ax.point_at(point, -0.5 - approach)).await?;
+            for t in [-0.5, 0.0, 0.5] {
+                self.go(ax.point_at(point, t)).await?;
+                let s = self.sight(&http, cam).await?;
+                count(&mut report, &s);
+                sightings[k].push(Sighting {
+                    commanded_mm: t,
+                    centre_px: s.centre_px,
+                    uncertainty_px: s.uncertainty_px.max(0.01),
+                });
+            }
+            self.go(point).await?;
+        }
+        let scale = CameraScale::from_axes(
+            camera_scale::fit_axis("x", &sightings[0]).map_err(|e| user(e.to_string()))?,
+            camera_scale::fit_axis("y", &sightings[1]).map_err(|e| user(e.to_string()))?,
+        )
+        .map_err(|e| user(e.to_string()))?;
+        let reference = sightings[0][1].centre_px;
+        let unit = axis.point_at([0.0; 3], 1.0);
+        let (dx, dy) = (scale.x.direction_px_per_mm, scale.y.direction_px_per_mm);
+        report.axis_px_per_mm =
+            (dx[0] * unit[0] + dy[0] * unit[1]).hypot(dx[1] * unit[0] + dy[1] * unit[1]);
+        report.scale = Some(scale);
+        report.reference_px = Some(reference);
+        // 2. The seed's cycles, read from the image.
+        let mut got = Vec::new();
+        for c in 1..=cycles {
+            self.progress(
+                id,
+                format!("camera: {} cycle {c}/{cycles}", key_words(&key)),
+                Some((&key, &report)),
+            )
+            .await;
+            self.go(axis.point_at(point, -approach)).await?;
+            self.go(point).await?;
+            let plus = self.sight(&http, cam).await?;
+            count(&mut report, &plus);
+            self.go(axis.point_at(point, approach)).await?;
+            self.go(point).await?;
+            let minus = self.sight(&http, cam).await?;
+            count(&mut report, &minus);
+            let p = along(axis, scale.position_mm(plus.centre_px, reference));
+            let m = along(axis, scale.position_mm(minus.centre_px, reference));
+            let cyc = Cycle {
+                x1_mm: -p,
+                x2_mm: -m,
+                fine_mm: None,
+            };
+            report.cycles.push(CameraCycle {
+                plus_px: plus.centre_px,
+                minus_px: minus.centre_px,
+                backlash_mm: cyc.x1_mm - cyc.x2_mm,
+            });
+            got.push(cyc);
+        }
+        // 3. Into the session, as the guided flow's cycles.
+        let s = {
+            let _g = self.core.lock().await;
+            let mut s: Session = self.core.load(id)?;
+            if s.state != State::Measuring {
+                return Ok(()); // cancelled meanwhile
+            }
+            s.cycles.insert(key.clone(), got);
+            s.camera.insert(key.clone(), report);
+            s.carriage = None;
+            s.state = State::Measured;
+            s.progress = format!(
+                "{} measured from the camera; start another axis or KLIPCAL_BACKLASH_APPLY",
+                key_words(&key)
+            );
+            self.core.save(id, &s)?;
+            s
+        };
+        let lines = self.result_lines(&s)?;
+        self.core
+            .console(&format!(
+                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_CAMERA AXIS=… for another axis, or \
+                 KLIPCAL_BACKLASH_APPLY",
+                lines.join("\n")
+            ))
+            .await;
+        Ok(())
+    }
+
+    /// A camera measurement cut off by a restart: its readings are gone, so it ends, saying
+    /// how to run it again (axes measured before are kept).
+    pub(super) async fn camera_interrupted(&self, s: &Session) {
+        let why = "camera measurement interrupted by a klipcal restart; run \
+                   KLIPCAL_BACKLASH_CAMERA again";
+        if s.cycles.is_empty() {
+            let _ = self.finish(s.id, State::Failed, why).await;
+        } else {
+            let _ = self.set_state(s.id, State::Measured, why).await;
+        }
+        self.core.console(&format!("{TITLE}: {why}")).await;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_webcam_is_the_named_one_or_the_only_one_and_refusals_say_what_to_do() {
+        let base = "http://192.168.1.20:7125";
+        let one = json!({"webcams": [{"name": "nozzle", "enabled": true,
+            "snapshot_url": "/webcam/?action=snapshot"}]});
+        let w = choose_webcam(&one, "", base).unwrap();
+        assert_eq!(w.name, "nozzle");
+        assert_eq!(
+            w.snapshot_url,
+            "http://192.168.1.20/webcam/?action=snapshot"
+        );
+        let two = json!({"webcams": [
+            {"name": "bed", "snapshot_url": "http://cam:8080/snapshot"},
+            {"name": "nozzle", "snapshot_url": "http://10.0.0.5:8081/?action=snapshot"}]});
+        assert_eq!(
+            choose_webcam(&two, "nozzle", base).unwrap().snapshot_url,
+            "http://10.0.0.5:8081/?action=snapshot"
+        );
+        let e = choose_webcam(&two, "", base).unwrap_err();
+        assert!(
+            e.contains("2 webcams (bed, nozzle)") && e.contains("webcam = "),
+            "{e}"
+        );
+        let e = choose_webcam(&two, "tool", base).unwrap_err();
+        assert!(e.contains("'tool'") && e.contains("bed, nozzle"), "{e}");
+        let e = choose_webcam(&json!({"webcams": []}), "", base).unwrap_err();
+        assert!(
+            e.contains("no webcam") && e.contains("KLIPCAL_BACKLASH_START"),
+            "{e}"
+        );
+        let off = json!({"webcams": [{"name": "n", "enabled": false, "snapshot_url": "/s"}]});
+        assert!(choose_webcam(&off, "", base).is_err());
+        let empty = json!({"webcams": [{"name": "n", "snapshot_url": ""}]});
+        assert!(choose_webcam(&empty, "", base)
+            .unwrap_err()
+            .contains("no snapshot URL"));
+        assert_eq!(
+            resolve_url("webcam2/?action=snapshot", "http://[fe80::1]:7125"),
+            "http://[fe80::1]/webcam2/?action=snapshot"
+        );
+    }
+
+    #[test]
+    fn along_a_and_b_are_the_corexy_motor_coordinates() {
+        assert_eq!(along(GuideAxis::X, [0.1, 0.2]), 0.1);
+        assert_eq!(along(GuideAxis::Y, [0.1, 0.2]), 0.2);
+        assert!((along(GuideAxis::A, [0.1, 0.2]) - 0.3).abs() < 1e-12);
+        assert!((along(GuideAxis::B, [0.1, 0.2]) + 0.1).abs() < 1e-12);
+    }
+}

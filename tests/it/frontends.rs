@@ -1,0 +1,674 @@
+//! The real Mainsail v2.18.0 and Fluidd v1.36.2 (production builds in ../shared/frontends/, see
+//! its README) against the bench's Moonraker, in headless Chromium at desktop (1280×800) and
+//! phone (390×844) sizes: what a user sees and presses — macro buttons, the console, klipcal's
+//! prompt dialogs (`action:prompt_*`) — instead of the port of Mainsail's prompt logic
+//! (tests/it/mainsail.rs, kept as a fast unit test). Screenshots are kept in
+//! `target/test-artifacts/frontends/` (the test prints the folder).
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use serde_json::{json, Value};
+
+use crate::bench::{extension_request, free_port, poll, repo, Bench, Daemon};
+use crate::browser::{artifact, Browser};
+
+pub const DESKTOP: (u32, u32) = (1280, 800);
+pub const PHONE: (u32, u32) = (390, 844);
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    Mainsail,
+    Fluidd,
+}
+
+impl Kind {
+    fn folder(self) -> &'static str {
+        match self {
+            Kind::Mainsail => "mainsail-v2.18.0",
+            Kind::Fluidd => "fluidd-v1.36.2",
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            Kind::Mainsail => "mainsail",
+            Kind::Fluidd => "fluidd",
+        }
+    }
+
+    /// A macro's button label: Mainsail writes `KLIPCAL_AB_START` as "KLIPCAL AB START".
+    fn macro_label(self, name: &str) -> String {
+        match self {
+            Kind::Mainsail => name.replace('_', " "),
+            Kind::Fluidd => name.to_string(),
+        }
+    }
+}
+
+/// Where the builds are: `KLIPCAL_FRONTENDS`, else `../shared/frontends` beside the checkout.
+fn builds() -> PathBuf {
+    std::env::var_os("KLIPCAL_FRONTENDS")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join("../shared/frontends"))
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let dest = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &dest);
+        } else {
+            std::fs::copy(e.path(), &dest).unwrap();
+            // The builds are read-only; the copy's config.json is edited.
+            let mut p = std::fs::metadata(&dest).unwrap().permissions();
+            #[allow(clippy::permissions_set_readonly_false)]
+            p.set_readonly(false);
+            std::fs::set_permissions(&dest, p).unwrap();
+        }
+    }
+}
+
+/// A copy of one front end pointed at the bench's Moonraker, served statically on a free
+/// loopback port (Python's http.server); stopped on drop.
+pub struct FrontEnd {
+    pub kind: Kind,
+    pub url: String,
+    server: Child,
+    _dir: tempfile::TempDir,
+}
+
+impl FrontEnd {
+    pub async fn serve(kind: Kind, bench: &Bench) -> FrontEnd {
+        let src = builds().join(kind.folder());
+        assert!(
+            src.join("index.html").is_file(),
+            "no {} build at {} (set KLIPCAL_FRONTENDS to the folder of ../shared/frontends)",
+            kind.name(),
+            src.display()
+        );
+        let dir = tempfile::Builder::new().prefix("kc-fe-").tempdir().unwrap();
+        copy_dir(&src, dir.path());
+        let port = bench.info["moonraker_port"].as_u64().unwrap();
+        let cfg_path = dir.path().join("config.json");
+        let mut cfg: Value =
+            serde_json::from_str(&std::fs::read_to_string(&cfg_path).unwrap()).unwrap();
+        match kind {
+            Kind::Mainsail => {
+                cfg["instancesDB"] = json!("moonraker");
+                cfg["hostname"] = json!("127.0.0.1");
+                cfg["port"] = json!(port);
+            }
+            Kind::Fluidd => cfg["endpoints"] = json!([format!("http://127.0.0.1:{port}")]),
+        }
+        std::fs::write(&cfg_path, cfg.to_string()).unwrap();
+        let web = free_port();
+        let server = Command::new("python3")
+            .args(["-m", "http.server", &web.to_string(), "--bind", "127.0.0.1"])
+            .arg("--directory")
+            .arg(dir.path())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("python3 for the static server");
+        let url = format!("http://127.0.0.1:{web}/");
+        let up = poll(Duration::from_secs(15), || async {
+            reqwest::get(&url)
+                .await
+                .ok()
+                .filter(|r| r.status().is_success())
+                .map(|_| ())
+        })
+        .await;
+        assert!(up.is_some(), "the static server never answered at {url}");
+        FrontEnd {
+            kind,
+            url,
+            server,
+            _dir: dir,
+        }
+    }
+}
+
+impl Drop for FrontEnd {
+    fn drop(&mut self) {
+        let _ = self.server.kill();
+        let _ = self.server.wait();
+    }
+}
+
+/// A dialog as the front end draws it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Shown {
+    pub title: String,
+    pub texts: Vec<String>,
+    /// Body buttons, then the footer's, by label.
+    pub buttons: Vec<String>,
+    /// Every button lies inside the window (nothing to scroll to on a phone).
+    pub fits: bool,
+}
+
+/// The front end's Vuex store.
+const STORE: &str = "document.querySelector('#app').__vue__.$store";
+
+/// The open prompt dialog (Vuetify's active dialog) as the user sees it.
+const DIALOG_JS: &str = r#"(() => {
+  const d = [...document.querySelectorAll('.v-dialog--active')].pop();
+  if (!d) return null;
+  const t = d.querySelector('.macro_prompt-dialog .subheading, .v-card__title .focus--text');
+  const texts = [...d.querySelectorAll('.v-card__text .col')]
+    .filter(c => !c.querySelector('button'))
+    .map(c => c.innerText.trim()).filter(x => x);
+  const btns = [...d.querySelectorAll('.v-card__text button, .v-card__actions button')];
+  const w = window.innerWidth, h = window.innerHeight;
+  const fits = btns.every(b => { const r = b.getBoundingClientRect();
+    return r.left >= -1 && r.right <= w + 1 && r.top >= -1 && r.bottom <= h + 1; });
+  const boxes = btns.map(b => { const r = b.getBoundingClientRect();
+    return [Math.round(r.left), Math.round(r.top), Math.round(r.right), Math.round(r.bottom)]; });
+  return {title: t ? t.innerText.trim() : '', texts, boxes, size: [w, h],
+          buttons: btns.map(b => b.textContent.trim()), fits};
+})()"#;
+
+/// One front end in the browser: what a user does and sees.
+pub struct Ui<'a> {
+    pub b: &'a mut Browser,
+    pub kind: Kind,
+    shots: PathBuf,
+}
+
+impl<'a> Ui<'a> {
+    /// Opens the front end at desktop size and waits until it shows klipcal's macros and a
+    /// console.
+    pub async fn open(b: &'a mut Browser, fe: &FrontEnd, shots: &str) -> Ui<'a> {
+        b.set_viewport(DESKTOP.0, DESKTOP.1, false).await;
+        b.open(&fe.url).await;
+        let mut ui = Ui {
+            b,
+            kind: fe.kind,
+            shots: artifact("frontends").join(shots),
+        };
+        ui.wait_ready().await;
+        ui
+    }
+
+    async fn wait_ready(&mut self) {
+        let label = self.kind.macro_label("KLIPCAL_STATUS");
+        let ready = format!(
+            "[...document.querySelectorAll('textarea')].some(t => t.offsetParent) && \
+             [...document.querySelectorAll('button')].some(b => b.innerText.trim() === '{label}')"
+        );
+        let ok = self.b.wait_for(&ready, Duration::from_secs(40)).await;
+        if !ok {
+            self.shot("not-ready").await;
+        }
+        assert!(
+            ok,
+            "{} never showed its console and klipcal's macros",
+            self.kind.name()
+        );
+    }
+
+    /// A screenshot of the window, kept as `<shots>/<name>.png`.
+    pub async fn shot(&mut self, name: &str) -> PathBuf {
+        let path = self.shots.join(format!("{name}.png"));
+        // Let transitions (Vuetify's dialog animation) end.
+        tokio::time::sleep(Duration::from_millis(400)).await;
+        self.b.screenshot_window(&path).await;
+        path
+    }
+
+    pub async fn desktop(&mut self) {
+        self.b.set_viewport(DESKTOP.0, DESKTOP.1, false).await;
+    }
+
+    pub async fn phone(&mut self) {
+        self.b.set_viewport(PHONE.0, PHONE.1, true).await;
+    }
+
+    /// Presses a macro's button in the macro panel.
+    pub async fn click_macro(&mut self, name: &str) {
+        let label = self.kind.macro_label(name);
+        let found = self
+            .b
+            .eval(&format!(
+                "(() => {{ const b = [...document.querySelectorAll('button')]
+                    .find(b => b.innerText.trim() === '{label}');
+                  if (!b) return false; b.scrollIntoView({{block: 'center'}}); b.click();
+                  return true; }})()"
+            ))
+            .await;
+        assert_eq!(found, json!(true), "no macro button {label}");
+    }
+
+    /// Types `line` into the console's field and presses Enter.
+    pub async fn type_line(&mut self, line: &str) {
+        let focused = self
+            .b
+            .eval(
+                "(() => { const t = [...document.querySelectorAll('textarea')]
+                    .find(t => t.offsetParent); if (!t) return false;
+                  t.scrollIntoView({block: 'center'}); t.focus(); return true; })()",
+            )
+            .await;
+        assert_eq!(focused, json!(true), "no console field");
+        self.b.type_text(line).await;
+        self.b.press_enter().await;
+        let quoted = serde_json::to_string(line).unwrap();
+        let sent = self
+            .b
+            .wait_for(
+                &format!(
+                    "{}.some(r => r.type === 'command' && r.message.includes({quoted}))",
+                    Self::rows_js(self.kind)
+                ),
+                Duration::from_secs(10),
+            )
+            .await;
+        assert!(sent, "{line}: never shown as sent on the console");
+    }
+
+    fn rows_js(kind: Kind) -> String {
+        match kind {
+            Kind::Mainsail => format!(
+                "{STORE}.getters['server/getConsoleEvents'](false, 100000)\
+                 .filter(e => !String(e.message).startsWith('- Type '))"
+            ),
+            Kind::Fluidd => format!("{STORE}.getters['console/getConsoleEntries']"),
+        }
+    }
+
+    /// The console's rows as the front end lists them (after its filters), oldest first:
+    /// (type, text).
+    pub async fn rows(&mut self) -> Vec<(String, String)> {
+        let v = self
+            .b
+            .eval(&format!(
+                "JSON.stringify({}.map(e => [String(e.type), String(e.message)]))",
+                Self::rows_js(self.kind)
+            ))
+            .await;
+        serde_json::from_str(v.as_str().unwrap_or(""))
+            .unwrap_or_else(|e| panic!("{}: console rows unreadable ({e}): {v}", self.kind.name()))
+    }
+
+    /// Waits until a console row contains `needle`; the row.
+    pub async fn wait_row(&mut self, needle: &str, limit: Duration) -> String {
+        let deadline = tokio::time::Instant::now() + limit;
+        loop {
+            if let Some((_, r)) = self
+                .rows()
+                .await
+                .into_iter()
+                .rev()
+                .find(|(_, m)| m.contains(needle))
+            {
+                return r;
+            }
+            if tokio::time::Instant::now() > deadline {
+                let rows = self.rows().await;
+                let tail: Vec<_> = rows.iter().rev().take(15).collect();
+                self.shot("failed-wait-row").await;
+                panic!(
+                    "{}: no console row with {needle:?}: {tail:#?}",
+                    self.kind.name()
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(250)).await;
+        }
+    }
+
+    /// The prompt dialog shown now, if any.
+    pub async fn dialog(&mut self) -> Option<Shown> {
+        let v = self.b.eval(DIALOG_JS).await;
+        if v.is_null() {
+            return None;
+        }
+        Some(Shown {
+            title: v["title"].as_str().unwrap_or("").to_string(),
+            texts: serde_json::from_value(v["texts"].clone()).unwrap_or_default(),
+            buttons: serde_json::from_value(v["buttons"].clone()).unwrap_or_default(),
+            fits: v["fits"] == json!(true),
+        })
+    }
+
+    /// Waits for a dialog whose title contains `title` (and, once it shows, for its
+    /// animation to end).
+    pub async fn wait_dialog(&mut self, title: &str, limit: Duration) -> Shown {
+        let deadline = tokio::time::Instant::now() + limit;
+        loop {
+            if let Some(d) = self.dialog().await.filter(|d| d.title.contains(title)) {
+                tokio::time::sleep(Duration::from_millis(400)).await;
+                return self.dialog().await.unwrap_or(d);
+            }
+            if tokio::time::Instant::now() > deadline {
+                let now = self.dialog().await;
+                self.shot("failed-wait-dialog").await;
+                panic!(
+                    "{}: no dialog {title:?} within {limit:?}; showing {now:?}",
+                    self.kind.name()
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(300)).await;
+        }
+    }
+
+    /// Waits until no dialog shows.
+    pub async fn wait_no_dialog(&mut self, limit: Duration) {
+        let gone = self
+            .b
+            .wait_for("!document.querySelector('.v-dialog--active')", limit)
+            .await;
+        if !gone {
+            let d = self.dialog().await;
+            panic!("{}: a dialog still shows: {d:?}", self.kind.name());
+        }
+    }
+
+    /// Taps the open dialog's button labelled `label` (where it is drawn).
+    pub async fn press(&mut self, label: &str) {
+        let quoted = serde_json::to_string(label).unwrap();
+        let at = self
+            .b
+            .eval(&format!(
+                "(() => {{ const d = [...document.querySelectorAll('.v-dialog--active')].pop();
+                  if (!d) return null;
+                  const b = [...d.querySelectorAll('button')]
+                    .find(b => b.textContent.trim() === {quoted});
+                  if (!b) return null; b.scrollIntoView({{block: 'center'}});
+                  const r = b.getBoundingClientRect();
+                  return [r.left + r.width / 2, r.top + r.height / 2]; }})()"
+            ))
+            .await;
+        let Some(xy) = at.as_array() else {
+            let d = self.dialog().await;
+            panic!("{}: no button {label:?} in {d:?}", self.kind.name());
+        };
+        self.b
+            .tap(xy[0].as_f64().unwrap(), xy[1].as_f64().unwrap())
+            .await;
+    }
+
+    /// Closes the dialog the way the front end lets one do it without answering: Mainsail's ✕
+    /// in the dialog's title bar, a tap outside the dialog in Fluidd.
+    pub async fn dismiss(&mut self) {
+        let js = match self.kind {
+            Kind::Mainsail => {
+                "(() => { const b = document.querySelector('.v-dialog--active .macro_prompt-dialog header button');
+                   if (!b) return null; const r = b.getBoundingClientRect();
+                   return [r.left + r.width / 2, r.top + r.height / 2]; })()"
+            }
+            Kind::Fluidd => {
+                "(() => { const d = document.querySelector('.v-dialog--active');
+                   if (!d) return null; const r = d.getBoundingClientRect();
+                   const y = r.bottom + 10 < window.innerHeight ? r.bottom + 5 : r.top / 2;
+                   return [3, Math.max(y, 3)]; })()"
+            }
+        };
+        // A tap while Vuetify still moves the dialog (after a resize, on a busy machine) can
+        // miss: tap again while it shows, at most three times.
+        for _ in 0..3 {
+            let at = self.b.eval(js).await;
+            let Some(xy) = at.as_array() else { return };
+            self.b
+                .tap(xy[0].as_f64().unwrap(), xy[1].as_f64().unwrap())
+                .await;
+            let gone = self
+                .b
+                .wait_for(
+                    "!document.querySelector('.v-dialog--active')",
+                    Duration::from_secs(2),
+                )
+                .await;
+            if gone {
+                return;
+            }
+        }
+    }
+
+    /// Shows the same dialog at phone size (asserting it is drawn whole there), screenshots
+    /// both sizes, and returns to desktop size.
+    pub async fn both_sizes(&mut self, name: &str, title: &str) -> Shown {
+        let desk = self.wait_dialog(title, Duration::from_secs(5)).await;
+        self.shot(&format!("{name}-desktop")).await;
+        self.phone().await;
+        let mut phone = self.wait_dialog(title, Duration::from_secs(5)).await;
+        // Vuetify moves the dialog into its place for the new size: give it a moment.
+        for _ in 0..10 {
+            if phone.fits {
+                break;
+            }
+            tokio::time::sleep(Duration::from_millis(300)).await;
+            phone = self.wait_dialog(title, Duration::from_secs(5)).await;
+        }
+        self.shot(&format!("{name}-phone")).await;
+        assert_eq!(
+            (&phone.title, &phone.texts, &phone.buttons),
+            (&desk.title, &desk.texts, &desk.buttons),
+            "{}: the phone shows another dialog",
+            self.kind.name()
+        );
+        if !phone.fits {
+            let boxes = self.b.eval(&format!("JSON.stringify(({DIALOG_JS}))")).await;
+            panic!(
+                "{}: on a phone a button of {title:?} lies outside the window: {boxes}",
+                self.kind.name()
+            );
+        }
+        self.desktop().await;
+        // Back in place before anything is pressed.
+        tokio::time::sleep(Duration::from_millis(700)).await;
+        desk
+    }
+}
+
+/// The number of console rows after `before` (the front end's rows; Fluidd keeps at most
+/// its buffer, so it is counted by content).
+pub fn added(before: &[(String, String)], now: &[(String, String)]) -> Vec<(String, String)> {
+    now[before.len().min(now.len())..].to_vec()
+}
+
+pub async fn session(bench: &Bench) -> Value {
+    extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .map(|v| v["session"].clone())
+        .unwrap_or(Value::Null)
+}
+
+/// A plate far slower than the soak limit allows: the soak question comes at `ab.soak_max_s`.
+const SLOW_PLANT: &str = r#"{"accel": 10, "bed": {"tau_plate_s": 3000.0, "tau_heater_s": 20.0}}"#;
+
+/// One A/B round in a real front end, as a user runs it: the macro button, the soak question
+/// (closed without an answer, brought back, answered), the measuring dialog, readings typed on
+/// the console, Solve and Apply from their dialogs, the next-round question answered with End.
+async fn ab_round(kind: Kind) {
+    let started = std::time::Instant::now();
+    let bench = Bench::start_with("corexy", Some(SLOW_PLANT));
+    let toml = crate::session::settings(600.0).replace("soak_max_s = 600.0", "soak_max_s = 8.0");
+    let d = Daemon::ready(&bench, &toml).await;
+    let fe = FrontEnd::serve(kind, &bench).await;
+    let mut b = Browser::start().await;
+    let mut ui = Ui::open(&mut b, &fe, kind.name()).await;
+    println!("{}: screenshots in {}", kind.name(), ui.shots.display());
+    ui.shot("01-dashboard-desktop").await;
+
+    // Start from the macro panel.
+    ui.click_macro("KLIPCAL_AB_START").await;
+    ui.wait_row("session 1 started", Duration::from_secs(20))
+        .await;
+    let before = ui.rows().await;
+    let soak = ui
+        .wait_dialog("the bed has not settled", Duration::from_secs(150))
+        .await;
+    let rows = added(&before, &ui.rows().await);
+    println!(
+        "{}: rows while soaking and asking: {}",
+        kind.name(),
+        rows.len()
+    );
+    let soak = ui.both_sizes("02-soak-question", &soak.title).await;
+    assert_eq!(
+        soak.buttons,
+        ["Print now", "Wait 10 min", "Cancel session…"],
+        "{soak:?}"
+    );
+    assert!(
+        soak.texts.iter().any(|t| t.contains("Print now:")),
+        "{soak:?}"
+    );
+
+    // A.1: closed without an answer (✕ in Mainsail, a tap outside in Fluidd), the decision is
+    // not lost: the console says what waits and how to answer, and so do KLIPCAL_STATUS and
+    // the page; the bed stays hot and the session waits.
+    ui.dismiss().await;
+    ui.wait_no_dialog(Duration::from_secs(5)).await;
+    let said = ui
+        .wait_row("still waiting for your answer", Duration::from_secs(10))
+        .await;
+    for words in [
+        "KLIPCAL_SOAK_CHOICE CHOICE=print",
+        "CHOICE=wait",
+        "_KLIPCAL_PROMPT_BACK",
+    ] {
+        assert!(said.contains(words), "{said}");
+    }
+    ui.shot("03-soak-question-closed").await;
+    ui.type_line("KLIPCAL_STATUS").await;
+    let status = ui
+        .wait_row("KLIPCAL_SOAK_CHOICE CHOICE=print", Duration::from_secs(10))
+        .await;
+    assert!(status.contains("waiting for your answer"), "{status}");
+    let page: Value = reqwest::get(format!("{}/api/status", d.url.as_ref().unwrap()))
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let progress = page["session"]["progress"].as_str().unwrap_or("");
+    assert!(
+        progress.contains("KLIPCAL_SOAK_CHOICE CHOICE=print"),
+        "the page does not say how to answer: {progress}"
+    );
+    let s = session(&bench).await;
+    assert_eq!(s["state"], "soaking", "{s}");
+    // Brought back by the helper the console names.
+    ui.type_line("_KLIPCAL_PROMPT_BACK").await;
+    let again = ui
+        .wait_dialog("the bed has not settled", Duration::from_secs(10))
+        .await;
+    assert_eq!(again.buttons, soak.buttons);
+
+    // Print now, from the dialog.
+    ui.press("Print now").await;
+    ui.wait_row("chose to print now", Duration::from_secs(15))
+        .await;
+    let before = ui.rows().await;
+    let measure = ui
+        .wait_dialog("measure the pylons", Duration::from_secs(400))
+        .await;
+    let rows = added(&before, &ui.rows().await);
+    println!(
+        "{}: rows from 'printing' to the measuring dialog: {}",
+        kind.name(),
+        rows.len()
+    );
+    let measure = ui.both_sizes("04-measure", &measure.title).await;
+    assert_eq!(measure.buttons, ["Close and type readings"], "{measure:?}");
+    ui.press("Close and type readings").await;
+    ui.wait_no_dialog(Duration::from_secs(5)).await;
+    ui.wait_row("type readings on the console", Duration::from_secs(10))
+        .await;
+
+    // Readings typed on the console.
+    let s = session(&bench).await;
+    for p in s["pairs"].as_array().unwrap() {
+        let vals: Vec<String> = crate::session::simulated_readings(p)
+            .iter()
+            .map(|v| format!("{v:.2}"))
+            .collect();
+        ui.type_line(&format!(
+            "KLIPCAL_MEASURE PAIR={} VALUES={}",
+            p["id"].as_str().unwrap(),
+            vals.join(",")
+        ))
+        .await;
+    }
+    let solve = ui
+        .wait_dialog("all pairs measured", Duration::from_secs(20))
+        .await;
+    let solve = ui.both_sizes("05-solve", &solve.title).await;
+    assert_eq!(solve.buttons, ["Solve", "Close"], "{solve:?}");
+    ui.press("Solve").await;
+    let apply = ui
+        .wait_dialog("new rotation distances", Duration::from_secs(30))
+        .await;
+    let apply = ui.both_sizes("06-apply", &apply.title).await;
+    assert_eq!(apply.buttons, ["Apply", "Close"], "{apply:?}");
+    assert!(
+        apply.texts.iter().any(|t| t.contains("stepper_x")),
+        "{apply:?}"
+    );
+    ui.press("Apply").await;
+    ui.wait_row("applied", Duration::from_secs(90)).await;
+    let next = ui.wait_dialog("round 2?", Duration::from_secs(30)).await;
+    let next = ui.both_sizes("07-next-round", &next.title).await;
+    assert_eq!(next.buttons, ["Print round 2", "End"], "{next:?}");
+    let s = session(&bench).await;
+    assert_eq!(s["state"], "applied", "{s}");
+    // End asks first; Back returns; End + Yes ends the session.
+    ui.press("End").await;
+    ui.wait_dialog("end the session?", Duration::from_secs(10))
+        .await;
+    ui.press("Back").await;
+    ui.wait_dialog("round 2?", Duration::from_secs(10)).await;
+    ui.press("End").await;
+    ui.wait_dialog("end the session?", Duration::from_secs(10))
+        .await;
+    ui.press("Yes, end the session").await;
+    ui.wait_row("cancelled", Duration::from_secs(20)).await;
+    ui.wait_no_dialog(Duration::from_secs(10)).await;
+    let ended = poll(Duration::from_secs(20), || async {
+        let s = session(&bench).await;
+        (s["state"] == "cancelled").then_some(s)
+    })
+    .await;
+    assert!(ended.is_some(), "{}", session(&bench).await);
+    ui.shot("08-ended").await;
+
+    // A reload: the console rebuilt from Moonraker's store, no dialog comes back.
+    let live = ui.rows().await.len();
+    ui.b.open(&fe.url).await;
+    ui.wait_ready().await;
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(
+        ui.dialog().await,
+        None,
+        "a dialog came back after the reload"
+    );
+    let reloaded = ui.rows().await;
+    println!(
+        "{}: console rows live {live}, after a reload {}",
+        kind.name(),
+        reloaded.len()
+    );
+    ui.shot("09-reloaded").await;
+    drop(d);
+    println!(
+        "{}: A/B round in the browser took {:.0} s",
+        kind.name(),
+        started.elapsed().as_secs_f64()
+    );
+}
+
+#[tokio::test]
+async fn an_ab_round_in_the_real_mainsail() {
+    ab_round(Kind::Mainsail).await;
+}
+
+#[tokio::test]
+async fn an_ab_round_in_the_real_fluidd() {
+    ab_round(Kind::Fluidd).await;
+}
