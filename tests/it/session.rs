@@ -1067,7 +1067,7 @@ async fn shear_sent_to_klipper_is_saved_as_a_skew_profile_that_cancels_it() {
 }
 
 /// PRINT_START sleeps `seconds` in real time.
-fn print_start_sleeping(seconds: u32) -> impl Fn(&str) -> String {
+pub fn print_start_sleeping(seconds: u32) -> impl Fn(&str) -> String {
     move |text: &str| {
         text.replacen(
             "  G92 E0\n",

@@ -380,8 +380,10 @@ impl Core {
     /// out Moonraker outages of any length: when `steps` ends on Moonraker being unreachable
     /// ([`Core::unreachable`]), the runner waits for it (and for Klipper) to be back, says so on
     /// the console, and runs `steps` again, which re-read the stored state and the printer and
-    /// go on from there (or end the session, saying why). Only a real failure reaches `fail`,
-    /// with its message.
+    /// go on from there (or end the session, saying why). A step that fails while Klipper is not
+    /// ready is run again the same way once Klipper is back (a minute at most), so that the
+    /// session ends with what Klipper lost rather than the refused call. Only a real failure
+    /// reaches `fail`, with its message.
     pub fn spawn_session<S, SF, F, FF>(&self, id: i64, title: &'static str, steps: S, fail: F)
     where
         S: Fn() -> SF + Send + 'static,
@@ -391,17 +393,41 @@ impl Core {
     {
         let core = self.clone();
         self.spawn_runner(async move {
+            let mut klipper_waited = false;
             loop {
+                let ran = std::time::Instant::now();
                 let e = match steps().await {
                     Ok(()) => return,
                     Err(e) => e,
                 };
-                let why = format!("{e:#}");
+                if ran.elapsed() > KLIPPY_BACK_LIMIT {
+                    klipper_waited = false;
+                }
+                if !core.unreachable(&e) && !klipper_waited && !core.klipper_ready().await {
+                    // Klipper went away under a step (FIRMWARE_RESTART, a shutdown, or
+                    // Moonraker back before it reconnected to Klipper: "Method not found"):
+                    // wait for it (a minute at most), then go on from the printer's state —
+                    // which ends the session with the reason when Klipper lost what the step
+                    // needs (a cold bed, no print).
+                    klipper_waited = true;
+                    warn!(session = id, error = %format!("{e:#}"), "Klipper not ready; the session waits for it");
+                    if !core.wait_back().await {
+                        return;
+                    }
+                    continue;
+                }
                 if !core.unreachable(&e) {
+                    // Klipper still away: say so, not only the call it refused.
+                    let why = if core.klipper_ready().await {
+                        format!("{e:#}")
+                    } else {
+                        format!("Klipper stopped answering (a restart or a shutdown): {e:#}")
+                    };
                     warn!(session = id, error = %why, "session failed");
                     fail(why).await;
                     return;
                 }
+                let why = format!("{e:#}");
                 warn!(session = id, error = %why, "Moonraker unreachable; the session waits for it");
                 let since = std::time::Instant::now();
                 if !core.wait_back().await {

@@ -230,11 +230,16 @@ impl BedSoak {
         self.rebound = true;
     }
 
-    /// Sets the bed's target through Klipper.
+    /// Sets the bed's target through Klipper, once Klipper's idle timeout bounds it to
+    /// `bound_s` from now (the phase's limit): the bed is never on, even for a moment, with
+    /// only Klipper's configured timeout to turn it off should klipcal stop.
     ///
     /// # Errors
     /// Moonraker failures.
-    pub async fn heat(core: &Core, target_c: f64) -> anyhow::Result<()> {
+    pub async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
+        if target_c > 0.0 {
+            core.hold_heaters_for(bound_s).await?;
+        }
         core.m()
             .gcode(&gcode_cmd::set_heater_temperature("heater_bed", target_c)?)
             .await?;

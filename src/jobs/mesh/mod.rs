@@ -328,6 +328,10 @@ pub struct Session {
     /// the frame warmed or cooled), not a capture's.
     #[serde(default)]
     pub imported: bool,
+    /// The user switched following on with this session's profiles (KLIPCAL_MESH_FOLLOW
+    /// ENABLE=1) and not off since: a restarted daemon follows again.
+    #[serde(default)]
+    pub following: bool,
 }
 
 /// The profile klipcal's BED_MESH_CALIBRATE stores each capture mesh under: never the
@@ -583,9 +587,29 @@ impl Calibration for Mesh {
 
     fn connected(&self) -> BoxFuture<'_, ()> {
         async move {
-            if self.settings.follow {
-                if let Err(e) = self.follow_cmd(true).await {
-                    warn!(error = %format!("{e:#}"), "mesh.follow is on but following cannot start");
+            // Following switched on by the user goes on after a daemon restart, and says so.
+            let asked = self.model().is_ok_and(|(s, _)| s.following);
+            if self.settings.follow || asked {
+                match self.follow_cmd(true).await {
+                    Ok(r) if asked => {
+                        let msg = r["message"].as_str().unwrap_or("");
+                        self.core
+                            .console(&format!("klipcal started again; {msg}"))
+                            .await;
+                    }
+                    Ok(_) => {}
+                    Err(e) => {
+                        let e = format!("{e:#}");
+                        warn!(error = %e, "following was on but cannot start again");
+                        if asked {
+                            self.core
+                                .console_error(&format!(
+                                    "{TITLE}: following was on before klipcal restarted but \
+                                     cannot start again: {e}"
+                                ))
+                                .await;
+                        }
+                    }
                 }
             }
         }
