@@ -144,6 +144,7 @@ impl Mesh {
             notes,
             user_mesh: None,
             imported: true,
+            following: false,
         };
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);

@@ -281,6 +281,7 @@ mod tests {
             notes: Vec::new(),
             user_mesh: None,
             imported: false,
+            following: false,
         }
     }
 

@@ -54,11 +54,21 @@ impl Core {
     /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
     pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
         let mut waited = false;
+        let mut klipper_waited = false;
         loop {
             match self.heaters_off().await {
                 Ok(()) => break,
                 Err(e) if self.unreachable(&e) => {
                     waited = true;
+                    if !self.wait_back().await {
+                        return Err(e);
+                    }
+                }
+                // Klipper restarting (or shut down until the user restarts it): its heaters
+                // are off, and neither the command nor the console reaches it; wait for it
+                // once (a minute at most), so that the user hears what happened.
+                Err(e) if !klipper_waited && !self.klipper_ready().await => {
+                    klipper_waited = true;
                     if !self.wait_back().await {
                         return Err(e);
                     }
