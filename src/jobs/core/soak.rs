@@ -280,14 +280,7 @@ impl BedSoak {
             }
             return Ok(SoakUpdate::TooLong {
                 minutes: t_s / 60.0,
-                falling_pct_per_10min: self.detector.fit().filter(|f| f.tau_s > 0.0).map(|f| {
-                    let rate = f.remaining / f.tau_s * 600.0 * 100.0;
-                    if f.rising {
-                        -rate
-                    } else {
-                        rate
-                    }
-                }),
+                falling_pct_per_10min: self.detector.fit().and_then(|f| f.rate_pct_per_10min()),
             });
         }
         let st = core
