@@ -128,6 +128,8 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
 pub struct StatusAnswer {
     /// klipcal's name and version.
     pub daemon: DaemonInfo,
+    /// Where klipcal's page is, or why it is off; `None` without sessions or page.
+    pub page: Option<PageInfo>,
     /// Moonraker's connection.
     pub connection: Connection,
     /// The printer's summary; `None` while Moonraker is unreachable or it cannot be read.
@@ -135,6 +137,17 @@ pub struct StatusAnswer {
     /// The sessions: the active (or newest) one and each kind's last.
     #[serde(flatten)]
     pub sessions: SessionsStatus,
+}
+
+/// Where klipcal's page is (`{"address"}`), or why it is off (`{"off"}`).
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct PageInfo {
+    /// The page's address.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub address: Option<String>,
+    /// Why the page is off.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub off: Option<String>,
 }
 
 /// klipcal's name and version.
@@ -222,11 +235,26 @@ async fn status_answer(
         Some(c) => c.status().map_err(|e| rpc_error(&e))?,
         None => SessionsStatus::default(),
     };
+    // Where klipcal's page is, or why it is off (its port taken: said here, not only in the log).
+    let page = cals
+        .map(Calibrations::core)
+        .and_then(|core| match (core.page(), core.page_off()) {
+            (Some(address), _) => Some(PageInfo {
+                address: Some(address.to_string()),
+                off: None,
+            }),
+            (None, Some(why)) => Some(PageInfo {
+                address: None,
+                off: Some(why.to_string()),
+            }),
+            _ => None,
+        });
     Ok(StatusAnswer {
         daemon: DaemonInfo {
             name: "klipcal",
             version: env!("CARGO_PKG_VERSION"),
         },
+        page,
         connection,
         printer: summary,
         sessions,
@@ -253,6 +281,11 @@ fn console_text(method: &str, v: &Value) -> String {
                         s["rotation_distance_mm"]
                     ));
                 }
+            }
+            if let Some(why) = v["page"]["off"].as_str() {
+                t.push_str(&format!("\nklipcal's page is off: {why}"));
+            } else if let Some(address) = v["page"]["address"].as_str() {
+                t.push_str(&format!("\npage: {address}"));
             }
             if let Some(sess) = v.get("session").filter(|s| !s.is_null()) {
                 let state = sess["state"].as_str().unwrap_or("?");
@@ -291,6 +324,19 @@ mod tests {
         let t = console_text("klipcal_status", &v);
         assert!(t.contains("Klipper ready"), "{t}");
         assert!(t.contains("stepper_x rotation_distance 40.0"), "{t}");
+    }
+
+    #[test]
+    fn the_status_says_where_the_page_is_or_why_it_is_off() {
+        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {},
+            "page": {"off": "another program listens on 0.0.0.0:7150"}});
+        let t = console_text("klipcal_status", &v);
+        assert!(
+            t.contains("klipcal's page is off: another program listens on 0.0.0.0:7150"),
+            "{t}"
+        );
+        let v = json!({"daemon": {}, "printer": {}, "page": {"address": "http://10.0.0.5:7150/"}});
+        assert!(console_text("klipcal_status", &v).contains("page: http://10.0.0.5:7150/"));
     }
 
     #[test]

@@ -699,7 +699,7 @@ mod tests {
     /// A status of each kind, built from the typed structs the agent serializes, with every
     /// nested part filled in.
     fn typed_status_keys() -> std::collections::BTreeSet<String> {
-        use crate::agent::{Connection, DaemonInfo, StatusAnswer};
+        use crate::agent::{Connection, DaemonInfo, PageInfo, StatusAnswer};
         use crate::jobs::ab::{AbRoundStatus, AbStatus};
         use crate::jobs::backlash::BacklashStatus;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
@@ -779,6 +779,10 @@ mod tests {
             SessionStatus::new("backlash", head.clone(), &backlash).unwrap(),
         );
         let answer = StatusAnswer {
+            page: Some(PageInfo {
+                address: Some(String::new()),
+                off: Some(String::new()),
+            }),
             daemon: DaemonInfo {
                 name: "klipcal",
                 version: "0",

@@ -11,6 +11,7 @@ mod browser;
 mod cli;
 mod daemon;
 mod fake;
+mod faults;
 mod frontends;
 mod http;
 mod install;

@@ -363,7 +363,7 @@ async fn vgb_profiles_in_the_config_are_imported_fitted_and_written_as_klipcal_p
 
 /// VGB's `COLD25.0` and `HOT35.0` profiles for the bench's printer.cfg (the centre and every
 /// point sag 40 µm per 10 °C from the bench's `default` profile), as SAVE_CONFIG lines.
-fn vgb_block(bench: &Bench) -> String {
+pub fn vgb_block(bench: &Bench) -> String {
     use klipcal::klipper::bed_mesh::{format_profile, profiles, MeshProfile};
     let path = bench.dir.path().join("config/printer.cfg");
     let cfg = klipcal::klipper::Config::load(&klipcal::fsio::FsFiles, &path).unwrap();

@@ -339,6 +339,10 @@ pub struct Round {
     /// the SVG when no PNG could be made.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub picture: Option<String>,
+    /// Unix time klipcal started this round's print: a session resumed after an outage or a
+    /// restart follows that print, or says what became of it, and never starts it again.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub print_started_unix: Option<f64>,
 }
 
 /// The whole session document, stored as JSON: the envelope around [`AbBody`].

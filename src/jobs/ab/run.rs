@@ -13,11 +13,7 @@ impl Ab {
         let hold_min = s.options.hold_max_s / 60.0;
         let mut said = String::new();
         if bed > 0.0 {
-            let heated = async {
-                BedSoak::heat(&self.core, bed).await?;
-                self.core.hold_heaters_for(s.options.hold_max_s).await
-            }
-            .await;
+            let heated = BedSoak::heat(&self.core, bed, s.options.hold_max_s).await;
             match heated {
                 Ok(()) => {
                     let _ = self
@@ -177,7 +173,12 @@ impl Ab {
             match s.state {
                 State::Preflight => self.preflight(s).await?,
                 State::Uploaded => {
-                    BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                    BedSoak::heat(
+                        &self.core,
+                        s.options.bed_temp_c,
+                        s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
+                    )
+                    .await?;
                     self.set_state(id, State::Heating, "bed heating").await?;
                 }
                 State::Heating | State::Soaking => self.soak(s).await?,
@@ -309,6 +310,7 @@ impl Ab {
             applied: None,
             diagram: None,
             picture: None,
+            print_started_unix: None,
         };
         self.core
             .files()
@@ -360,12 +362,38 @@ impl Ab {
         let ps = &st["print_stats"];
         let ours = ps["filename"].as_str() == Some(round.file.as_str());
         let state = ps["state"].as_str().unwrap_or("");
-        if !(ours && matches!(state, "printing" | "paused" | "complete")) {
+        // Once started, the print is followed to its end, whatever became of it while klipcal
+        // could not watch (Moonraker down, the daemon restarted): it is never started again.
+        let started = round.print_started_unix.is_some();
+        let follow = ours
+            && (matches!(state, "printing" | "paused" | "complete")
+                || (started && matches!(state, "cancelled" | "error")));
+        if !follow && started {
+            return Err(anyhow!(
+                "the calibration print {} stopped while klipcal could not follow it: Klipper \
+                 shows {} (it restarted or shut down meanwhile, or another print ran); start \
+                 the round again with KLIPCAL_AB_START",
+                round.file,
+                match ps["filename"].as_str() {
+                    Some(f) if !f.is_empty() => format!("{state} {f}"),
+                    _ => format!("{state}, no print"),
+                }
+            ));
+        }
+        if !follow {
             self.core.printer_idle().await?;
             // Klipper keeps the heaters on while it prints; once the print ends, it turns them
             // off by itself after the hold limit if klipcal is not there to do it.
             self.core.hold_heaters_for(s.options.hold_max_s).await?;
             self.core.m().print_start(&round.file).await?;
+            let now = now_unix();
+            self.update(id, |s| {
+                if let Some(r) = s.rounds.last_mut() {
+                    r.print_started_unix = Some(now);
+                }
+                Ok(())
+            })
+            .await?;
             self.core
                 .console(&format!("A/B calibration: printing {}", round.file))
                 .await;
@@ -381,9 +409,15 @@ impl Ab {
             {
                 Ok(st) => st,
                 Err(e) => {
-                    // Klipper restarting or Moonraker away: keep watching; a shutdown shows up
-                    // as print_stats error once Klipper is back.
-                    warn!(error = %e, "print status unavailable");
+                    let e = anyhow::Error::new(e);
+                    // Moonraker away: the runner waits for it, says so, and follows the print
+                    // again from what Klipper shows then (above).
+                    if self.core.unreachable(&e) {
+                        return Err(e);
+                    }
+                    // Klipper restarting: keep watching; a shutdown shows up as print_stats
+                    // error once Klipper is back.
+                    warn!(error = %format!("{e:#}"), "print status unavailable");
                     continue;
                 }
             };
@@ -393,7 +427,12 @@ impl Ab {
                     self.update(id, |s| {
                         s.state = State::Holding;
                         s.print_done_unix = Some(now_unix());
-                        s.progress = "print done; the part cools on the hot bed".into();
+                        s.progress = if s.options.bed_temp_c > 0.0 {
+                            "print done; the part cools on the hot bed"
+                        } else {
+                            "print done; the part cools on the bed"
+                        }
+                        .into();
                         Ok(())
                     })
                     .await?;
@@ -493,7 +532,14 @@ impl Ab {
             }
         };
         self.spawn_runner(id);
-        Ok(json!({"session": id, "state": "preflight",
-                  "message": format!("{TITLE} session {id} started: checking the printer")}))
+        // The next round of a session is that round, not a new session (issue 26 B.7).
+        let message = match next_round {
+            Some(_) => {
+                let n = self.load(id).map_or(0, |s| s.rounds.len()) + 1;
+                format!("{TITLE} session {id}, round {n} started: checking the printer")
+            }
+            None => format!("{TITLE} session {id} started: checking the printer"),
+        };
+        Ok(json!({"session": id, "state": "preflight", "message": message}))
     }
 }

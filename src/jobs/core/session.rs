@@ -76,6 +76,8 @@ struct Inner {
     tasks: tokio_util::task::TaskTracker,
     /// klipcal's page as a user opens it (set once the page is listening).
     page: std::sync::OnceLock<String>,
+    /// Why the page is off when it could not start (its port taken, …).
+    page_off: std::sync::OnceLock<String>,
 }
 
 impl Core {
@@ -94,6 +96,7 @@ impl Core {
                 open: std::sync::Mutex::new(Open::default()),
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
+                page_off: std::sync::OnceLock::new(),
             }),
         }
     }
@@ -182,6 +185,17 @@ impl Core {
     /// Notes where klipcal's page is (`http://192.168.1.23:7150/`), for the console's answers.
     pub fn set_page(&self, address: String) {
         let _ = self.inner.page.set(address);
+    }
+
+    /// Notes why the page is off (it could not listen), for KLIPCAL_STATUS.
+    pub fn set_page_off(&self, why: String) {
+        let _ = self.inner.page_off.set(why);
+    }
+
+    /// Why the page is off, when it could not start.
+    #[must_use]
+    pub fn page_off(&self) -> Option<&str> {
+        self.inner.page_off.get().map(String::as_str)
     }
 
     /// "on klipcal's page, http://…" for the console, or `None` when the page is off.
@@ -366,8 +380,10 @@ impl Core {
     /// out Moonraker outages of any length: when `steps` ends on Moonraker being unreachable
     /// ([`Core::unreachable`]), the runner waits for it (and for Klipper) to be back, says so on
     /// the console, and runs `steps` again, which re-read the stored state and the printer and
-    /// go on from there (or end the session, saying why). Only a real failure reaches `fail`,
-    /// with its message.
+    /// go on from there (or end the session, saying why). A step that fails while Klipper is not
+    /// ready is run again the same way once Klipper is back (a minute at most), so that the
+    /// session ends with what Klipper lost rather than the refused call. Only a real failure
+    /// reaches `fail`, with its message.
     pub fn spawn_session<S, SF, F, FF>(&self, id: i64, title: &'static str, steps: S, fail: F)
     where
         S: Fn() -> SF + Send + 'static,
@@ -377,17 +393,41 @@ impl Core {
     {
         let core = self.clone();
         self.spawn_runner(async move {
+            let mut klipper_waited = false;
             loop {
+                let ran = std::time::Instant::now();
                 let e = match steps().await {
                     Ok(()) => return,
                     Err(e) => e,
                 };
-                let why = format!("{e:#}");
+                if ran.elapsed() > KLIPPY_BACK_LIMIT {
+                    klipper_waited = false;
+                }
+                if !core.unreachable(&e) && !klipper_waited && !core.klipper_ready().await {
+                    // Klipper went away under a step (FIRMWARE_RESTART, a shutdown, or
+                    // Moonraker back before it reconnected to Klipper: "Method not found"):
+                    // wait for it (a minute at most), then go on from the printer's state —
+                    // which ends the session with the reason when Klipper lost what the step
+                    // needs (a cold bed, no print).
+                    klipper_waited = true;
+                    warn!(session = id, error = %format!("{e:#}"), "Klipper not ready; the session waits for it");
+                    if !core.wait_back().await {
+                        return;
+                    }
+                    continue;
+                }
                 if !core.unreachable(&e) {
+                    // Klipper still away: say so, not only the call it refused.
+                    let why = if core.klipper_ready().await {
+                        format!("{e:#}")
+                    } else {
+                        format!("Klipper stopped answering (a restart or a shutdown): {e:#}")
+                    };
                     warn!(session = id, error = %why, "session failed");
                     fail(why).await;
                     return;
                 }
+                let why = format!("{e:#}");
                 warn!(session = id, error = %why, "Moonraker unreachable; the session waits for it");
                 let since = std::time::Instant::now();
                 if !core.wait_back().await {

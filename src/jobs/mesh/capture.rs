@@ -36,6 +36,7 @@ impl Mesh {
                 result: None,
                 user_mesh: Some(user_mesh),
                 imported: false,
+                following: false,
             },
         );
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
@@ -119,7 +120,12 @@ impl Mesh {
             match s.state {
                 State::Preflight => {
                     if s.options.bed_temp_c > 0.0 {
-                        BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+                        BedSoak::heat(
+                            &self.core,
+                            s.options.bed_temp_c,
+                            s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
+                        )
+                        .await?;
                     }
                     self.set_state(id, State::Soaking, "heating the bed")
                         .await?;
@@ -134,8 +140,9 @@ impl Mesh {
 
     pub(super) async fn soak_bed(&self, s: &Session) -> anyhow::Result<()> {
         if s.options.bed_temp_c > 0.0 {
-            // After a restart the bed may be cold again: heat (again) before watching.
-            BedSoak::heat(&self.core, s.options.bed_temp_c).await?;
+            // The bed was heated before this state was stored; if its target is no longer
+            // the capture's (Klipper restarted, an emergency stop), the soak ends saying so
+            // rather than heating it again behind the user's back.
             let mut soak = BedSoak::new(
                 self.soak.clone(),
                 s.options.bed_temp_c,
@@ -342,6 +349,7 @@ impl Mesh {
                 self.set_state(id, State::Writing, &msg).await?;
                 return Ok(());
             }
+            self.bed_still_ours(&s).await?;
             let last = s.captures.last().ok_or_else(|| anyhow!("no mesh"))?;
             let last_t = last.temps_c.iter().sum::<f64>() / last.temps_c.len().max(1) as f64;
             let now_t = self.frame_temp(&o.frame_sensor).await?;
@@ -350,6 +358,30 @@ impl Mesh {
             } else {
                 tokio::time::sleep(Duration::from_secs(1)).await;
             }
+        }
+    }
+
+    /// Fails when the bed's target is no longer the capture's (Klipper restarted, or the
+    /// heaters were turned off): meshes of a cooling bed must not join the heating ones, and
+    /// klipcal does not heat again behind the user's back.
+    async fn bed_still_ours(&self, s: &Session) -> anyhow::Result<()> {
+        if s.options.bed_temp_c <= 0.0 {
+            return Ok(());
+        }
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"heater_bed": ["target"]}))
+            .await?;
+        match st["heater_bed"]["target"].as_f64() {
+            Some(now_c) if (now_c - s.options.bed_temp_c).abs() > 0.5 => Err(anyhow!(
+                "the bed's target is now {now_c:.0} °C instead of the capture's {:.0} °C \
+                 (Klipper restarted, or the heaters were turned off by its idle timeout or by \
+                 hand); the {} meshes stored are kept",
+                s.options.bed_temp_c,
+                s.captures.len()
+            )),
+            _ => Ok(()),
         }
     }
 
@@ -390,8 +422,8 @@ impl Mesh {
         let (lo, hi) = result.range_c;
         let cooling_words = match &result.cooling {
             Some(c) => format!(
-                " and {} klipcal_cool_* for cooling over {:.2}–{:.2} °C (model {})",
-                c.profiles_c.len(),
+                " and {} for cooling over {:.2}–{:.2} °C (model {})",
+                super::profiles_words(crate::calib::mesh::Phase::Cooling, &c.profiles_c),
                 c.range_c.0,
                 c.range_c.1,
                 c.model
@@ -409,10 +441,10 @@ impl Mesh {
             )
         };
         let msg = format!(
-            "{TITLE}: {} profiles klipcal_* written for {lo:.2}–{hi:.2} °C (model {}, worst \
-             step {:.1} µm){cooling_words}; {}{replaced_words}; KLIPCAL_MESH_FOLLOW ENABLE=1 \
-             follows the frame",
-            result.profiles_c.len(),
+            "{TITLE}: {} written for {lo:.2}–{hi:.2} °C (model {}, worst step {:.1} \
+             µm){cooling_words}; {}{replaced_words}; KLIPCAL_MESH_FOLLOW ENABLE=1 follows the \
+             frame",
+            super::profiles_words(crate::calib::mesh::Phase::Heating, &result.profiles_c),
             result.model,
             result.max_quantisation_um,
             result.directions

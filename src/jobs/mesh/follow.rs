@@ -45,6 +45,15 @@ impl Mesh {
     pub(super) async fn follow_cmd(&self, enable: bool) -> anyhow::Result<Value> {
         if !enable {
             self.stop_following("KLIPCAL_MESH_FOLLOW ENABLE=0").await;
+            if let Ok((s, _)) = self.model() {
+                if s.following {
+                    self.update(s.id, |d| {
+                        d.following = false;
+                        Ok(())
+                    })
+                    .await?;
+                }
+            }
             return Ok(json!({"following": false, "message": "thermal mesh following is off"}));
         }
         let (s, sel) = self.model()?;
@@ -118,6 +127,13 @@ impl Mesh {
             me.follow_loop(token, sensor, policy, heating, cooling)
                 .await;
         });
+        if !s.following {
+            self.update(s.id, |d| {
+                d.following = true;
+                Ok(())
+            })
+            .await?;
+        }
         let msg = format!(
             "{TITLE}: following the frame temperature with the profiles of session {}{directions}{offset_note}",
             s.id

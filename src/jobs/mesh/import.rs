@@ -142,6 +142,7 @@ impl Mesh {
                 result: None,
                 user_mesh: None,
                 imported: true,
+                following: false,
             },
         );
         doc.notes = notes;

@@ -327,6 +327,10 @@ pub struct MeshBody {
     /// the frame warmed or cooled), not a capture's.
     #[serde(default)]
     pub imported: bool,
+    /// The user switched following on with this session's profiles (KLIPCAL_MESH_FOLLOW
+    /// ENABLE=1) and not off since: a restarted daemon follows again.
+    #[serde(default)]
+    pub following: bool,
 }
 
 /// The profile klipcal's BED_MESH_CALIBRATE stores each capture mesh under: never the
@@ -487,6 +491,23 @@ pub fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
     }
 }
 
+/// The profiles written, by name ("2 profiles (klipcal_25.00, klipcal_31.40)"; the first and
+/// the last of many), instead of a pattern a console may show garbled ("klipcal_*").
+#[must_use]
+pub(crate) fn profiles_words(phase: Phase, temps_c: &[f64]) -> String {
+    let names: Vec<String> = temps_c
+        .iter()
+        .map(|t| direction_profile_name(phase, *t))
+        .collect();
+    let list = match names.as_slice() {
+        [] => return "no profiles".into(),
+        [one] => return format!("1 profile ({one})"),
+        few if few.len() <= 4 => few.join(", "),
+        [first, .., last] => format!("{first} … {last}"),
+    };
+    format!("{} profiles ({list})", names.len())
+}
+
 impl Calibration for Mesh {
     fn kind(&self) -> &'static str {
         KIND
@@ -571,12 +592,55 @@ impl Calibration for Mesh {
 
     fn connected(&self) -> BoxFuture<'_, ()> {
         async move {
-            if self.settings.follow {
-                if let Err(e) = self.follow_cmd(true).await {
-                    warn!(error = %format!("{e:#}"), "mesh.follow is on but following cannot start");
+            // Following switched on by the user goes on after a daemon restart, and says so.
+            let asked = self.model().is_ok_and(|(s, _)| s.following);
+            if self.settings.follow || asked {
+                match self.follow_cmd(true).await {
+                    Ok(r) if asked => {
+                        let msg = r["message"].as_str().unwrap_or("");
+                        self.core
+                            .console(&format!("klipcal started again; {msg}"))
+                            .await;
+                    }
+                    Ok(_) => {}
+                    Err(e) => {
+                        let e = format!("{e:#}");
+                        warn!(error = %e, "following was on but cannot start again");
+                        if asked {
+                            self.core
+                                .console_error(&format!(
+                                    "{TITLE}: following was on before klipcal restarted but \
+                                     cannot start again: {e}"
+                                ))
+                                .await;
+                        }
+                    }
                 }
             }
         }
         .boxed()
+    }
+}
+
+#[cfg(test)]
+mod words_tests {
+    use super::{profiles_words, Phase};
+
+    #[test]
+    fn the_profiles_written_are_named_not_patterned() {
+        assert_eq!(
+            profiles_words(Phase::Heating, &[25.0, 31.4]),
+            "2 profiles (klipcal_25.00, klipcal_31.40)"
+        );
+        assert_eq!(
+            profiles_words(Phase::Cooling, &[30.0]),
+            "1 profile (klipcal_cool_30.00)"
+        );
+        let many: Vec<f64> = (0..12).map(|k| 25.0 + f64::from(k)).collect();
+        assert_eq!(
+            profiles_words(Phase::Heating, &many),
+            "12 profiles (klipcal_25.00 … klipcal_36.00)"
+        );
+        assert!(!profiles_words(Phase::Heating, &many).contains('*'));
     }
 }

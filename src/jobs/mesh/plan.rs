@@ -279,6 +279,7 @@ mod tests {
                 result: None,
                 user_mesh: None,
                 imported: false,
+                following: false,
             },
         );
         s.id = 1;

@@ -54,11 +54,21 @@ impl Core {
     /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
     pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
         let mut waited = false;
+        let mut klipper_waited = false;
         loop {
             match self.heaters_off().await {
                 Ok(()) => break,
                 Err(e) if self.unreachable(&e) => {
                     waited = true;
+                    if !self.wait_back().await {
+                        return Err(e);
+                    }
+                }
+                // Klipper restarting (or shut down until the user restarts it): its heaters
+                // are off, and neither the command nor the console reaches it; wait for it
+                // once (a minute at most), so that the user hears what happened.
+                Err(e) if !klipper_waited && !self.klipper_ready().await => {
+                    klipper_waited = true;
                     if !self.wait_back().await {
                         return Err(e);
                     }
@@ -268,9 +278,33 @@ impl Core {
                 // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
                 _ => continue,
             };
+            // klipcal's helpers (_KLIPCAL_PROMPT_BACK, _KLIPCAL_PROMPT_CLOSE) close in Klipper
+            // and say "asking the klipcal service..." on the next line; a front end's ✕ or
+            // tap outside says nothing after its close. (The dialog change their call makes
+            // can reach klipcal before this close does, so the line decides, not the order.)
+            let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(1500);
+            let mut helper = false;
+            loop {
+                let ev = tokio::select! {
+                    () = self.inner.shutdown.cancelled() => return,
+                    () = tokio::time::sleep_until(deadline) => break,
+                    ev = rx.recv() => ev,
+                };
+                match ev {
+                    Ok(crate::moonraker::Event::GcodeResponse(l)) => {
+                        helper = l.contains("asking the klipcal service");
+                        break;
+                    }
+                    Err(RecvError::Closed) => return,
+                    _ => {}
+                }
+            }
+            if helper {
+                continue;
+            }
             tokio::select! {
                 () = self.inner.shutdown.cancelled() => return,
-                () = tokio::time::sleep(std::time::Duration::from_millis(1500)) => {}
+                () = tokio::time::sleep_until(deadline) => {}
             }
             let closed = {
                 let open = self.open();
