@@ -25,7 +25,10 @@ async fn wait_measured(files: &klipcal::moonraker::Files, d: &Daemon) -> Value {
             .await
             .ok()?;
         let s = st["session"].clone();
-        (s["kind"] == "backlash" && s["state"] != "measuring").then_some(s)
+        // A measurement ends measured or failed; a cancelled session is an earlier one still
+        // shown until the camera's session starts (the macro's call is answered after it).
+        (s["kind"] == "backlash" && s["state"] != "measuring" && s["state"] != "cancelled")
+            .then_some(s)
     })
     .await;
     done.unwrap_or_else(|| panic!("the camera measurement did not end\n{}", d.log_text()))
