@@ -154,8 +154,18 @@ async fn status(m: &Moonraker, cals: Option<&Calibrations>) -> Result<Value, Rpc
         Some(c) => c.status().map_err(|e| rpc_error(&e))?,
         None => json!({"session": null, "last": {}}),
     };
+    // Where klipcal's page is, or why it is off (its port taken: said here, not only in the log).
+    let page = match cals.map(Calibrations::core) {
+        Some(core) => match (core.page(), core.page_off()) {
+            (Some(address), _) => json!({"address": address}),
+            (None, Some(why)) => json!({"off": why}),
+            _ => Value::Null,
+        },
+        None => Value::Null,
+    };
     Ok(json!({
         "daemon": {"name": "klipcal", "version": env!("CARGO_PKG_VERSION")},
+        "page": page,
         "connection": connection,
         "printer": summary,
         "session": sessions["session"],
@@ -183,6 +193,11 @@ fn console_text(method: &str, v: &Value) -> String {
                         s["rotation_distance_mm"]
                     ));
                 }
+            }
+            if let Some(why) = v["page"]["off"].as_str() {
+                t.push_str(&format!("\nklipcal's page is off: {why}"));
+            } else if let Some(address) = v["page"]["address"].as_str() {
+                t.push_str(&format!("\npage: {address}"));
             }
             if let Some(sess) = v.get("session").filter(|s| !s.is_null()) {
                 let state = sess["state"].as_str().unwrap_or("?");
@@ -221,6 +236,19 @@ mod tests {
         let t = console_text("klipcal_status", &v);
         assert!(t.contains("Klipper ready"), "{t}");
         assert!(t.contains("stepper_x rotation_distance 40.0"), "{t}");
+    }
+
+    #[test]
+    fn the_status_says_where_the_page_is_or_why_it_is_off() {
+        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {},
+            "page": {"off": "another program listens on 0.0.0.0:7150"}});
+        let t = console_text("klipcal_status", &v);
+        assert!(
+            t.contains("klipcal's page is off: another program listens on 0.0.0.0:7150"),
+            "{t}"
+        );
+        let v = json!({"daemon": {}, "printer": {}, "page": {"address": "http://10.0.0.5:7150/"}});
+        assert!(console_text("klipcal_status", &v).contains("page: http://10.0.0.5:7150/"));
     }
 
     #[test]

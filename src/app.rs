@@ -231,7 +231,31 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
                     c.core().set_page(crate::http::page_address_here(addr));
                 }
             }
-            Err(e) => tracing::error!("the page and API are off: {e:#}"),
+            Err(e) => {
+                let why = crate::http::page_off_words(&config.http.bind, &e);
+                tracing::error!("klipcal's page and API are off: {why}");
+                // Said where a user looks, not only in the log: at start on stderr (the
+                // service's journal), on the console once Moonraker is there, and in
+                // KLIPCAL_STATUS.
+                eprintln!("klipcal: its page and API are off: {why}");
+                if let Some(c) = &cals {
+                    c.core().set_page_off(why.clone());
+                    let (m2, core, stop) = (m.clone(), c.core().clone(), cancel.clone());
+                    c.core().spawn(async move {
+                        tokio::select! {
+                            () = stop.cancelled() => {}
+                            r = m2.wait_connected(Duration::from_secs(86_400)) => {
+                                if r.is_ok() {
+                                    core.console_error(&format!(
+                                        "klipcal's page is off: {why}"
+                                    ))
+                                    .await;
+                                }
+                            }
+                        }
+                    });
+                }
+            }
         }
     }
     let agent = tokio::spawn(crate::agent::serve(m.clone(), cals.clone(), calls));

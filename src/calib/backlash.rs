@@ -171,7 +171,7 @@ pub fn smooth_time_for(
 pub struct AxisResult {
     /// Median backlash of the inlier cycles, clamped at 0, mm.
     pub backlash_mm: f64,
-    /// Largest minus smallest cycle backlash (all cycles), mm.
+    /// Largest minus smallest backlash of the cycles kept (outliers named apart), mm.
     pub spread_mm: f64,
     /// Standard uncertainty of `backlash_mm`, mm.
     pub uncertainty_mm: f64,
@@ -316,8 +316,15 @@ pub fn analyse(
         )));
     }
     let backlash = med.max(0.0);
-    let spread = d.iter().copied().fold(f64::NEG_INFINITY, f64::max)
-        - d.iter().copied().fold(f64::INFINITY, f64::min);
+    // The cycles kept: an outlier is named on its own, not hidden in the spread (issue 27).
+    let kept: Vec<f64> = d
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !outliers.contains(&(i + 1)))
+        .map(|(_, x)| *x)
+        .collect();
+    let spread = kept.iter().copied().fold(f64::NEG_INFINITY, f64::max)
+        - kept.iter().copied().fold(f64::INFINITY, f64::min);
     let verdict = if backlash <= params.none_needed_max_mm {
         Verdict::NotNeeded
     } else if backlash >= params.needed_from_mm {
@@ -629,7 +636,8 @@ mod tests {
         .unwrap();
         assert_eq!(r.outliers, vec![4]);
         assert!((r.backlash_mm - 0.05).abs() < 1e-12);
-        assert!((r.spread_mm - 0.101).abs() < 1e-12);
+        // The spread is the kept cycles' (0.049–0.051), not one that includes the outlier.
+        assert!((r.spread_mm - 0.002).abs() < 1e-12, "{}", r.spread_mm);
         assert_eq!(r.cycles, 5);
     }
 

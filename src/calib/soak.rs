@@ -634,6 +634,24 @@ pub struct DecayFit {
     pub surface_95_c: f64,
 }
 
+impl DecayFit {
+    /// How fast the power moves now, % of full power per 10 min (negative: it rises), as a
+    /// person is told it: only when the fit is physically plausible — a finite τ, a final
+    /// power within 0..1, at most all of full power still to move, and a rate of at most
+    /// 100 % per 10 min. Otherwise `None` ("has not settled"): a fit that extrapolates far past
+    /// its data once told a user "886742.1 % per 10 min".
+    #[must_use]
+    pub fn rate_pct_per_10min(&self) -> Option<f64> {
+        let plausible = self.tau_s.is_finite()
+            && self.tau_s > 0.0
+            && self.remaining.is_finite()
+            && (0.0..=1.0).contains(&self.remaining)
+            && (0.0..=1.0).contains(&self.final_power);
+        let rate = self.remaining / self.tau_s * 600.0 * 100.0;
+        (plausible && rate <= 100.0).then_some(if self.rising { -rate } else { rate })
+    }
+}
+
 /// Likelihood-ratio threshold of the test in standard errors: a remaining fall of
 /// `max_remaining` is ruled out once it costs the fit more than Z² σ².
 pub(crate) const Z: f64 = 3.0;
@@ -1734,6 +1752,60 @@ fn nnls(
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_power_rate_told_is_plausible_or_not_told() {
+        let base = DecayFit {
+            tau_s: 1200.0,
+            final_power: 0.3,
+            remaining: 0.02,
+            remaining_upper: 0.03,
+            amplitude: 0.2,
+            rising: false,
+            tau_unbounded: false,
+            noise_sd: 0.01,
+            test_sd: 0.01,
+            noise_inflation: 1.0,
+            threshold: 0.01,
+            surface_upper_c: 0.5,
+            surface_95_c: 0.4,
+        };
+        // 0.02 of full power over τ = 20 min: 1 % per 10 min.
+        let r = base.rate_pct_per_10min().unwrap();
+        assert!((r - 1.0).abs() < 1e-12, "{r}");
+        assert!(
+            (DecayFit {
+                rising: true,
+                ..base
+            }
+            .rate_pct_per_10min()
+            .unwrap()
+                + 1.0)
+                .abs()
+                < 1e-12
+        );
+        // What a runaway extrapolation looks like: told as nothing, never as a number.
+        for bad in [
+            DecayFit {
+                remaining: 14.8,
+                ..base
+            },
+            DecayFit {
+                tau_s: 0.01,
+                ..base
+            },
+            DecayFit {
+                final_power: -3.0,
+                ..base
+            },
+            DecayFit {
+                tau_s: f64::NAN,
+                ..base
+            },
+        ] {
+            assert_eq!(bad.rate_pct_per_10min(), None, "{bad:?}");
+        }
+    }
+
     use super::*;
 
     const TARGET_C: f64 = 60.0;

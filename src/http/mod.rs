@@ -110,6 +110,24 @@ pub fn operation_paths() -> Vec<&'static str> {
         .collect()
 }
 
+/// Why the page could not start, in a user's words: the address and, when it is taken, what
+/// to do about it.
+#[must_use]
+pub fn page_off_words(bind: &str, e: &anyhow::Error) -> String {
+    let in_use = e.chain().any(|c| {
+        c.downcast_ref::<std::io::Error>()
+            .is_some_and(|io| io.kind() == std::io::ErrorKind::AddrInUse)
+    }) || format!("{e:#}").contains("in use");
+    if in_use {
+        format!(
+            "another program listens on {bind} ([http] bind in klipcal.toml); set another port \
+             there (e.g. 7151) and restart klipcal"
+        )
+    } else {
+        format!("{e:#}")
+    }
+}
+
 /// Binds `[http] bind` and serves until `cancel`; returns the bound address.
 ///
 /// # Errors
@@ -154,6 +172,7 @@ fn router(shared: Shared) -> Router {
         .route("/api/plots/soak.svg", get(soak_plot))
         .route("/api/{*op}", post(operation))
         .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
         .layer(DefaultBodyLimit::max(MAX_BODY_BYTES))
         .layer(axum::middleware::from_fn_with_state(
             shared.clone(),
@@ -207,6 +226,21 @@ fn answer(outcome: Result<Value, RpcError>) -> Response {
         },
     };
     (code, axum::Json(result_json(outcome))).into_response()
+}
+
+/// A method the path does not take (a POST to a page, a GET of an operation): said, not an
+/// empty 405.
+async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) -> Response {
+    let path = uri.path();
+    let how = if path.starts_with("/api/") && operation_paths().iter().any(|o| path[5..] == **o) {
+        "it is an operation: POST it with a JSON body of arguments"
+    } else {
+        "it is read with GET; operations are POSTs under /api/ (see README)"
+    };
+    error(
+        StatusCode::METHOD_NOT_ALLOWED,
+        &format!("{method} {path} is not accepted: {how}"),
+    )
 }
 
 async fn not_found() -> Response {
@@ -389,6 +423,16 @@ async fn run_operation(
     };
     let body = match body {
         Ok(b) => b,
+        Err(rej) if rej.status() == StatusCode::PAYLOAD_TOO_LARGE => {
+            return error(
+                StatusCode::PAYLOAD_TOO_LARGE,
+                &format!(
+                    "the request body is over the limit of {} KiB (a long list of readings is a \
+                     few hundred bytes)",
+                    MAX_BODY_BYTES / 1024
+                ),
+            )
+        }
         Err(rej) => return error(rej.status(), &format!("request body: {}", rej.body_text())),
     };
     let mut args = if body.iter().all(u8::is_ascii_whitespace) {
@@ -414,7 +458,23 @@ async fn run_operation(
         o.insert(flag.into(), json!(1));
     }
     tracing::info!(%op, "HTTP call");
-    answer(dispatch(&h.m, h.cals.as_ref(), method, &args).await)
+    let outcome = dispatch(&h.m, h.cals.as_ref(), method, &args).await;
+    // A cancel from the page is said on the console too: a user at the printer's front end
+    // sees why the session stopped (a macro's answer reaches the console by the agent).
+    if method == "klipcal_cancel" {
+        if let Ok(v) = &outcome {
+            let said = v["message"].as_str().unwrap_or("cancelled").to_string();
+            let m = h.m.clone();
+            tokio::spawn(async move {
+                crate::jobs::core::console::say(
+                    &m,
+                    &format!("klipcal: {said} (cancelled from klipcal's page)"),
+                )
+                .await;
+            });
+        }
+    }
+    answer(outcome)
 }
 
 #[cfg(test)]

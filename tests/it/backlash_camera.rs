@@ -217,3 +217,77 @@ async fn no_webcam_or_no_sure_nozzle_is_refused_with_the_reason_on_every_road() 
         .unwrap_err();
     assert!(e.contains("2 webcams") && e.contains("webcam = "), "{e}");
 }
+
+/// Issue 27's walk: on a printer with no compensation module the start says so and the "next:"
+/// line offers no APPLY that would be refused; KLIPCAL_BACKLASH_SET_POINT is refused while an
+/// axis is being measured (it used to move the point under the readings).
+#[tokio::test]
+async fn without_a_module_the_start_says_so_and_set_point_waits_for_the_measurement() {
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "none",
+            "--play",
+            r#"{"x": 0.06}"#,
+            "--camera",
+            r#"{"look": "ring", "seed": 8}"#,
+            "--klipcal-bin",
+            klipcal_bin(),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.1\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    // Guided: told at the start.
+    let r = extension_request(&files, "klipcal_backlash_start", json!({"axis": "X"}))
+        .await
+        .unwrap();
+    let msg = r["message"].as_str().unwrap_or("");
+    assert!(
+        msg.contains("cannot apply") && msg.contains("PR 7259"),
+        "the start does not say the printer cannot apply: {msg}"
+    );
+    // The point stays put while the axis is measured.
+    let e = extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .expect_err("SET_POINT was accepted during a measurement");
+    assert!(
+        e.contains("cannot move during it") && e.contains("KLIPCAL_CANCEL"),
+        "{e}"
+    );
+    extension_request(&files, "klipcal_cancel", json!({}))
+        .await
+        .unwrap();
+    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    // Camera, two cycles: the result, and no APPLY offered.
+    m.gcode("KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=2")
+        .await
+        .unwrap();
+    let s = wait_measured(&files, &d).await;
+    assert_eq!(s["state"], "measured", "{s}\n{}", d.log_text());
+    let said = last_reply(&m).await;
+    let next = said
+        .lines()
+        .rev()
+        .find(|l| l.contains("next:"))
+        .unwrap_or_else(|| panic!("no next: line in {said}"));
+    assert!(
+        !next.contains("KLIPCAL_BACKLASH_APPLY") && next.contains("nothing can be applied"),
+        "{next}"
+    );
+    assert!(
+        !s["progress"]
+            .as_str()
+            .unwrap_or("")
+            .contains("KLIPCAL_BACKLASH_APPLY"),
+        "{s}"
+    );
+}

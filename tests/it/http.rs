@@ -124,13 +124,41 @@ async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
     // A huge body: 413 before anything reads it (on its own connection: the server closes it
     // without reading the rest).
     let huge = format!("{{\"pair\": \"{}\"}}", "x".repeat(200_000));
-    let (code, _) = post(
+    let (code, v) = post(
         &client_from("127.0.0.1"),
         &format!("{base}/api/ab/measure"),
         &huge,
     )
     .await;
     assert_eq!(code, 413);
+    // Issue 26 B.7: the refusal names the limit.
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("limit of 64 KiB"),
+        "{v}"
+    );
+    // A method the path does not take: a JSON error saying what it takes, not an empty 405.
+    for (method, path, want) in [
+        ("POST", "/api/sessions", "read with GET"),
+        ("GET", "/api/ab/start", "POST it with a JSON body"),
+    ] {
+        let r = me
+            .request(method.parse().unwrap(), format!("{base}{path}"))
+            .header("content-type", "application/json")
+            .body("{}")
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 405, "{method} {path}");
+        let v: Value = r.json().await.unwrap_or(Value::Null);
+        let msg = v["error"]["message"].as_str().unwrap_or("");
+        assert!(
+            msg.contains(want) && msg.contains(path),
+            "{method} {path}: {v}"
+        );
+    }
 
     // Not JSON (what a cross-site form sends) and a cross-origin POST: refused.
     let r = me
@@ -428,4 +456,110 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         assert!(r.text().await.unwrap().contains("<svg"), "{path}");
     }
     drop(d);
+}
+
+/// Issue 26 B.7: klipcal's port taken by another program. The daemon runs on (the macros work)
+/// and says so where a user looks: on stderr at start, on the console once connected, and in
+/// KLIPCAL_STATUS (and the status answer's `page.off`).
+#[tokio::test]
+async fn a_taken_page_port_is_said_on_the_console_and_in_the_status() {
+    let bench = Bench::start("corexy");
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = taken.local_addr().unwrap().port();
+    let d = Daemon::ready(&bench, &format!("[http]\nbind = \"127.0.0.1:{port}\"\n")).await;
+    let words = format!("another program listens on 127.0.0.1:{port}");
+    let st = extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        st["page"]["off"].as_str().unwrap_or("").contains(&words),
+        "{st}"
+    );
+    assert!(d
+        .log_text()
+        .contains(&format!("klipcal: its page and API are off: {words}")));
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let console = |m: klipcal::moonraker::Moonraker| async move {
+        let store = m
+            .call("server.gcode_store", json!({"count": 100}))
+            .await
+            .unwrap();
+        store["gcode_store"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter_map(|e| e["message"].as_str().map(str::to_string))
+            .collect::<Vec<_>>()
+            .join("\n")
+    };
+    let said = crate::bench::poll(Duration::from_secs(15), || {
+        let m = m.clone();
+        let words = words.clone();
+        async move {
+            let text = console(m).await;
+            text.contains(&format!("klipcal's page is off: {words}"))
+                .then_some(())
+        }
+    })
+    .await;
+    assert!(
+        said.is_some(),
+        "no console line at start:\n{}",
+        console(m.clone()).await
+    );
+    m.gcode("KLIPCAL_STATUS").await.unwrap();
+    let status = crate::bench::poll(Duration::from_secs(15), || {
+        let m = m.clone();
+        let words = words.clone();
+        async move {
+            let text = console(m).await;
+            (text
+                .matches(&format!("klipcal's page is off: {words}"))
+                .count()
+                >= 2)
+                .then_some(())
+        }
+    })
+    .await;
+    assert!(
+        status.is_some(),
+        "KLIPCAL_STATUS does not say it:\n{}",
+        console(m.clone()).await
+    );
+    drop(taken);
+}
+
+/// Issue 26 B.7: a cancel from klipcal's page leaves a console line (a macro's cancel is
+/// answered there by the agent; the page's was not).
+#[tokio::test]
+async fn a_cancel_from_the_page_is_said_on_the_console() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, _s) = measuring_session(&bench).await;
+    let base = d.page_url().await;
+    let (code, v) = post(
+        &client_from("127.0.0.1"),
+        &format!("{base}/api/cancel"),
+        "{}",
+    )
+    .await;
+    assert_eq!(code, 200, "{v}");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let said = crate::bench::poll(Duration::from_secs(15), || {
+        let m = m.clone();
+        async move {
+            crate::mainsail::history(&m)
+                .await
+                .into_iter()
+                .any(|(_, msg)| msg.contains("cancelled from klipcal's page"))
+                .then_some(())
+        }
+    })
+    .await;
+    assert!(
+        said.is_some(),
+        "no console line for the page's cancel: {:#?}",
+        crate::mainsail::history(&m).await
+    );
 }

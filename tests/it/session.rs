@@ -464,7 +464,13 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
 #[tokio::test]
 async fn a_session_driven_through_the_macros_answers_on_the_console() {
     let bench = Bench::start_with("corexy", Some(PLANT));
-    let d = started(&bench, 600.0).await;
+    // A cool-down after the print, so its console line is seen (issue 26 A.7: "cools on the
+    // hot bed" with BED=0).
+    let d = Daemon::ready(
+        &bench,
+        &settings(600.0).replace("cooldown_s = 0.0", "cooldown_s = 1.0"),
+    )
+    .await;
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     let mut rx = m.events();
@@ -674,6 +680,23 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
             .all(|(_, msg)| !msg.contains("hot bed") && !msg.contains("heating the bed")),
         "BED=0 but the console speaks of heating: {h:#?}"
     );
+    assert!(
+        h.iter()
+            .any(|(_, msg)| msg.contains("the part cools on the bed")),
+        "no cool-down line: {h:#?}"
+    );
+    // No soak happened: no soak plot (issue 26 A.7).
+    let pictures: Vec<String> = std::fs::read_dir(bench.dir.path().join("config/klipcal"))
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| e.file_name().to_string_lossy().to_string())
+                .collect()
+        })
+        .unwrap_or_default();
+    assert!(
+        pictures.iter().all(|p| !p.contains("-soak.")),
+        "BED=0 saved a soak plot: {pictures:?}"
+    );
     // The apply answer appears once (item 7).
     let applied = h
         .iter()
@@ -713,6 +736,13 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     assert!(
         h.iter()
             .any(|(_, msg)| msg.contains("round 2: measure the pylons now")),
+        "{h:#?}"
+    );
+    // Its start says round 2 of the session, not "session N started" (issue 26 B.7).
+    let id = s["id"].as_u64().unwrap();
+    assert!(
+        h.iter()
+            .any(|(_, msg)| msg.contains(&format!("session {id}, round 2 started"))),
         "{h:#?}"
     );
     let shown = crate::mainsail::after_reload(&m).await;

@@ -446,7 +446,12 @@ impl Ab {
                     self.update(id, |s| {
                         s.state = State::Holding;
                         s.print_done_unix = Some(now_unix());
-                        s.progress = "print done; the part cools on the hot bed".into();
+                        s.progress = if s.options.bed_temp_c > 0.0 {
+                            "print done; the part cools on the hot bed"
+                        } else {
+                            "print done; the part cools on the bed"
+                        }
+                        .into();
                         Ok(())
                     })
                     .await?;
@@ -547,7 +552,14 @@ impl Ab {
             }
         };
         self.spawn_runner(id);
-        Ok(json!({"session": id, "state": "preflight",
-                  "message": format!("{TITLE} session {id} started: checking the printer")}))
+        // The next round of a session is that round, not a new session (issue 26 B.7).
+        let message = match next_round {
+            Some(_) => {
+                let n = self.load(id).map_or(0, |s| s.rounds.len()) + 1;
+                format!("{TITLE} session {id}, round {n} started: checking the printer")
+            }
+            None => format!("{TITLE} session {id} started: checking the printer"),
+        };
+        Ok(json!({"session": id, "state": "preflight", "message": message}))
     }
 }

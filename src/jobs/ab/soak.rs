@@ -77,16 +77,22 @@ impl Ab {
                         })
                         .await?;
                     }
+                    // A plot of a soak that did not happen (an unheated bed) says nothing.
+                    let heated = s.options.bed_temp_c > self.settings.soak.skip_below_c;
                     let n = s.rounds.len();
                     let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
-                    let plot = crate::jobs::core::soak::save_soak_picture(
-                        &self.core,
-                        &self.settings.soak,
-                        &path,
-                    )
-                    .await
-                    .map(|p| format!("; plot: {p}"))
-                    .unwrap_or_default();
+                    let plot = if heated {
+                        crate::jobs::core::soak::save_soak_picture(
+                            &self.core,
+                            &self.settings.soak,
+                            &path,
+                        )
+                        .await
+                        .map(|p| format!("; plot: {p}"))
+                        .unwrap_or_default()
+                    } else {
+                        String::new()
+                    };
                     self.set_state(
                         id,
                         State::Printing,
@@ -233,10 +239,17 @@ impl Ab {
         self.core.hold_heaters_for(hold).await?;
         let wait = (done + s.options.cooldown_s - now_unix()).max(0.0);
         if wait > 0.0 {
-            self.core.console(&format!(
-                "A/B calibration: print done; the part cools on the hot bed for {wait:.0} s before measuring"
-            ))
-            .await;
+            let bed = if s.options.bed_temp_c > 0.0 {
+                "the hot bed"
+            } else {
+                "the bed"
+            };
+            self.core
+                .console(&format!(
+                    "A/B calibration: print done; the part cools on {bed} for {wait:.0} s before \
+                     measuring"
+                ))
+                .await;
             tokio::time::sleep(Duration::from_secs_f64(wait)).await;
         }
         self.set_state(id, State::Measuring, "waiting for caliper readings")

@@ -25,7 +25,8 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use super::{key_words, result_key, Backlash, BacklashCall, PointDoc, Session, State};
+use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall, PointDoc};
+use super::{Session, State};
 use super::{JOG_F, KIND, POINT_KIND, TITLE};
 use crate::calib::backlash::{BacklashParams, Cycle};
 use crate::calib::backlash_guide::GuideAxis;
@@ -113,7 +114,8 @@ pub struct Webcam {
 }
 
 /// Picks the nozzle camera from `server.webcams.list`'s answer: the one named `wanted`, or the
-/// only enabled one. The error says what to do.
+/// only enabled one. Web pages shown in a webcam panel (service `iframe`, such as klipcal's own
+/// page that install registers) are not cameras and are left out. The error says what to do.
 pub(crate) fn choose_webcam(
     list: &Value,
     wanted: &str,
@@ -121,7 +123,11 @@ pub(crate) fn choose_webcam(
 ) -> Result<Webcam, String> {
     let cams: Vec<&Value> = list["webcams"]
         .as_array()
-        .map(|a| a.iter().filter(|c| c["enabled"] != json!(false)).collect())
+        .map(|a| {
+            a.iter()
+                .filter(|c| c["enabled"] != json!(false) && c["service"] != "iframe")
+                .collect()
+        })
         .unwrap_or_default();
     let names: Vec<&str> = cams.iter().filter_map(|c| c["name"].as_str()).collect();
     let cam = if wanted.is_empty() {
@@ -422,6 +428,7 @@ impl Backlash {
             )));
         }
         let (detection, cf) = self.detect().await?;
+        let note = start_note(&detection);
         let kin = cf["settings"]["printer"]["kinematics"]
             .as_str()
             .unwrap_or("")
@@ -517,9 +524,10 @@ impl Backlash {
         );
         let msg = format!(
             "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles, no tapping; the result \
-             follows on the console",
+             follows on the console{}",
             key_words(&key),
-            cam.name
+            cam.name,
+            note
         );
         Ok(
             json!({"session": id, "state": "measuring", "axis": axis.name(),
@@ -676,8 +684,9 @@ impl Backlash {
             s.carriage = None;
             s.state = State::Measured;
             s.progress = format!(
-                "{} measured from the camera; start another axis or KLIPCAL_BACKLASH_APPLY",
-                key_words(&key)
+                "{} measured from the camera; {}",
+                key_words(&key),
+                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
             );
             self.core.save(id, &s)?;
             s
@@ -685,9 +694,9 @@ impl Backlash {
         let lines = self.result_lines(&s)?;
         self.core
             .console(&format!(
-                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_CAMERA AXIS=… for another axis, or \
-                 KLIPCAL_BACKLASH_APPLY",
-                lines.join("\n")
+                "{TITLE}: {}\n{}",
+                lines.join("\n"),
+                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
             ))
             .await;
         Ok(())
@@ -741,6 +750,12 @@ mod tests {
             e.contains("no webcam") && e.contains("KLIPCAL_BACKLASH_START"),
             "{e}"
         );
+        // klipcal's own page, registered by install as an iframe "webcam", is not a camera.
+        let with_page = json!({"webcams": [
+            {"name": "klipcal", "service": "iframe", "snapshot_url": "", "stream_url": "http://h:7150/"},
+            {"name": "nozzle", "service": "mjpegstreamer-adaptive",
+             "snapshot_url": "/webcam/?action=snapshot"}]});
+        assert_eq!(choose_webcam(&with_page, "", base).unwrap().name, "nozzle");
         let off = json!({"webcams": [{"name": "n", "enabled": false, "snapshot_url": "/s"}]});
         assert!(choose_webcam(&off, "", base).is_err());
         let empty = json!({"webcams": [{"name": "n", "snapshot_url": ""}]});

@@ -129,41 +129,7 @@ impl Backlash {
     }
 
     pub(super) fn result_lines(&self, s: &Session) -> anyhow::Result<Vec<String>> {
-        let mut out = Vec::new();
-        let results = self.results(s)?;
-        let corexy = Self::corexy_answer(s, &results);
-        for (axis, r) in results {
-            let active = s.active_mm.get(&axis).copied().unwrap_or(0.0);
-            out.push(format!(
-                "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
-                key_words(&axis),
-                r.backlash_mm,
-                r.uncertainty_mm,
-                r.cycles,
-                if r.outliers.is_empty() {
-                    String::new()
-                } else {
-                    format!(" (outlier cycles {:?})", r.outliers)
-                },
-                if active > 0.0 {
-                    format!(" left with {active} mm compensation active")
-                } else {
-                    String::new()
-                },
-                if r.compensate {
-                    format!(
-                        "compensate; smooth_time {:.4} s adds {:.0} mm/s²",
-                        r.smooth_time_s, r.extra_accel_mm_s2
-                    )
-                } else {
-                    "no compensation needed".to_string()
-                }
-            ));
-        }
-        if let Some(t) = corexy {
-            out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
-        }
-        Ok(out)
+        Ok(result_text(s, &self.results(s)?))
     }
 
     /// The seed's CoreXY question answered from the results (CoreXY printers only).
@@ -179,8 +145,19 @@ impl Backlash {
     /// `klipcal_backlash_set_point`: the current toolhead position becomes the camera point.
     ///
     /// # Errors
-    /// A printer that is printing or not homed.
+    /// A measurement in progress, a printer that is printing or not homed.
     pub async fn set_point(&self) -> anyhow::Result<Value> {
+        // The point is what every reading of a measurement is taken against (issue 27's walk).
+        if let Some(s) = self.active()? {
+            if matches!(s.state, State::Measuring | State::Applying) {
+                return Err(user(format!(
+                    "backlash session {} is {}: the camera point cannot move during it; \
+                     finish the axis or KLIPCAL_CANCEL first",
+                    s.id,
+                    s.state.name()
+                )));
+            }
+        }
         self.core.printer_idle().await?;
         self.homed(GuideAxis::X).await?;
         let st = self
@@ -328,10 +305,11 @@ impl Backlash {
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
         let msg = format!(
-            "{TITLE} session {}: {} from {} mm in −, jog only in + until centred",
+            "{TITLE} session {}: {} from {} mm in −, jog only in + until centred{}",
             s.id,
             key_words(&key),
-            s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm)
+            s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm),
+            start_note(&s.detection)
         );
         Ok(
             json!({"session": s.id, "state": "measuring", "axis": axis.name(), "carriage": carriage, "message": msg}),
@@ -367,8 +345,9 @@ impl Backlash {
                 s.carriage = None;
                 s.state = State::Measured;
                 s.progress = format!(
-                    "{} measured; start another axis or KLIPCAL_BACKLASH_APPLY",
-                    key_words(&key)
+                    "{} measured; {}",
+                    key_words(&key),
+                    next_line(&s.detection, "KLIPCAL_BACKLASH_START")
                 );
             }
             self.core.save(s.id, &s)?;
@@ -378,8 +357,9 @@ impl Backlash {
             self.core.prompt_end().await;
             let lines = self.result_lines(&s)?;
             let text = format!(
-                "{TITLE}: {}\nnext: KLIPCAL_BACKLASH_START AXIS=… for another axis, or KLIPCAL_BACKLASH_APPLY",
-                lines.join("\n")
+                "{TITLE}: {}\n{}",
+                lines.join("\n"),
+                next_line(&s.detection, "KLIPCAL_BACKLASH_START")
             );
             return Ok(
                 json!({"session": s.id, "state": "measured", "results": self.results(&s)?, "message": text}),
@@ -409,5 +389,105 @@ impl Backlash {
             json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
                   "phase": format!("{:?}", step.phase), "cycle": step.cycle, "message": message}),
         )
+    }
+}
+
+/// The result lines of a session's measured axes, as the console says them.
+pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -> Vec<String> {
+    let mut out = Vec::new();
+    let corexy = Backlash::corexy_answer(s, results);
+    for (axis, r) in results {
+        let active = s.active_mm.get(axis).copied().unwrap_or(0.0);
+        out.push(format!(
+            "{}: {:.4} mm ± {:.4} over {} cycles{}{} — {}",
+            key_words(axis),
+            r.backlash_mm,
+            r.uncertainty_mm,
+            r.cycles,
+            if r.outliers.is_empty() {
+                String::new()
+            } else {
+                format!(" (outlier cycles {:?})", r.outliers)
+            },
+            if active > 0.0 {
+                format!(" left with {active} mm compensation active")
+            } else {
+                String::new()
+            },
+            if r.compensate && !matches!(s.detection.branch, Branch::Pr7157 { .. }) {
+                format!(
+                    "compensate; smooth_time {:.4} s adds {:.0} mm/s²",
+                    r.smooth_time_s, r.extra_accel_mm_s2
+                )
+            } else if r.compensate {
+                // PR 7157's [backlash] has no smooth_time: nothing to advise.
+                "compensate".to_string()
+            } else {
+                "no compensation needed".to_string()
+            }
+        ));
+    }
+    if let Some(t) = corexy {
+        out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::calib::backlash::{BacklashParams, Cycle};
+
+    fn session(branch: Branch, why: &str) -> Session {
+        Session {
+            id: 1,
+            state: State::Measured,
+            reason: None,
+            progress: String::new(),
+            point: [100.0, 100.0, 0.0],
+            detection: Detection {
+                branch,
+                dual_carriage: false,
+                why: why.into(),
+            },
+            active_mm: BTreeMap::new(),
+            guide: None,
+            cycles: BTreeMap::new(),
+            max_accel_mm_s2: Some(3000.0),
+            carriage: None,
+            kinematics: "cartesian".into(),
+            notes: Vec::new(),
+            camera: BTreeMap::new(),
+        }
+    }
+
+    fn results(b: f64) -> BTreeMap<String, AxisResult> {
+        let c: Vec<Cycle> = (0..5)
+            .map(|i| Cycle {
+                x1_mm: b + 0.001 * f64::from(i % 2),
+                x2_mm: 0.0,
+                fine_mm: None,
+            })
+            .collect();
+        let r = crate::calib::backlash::analyse("x", &c, Some(3000.0), &BacklashParams::default())
+            .unwrap();
+        assert!(r.compensate);
+        BTreeMap::from([("x".to_string(), r)])
+    }
+
+    #[test]
+    fn smooth_time_is_advised_only_where_the_module_has_one() {
+        // PR 7259 has smooth_time; PR 7157's [backlash] has none (issue 27's walk).
+        let seed = result_text(&session(Branch::Seed, ""), &results(0.08)).join("\n");
+        assert!(seed.contains("smooth_time"), "{seed}");
+        let pr = result_text(
+            &session(Branch::Pr7157 { corexy: false }, ""),
+            &results(0.08),
+        )
+        .join("\n");
+        assert!(
+            pr.contains("compensate") && !pr.contains("smooth_time"),
+            "{pr}"
+        );
     }
 }

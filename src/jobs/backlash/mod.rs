@@ -360,6 +360,32 @@ impl Backlash {
     }
 }
 
+/// What follows a measured axis: another axis (`again` is the command that measures one), then
+/// APPLY; on a printer without a compensation module, what it lacks instead of an APPLY that
+/// would be refused (issue 27's walk).
+fn next_line(detection: &Detection, again: &str) -> String {
+    if detection.can_apply() {
+        format!("next: {again} AXIS=… for another axis, or KLIPCAL_BACKLASH_APPLY")
+    } else {
+        format!(
+            "next: {again} AXIS=… for another axis; nothing can be applied here: {}",
+            detection.why
+        )
+    }
+}
+
+/// Told when a measurement starts on a printer that cannot apply the result.
+fn start_note(detection: &Detection) -> String {
+    if detection.can_apply() {
+        String::new()
+    } else {
+        format!(
+            ". Note: this measures the play, but this printer cannot apply it: {}",
+            detection.why
+        )
+    }
+}
+
 /// Where an axis's cycles are kept: `x`, or `x@1` for dual carriage 1's X.
 fn result_key(axis: GuideAxis, carriage: Option<u32>) -> String {
     match carriage {

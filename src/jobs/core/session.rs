@@ -76,6 +76,8 @@ struct Inner {
     tasks: tokio_util::task::TaskTracker,
     /// klipcal's page as a user opens it (set once the page is listening).
     page: std::sync::OnceLock<String>,
+    /// Why the page is off when it could not start (its port taken, …).
+    page_off: std::sync::OnceLock<String>,
 }
 
 impl Core {
@@ -94,6 +96,7 @@ impl Core {
                 open: std::sync::Mutex::new(Open::default()),
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
+                page_off: std::sync::OnceLock::new(),
             }),
         }
     }
@@ -182,6 +185,17 @@ impl Core {
     /// Notes where klipcal's page is (`http://192.168.1.23:7150/`), for the console's answers.
     pub fn set_page(&self, address: String) {
         let _ = self.inner.page.set(address);
+    }
+
+    /// Notes why the page is off (it could not listen), for KLIPCAL_STATUS.
+    pub fn set_page_off(&self, why: String) {
+        let _ = self.inner.page_off.set(why);
+    }
+
+    /// Why the page is off, when it could not start.
+    #[must_use]
+    pub fn page_off(&self) -> Option<&str> {
+        self.inner.page_off.get().map(String::as_str)
     }
 
     /// "on klipcal's page, http://…" for the console, or `None` when the page is off.

@@ -53,6 +53,8 @@ pub struct BedSoak {
     max_s: f64,
     max_setting: &'static str,
     best_progress: f64,
+    /// The wait told to the user (smoothed and bounded).
+    eta_shown: EtaShown,
     /// The last plausible print-now cost, K: shown until a newer one replaces it, so the offer
     /// does not flicker off the page when one poll's fit is not trusted.
     last_print_now_c: Option<f64>,
@@ -86,6 +88,59 @@ pub fn eta_words(eta_s: f64) -> String {
 /// How often the console hears of the soak.
 const CONSOLE_EVERY_S: f64 = 60.0;
 
+/// The wait a user is told, from the detector's estimate: smoothed (the estimate of the end
+/// moves towards a new one with a 2-minute time constant, so a refit's jump from 3 to 15 min
+/// shows as a steady rise, not a leap), never beyond what is left of the soak's limit, and no
+/// "about 1 min left" over and over when the end is due but not yet confirmed.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct EtaShown {
+    /// The smoothed end, s (the soak's clock), and when it was last moved.
+    end: Option<(f64, f64)>,
+}
+
+/// What [`EtaShown`] says.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Eta {
+    /// About this long, s.
+    Left(f64),
+    /// Due now: the detector is confirming that the power has stopped falling.
+    Confirming,
+    /// Later than the soak's limit, which is this far off, s.
+    BeyondLimit(f64),
+    /// No estimate.
+    Unknown,
+}
+
+/// The smoothed end's time constant, s.
+const ETA_SMOOTHING_S: f64 = 120.0;
+
+impl EtaShown {
+    /// The wait to say at `t_s`, from the detector's `raw` estimate, with `left_s` of the
+    /// soak's limit left.
+    pub(crate) fn update(&mut self, t_s: f64, raw: Option<f64>, left_s: f64) -> Eta {
+        let Some(raw) = raw.filter(|r| r.is_finite() && *r >= 0.0) else {
+            return Eta::Unknown;
+        };
+        let new_end = t_s + raw;
+        let end = match self.end {
+            Some((end, at)) => {
+                let a = 1.0 - (-(t_s - at).max(0.0) / ETA_SMOOTHING_S).exp();
+                end + a * (new_end - end)
+            }
+            None => new_end,
+        };
+        self.end = Some((end, t_s));
+        let eta = (end - t_s).max(0.0);
+        if eta > left_s {
+            Eta::BeyondLimit(left_s.max(0.0))
+        } else if eta < 60.0 {
+            Eta::Confirming
+        } else {
+            Eta::Left(eta)
+        }
+    }
+}
+
 impl BedSoak {
     /// Starts watching a bed heated to `target_c`; fails after `max_s` (named as the setting
     /// `max_setting` in the error).
@@ -98,6 +153,7 @@ impl BedSoak {
             max_s,
             max_setting,
             best_progress: 0.0,
+            eta_shown: EtaShown::default(),
             last_print_now_c: None,
             soaking_since_s: None,
             last_console_s: f64::NEG_INFINITY,
@@ -224,14 +280,7 @@ impl BedSoak {
             }
             return Ok(SoakUpdate::TooLong {
                 minutes: t_s / 60.0,
-                falling_pct_per_10min: self.detector.fit().filter(|f| f.tau_s > 0.0).map(|f| {
-                    let rate = f.remaining / f.tau_s * 600.0 * 100.0;
-                    if f.rising {
-                        -rate
-                    } else {
-                        rate
-                    }
-                }),
+                falling_pct_per_10min: self.detector.fit().and_then(|f| f.rate_pct_per_10min()),
             });
         }
         let st = core
@@ -288,16 +337,35 @@ impl BedSoak {
                     .await;
                     self.last_console_s = t_s;
                 }
-                self.best_progress = self.best_progress.max(progress.clamp(0.0, 1.0));
-                let mut text = match eta_s {
-                    Some(eta) => format!(
-                        "bed soaking: {:.0} % done, about {} left",
-                        self.best_progress * 100.0,
-                        eta_words(eta)
+                // 100 % is said when the bed is stable, not while it is being confirmed.
+                self.best_progress = self.best_progress.max(progress.clamp(0.0, 0.99));
+                let done = self.best_progress * 100.0;
+                let shown = self
+                    .eta_shown
+                    .update(t_s, eta_s, (self.max_s - t_s).max(0.0));
+                let eta_s = match shown {
+                    Eta::Left(s) => Some(s),
+                    _ => None,
+                };
+                let mut text = match shown {
+                    Eta::Left(eta) => {
+                        format!(
+                            "bed soaking: {done:.0} % done, about {} left",
+                            eta_words(eta)
+                        )
+                    }
+                    Eta::Confirming => format!(
+                        "bed soaking: {done:.0} % done, due to settle now: confirming that its \
+                         power has stopped falling"
                     ),
-                    None => format!(
-                        "bed soaking: {:.0} % done, waiting for the bed power to settle",
-                        self.best_progress * 100.0
+                    Eta::BeyondLimit(left) => format!(
+                        "bed soaking: {done:.0} % done; it may not settle within {} ({} of it \
+                         left): you will be asked then whether to print or wait",
+                        self.max_setting,
+                        eta_words(left)
+                    ),
+                    Eta::Unknown => format!(
+                        "bed soaking: {done:.0} % done, waiting for the bed power to settle"
                     ),
                 };
                 if print_now_c.is_some() {
@@ -351,4 +419,43 @@ pub async fn soak_picture(
 pub async fn save_soak_picture(core: &Core, params: &SoakParams, path: &str) -> Option<String> {
     let svg = soak_picture(core.m(), params).await.ok()?;
     core.save_picture(path, svg).await
+}
+
+#[cfg(test)]
+mod eta_tests {
+    use super::{Eta, EtaShown};
+
+    #[test]
+    fn the_wait_told_rises_steadily_is_bounded_by_the_limit_and_is_not_repeated_at_the_end() {
+        // A refit moves the end from 3 to 15 min away: the wait told rises over minutes, by at
+        // most ~6 min in the first minute (polls every 5 s).
+        let mut e = EtaShown::default();
+        assert_eq!(e.update(0.0, Some(180.0), 3600.0), Eta::Left(180.0));
+        let mut told = Vec::new();
+        for k in 1..=12 {
+            let t = 5.0 * f64::from(k);
+            if let Eta::Left(s) = e.update(t, Some(900.0), 3600.0 - t) {
+                told.push(s);
+            }
+        }
+        assert!(told.windows(2).all(|w| w[1] >= w[0]), "{told:?}");
+        let after_a_minute = *told.last().unwrap();
+        assert!(
+            (300.0..=540.0).contains(&after_a_minute),
+            "3 min jumped to {after_a_minute:.0} s within a minute"
+        );
+        // Beyond what is left of soak_max_s: said so, never "about 105 min left".
+        let mut e = EtaShown::default();
+        assert_eq!(
+            e.update(2400.0, Some(6300.0), 1200.0),
+            Eta::BeyondLimit(1200.0)
+        );
+        // Due now but not confirmed: no "about 1 min left" over and over.
+        let mut e = EtaShown::default();
+        for k in 0..30 {
+            let t = 5.0 * f64::from(k);
+            assert_eq!(e.update(t, Some(40.0), 3600.0), Eta::Confirming);
+        }
+        assert_eq!(e.update(200.0, None, 3600.0), Eta::Unknown);
+    }
 }

@@ -441,8 +441,8 @@ impl Mesh {
         let (lo, hi) = result.range_c;
         let cooling_words = match &result.cooling {
             Some(c) => format!(
-                " and {} klipcal_cool_* for cooling over {:.2}–{:.2} °C (model {})",
-                c.profiles_c.len(),
+                " and {} for cooling over {:.2}–{:.2} °C (model {})",
+                super::profiles_words(crate::calib::mesh::Phase::Cooling, &c.profiles_c),
                 c.range_c.0,
                 c.range_c.1,
                 c.model
@@ -460,10 +460,10 @@ impl Mesh {
             )
         };
         let msg = format!(
-            "{TITLE}: {} profiles klipcal_* written for {lo:.2}–{hi:.2} °C (model {}, worst \
-             step {:.1} µm){cooling_words}; {}{replaced_words}; KLIPCAL_MESH_FOLLOW ENABLE=1 \
-             follows the frame",
-            result.profiles_c.len(),
+            "{TITLE}: {} written for {lo:.2}–{hi:.2} °C (model {}, worst step {:.1} \
+             µm){cooling_words}; {}{replaced_words}; KLIPCAL_MESH_FOLLOW ENABLE=1 follows the \
+             frame",
+            super::profiles_words(crate::calib::mesh::Phase::Heating, &result.profiles_c),
             result.model,
             result.max_quantisation_um,
             result.directions

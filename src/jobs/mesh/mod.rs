@@ -490,6 +490,23 @@ pub fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
     }
 }
 
+/// The profiles written, by name ("2 profiles (klipcal_25.00, klipcal_31.40)"; the first and
+/// the last of many), instead of a pattern a console may show garbled ("klipcal_*").
+#[must_use]
+pub(crate) fn profiles_words(phase: Phase, temps_c: &[f64]) -> String {
+    let names: Vec<String> = temps_c
+        .iter()
+        .map(|t| direction_profile_name(phase, *t))
+        .collect();
+    let list = match names.as_slice() {
+        [] => return "no profiles".into(),
+        [one] => return format!("1 profile ({one})"),
+        few if few.len() <= 4 => few.join(", "),
+        [first, .., last] => format!("{first} … {last}"),
+    };
+    format!("{} profiles ({list})", names.len())
+}
+
 impl Calibration for Mesh {
     fn kind(&self) -> &'static str {
         KIND
@@ -597,5 +614,28 @@ impl Calibration for Mesh {
             }
         }
         .boxed()
+    }
+}
+
+#[cfg(test)]
+mod words_tests {
+    use super::{profiles_words, Phase};
+
+    #[test]
+    fn the_profiles_written_are_named_not_patterned() {
+        assert_eq!(
+            profiles_words(Phase::Heating, &[25.0, 31.4]),
+            "2 profiles (klipcal_25.00, klipcal_31.40)"
+        );
+        assert_eq!(
+            profiles_words(Phase::Cooling, &[30.0]),
+            "1 profile (klipcal_cool_30.00)"
+        );
+        let many: Vec<f64> = (0..12).map(|k| 25.0 + f64::from(k)).collect();
+        assert_eq!(
+            profiles_words(Phase::Heating, &many),
+            "12 profiles (klipcal_25.00 … klipcal_36.00)"
+        );
+        assert!(!profiles_words(Phase::Heating, &many).contains('*'));
     }
 }

@@ -278,9 +278,33 @@ impl Core {
                 // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
                 _ => continue,
             };
+            // klipcal's helpers (_KLIPCAL_PROMPT_BACK, _KLIPCAL_PROMPT_CLOSE) close in Klipper
+            // and say "asking the klipcal service..." on the next line; a front end's ✕ or
+            // tap outside says nothing after its close. (The dialog change their call makes
+            // can reach klipcal before this close does, so the line decides, not the order.)
+            let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(1500);
+            let mut helper = false;
+            loop {
+                let ev = tokio::select! {
+                    () = self.inner.shutdown.cancelled() => return,
+                    () = tokio::time::sleep_until(deadline) => break,
+                    ev = rx.recv() => ev,
+                };
+                match ev {
+                    Ok(crate::moonraker::Event::GcodeResponse(l)) => {
+                        helper = l.contains("asking the klipcal service");
+                        break;
+                    }
+                    Err(RecvError::Closed) => return,
+                    _ => {}
+                }
+            }
+            if helper {
+                continue;
+            }
             tokio::select! {
                 () = self.inner.shutdown.cancelled() => return,
-                () = tokio::time::sleep(std::time::Duration::from_millis(1500)) => {}
+                () = tokio::time::sleep_until(deadline) => {}
             }
             let closed = {
                 let open = self.open();
