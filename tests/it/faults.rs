@@ -94,9 +94,13 @@ impl Phase {
     }
 
     /// Where the long outage runs by default: the phase has a clock of its own that the outage
-    /// outlasts.
+    /// outlasts (the print ends, the hold limit passes, a mesh interval passes, the follower's
+    /// stale-sensor limit passes).
     fn long_matters(self) -> bool {
-        matches!(self, Phase::Print | Phase::Hold | Phase::Capture)
+        matches!(
+            self,
+            Phase::Print | Phase::Hold | Phase::Capture | Phase::Follow
+        )
     }
 
     /// The hold limit of this phase's A/B session.
@@ -728,7 +732,8 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
     let by_klipper = klipper_off
         .map(|t| {
             format!(
-                "; Klipper turned the heaters off alone {t:.0} s after its idle timeout was set"
+                "; the heaters went off with Moonraker down, {t:.0} s after Klipper's idle \
+                 timeout was set"
             )
         })
         .unwrap_or_default();

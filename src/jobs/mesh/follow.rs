@@ -187,6 +187,18 @@ impl Mesh {
                     }
                     d
                 }
+                // Moonraker away (longer than a call waits for it): no reading is not a stale
+                // sensor. Wait for it, then start over from the next reading; the profile
+                // loaded stays in Klipper meanwhile.
+                Err(e) if self.core.unreachable(&e) => {
+                    info!(error = %format!("{e:#}"), "Moonraker unreachable; following waits for it");
+                    tokio::select! {
+                        () = token.cancelled() => return,
+                        back = self.core.wait_back() => if !back { return },
+                    }
+                    f = fresh();
+                    continue;
+                }
                 Err(_) => match f.tick(t) {
                     Some(d) => d,
                     None => continue,
