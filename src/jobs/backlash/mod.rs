@@ -27,13 +27,32 @@ use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Op, OpSpec};
+use crate::jobs::core::table::{arg, parse_call, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::core::{Calibration, Hold};
 use crate::jobs::core::{Envelope, SessionState};
 use crate::jobs::user;
 use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
 use crate::klipper::GcodeCmd;
 use crate::store::SessionRow;
+
+/// `CYCLES=`, shared by the guided and the camera measurement.
+pub(super) const CYCLES_ARG: ArgSpec = arg(
+    "cycles",
+    ArgKind::Whole { min: 1, max: 50 },
+    "5",
+    "1..50",
+    "",
+    "approach cycles (default backlash.cycles)",
+);
+/// `CARRIAGE=`, shared by the guided and the camera measurement.
+pub(super) const CARRIAGE_ARG: ArgSpec = arg(
+    "carriage",
+    ArgKind::Whole { min: 0, max: 1 },
+    "1",
+    "0 or 1",
+    "",
+    "the carriage on a dual_carriage printer",
+);
 
 /// The backlash measurement's operations, each declared once (see [`crate::jobs::core::table`]).
 pub static OPS: &[Op<BacklashCall>] = &[
@@ -62,22 +81,8 @@ pub static OPS: &[Op<BacklashCall>] = &[
                     "",
                     "the axis: X, Y, Z, or A/B (CoreXY motors)",
                 ),
-                arg(
-                    "cycles",
-                    ArgKind::Whole { min: 1, max: 50 },
-                    "5",
-                    "1..50",
-                    "",
-                    "approach cycles (default backlash.cycles)",
-                ),
-                arg(
-                    "carriage",
-                    ArgKind::Whole { min: 0, max: 1 },
-                    "1",
-                    "0 or 1",
-                    "",
-                    "the carriage on a dual_carriage printer",
-                ),
+                CYCLES_ARG,
+                CARRIAGE_ARG,
             ],
         ),
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
