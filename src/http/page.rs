@@ -756,7 +756,7 @@ mod tests {
         .unwrap();
         let backlash = BacklashStatus {
             point: [0.0; 3],
-            branch: crate::klipper::backlash::detect(&json!({}), &json!({})).unwrap(),
+            branch: crate::klipper::backlash::detect(&json!({}), &Default::default()).unwrap(),
             axis: None,
             cycle: None,
             cycles: [("x".to_string(), cycles)].into(),

@@ -169,7 +169,7 @@ impl BedSoak {
     async fn prime(&mut self, core: &Core) -> usize {
         self.primed = true;
         if let Ok(cf) = core.m().configfile().await {
-            if let Some(p) = cf["settings"]["heater_bed"]["max_power"].as_f64() {
+            if let Some(p) = cf.settings.heater_bed.and_then(|h| h.max_power) {
                 self.detector.set_max_power(p);
             }
         }

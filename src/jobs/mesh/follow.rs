@@ -81,9 +81,8 @@ impl Mesh {
             ));
         }
         let cf = self.core.m().configfile().await?;
-        let bm = &cf["settings"]["bed_mesh"];
-        let fade_end = bm["fade_end"].as_f64().unwrap_or(0.0);
-        let fade_start = bm["fade_start"].as_f64().unwrap_or(1.0);
+        let bm = cf.settings.bed_mesh.unwrap_or_default();
+        let (fade_start, fade_end) = (bm.fade_start, bm.fade_end);
         if fade_end > fade_start {
             return Err(user(format!(
                 "[bed_mesh] fades the mesh out from {fade_start} to {fade_end} mm: a profile loaded mid-print \

@@ -448,25 +448,6 @@ pub struct MeshStatus {
     pub follow: Value,
 }
 
-/// The probe's section in Klipper's settings: `[probe]`, `[bltouch]`, `[smart_effector]`, an
-/// eddy probe or another module's `[… probe]` — the first with a `z_offset`.
-fn probe_settings(settings: &Value) -> Value {
-    let Some(map) = settings.as_object() else {
-        return Value::Null;
-    };
-    let is_probe = |name: &str| {
-        name == "probe"
-            || name == "bltouch"
-            || name == "smart_effector"
-            || name.starts_with("probe_eddy_current")
-            || name.ends_with(" probe")
-    };
-    map.iter()
-        .find(|(k, v)| is_probe(k) && v.get("z_offset").is_some())
-        .map(|(_, v)| v.clone())
-        .unwrap_or(Value::Null)
-}
-
 /// Klipper's own words in a refused G-code (Moonraker's message without the wrapping).
 fn klipper_message(e: &crate::moonraker::Error) -> String {
     match e {
