@@ -704,7 +704,7 @@ mod tests {
         use crate::jobs::backlash::BacklashStatus;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
         use crate::jobs::core::StatusHead;
-        use crate::jobs::mesh::{MeshStatus, ResultDoc};
+        use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
         let head = StatusHead {
             id: 1,
             state: "measuring".into(),
@@ -737,6 +737,18 @@ mod tests {
                 directions: String::new(),
                 cooling: None,
             }),
+            // Both the reading and the reason, so that every key of the follower is listed.
+            follow: FollowStatus {
+                following: true,
+                stopped: Some(String::new()),
+                reading: Some(FollowReading {
+                    frame_c: 0.0,
+                    trend: crate::calib::mesh::Phase::Heating,
+                    loaded: Some(String::new()),
+                    offset_mm: [0.0; 2],
+                    residual_um: Some(0.0),
+                }),
+            },
             ..MeshStatus::default()
         };
         let cycles = vec![0.1, 0.11, 0.1, 0.12, 0.1]
@@ -840,14 +852,16 @@ mod tests {
             read.len()
         );
         // `ok`, `error` and `message` are the answer's wrapping (`http::answer`), not the
-        // status; the follower's fields sit in `follow`, still the follower's own JSON.
+        // status.
         let wrapping = ["ok", "error", "message"];
-        let follower = ["following", "stopped", "loaded", "residual_um"];
         let have = typed_status_keys();
+        for follower in ["following", "stopped", "loaded", "residual_um", "frame_c"] {
+            assert!(read.contains(follower), "the page reads {follower}");
+        }
         let missing: Vec<&String> = read
             .iter()
             .filter(|k| !have.contains(*k))
-            .filter(|k| !wrapping.contains(&k.as_str()) && !follower.contains(&k.as_str()))
+            .filter(|k| !wrapping.contains(&k.as_str()))
             .collect();
         assert!(
             missing.is_empty(),

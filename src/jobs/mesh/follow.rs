@@ -33,7 +33,7 @@ impl Mesh {
         if let Some(t) = t {
             t.cancel();
             if let Ok(mut st) = self.follow_status.lock() {
-                *st = json!({"following": false, "stopped": why});
+                *st = FollowStatus::stopped(why);
             }
             self.core
                 .console(&format!("{TITLE}: following stopped ({why})"))
@@ -178,11 +178,22 @@ impl Mesh {
                 Ok(temp) => {
                     let d = f.push(t, temp, busy);
                     if let Ok(mut st) = self.follow_status.lock() {
-                        *st = json!({"following": true, "frame_c": temp,
-                            "trend": f.trend(),
-                            "loaded": f.loaded().map(|(p, t)| direction_profile_name(p, t)),
-                            "offset_mm": [offset_mm.0, offset_mm.1],
-                            "residual_um": match &d { Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => Some(*residual_um), _ => None }});
+                        let residual_um = match &d {
+                            Decision::Keep { residual_um, .. }
+                            | Decision::Load { residual_um, .. } => Some(*residual_um),
+                            _ => None,
+                        };
+                        *st = FollowStatus {
+                            following: true,
+                            stopped: None,
+                            reading: Some(FollowReading {
+                                frame_c: temp,
+                                trend: f.trend(),
+                                loaded: f.loaded().map(|(p, t)| direction_profile_name(p, t)),
+                                offset_mm: [offset_mm.0, offset_mm.1],
+                                residual_um,
+                            }),
+                        };
                     }
                     d
                 }
@@ -265,7 +276,7 @@ impl Mesh {
                 Decision::Stopped { reason } => {
                     self.core.console_error(&format!("{TITLE}: {reason}")).await;
                     if let Ok(mut st) = self.follow_status.lock() {
-                        *st = json!({"following": false, "stopped": reason});
+                        *st = FollowStatus::stopped(&reason);
                     }
                     if let Ok(mut fl) = self.follow.lock() {
                         fl.take();
