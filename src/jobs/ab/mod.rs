@@ -491,7 +491,7 @@ impl Ab {
             rounds,
             heaters_off: s.heaters_off,
         };
-        SessionStatus::new(KIND, s.head(), &body)
+        Ok(SessionStatus::new(KIND, s.head(), &body)?.with_console_lines(body.missing))
     }
 }
 
