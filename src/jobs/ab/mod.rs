@@ -37,8 +37,8 @@ use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
-use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
+use crate::jobs::core::table::{arg, ArgKind, Args, Fields, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::{self, PrinterFacts};
 use crate::layout::Layout;
@@ -210,16 +210,6 @@ pub enum AbCall {
     Solve,
     /// `klipcal_apply`.
     Apply(ApplyRequest),
-}
-
-impl AbCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
 }
 
 /// The store's kind.
@@ -442,8 +432,64 @@ impl Ab {
         self.core.prompt_end().await;
         Ok(answer)
     }
+}
 
-    /// A session as `klipcal_status` shows it.
+/// An A/B session's own part of its status.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct AbStatus {
+    /// The current round, 1-based (0 before the first).
+    pub round: usize,
+    /// The current round's pairs.
+    pub pairs: Option<Vec<crate::layout::Pair>>,
+    /// The current round's job.
+    pub file: Option<String>,
+    /// The current round's readings per pair, mm.
+    pub readings: BTreeMap<String, Vec<f64>>,
+    /// Readings a pair needs.
+    pub readings_per_pair: usize,
+    /// Bed temperature, °C.
+    pub bed_temp_c: f64,
+    /// The layout diagram under the config root.
+    pub diagram: Option<String>,
+    /// What is still to measure, in words (while measuring or solved).
+    pub missing: Vec<String>,
+    /// Every round so far.
+    pub rounds: Vec<AbRoundStatus>,
+    /// The hold limit turned the heaters off.
+    pub heaters_off: bool,
+}
+
+/// One round as the status shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct AbRoundStatus {
+    /// 1-based.
+    pub n: u32,
+    /// The job.
+    pub file: String,
+    /// rotation_distance as printed, mm (X, Y).
+    pub rotation_distance: [f64; 2],
+    /// The solved rotation_distance, mm (X, Y).
+    pub rotation_distance_new: Option<[f64; 2]>,
+    /// The solved scale (X, Y).
+    pub scale: Option<[f64; 2]>,
+    /// The larger error of the two, µm per 100 mm.
+    pub error_um_per_100mm: Option<f64>,
+    /// The scale's uncertainty (X, Y).
+    pub uncertainty: Option<[f64; 2]>,
+    /// Whether the round converged.
+    pub converged: Option<bool>,
+    /// What apply wrote.
+    pub applied: Option<ApplyReport>,
+}
+
+impl Declare for Ab {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "an A/B calibration";
+    type State = State;
+    type Session = Session;
+    type Call = AbCall;
+    const OPS: &'static [Op<AbCall>] = OPS;
+
     fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
         let rounds = s
             .rounds
@@ -495,78 +541,14 @@ impl Ab {
     }
 }
 
-/// An A/B session's own part of its status.
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbStatus {
-    /// The current round, 1-based (0 before the first).
-    pub round: usize,
-    /// The current round's pairs.
-    pub pairs: Option<Vec<crate::layout::Pair>>,
-    /// The current round's job.
-    pub file: Option<String>,
-    /// The current round's readings per pair, mm.
-    pub readings: BTreeMap<String, Vec<f64>>,
-    /// Readings a pair needs.
-    pub readings_per_pair: usize,
-    /// Bed temperature, °C.
-    pub bed_temp_c: f64,
-    /// The layout diagram under the config root.
-    pub diagram: Option<String>,
-    /// What is still to measure, in words (while measuring or solved).
-    pub missing: Vec<String>,
-    /// Every round so far.
-    pub rounds: Vec<AbRoundStatus>,
-    /// The hold limit turned the heaters off.
-    pub heaters_off: bool,
-}
-
-/// One round as the status shows it.
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbRoundStatus {
-    /// 1-based.
-    pub n: u32,
-    /// The job.
-    pub file: String,
-    /// rotation_distance as printed, mm (X, Y).
-    pub rotation_distance: [f64; 2],
-    /// The solved rotation_distance, mm (X, Y).
-    pub rotation_distance_new: Option<[f64; 2]>,
-    /// The solved scale (X, Y).
-    pub scale: Option<[f64; 2]>,
-    /// The larger error of the two, µm per 100 mm.
-    pub error_um_per_100mm: Option<f64>,
-    /// The scale's uncertainty (X, Y).
-    pub uncertainty: Option<[f64; 2]>,
-    /// Whether the round converged.
-    pub converged: Option<bool>,
-    /// What apply wrote.
-    pub applied: Option<ApplyReport>,
-}
-
 impl Calibration for Ab {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "an A/B calibration"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match AbCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 AbCall::Start(r) => self.start(&r).await,
                 AbCall::Measure(r) => self.measure(&r).await,
                 AbCall::Solve => self.solve().await,
@@ -588,12 +570,6 @@ impl Calibration for Ab {
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         self.cancel_session(row.id, reason).boxed()
-    }
-
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        self.session_status(&s)
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {

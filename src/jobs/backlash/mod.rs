@@ -27,8 +27,8 @@ use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, ArgSpec, Args, Op, OpSpec};
-use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Hold};
 use crate::jobs::core::{Envelope, SessionState};
 use crate::jobs::user;
 use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
@@ -135,16 +135,6 @@ pub enum BacklashCall {
     Camera(camera::CameraRequest),
     /// `klipcal_backlash_apply`.
     Apply,
-}
-
-impl BacklashCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
 }
 
 /// `klipcal_backlash_start` / `KLIPCAL_BACKLASH_START`.
@@ -443,30 +433,39 @@ fn round_um(mm: f64) -> f64 {
     (mm * 1e4).round() / 1e4
 }
 
+impl Declare for Backlash {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "a backlash measurement";
+    type State = State;
+    type Session = Session;
+    type Call = BacklashCall;
+    const OPS: &'static [Op<BacklashCall>] = OPS;
+
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
+        let results = self.results(s).unwrap_or_default();
+        let body = BacklashStatus {
+            point: s.point,
+            branch: s.detection.clone(),
+            axis: s.guide.as_ref().map(|g| g.axis.name().to_string()),
+            cycle: s.guide.as_ref().map(|g| g.cycles.len() + 1),
+            cycles: s.cycles.clone(),
+            corexy_answer: Self::corexy_answer(s, &results),
+            results,
+            active_mm: s.active_mm.clone(),
+            camera: s.camera.clone(),
+        };
+        SessionStatus::new(KIND, s.head(), &body)
+    }
+}
+
 impl Calibration for Backlash {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "a backlash measurement"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match BacklashCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 BacklashCall::SetPoint => self.set_point().await,
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
@@ -487,24 +486,6 @@ impl Calibration for Backlash {
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         self.cancel_session(row.id, reason).boxed()
-    }
-
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        let results = self.results(&s).unwrap_or_default();
-        let body = BacklashStatus {
-            point: s.point,
-            branch: s.detection.clone(),
-            axis: s.guide.as_ref().map(|g| g.axis.name().to_string()),
-            cycle: s.guide.as_ref().map(|g| g.cycles.len() + 1),
-            cycles: s.cycles.clone(),
-            corexy_answer: Self::corexy_answer(&s, &results),
-            results,
-            active_mm: s.active_mm.clone(),
-            camera: s.camera.clone(),
-        };
-        SessionStatus::new(KIND, s.head(), &body)
     }
 
     fn held(&self, _row: &SessionRow) -> Option<Hold> {

@@ -36,8 +36,8 @@ use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
-use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
+use crate::jobs::core::table::{arg, ArgKind, MacroBody, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
@@ -184,16 +184,6 @@ pub enum MeshCall {
     },
     /// `klipcal_mesh_check`.
     Check,
-}
-
-impl MeshCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
 }
 
 /// The store's kind.
@@ -413,25 +403,6 @@ impl Mesh {
             )
             .await
     }
-
-    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
-        let follow = self
-            .follow_status
-            .lock()
-            .map(|v| v.clone())
-            .unwrap_or_default();
-        let body = MeshStatus {
-            meshes: s.captures.len(),
-            frame_c: s
-                .captures
-                .iter()
-                .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64)
-                .collect(),
-            result: s.result.clone(),
-            follow,
-        };
-        SessionStatus::new(KIND, s.head(), &body)
-    }
 }
 
 /// A thermal mesh session's own part of its status.
@@ -530,30 +501,42 @@ pub(crate) fn profiles_words(phase: Phase, temps_c: &[f64]) -> String {
     format!("{} profiles ({list})", names.len())
 }
 
+impl Declare for Mesh {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "a thermal mesh capture";
+    type State = State;
+    type Session = Session;
+    type Call = MeshCall;
+    const OPS: &'static [Op<MeshCall>] = OPS;
+
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
+        let follow = self
+            .follow_status
+            .lock()
+            .map(|v| v.clone())
+            .unwrap_or_default();
+        let body = MeshStatus {
+            meshes: s.captures.len(),
+            frame_c: s
+                .captures
+                .iter()
+                .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64)
+                .collect(),
+            result: s.result.clone(),
+            follow,
+        };
+        SessionStatus::new(KIND, s.head(), &body)
+    }
+}
+
 impl Calibration for Mesh {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "a thermal mesh capture"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match MeshCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 MeshCall::Capture { bed_c } => self.capture(bed_c).await,
                 MeshCall::Import => self.import().await,
                 MeshCall::Follow { enable } => self.follow_cmd(enable).await,
@@ -582,12 +565,6 @@ impl Calibration for Mesh {
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         self.cancel_session(row.id, reason).boxed()
-    }
-
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        self.session_status(&s)
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {
