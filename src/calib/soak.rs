@@ -100,7 +100,7 @@ impl Default for SoakParams {
 
 /// `[soak]` keys of earlier versions that the detector no longer has (its statistics are no
 /// longer knobs): read and ignored, with a warning, so an old settings file still loads.
-pub const RETIRED_KEYS: &[&str] = &[
+pub(crate) const RETIRED_KEYS: &[&str] = &[
     "span_taus",
     "fit_taus",
     "trend_window_s",
@@ -113,7 +113,7 @@ pub const RETIRED_KEYS: &[&str] = &[
 /// A bed's build, as a user names it in `soak.bed`: its coupling from thermistor to print
 /// surface and how long its stack takes to charge.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BedPreset {
+pub(crate) struct BedPreset {
     /// The name in `soak.bed`.
     pub name: &'static str,
     /// What it is, in words.
@@ -128,7 +128,7 @@ pub struct BedPreset {
 
 /// The beds `soak.bed` may name, strongest coupling first. The last is the weakest coupling,
 /// assumed when the bed is neither identified nor named.
-pub const BED_PRESETS: &[BedPreset] = &[
+pub(crate) const BED_PRESETS: &[BedPreset] = &[
     BedPreset {
         name: "bare-plate",
         words: "bare aluminium plate, thermistor in the plate",
@@ -172,13 +172,13 @@ const BED_NAMES: &str = "\"\" (unknown), \"bare-plate\", \"steel-plate\", \"bare
                          \"steel-pad\", \"glass-plate\" or \"glass-pad\"";
 
 /// Thermal expansion that turns surface kelvin into µm per 100 mm: steel and aluminium.
-pub const UM_PER_100MM_K_STEEL: f64 = 1.2;
+pub(crate) const UM_PER_100MM_K_STEEL: f64 = 1.2;
 /// See [`UM_PER_100MM_K_STEEL`].
-pub const UM_PER_100MM_K_ALUMINIUM: f64 = 2.3;
+pub(crate) const UM_PER_100MM_K_ALUMINIUM: f64 = 2.3;
 
 /// Kelvin of surface warming in words with what they cost in µm/100 mm.
 #[must_use]
-pub fn kelvin_words(k: f64) -> String {
+pub(crate) fn kelvin_words(k: f64) -> String {
     format!(
         "{k:.1} K ({:.1} µm/100 mm on steel, {:.1} on aluminium)",
         k * UM_PER_100MM_K_STEEL,
@@ -189,7 +189,7 @@ pub fn kelvin_words(k: f64) -> String {
 /// Where the coupling the rule uses came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
-pub enum CouplingSource {
+pub(crate) enum CouplingSource {
     /// Identified from this bed's own data, lower end included. A heat-up bounds the coupling
     /// only from above (see `bounded_by_heat_up`), so the rule does not use this today.
     Identified,
@@ -203,7 +203,7 @@ pub enum CouplingSource {
 /// thermistor is held at its target, each unit of power the heater no longer gives is a unit
 /// less flowing through the stack to the surface, so the surface still warms by ΔP / G.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Coupling {
+pub(crate) struct Coupling {
     /// The value the rule uses: the conservative (low) end.
     pub g: f64,
     /// The interval it lies in (identified: the 95 % interval; preset or weakest: the value).
@@ -222,7 +222,7 @@ impl Coupling {
     /// From `soak.bed`, else the weakest coupling; `not_identified` says why the bed's own
     /// heat-up did not give it.
     #[must_use]
-    pub fn fallback(params: &SoakParams, not_identified: &str) -> Self {
+    pub(crate) fn fallback(params: &SoakParams, not_identified: &str) -> Self {
         let weakest = BED_PRESETS[BED_PRESETS.len() - 1];
         match BED_PRESETS.iter().find(|b| b.name == params.bed) {
             Some(b) => Coupling {
@@ -333,7 +333,7 @@ struct IdFit {
 ///
 /// # Errors
 /// Why the heat-up does not give the coupling, in words.
-pub fn identify_coupling(bins: &[[f64; 4]]) -> Result<Coupling, String> {
+pub(crate) fn identify_coupling(bins: &[[f64; 4]]) -> Result<Coupling, String> {
     let n = bins.len();
     if n < ID_MIN_HEAT_BINS + 6 {
         return Err(format!(
@@ -516,7 +516,7 @@ impl SoakParams {
     ///
     /// # Errors
     /// The first key out of range, with its value and what is expected.
-    pub fn validate(&self) -> Result<(), SoakParamsError> {
+    pub(crate) fn validate(&self) -> Result<(), SoakParamsError> {
         let check = |key, value: f64, ok: bool, expected| {
             if ok && value.is_finite() {
                 Ok(())
@@ -571,7 +571,7 @@ impl SoakParams {
 /// What the detector says after a sample.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "state", rename_all = "snake_case")]
-pub enum SoakStatus {
+pub(crate) enum SoakStatus {
     /// The temperature is not (or no longer) within the band around the target.
     Heating,
     /// The temperature is settled; waiting for the power to stop falling.
@@ -597,7 +597,7 @@ pub enum SoakStatus {
 
 /// The decay fitted to the bed power since the soak began, summed up as one exponential.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct DecayFit {
+pub(crate) struct DecayFit {
     /// Time constant τ of what is still to fall (the fitted decays weighted by what each has
     /// left now).
     pub tau_s: f64,
@@ -641,7 +641,7 @@ impl DecayFit {
     /// 100 % per 10 min. Otherwise `None` ("has not settled"): a fit that extrapolates far past
     /// its data once told a user "886742.1 % per 10 min".
     #[must_use]
-    pub fn rate_pct_per_10min(&self) -> Option<f64> {
+    pub(crate) fn rate_pct_per_10min(&self) -> Option<f64> {
         let plausible = self.tau_s.is_finite()
             && self.tau_s > 0.0
             && self.remaining.is_finite()
@@ -804,7 +804,7 @@ pub struct SoakDetector {
 impl SoakDetector {
     /// A detector with these thresholds. Values out of range are replaced by their defaults
     /// (check them with [`SoakParams::validate`] when they come from a user).
-    pub fn new(params: SoakParams) -> Self {
+    pub(crate) fn new(params: SoakParams) -> Self {
         let params = if params.validate().is_ok() {
             params
         } else {
@@ -865,7 +865,7 @@ impl SoakDetector {
     /// The heater's `max_power` from Klipper's config (0.05–1; Klipper reports the pwm as a
     /// fraction of full power, capped there): a heater at `saturated_power` of it has no
     /// headroom left. Out-of-range values are ignored.
-    pub fn set_max_power(&mut self, max_power: f64) {
+    pub(crate) fn set_max_power(&mut self, max_power: f64) {
         if max_power.is_finite() && (0.05..=1.0).contains(&max_power) {
             self.max_power = max_power;
             self.max_power_set = true;
@@ -896,19 +896,19 @@ impl SoakDetector {
     }
 
     /// The thresholds in use.
-    pub fn params(&self) -> &SoakParams {
+    pub(crate) fn params(&self) -> &SoakParams {
         &self.params
     }
 
     /// The coupling from thermistor to surface the rule uses now, and where it came from.
-    pub fn coupling(&self) -> &Coupling {
+    pub(crate) fn coupling(&self) -> &Coupling {
         &self.coupling
     }
 
     /// The power (fraction of full power) that may still fall when the bed is declared: the
     /// surface budget times the coupling (issue 10's fixed value in the bench's comparison).
     #[must_use]
-    pub fn threshold(&self) -> f64 {
+    pub(crate) fn threshold(&self) -> f64 {
         self.params.fixed_remaining.unwrap_or_else(|| {
             (self.params.surface_budget_c * self.coupling.g).min(0.5 * self.max_power)
         })
@@ -951,22 +951,22 @@ impl SoakDetector {
     }
 
     /// The latest status (as returned by the last [`push`](Self::push)).
-    pub fn status(&self) -> &SoakStatus {
+    pub(crate) fn status(&self) -> &SoakStatus {
         &self.status
     }
 
     /// Why the detector says what it says, in words: what it waits for, or why it declared.
-    pub fn explanation(&self) -> &str {
+    pub(crate) fn explanation(&self) -> &str {
         &self.explanation
     }
 
     /// The latest decay fit, once the soak has enough data.
-    pub fn fit(&self) -> Option<DecayFit> {
+    pub(crate) fn fit(&self) -> Option<DecayFit> {
         self.fit
     }
 
     /// Forgets everything but the thresholds and `max_power` (a new heat-up).
-    pub fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         let (max_power, set) = (self.max_power, self.max_power_set);
         *self = SoakDetector::new(self.params.clone());
         self.max_power = max_power;
@@ -977,7 +977,7 @@ impl SoakDetector {
     /// the next sample, at most 30 s), bed temperature `temp_c` and target `target_c`. Samples
     /// that are not finite or not later than the previous one are ignored; a change of target
     /// restarts the soak. The status changes at most once per `bin_s`.
-    pub fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
+    pub(crate) fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
         if !(t_s.is_finite() && power.is_finite() && temp_c.is_finite() && target_c.is_finite()) {
             return self.status.clone();
         }

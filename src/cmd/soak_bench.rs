@@ -297,7 +297,7 @@ fn pass(ok: bool) -> &'static str {
 ///
 /// # Errors
 /// None in practice; the signature matches the other commands.
-pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
+pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
     let params = params.clone();
     let mut rng = fastrand::Rng::with_seed(args.seed);

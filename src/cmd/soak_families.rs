@@ -20,7 +20,7 @@ use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// One simulated bed run, as the detector sees it.
 #[derive(Debug, Clone)]
-pub struct Run {
+pub(crate) struct Run {
     /// `(t_s, power, temp_c, target_c)` as Klipper would report them.
     pub samples: Vec<[f64; 4]>,
     /// The true 1 % moment, s.
@@ -39,7 +39,7 @@ pub struct Run {
 /// The detector's declaration on a run (with the bed's max_power), s, its explanation at that
 /// moment (or at the end of the run), and the bin noise its test used then (0 without a fit).
 #[must_use]
-pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
+pub(crate) fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
     let mut det = SoakDetector::new(params.clone());
     det.set_max_power(run.max_power);
     let sigma = |det: &SoakDetector| det.fit().map_or(0.0, |f| f.test_sd);
@@ -60,7 +60,7 @@ pub fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
 /// That decay adds θ·e^((t−s)/τ) to the bin at s ≤ t; what the unknown final power cannot
 /// absorb of it is its spread about its mean over the n bins, a pair of geometric sums.
 #[must_use]
-pub fn information_bound(
+pub(crate) fn information_bound(
     from_s: f64,
     sigma: f64,
     tau_s: f64,
@@ -86,7 +86,7 @@ pub fn information_bound(
 /// The power the rule allows still to fall on a bed whose coupling is not identified nor
 /// named (the weakest).
 #[must_use]
-pub fn weakest_threshold(params: &SoakParams) -> f64 {
+pub(crate) fn weakest_threshold(params: &SoakParams) -> f64 {
     params.surface_budget_c
         * crate::calib::soak::BED_PRESETS
             .last()
@@ -249,7 +249,7 @@ impl ThreeNode {
 
 /// A `three_node` bed run.
 #[must_use]
-pub fn three_node(rng: &mut fastrand::Rng) -> Run {
+pub(crate) fn three_node(rng: &mut fastrand::Rng) -> Run {
     let bed = ThreeNode::random(rng);
     let horizon = 12.0 * bed.tau_slow + 3600.0;
     let clean = bed.run(rng, horizon, 0.0, 1.0);
@@ -292,7 +292,7 @@ pub fn three_node(rng: &mut fastrand::Rng) -> Run {
 /// down the power rises while the enclosure cools, and the true moment is when it is within
 /// 1 % of its final value.
 #[must_use]
-pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
+pub(crate) fn target_steps(rng: &mut fastrand::Rng) -> Run {
     let mut bed = ThreeNode::random(rng);
     let down = rng.f64() < 0.7;
     let (earlier, later) = if down {
@@ -338,7 +338,7 @@ pub fn target_steps(rng: &mut fastrand::Rng) -> Run {
 
 /// A `bang_bang` bed run: heater + plate, watermark control.
 #[must_use]
-pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
+pub(crate) fn bang_bang(rng: &mut fastrand::Rng) -> Run {
     let t_amb = uniform(rng, 15.0, 30.0);
     let target = uniform(rng, 60.0, 100.0);
     let max_power = if rng.f64() < 0.3 {
@@ -424,7 +424,7 @@ pub fn bang_bang(rng: &mut fastrand::Rng) -> Run {
 
 /// Heat-ups recorded once on the bench's real Klipper PID (klippy + the thermal plant, by
 /// `tests/bench/record_soak_trace.py`) at plate time constants of 5, 15 and 30 min.
-pub const RECORDED: &[(&str, &str)] = &[
+pub(crate) const RECORDED: &[(&str, &str)] = &[
     (
         "bench PID, plate τ 300 s",
         include_str!("../../tests/fixtures/soak/bench-pid-tau300.csv"),
@@ -447,7 +447,7 @@ pub const RECORDED: &[(&str, &str)] = &[
 ///
 /// # Errors
 /// A fixture that does not parse, or one too short to fit.
-pub fn recorded(text: &str) -> Result<Run, String> {
+pub(crate) fn recorded(text: &str) -> Result<Run, String> {
     let samples = super::soak::parse_trace(text).map_err(|e| e.to_string())?;
     let t_reach = samples
         .iter()
@@ -514,7 +514,7 @@ pub fn recorded(text: &str) -> Result<Run, String> {
 /// What one family gave: early, within 1.25× + 60 s, within 1.5× + 60 s, never, the median
 /// declared/true ratio, and a fixed preheat's too-early counts.
 #[derive(Debug, Clone)]
-pub struct FamilyReport {
+pub(crate) struct FamilyReport {
     /// Family name.
     pub name: &'static str,
     /// Beds.
@@ -556,7 +556,7 @@ pub struct FamilyReport {
 }
 
 /// Runs `beds` beds of one family through the detector.
-pub fn evaluate(
+pub(crate) fn evaluate(
     name: &'static str,
     beds: usize,
     seed: u64,

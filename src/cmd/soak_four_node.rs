@@ -29,7 +29,7 @@ const SMOOTH_TIME: f64 = 1.0;
 
 /// One bed: nodes pad, plate, surface, air; conductances W/K; capacities J/K.
 #[derive(Debug, Clone)]
-pub struct FourNode {
+pub(crate) struct FourNode {
     /// What it is, for the report.
     pub kind: Kind,
     c: [f64; 4],
@@ -48,7 +48,7 @@ pub struct FourNode {
 
 /// A family of four-node beds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Kind {
+pub(crate) struct Kind {
     /// Glass on clips (else a steel sheet on a magnet).
     pub glass: bool,
     /// Thermistor in the pad (else in the plate).
@@ -60,7 +60,7 @@ pub struct Kind {
 impl Kind {
     /// Its name in the report.
     #[must_use]
-    pub fn name(&self) -> String {
+    pub(crate) fn name(&self) -> String {
         format!(
             "{} {}, thermistor in the {}",
             if self.enclosed {
@@ -79,7 +79,7 @@ impl Kind {
 
     /// All eight.
     #[must_use]
-    pub fn all() -> Vec<Kind> {
+    pub(crate) fn all() -> Vec<Kind> {
         let mut v = Vec::new();
         for enclosed in [false, true] {
             for glass in [false, true] {
@@ -99,7 +99,7 @@ impl Kind {
 /// The grid's knobs, each 0..1 within its physical range (coupling, plate thickness,
 /// enclosure time constant, noise), or drawn at random.
 #[derive(Debug, Clone, Copy)]
-pub struct Knobs {
+pub(crate) struct Knobs {
     /// Surface contact (0 poor, 1 good).
     pub coupling: f64,
     /// Plate thickness (0 thin, 1 thick).
@@ -113,7 +113,7 @@ pub struct Knobs {
 impl FourNode {
     /// A bed of `kind` from the knobs, with the rest drawn.
     #[must_use]
-    pub fn new(kind: Kind, k: Knobs, rng: &mut fastrand::Rng) -> Self {
+    pub(crate) fn new(kind: Kind, k: Knobs, rng: &mut fastrand::Rng) -> Self {
         let side = uniform(rng, 0.22, 0.40);
         let a = side * side;
         // Heater: 0.35–1 W/cm², within 150–900 W.
@@ -173,7 +173,7 @@ impl FourNode {
 
     /// A random bed of `kind`.
     #[must_use]
-    pub fn random(kind: Kind, rng: &mut fastrand::Rng) -> Self {
+    pub(crate) fn random(kind: Kind, rng: &mut fastrand::Rng) -> Self {
         let k = Knobs {
             coupling: rng.f64(),
             plate: rng.f64(),
@@ -189,7 +189,7 @@ impl FourNode {
 
     /// The true coupling from the thermistor's node to the surface, full power per K.
     #[must_use]
-    pub fn g_true(&self) -> f64 {
+    pub(crate) fn g_true(&self) -> f64 {
         let w = if self.kind.pad_sensed {
             1.0 / (1.0 / self.k_pad_plate + 1.0 / self.k_plate_surf)
         } else {
@@ -216,7 +216,7 @@ impl FourNode {
     /// The surface's final temperature with the thermistor's node held at the target: the
     /// other three nodes' steady state (Gauss–Seidel on the linear balance).
     #[must_use]
-    pub fn surface_final_c(&self) -> f64 {
+    pub(crate) fn surface_final_c(&self) -> f64 {
         let s = self.sensor_node();
         let mut t = [self.target_c; 4];
         t[3] = self.room_c;
@@ -343,7 +343,7 @@ type Gains = (f64, f64, f64);
 /// pid_calibrate.ControlAutoTune on the bed from room temperature at its target: the PID
 /// gains (Klipper's units) a user's PID_CALIBRATE would write, or None if it did not finish.
 #[must_use]
-pub fn autotune(bed: &FourNode, rng: &mut fastrand::Rng) -> Option<(f64, f64, f64)> {
+pub(crate) fn autotune(bed: &FourNode, rng: &mut fastrand::Rng) -> Option<(f64, f64, f64)> {
     autotune_traced(bed, rng, None)
 }
 
@@ -423,7 +423,7 @@ pub(crate) fn autotune_traced(
 /// A heat-up from room temperature under Klipper's PID with these gains: `(t_s, power,
 /// reading, target, surface)` once a second for `until_s`.
 #[must_use]
-pub fn heat_up(
+pub(crate) fn heat_up(
     bed: &FourNode,
     gains: (f64, f64, f64),
     until_s: f64,
@@ -471,7 +471,7 @@ pub(crate) fn heat_up_traced(
 ///
 /// # Errors
 /// Where they were looked for, and how to install them.
-pub fn klippy_python() -> Result<(std::path::PathBuf, std::path::PathBuf), String> {
+pub(crate) fn klippy_python() -> Result<(std::path::PathBuf, std::path::PathBuf), String> {
     let repo = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
     let home = std::env::var_os("KLIPCAL_BENCH_HOME")
         .map_or_else(|| repo.join(".bench"), std::path::PathBuf::from);
@@ -491,7 +491,7 @@ pub fn klippy_python() -> Result<(std::path::PathBuf, std::path::PathBuf), Strin
 
 /// The port checked against Klipper's own Python on the same readings (`klipcal bench soak`).
 #[derive(Debug, Clone, Default)]
-pub struct KlipperCheck {
+pub(crate) struct KlipperCheck {
     /// Runs compared (an autotune and a PID heat-up per bed).
     pub runs: usize,
     /// Readings replayed, and those after which the pwm differed by more than `PWM_TOL`.
@@ -508,9 +508,9 @@ pub struct KlipperCheck {
 
 /// The pwm tolerance of [`klipper_check`]: both sides compute the same f64 expressions in
 /// the same order, so anything above rounding is a difference in the port.
-pub const PWM_TOL: f64 = 1e-9;
+pub(crate) const PWM_TOL: f64 = 1e-9;
 /// The relative tolerance on the autotune gains.
-pub const GAIN_TOL: f64 = 1e-9;
+pub(crate) const GAIN_TOL: f64 = 1e-9;
 
 /// Runs Klipper's own heaters.py / pid_calibrate.py (`python`, the klippy venv's, on
 /// `script`, tests/bench/klipper_control_check.py) on the readings of `beds` four-node beds
@@ -519,7 +519,7 @@ pub const GAIN_TOL: f64 = 1e-9;
 ///
 /// # Errors
 /// Python could not run or answered something unreadable.
-pub fn klipper_check(
+pub(crate) fn klipper_check(
     python: &std::path::Path,
     script: &std::path::Path,
     beds: usize,
@@ -636,7 +636,7 @@ pub fn klipper_check(
 
 /// What each rule said on one bed, s (None: not within the run).
 #[derive(Debug, Clone, Default)]
-pub struct BedResult {
+pub(crate) struct BedResult {
     /// The surface moment: the last time the surface was more than the budget from its final
     /// temperature (∞ when still so at the end of the run).
     pub moment_s: f64,
@@ -683,7 +683,7 @@ fn detector(samples: &[[f64; 5]], params: &SoakParams) -> (Option<f64>, SoakDete
 
 /// Every rule on one bed.
 #[must_use]
-pub fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedResult {
+pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedResult {
     let fin = bed.surface_final_c();
     let budget = params.surface_budget_c;
     let moment_s = match samples.iter().rposition(|s| fin - s[4] > budget) {
@@ -770,7 +770,7 @@ pub fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedRe
 
 /// The `soak.bed` preset a user of this kind of bed would set.
 #[must_use]
-pub fn preset_name(kind: Kind) -> &'static str {
+pub(crate) fn preset_name(kind: Kind) -> &'static str {
     match (kind.glass, kind.pad_sensed) {
         (false, false) => "steel-plate",
         (false, true) => "steel-pad",
@@ -782,7 +782,7 @@ pub fn preset_name(kind: Kind) -> &'static str {
 /// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`; with
 /// `preset`, klipcal's rule is also run with `soak.bed` set to the kind's preset.
 #[must_use]
-pub fn run_bed(
+pub(crate) fn run_bed(
     kind: Kind,
     knobs: Option<Knobs>,
     until_s: f64,

@@ -57,7 +57,7 @@ const PAIR: crate::jobs::core::table::ArgSpec = arg(
 );
 
 /// The A/B calibration's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<AbCall>] = &[
+pub(crate) static OPS: &[Op<AbCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_ab_start",
@@ -197,7 +197,7 @@ pub static OPS: &[Op<AbCall>] = &[
 
 /// An A/B call, typed at the boundary.
 #[derive(Debug, Clone, PartialEq)]
-pub enum AbCall {
+pub(crate) enum AbCall {
     /// `klipcal_ab_start`.
     Start(StartRequest),
     /// `klipcal_measure`.
@@ -213,7 +213,7 @@ pub enum AbCall {
 }
 
 /// The store's kind.
-pub const KIND: &str = "ab";
+pub(crate) const KIND: &str = "ab";
 
 /// "Wait 10 min more" after a soak that ran past `soak_max_s`.
 const SOAK_MORE_S: f64 = 600.0;
@@ -224,7 +224,7 @@ const TITLE: &str = "A/B calibration";
 /// A session's state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum State {
+pub(crate) enum State {
     /// Checking the printer.
     Preflight,
     /// The job is on the printer.
@@ -291,7 +291,7 @@ impl SessionState for State {
 
 /// The stepper facts a round was printed with.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct StepperDoc {
+pub(crate) struct StepperDoc {
     /// mm.
     pub rotation_distance_mm: f64,
     /// Microsteps.
@@ -304,7 +304,7 @@ pub struct StepperDoc {
 
 /// One print-measure-solve-apply round.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Round {
+pub(crate) struct Round {
     /// 1-based.
     pub n: u32,
     /// The job under Moonraker's gcodes root.
@@ -336,11 +336,11 @@ pub struct Round {
 }
 
 /// The whole session document, stored as JSON: the envelope around [`AbBody`].
-pub type Session = Envelope<State, AbBody>;
+pub(crate) type Session = Envelope<State, AbBody>;
 
 /// The A/B session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct AbBody {
+pub(crate) struct AbBody {
     /// Settings: `[ab]` with the start call's arguments.
     pub options: AbConfig,
     /// Rounds so far; the last is the current one.
@@ -369,7 +369,7 @@ pub struct AbBody {
 
 /// The A/B calibration's settings: `[ab]` and `[soak]`.
 #[derive(Debug, Clone, Default)]
-pub struct AbSettings {
+pub(crate) struct AbSettings {
     /// `[ab]`: defaults of a session's options.
     pub defaults: AbConfig,
     /// `[soak]`: the bed soak detector.
@@ -378,7 +378,7 @@ pub struct AbSettings {
 
 /// The A/B calibration over the shared core.
 #[derive(Clone)]
-pub struct Ab {
+pub(crate) struct Ab {
     core: Core,
     settings: AbSettings,
 }
@@ -386,7 +386,7 @@ pub struct Ab {
 impl Ab {
     /// The calibration over `core`.
     #[must_use]
-    pub fn new(core: Core, settings: AbSettings) -> Self {
+    pub(crate) fn new(core: Core, settings: AbSettings) -> Self {
         Self { core, settings }
     }
 
@@ -436,7 +436,7 @@ impl Ab {
 
 /// An A/B session's own part of its status.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbStatus {
+pub(crate) struct AbStatus {
     /// The current round, 1-based (0 before the first).
     pub round: usize,
     /// The current round's pairs.
@@ -461,7 +461,7 @@ pub struct AbStatus {
 
 /// One round as the status shows it.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbRoundStatus {
+pub(crate) struct AbRoundStatus {
     /// 1-based.
     pub n: u32,
     /// The job.

@@ -62,7 +62,7 @@ pub(super) const OP: Op<BacklashCall> = Op {
 
 /// `KLIPCAL_BACKLASH_CAMERA`.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CameraRequest {
+pub(crate) struct CameraRequest {
     pub axis: GuideAxis,
     pub cycles: Option<usize>,
     pub carriage: Option<i64>,
@@ -94,7 +94,7 @@ impl CameraRequest {
 
 /// The chosen webcam.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Webcam {
+pub(crate) struct Webcam {
     pub name: String,
     /// The absolute snapshot URL.
     pub snapshot_url: String,
@@ -199,7 +199,7 @@ fn along(axis: GuideAxis, d_mm: [f64; 2]) -> f64 {
 
 /// One reading: the mean of two still frames.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Seen {
+pub(crate) struct Seen {
     pub centre_px: [f64; 2],
     pub uncertainty_px: f64,
     /// Frames taken, and refused by detection.
@@ -209,7 +209,7 @@ pub struct Seen {
 
 /// One camera cycle, as the page and the status show it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraCycle {
+pub(crate) struct CameraCycle {
     pub plus_px: [f64; 2],
     pub minus_px: [f64; 2],
     pub backlash_mm: f64,
@@ -217,7 +217,7 @@ pub struct CameraCycle {
 
 /// How an axis was read through the camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraReport {
+pub(crate) struct CameraReport {
     pub webcam: Webcam,
     pub scale: Option<CameraScale>,
     /// The nozzle at the camera point (X approached moving +), px.

@@ -56,7 +56,7 @@ pub(super) const CARRIAGE_ARG: ArgSpec = arg(
 );
 
 /// The backlash measurement's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<BacklashCall>] = &[
+pub(crate) static OPS: &[Op<BacklashCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_set_point",
@@ -124,7 +124,7 @@ pub static OPS: &[Op<BacklashCall>] = &[
 
 /// A backlash call, typed at the boundary.
 #[derive(Debug, Clone, PartialEq)]
-pub enum BacklashCall {
+pub(crate) enum BacklashCall {
     /// `klipcal_backlash_set_point`.
     SetPoint,
     /// `klipcal_backlash_start`.
@@ -153,7 +153,7 @@ impl StartRequest {
     ///
     /// # Errors
     /// No or a bad axis, bad cycles or carriage.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         let carriage = a.int("carriage")?;
         let axis_text = a.text("axis").ok_or_else(|| {
             user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
@@ -172,9 +172,9 @@ impl StartRequest {
 }
 
 /// The store's kind.
-pub const KIND: &str = "backlash";
+pub(crate) const KIND: &str = "backlash";
 /// The store's key of the saved camera point (`{"point": [x, y, z]}`).
-pub const POINT_KEY: &str = "backlash_point";
+pub(crate) const POINT_KEY: &str = "backlash_point";
 const TITLE: &str = "backlash measurement";
 /// Jog and approach feed rate, mm/min.
 const JOG_F: f64 = 1200.0;
@@ -182,7 +182,7 @@ const JOG_F: f64 = 1200.0;
 /// A session's state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum State {
+pub(crate) enum State {
     /// The guided procedure runs for `axis`.
     Measuring,
     /// Every cycle of the last axis is in; another axis may start, or apply.
@@ -215,11 +215,11 @@ impl SessionState for State {
 }
 
 /// The stored session: the envelope around [`BacklashBody`].
-pub type Session = Envelope<State, BacklashBody>;
+pub(crate) type Session = Envelope<State, BacklashBody>;
 
 /// The backlash session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct BacklashBody {
+pub(crate) struct BacklashBody {
     /// The camera point (toolhead X, Y, Z).
     pub point: [f64; 3],
     /// What the printer's Klipper has.
@@ -252,7 +252,7 @@ struct PointDoc {
 
 /// A backlash session's own part of its status.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct BacklashStatus {
+pub(crate) struct BacklashStatus {
     /// The camera point (toolhead X, Y, Z).
     pub point: [f64; 3],
     /// What the printer's Klipper has.
@@ -274,14 +274,14 @@ pub struct BacklashStatus {
 }
 
 /// The backlash calibration.
-pub struct Backlash {
+pub(crate) struct Backlash {
     core: Core,
     settings: BacklashConfig,
 }
 
 impl Backlash {
     /// Over the shared core, with `[backlash]`.
-    pub fn new(core: Core, settings: BacklashConfig) -> Self {
+    pub(crate) fn new(core: Core, settings: BacklashConfig) -> Self {
         Self { core, settings }
     }
 

@@ -43,7 +43,7 @@ use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
 
 /// The thermal mesh's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<MeshCall>] = &[
+pub(crate) static OPS: &[Op<MeshCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_mesh_capture",
@@ -169,7 +169,7 @@ pub static OPS: &[Op<MeshCall>] = &[
 
 /// A thermal mesh call, typed at the boundary.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum MeshCall {
+pub(crate) enum MeshCall {
     /// `klipcal_mesh_capture`, with the bed temperature when given.
     Capture {
         /// °C (0: unheated).
@@ -187,12 +187,12 @@ pub enum MeshCall {
 }
 
 /// The store's kind.
-pub const KIND: &str = "mesh";
+pub(crate) const KIND: &str = "mesh";
 
 /// klipcal.cfg's macro that keeps the user's `BED_MESH_OFFSET` (in its variables `x`, `y`) so
 /// the follower can set it again after each load: Klipper's status does not show the offset,
 /// and `BED_MESH_PROFILE LOAD=` drops it.
-pub const OFFSET_MACRO: &str = "KLIPCAL_MESH_OFFSET";
+pub(crate) const OFFSET_MACRO: &str = "KLIPCAL_MESH_OFFSET";
 
 const TITLE: &str = "thermal mesh";
 
@@ -294,7 +294,7 @@ pub struct CoolingDoc {
 }
 
 /// The session document: the envelope around [`MeshBody`].
-pub type Session = Envelope<State, MeshBody>;
+pub(crate) type Session = Envelope<State, MeshBody>;
 
 /// The thermal mesh session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -326,7 +326,7 @@ pub struct MeshBody {
 /// The profile klipcal's BED_MESH_CALIBRATE stores each capture mesh under: never the
 /// user's `default` (a SAVE_CONFIG during the capture would write a capture mesh over it),
 /// and a `klipcal_` name, so the next profile write removes it should it reach printer.cfg.
-pub const CAPTURE_PROFILE: &str = "klipcal_capture";
+pub(crate) const CAPTURE_PROFILE: &str = "klipcal_capture";
 
 /// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
 fn params_from_status(p: &Value) -> Option<MeshParams> {
@@ -335,7 +335,7 @@ fn params_from_status(p: &Value) -> Option<MeshParams> {
 
 /// The thermal mesh over the shared core.
 #[derive(Clone)]
-pub struct Mesh {
+pub(crate) struct Mesh {
     core: Core,
     settings: MeshConfig,
     soak: SoakParams,
@@ -346,7 +346,7 @@ pub struct Mesh {
 impl Mesh {
     /// The calibration over `core`.
     #[must_use]
-    pub fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
+    pub(crate) fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
         Self {
             core,
             settings,
@@ -407,7 +407,7 @@ impl Mesh {
 
 /// A thermal mesh session's own part of its status.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct MeshStatus {
+pub(crate) struct MeshStatus {
     /// Meshes taken.
     pub meshes: usize,
     /// Each mesh's mean frame temperature, °C.
@@ -422,7 +422,7 @@ pub struct MeshStatus {
 /// trend, loaded profile, offset and residual; `{"following": false, "stopped": why}` once
 /// stopped.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct FollowStatus {
+pub(crate) struct FollowStatus {
     /// Whether the follower runs.
     pub following: bool,
     /// Why it stopped, once stopped.
@@ -446,7 +446,7 @@ impl FollowStatus {
 
 /// The follower's last reading and what it did with it.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct FollowReading {
+pub(crate) struct FollowReading {
     /// The frame temperature, °C.
     pub frame_c: f64,
     /// Whether the frame warms or cools.
@@ -470,14 +470,14 @@ fn klipper_message(e: &crate::moonraker::Error) -> String {
 
 /// `klipcal_<T>` with T to 0.01 °C.
 #[must_use]
-pub fn profile_name(temp_c: f64) -> String {
+pub(crate) fn profile_name(temp_c: f64) -> String {
     format!("{}{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX)
 }
 
 /// The profile of a direction: `klipcal_<T>` while heating (or for one model in every
 /// direction), `klipcal_cool_<T>` for the cooling model kept apart.
 #[must_use]
-pub fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
+pub(crate) fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
     match phase {
         Phase::Heating => profile_name(temp_c),
         Phase::Cooling => format!("{}cool_{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX),
