@@ -55,6 +55,7 @@ table{border-collapse:collapse;width:100%}td,th{text-align:left;padding:.2em .4e
 img.plot,.diagram svg{width:100%;height:auto;max-height:70vh}.diagram .pair.hl line{stroke:#e03131;stroke-width:1.2}
 .diagram .pair.hl text{fill:#c92a2a;font-weight:700}#banner{display:none;background:#fff3bf;padding:.5em 1em}
 .saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
+@media (max-width:600px){main{padding:.3em}section{padding:.6em .5em}td,th{padding:.2em .25em;font-size:.88em}}
 "#;
 
 const SCRIPT: &str = r#"
@@ -587,7 +588,7 @@ fn solution(h: &mut String, s: &Value) {
     let Some(r) = s["rounds"].as_array().and_then(|r| r.last()) else {
         return;
     };
-    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
+    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_<wbr>distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
     for (k, name) in ["stepper_x", "stepper_y"].iter().enumerate() {
         let f = |key: &str| r[key][k].as_f64();
         let _ = write!(
@@ -623,7 +624,7 @@ fn rounds_table(h: &mut String, s: &Value) {
     let Some(rounds) = s["rounds"].as_array().filter(|r| !r.is_empty()) else {
         return;
     };
-    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
+    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100&nbsp;mm</th><th>converged</th><th>applied</th></tr>");
     let mut solved = false;
     for r in rounds {
         solved |= !r["scale"].is_null();

@@ -367,7 +367,7 @@ impl Moonraker {
     ///
     /// # Errors
     /// As [`Moonraker::gcode`].
-    pub(crate) async fn gcode_within(&self, script: &str, limit: Duration) -> Result<(), Error> {
+    pub async fn gcode_within(&self, script: &str, limit: Duration) -> Result<(), Error> {
         self.call_within("printer.gcode.script", json!({ "script": script }), limit)
             .await
             .map(|_| ())
