@@ -129,6 +129,38 @@ pub struct StepperSettings {
     pub position_endstop: Option<f64>,
 }
 
+/// Klipper's `bed_mesh` status object: the fields asked for (the others empty).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct BedMeshStatus {
+    /// The mesh loaded now (`""` with none; `None` when not asked for or not reported).
+    pub profile_name: Option<String>,
+    /// The last probed points, `[row y][column x]`, mm.
+    pub probed_matrix: Vec<Vec<f64>>,
+    /// Every profile Klipper knows, by name.
+    pub profiles: BTreeMap<String, BedMeshProfileStatus>,
+}
+
+/// One profile in the `bed_mesh` status.
+#[derive(Debug, Clone, Deserialize)]
+pub struct BedMeshProfileStatus {
+    /// Its points, `[row y][column x]`, mm.
+    #[serde(default)]
+    pub points: Vec<Vec<f64>>,
+    /// Its parameters.
+    pub mesh_params: crate::klipper::bed_mesh::MeshParams,
+}
+
+impl BedMeshStatus {
+    /// Parses Klipper's `bed_mesh` status object.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming what is malformed.
+    pub fn parse(v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad("bed_mesh status", e))
+    }
+}
+
 /// The raw answer: sections kept whole until each known one is parsed.
 #[derive(Deserialize)]
 struct RawConfigFile {
@@ -325,6 +357,35 @@ mod tests {
         assert!(cf.config.is_empty());
         // An empty answer (Klipper not ready) is empty settings, not an error.
         assert!(ConfigFile::parse(json!({})).is_ok());
+    }
+
+    #[test]
+    fn the_bench_bed_mesh_status_parses_with_its_profiles() {
+        let bm = BedMeshStatus::parse(fixture("bed_mesh-status.json")).unwrap();
+        assert_eq!(bm.profile_name.as_deref(), Some(""), "no mesh loaded");
+        assert_eq!(
+            bm.probed_matrix,
+            vec![Vec::<f64>::new()],
+            "nothing probed yet: [[]]"
+        );
+        assert_eq!(bm.profiles.keys().collect::<Vec<_>>(), ["default", "hot"]);
+        let hot = &bm.profiles["hot"];
+        assert_eq!((hot.mesh_params.x_count, hot.mesh_params.y_count), (3, 3));
+        assert_eq!(hot.mesh_params.max_x, 280.0);
+        assert_eq!(hot.points[0], vec![0.04, 0.02, 0.0]);
+        // Only the fields asked for: the others are empty, not an error.
+        let bm = BedMeshStatus::parse(json!({"profile_name": "hot"})).unwrap();
+        assert_eq!(bm.profile_name.as_deref(), Some("hot"));
+        assert!(bm.profiles.is_empty() && bm.probed_matrix.is_empty());
+        assert_eq!(BedMeshStatus::parse(json!({})).unwrap().profile_name, None);
+        for bad in [
+            json!({"probed_matrix": [[0.1, "x"]]}),
+            json!({"profiles": {"p": {"points": []}}}),
+            json!({"profile_name": 3}),
+        ] {
+            let e = BedMeshStatus::parse(bad.clone()).unwrap_err().to_string();
+            assert!(e.contains("bed_mesh status"), "{bad}: {e}");
+        }
     }
 
     #[test]

@@ -15,7 +15,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::answers::ConfigFile;
+use super::answers::{BedMeshStatus, ConfigFile};
 use super::protocol::{self, Incoming, RpcError};
 use super::Error;
 
@@ -498,6 +498,16 @@ impl Moonraker {
             .objects_query(json!({ "configfile": ["config", "settings"] }))
             .await?;
         ConfigFile::parse(m.remove("configfile").unwrap_or_else(|| json!({})))
+    }
+
+    /// Klipper's `bed_mesh` status, typed: the `fields` asked for (`profile_name`,
+    /// `probed_matrix`, `profiles`).
+    ///
+    /// # Errors
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub async fn bed_mesh(&self, fields: &[&str]) -> Result<BedMeshStatus, Error> {
+        let mut m = self.objects_query(json!({ "bed_mesh": fields })).await?;
+        BedMeshStatus::parse(m.remove("bed_mesh").unwrap_or_else(|| json!({})))
     }
 
     /// Sends an event to Moonraker's clients (`connection.send_event`).

@@ -16,15 +16,13 @@ impl Mesh {
         self.preflight(&options).await?;
         self.stop_following("a capture starts").await;
         // The mesh the user has loaded now, to load again after each capture mesh.
-        let st = self
+        let user_mesh = self
             .core
             .m()
-            .objects_query(json!({"bed_mesh": ["profile_name"]}))
-            .await?;
-        let user_mesh = st["bed_mesh"]["profile_name"]
-            .as_str()
-            .unwrap_or("")
-            .to_string();
+            .bed_mesh(&["profile_name"])
+            .await?
+            .profile_name
+            .unwrap_or_default();
         let mut doc = Session::new(
             State::Preflight,
             "starting",
@@ -229,14 +227,12 @@ impl Mesh {
             }
         };
         if last {
-            let st = self
+            let kept = self
                 .core
                 .m()
-                .objects_query(json!({"bed_mesh": ["profiles"]}))
-                .await;
-            let kept = st.map_or(true, |st| {
-                !st["bed_mesh"]["profiles"][CAPTURE_PROFILE].is_null()
-            });
+                .bed_mesh(&["profiles"])
+                .await
+                .map_or(true, |bm| bm.profiles.contains_key(CAPTURE_PROFILE));
             if kept {
                 script.push_str(&format!("\nBED_MESH_PROFILE REMOVE={CAPTURE_PROFILE}"));
             }
@@ -302,16 +298,17 @@ impl Mesh {
         stop.cancel();
         let samples = sampler.await.unwrap_or_default();
         done.context("BED_MESH_CALIBRATE")?;
-        let st = self
+        let bm = self
             .core
             .m()
-            .objects_query(json!({"bed_mesh": ["probed_matrix", "profiles", "profile_name"]}))
+            .bed_mesh(&["probed_matrix", "profiles", "profile_name"])
             .await?;
         self.put_back_user_mesh(s, false).await;
-        let bm = &st["bed_mesh"];
-        let rows: Vec<Vec<f64>> = serde_json::from_value(bm["probed_matrix"].clone())
-            .context("reading bed_mesh.probed_matrix")?;
-        let params = params_from_status(&bm["profiles"][CAPTURE_PROFILE]["mesh_params"])
+        let rows = bm.probed_matrix;
+        let params = bm
+            .profiles
+            .get(CAPTURE_PROFILE)
+            .map(|p| p.mesh_params.clone())
             .ok_or_else(|| {
                 anyhow!("bed_mesh reports no mesh_params for profile {CAPTURE_PROFILE}")
             })?;
@@ -524,17 +521,14 @@ impl Mesh {
         profiles: &[MeshProfile],
     ) -> anyhow::Result<Option<String>> {
         let m = self.core.m();
-        let st = m
-            .objects_query(json!({"bed_mesh": ["profiles", "profile_name"]}))
-            .await?;
-        let bm = &st["bed_mesh"];
-        if let Some(p) = profiles.iter().find(|p| bm["profiles"][&p.name].is_null()) {
+        let bm = m.bed_mesh(&["profiles", "profile_name"]).await?;
+        if let Some(p) = profiles.iter().find(|p| !bm.profiles.contains_key(&p.name)) {
             return Ok(Some(format!(
                 "Klipper did not read profile {} from printer.cfg",
                 p.name
             )));
         }
-        let active = bm["profile_name"].as_str().unwrap_or("").to_string();
+        let active = bm.profile_name.unwrap_or_default();
         let mut refused = None;
         for p in profiles {
             let load = crate::klipper::GcodeCmd::new("BED_MESH_PROFILE")

@@ -164,10 +164,10 @@ impl Mesh {
                 let active = self
                     .core
                     .m()
-                    .objects_query(json!({"bed_mesh": ["profile_name"]}))
+                    .bed_mesh(&["profile_name"])
                     .await
                     .ok()
-                    .and_then(|st| st["bed_mesh"]["profile_name"].as_str().map(str::to_string));
+                    .and_then(|bm| bm.profile_name);
                 if active.is_some_and(|a| a != direction_profile_name(phase, temp_c)) {
                     info!("the active mesh changed under the follower (Klipper restarted?); reloading");
                     f = fresh();

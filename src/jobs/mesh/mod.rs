@@ -328,11 +328,6 @@ pub struct MeshBody {
 /// and a `klipcal_` name, so the next profile write removes it should it reach printer.cfg.
 pub(crate) const CAPTURE_PROFILE: &str = "klipcal_capture";
 
-/// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
-fn params_from_status(p: &Value) -> Option<MeshParams> {
-    serde_json::from_value(p.clone()).ok()
-}
-
 /// The thermal mesh over the shared core.
 #[derive(Clone)]
 pub(crate) struct Mesh {
