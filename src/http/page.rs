@@ -113,7 +113,7 @@ async function poll(){
     const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{}),Object.values(s.camera||{}).reduce((n,c)=>n+(c.cycles||[]).length,0)].join('|');
     const f=s.snapshot,fig=$('#snapshot');
     if(f&&!fig&&!dirty)location.reload();
-    if(f&&fig&&(f.click||fig.dataset.click==='1')&&String(f.seq)!==fig.dataset.seq&&!dirty)location.reload();
+    if(f&&fig&&(f.click||fig.dataset.click==='1')&&(String(f.seq)!==fig.dataset.seq||(f.click?'1':'0')!==fig.dataset.click)&&!dirty)location.reload();
     if(f&&fig&&String(f.seq)!==fig.dataset.seq){fig.dataset.seq=String(f.seq);$('#snapimg').src='/api/backlash/snapshot.jpg?seq='+f.seq;
       const g=$('#found'),c=f.centre_px;g.style.display=c?'':'none';if(c)g.setAttribute('transform','translate('+(c[0]+.5)+' '+(c[1]+.5)+')');
       $('#snapcap').textContent=f.refused?f.what+': no reading, '+f.refused:(c?f.what+': nozzle at ('+c[0].toFixed(2)+', '+c[1].toFixed(2)+') px ± '+f.uncertainty_px.toFixed(2)+' px':f.what)}
@@ -1171,6 +1171,45 @@ mod tests {
             "{page}"
         );
         assert!(page.contains("data-op=\"backlash/apply\""));
+    }
+
+    #[test]
+    fn a_camera_frame_is_shown_with_its_mark_or_as_the_snapshot_to_click_in() {
+        let mut st = json!({"ok": true, "session": {"kind": "backlash", "id": 9, "state": "measuring",
+            "progress": "camera", "axis": null,
+            "snapshot": {"seq": 12, "width": 640, "height": 480, "what": "X cycle 1/5 <b>",
+                         "centre_px": [300.25, 200.5], "radius_px": 28.0, "uncertainty_px": 0.05,
+                         "refused": null, "click": false, "hint_px": null},
+            "camera": {"x": {"webcam": {"name": "nozzle"}, "scale": {"x": {"scale_px_per_mm": 80.0},
+                "rotation_deg": 12.0}, "frames": 9, "refused_frames": 1,
+                "cycles": [{"plus_px": [300.0, 200.0], "minus_px": [306.0, 200.0],
+                            "plus_mm": 0.0012, "minus_mm": 0.0814, "backlash_mm": 0.0802}]}}},
+            "last": {}});
+        let page = render(&st, None);
+        assert!(
+            page.contains("src=\"/api/backlash/snapshot.jpg?seq=12\""),
+            "{page}"
+        );
+        // The mark at the detector's centre, + ½ for the SVG's pixel edges.
+        assert!(page.contains("<g id=\"found\" transform=\"translate(300.750 201.000)\">"));
+        assert!(page.contains("X cycle 1/5 &lt;b&gt;: nozzle at (300.25, 200.50) px ± 0.05 px"));
+        assert!(page.contains("<td>0.0012</td><td>0.0814</td><td class=\"b\">0.0802</td>"));
+        assert_eq!(page.matches("class=\"approach ").count(), 2);
+        assert!(page.contains("data-sig=\"9|measuring||{}|1\""), "{page}");
+        // Waiting for a click: no detector's mark, the help and the zoom's hint.
+        st["session"]["snapshot"]["click"] = json!(true);
+        st["session"]["snapshot"]["hint_px"] = json!([310.0, 205.5]);
+        let page = render(&st, None);
+        assert!(page.contains("data-click=\"1\" data-hint=\"310.000,205.500\""));
+        assert!(page.contains("id=\"clickhelp\"") && page.contains("Click the nozzle's tip"));
+        assert!(page.contains(
+            "<g id=\"found\" transform=\"translate(0.000 0.000)\" style=\"display:none\">"
+        ));
+        // A refused frame says why.
+        st["session"]["snapshot"]["click"] = json!(false);
+        st["session"]["snapshot"]["centre_px"] = Value::Null;
+        st["session"]["snapshot"]["refused"] = json!("two candidates");
+        assert!(render(&st, None).contains("X cycle 1/5 &lt;b&gt;: no reading, two candidates"));
     }
 
     #[test]

@@ -345,7 +345,10 @@ async fn camera_axis(
         "camera {args}: {key} {b:.4} mm ± {u:.4}, drawn {drawn_mm}, error {:+.1} µm",
         err * 1e3
     );
-    assert!(err.abs() <= 0.0015, "{key}: error {err} mm over 1.5 µm: {s}");
+    assert!(
+        err.abs() <= 0.0015,
+        "{key}: error {err} mm over 1.5 µm: {s}"
+    );
     assert!(u > 0.0 && u < 0.003, "{key}: stated ± {u}: {s}");
     assert_eq!(
         s["camera"][key]["cycles"].as_array().map(Vec::len),
@@ -513,7 +516,12 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
             klipcal_bin(),
         ],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let d = Daemon::ready(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n[http]\nbind = \"127.0.0.1:0\"\n\
+         trusted_clients = [\"127.0.0.1/32\"]\n",
+    )
+    .await;
     let files = bench.files();
     let (m, _c) = connect(&bench).await;
     set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
@@ -570,6 +578,24 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
         .unwrap();
     assert_eq!(r.headers()["content-type"], "image/jpeg");
     assert!(r.bytes().await.unwrap().starts_with(&[0xff, 0xd8]));
+    // The guard stands before it as before the page: an address outside trusted_clients is
+    // refused.
+    let r = crate::http::client_from("127.0.0.2")
+        .get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+    // A frame no longer kept, or a number that is not one, is said.
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=1"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 404);
+    assert!(r.text().await.unwrap().contains("no longer kept"));
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=x"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
     let truth = crate::backlash::nozzle(&bench);
     let want = drawn_px(&camera, [truth[0], truth[1]]);
     let found = [
@@ -639,15 +665,21 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
     }
 }
 
-/// Where image pixel `p` of the page's snapshot is on the screen now (CSS px of the window).
-fn screen_of(p: [f64; 2]) -> String {
-    format!(
-        "(() => {{ document.querySelector('#snapshot').scrollIntoView({{block: 'center'}});
-            const img = document.querySelector('#snapimg'), r = img.getBoundingClientRect(),
-                k = r.width / img.naturalWidth;
+/// Where image pixel `p` of the page's snapshot is on the screen now (CSS px of the window),
+/// scrolled into view; None while the page reloads.
+async fn at_screen(b: &mut Browser, p: [f64; 2]) -> Option<[f64; 2]> {
+    let v = b
+        .eval(&format!(
+            "(() => {{ const fig = document.querySelector('#snapshot'),
+                img = document.querySelector('#snapimg');
+            if (!fig || !img || !img.naturalWidth) return null;
+            fig.scrollIntoView({{block: 'center'}});
+            const r = img.getBoundingClientRect(), k = r.width / img.naturalWidth;
             return [r.left + ({} + 0.5) * k, r.top + ({} + 0.5) * k]; }})()",
-        p[0], p[1]
-    )
+            p[0], p[1]
+        ))
+        .await;
+    Some([v[0].as_f64()?, v[1].as_f64()?])
 }
 
 /// Issue 27 Build 4, the click-in-snapshot flow: on a camera the detector refuses (two nozzles
@@ -723,13 +755,14 @@ async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
         if !b.wait_for(&ready, Duration::from_secs(10)).await {
             continue; // the next snapshot is still coming (the status is asked again)
         }
-        let seq: u64 = b
-            .eval("document.querySelector('#snapshot').dataset.seq")
+        let Some(seq) = b
+            .eval("(document.querySelector('#snapshot') || {dataset: {}}).dataset.seq || null")
             .await
             .as_str()
-            .unwrap()
-            .parse()
-            .unwrap();
+            .and_then(|v| v.parse::<u64>().ok())
+        else {
+            continue; // the page is reloading
+        };
         if !refused_checked {
             // Another frame's number, or a point outside the picture: refused by name, and
             // the snapshot still waits.
@@ -757,43 +790,40 @@ async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
         let truth = crate::backlash::nozzle(&bench);
         let drawn = drawn_px(&camera, [truth[0], truth[1]]);
         let zoomed = b
-            .eval("document.querySelector('.stage').style.transform !== ''")
+            .eval("(document.querySelector('.stage') || {style: {}}).style.transform || ''")
             .await
-            == json!(true);
+            != json!("");
         if !zoomed {
             // Whole picture: a first click near the tip zooms in there.
-            let p = b.eval(&screen_of(drawn)).await;
-            b.tap(p[0].as_f64().unwrap() + 3.0, p[1].as_f64().unwrap() - 2.0)
-                .await;
+            let Some(p) = at_screen(&mut b, drawn).await else {
+                continue;
+            };
+            b.tap(p[0] + 3.0, p[1] - 2.0).await;
             presses += 1;
-            assert!(
-                b.wait_for(
+            if !b
+                .wait_for(
                     "document.querySelector('.stage').style.transform !== ''",
-                    Duration::from_secs(5)
+                    Duration::from_secs(5),
                 )
-                .await,
-                "the first click did not zoom in"
-            );
-        }
-        let p = b.eval(&screen_of(drawn)).await;
-        let err = [rng.f64() * 4.0 - 2.0, rng.f64() * 4.0 - 2.0];
-        b.tap(
-            p[0].as_f64().unwrap() + err[0],
-            p[1].as_f64().unwrap() + err[1],
-        )
-        .await;
-        presses += 1;
-        assert!(
-            b.wait_for(
-                "document.querySelector('#clickhelp').textContent.includes('saved')",
-                Duration::from_secs(10)
-            )
-            .await,
-            "the click was not taken: {}",
-            b.eval("document.querySelector('#clickhelp').textContent")
                 .await
-        );
-        done_seq = seq;
+            {
+                continue; // the page reloaded under the click: a press lost, counted
+            }
+        }
+        let Some(p) = at_screen(&mut b, drawn).await else {
+            continue;
+        };
+        let err = [rng.f64() * 4.0 - 2.0, rng.f64() * 4.0 - 2.0];
+        b.tap(p[0] + err[0], p[1] + err[1]).await;
+        presses += 1;
+        if b.wait_for(
+            "document.querySelector('#clickhelp').textContent.includes('saved')",
+            Duration::from_secs(10),
+        )
+        .await
+        {
+            done_seq = seq;
+        }
     };
     assert_eq!(s["state"], "measured", "{s}");
     let r = &s["results"]["x"];

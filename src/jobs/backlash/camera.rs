@@ -897,7 +897,7 @@ impl Backlash {
     /// how to run it again (axes measured before are kept).
     pub(super) async fn camera_interrupted(&self, s: &Session) {
         let why = "camera measurement interrupted by a klipcal restart; run \
-                   KLIPCAL_BACKLASH_CAMERA again";
+                   KLIPCAL_BACKLASH_CAMERA (or KLIPCAL_BACKLASH_CLICK) again";
         if s.cycles.is_empty() {
             let _ = self.finish(s.id, State::Failed, why).await;
         } else {
