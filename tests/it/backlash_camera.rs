@@ -690,10 +690,23 @@ async fn at_screen(b: &mut Browser, p: [f64; 2]) -> Option<[f64; 2]> {
 /// drawn play within its stated ± with far fewer presses than the jog flow's ~250–300.
 #[tokio::test]
 async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
+    click_flow((1280, 900, false), 4, 27, "backlash-clicks.png").await;
+}
+
+/// The same on a phone-sized page (390×844, the phone's layout): the picture is 4.5 times
+/// smaller on the screen, so the same 2-pixel slips of the finger are larger in the picture.
+#[tokio::test]
+async fn clicking_the_tip_on_a_phone_sized_page_measures_the_drawn_play() {
+    click_flow((390, 844, true), 9, 5, "backlash-clicks-phone.png").await;
+}
+
+/// Runs KLIPCAL_BACKLASH_CLICK through Klipper and clicks each snapshot in Chromium at `size`;
+/// `camera_seed` draws the camera, `click_seed` the slips.
+async fn click_flow(size: (u32, u32, bool), camera_seed: u64, click_seed: u64, shot: &str) {
     const TRUE_X: f64 = 0.06;
     const CYCLES: usize = 3;
     let camera = json!({"look": "two_nozzles", "px_per_mm": 80, "rotation_deg": -20,
-        "offset_px": [-10, 6], "centre_mm": [100, 100], "seed": 4});
+        "offset_px": [-10, 6], "centre_mm": [100, 100], "seed": camera_seed});
     let bench = Bench::start_args(
         "cartesian",
         &[
@@ -733,9 +746,9 @@ async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
         .unwrap();
     let base = d.page_url().await;
     let mut b = Browser::start().await;
-    b.set_viewport(1280, 900, false).await;
+    b.set_viewport(size.0, size.1, size.2).await;
     b.open(&format!("{base}/")).await;
-    let mut rng = fastrand::Rng::with_seed(27);
+    let mut rng = fastrand::Rng::with_seed(click_seed);
     let mut presses = 0;
     let mut done_seq = 0u64;
     let mut refused_checked = false;
@@ -832,8 +845,8 @@ async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
     let cam = &s["camera"]["x"];
     let sx = cam["scale"]["x"]["scale_px_per_mm"].as_f64().unwrap();
     eprintln!(
-        "clicks: {got:.4} mm ± {u:.4}, drawn {TRUE_X}, error {:+.1} µm; {presses} presses \
-         ({} clicks), scale {sx:.2} px/mm (drawn 80)",
+        "clicks at {size:?}: {got:.4} mm ± {u:.4}, drawn {TRUE_X}, error {:+.1} µm; \
+         {presses} presses ({} clicks), scale {sx:.2} px/mm (drawn 80)",
         (got - TRUE_X) * 1e3,
         cam["clicks"]
     );
@@ -857,5 +870,5 @@ async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
         .map(|c| format!("{:.4}", c["backlash_mm"].as_f64().unwrap()))
         .collect();
     assert_eq!(cycles, json!(want));
-    b.screenshot(&artifact("backlash-clicks.png")).await;
+    b.screenshot(&artifact(shot)).await;
 }
