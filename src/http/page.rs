@@ -128,14 +128,14 @@ setInterval(poll,3000);
 // click zooms in there.
 const fig=$('#snapshot');
 if(fig&&fig.dataset.click==='1'){
-  const img=$('#snapimg'),stage=$('.stage',fig),ZOOM=4;
+  const img=$('#snapimg'),stage=$('.stage',fig);let ZOOM=+(fig.dataset.zoom||4);
   let at=fig.dataset.hint?fig.dataset.hint.split(',').map(Number):null;
   const view=()=>{if(!at){stage.style.transform='';return}
     const W=stage.clientWidth,H=stage.clientHeight,k=W/img.naturalWidth;
     stage.style.transform='translate('+(W/2-ZOOM*(at[0]+.5)*k)+'px,'+(H/2-ZOOM*(at[1]+.5)*k)+'px) scale('+ZOOM+')'};
   const ready=()=>{view();fig.dataset.ready='1'};
   if(img.complete&&img.naturalWidth)ready();else img.addEventListener('load',ready);
-  const whole=$('#wholepic');if(whole)whole.addEventListener('click',ev=>{ev.preventDefault();at=null;view()});
+  const whole=$('#wholepic');if(whole)whole.addEventListener('click',ev=>{ev.preventDefault();at=null;ZOOM=4;view()});
   $('.snap',fig).addEventListener('click',async ev=>{
     if(fig.dataset.sent)return;
     const r=img.getBoundingClientRect(),k=img.naturalWidth/r.width;
@@ -573,7 +573,10 @@ fn snapshot_figure(h: &mut String, s: &Value) {
     let seq = text(&f["seq"]);
     let click = f["click"] == Value::Bool(true);
     let hint = match (f["hint_px"][0].as_f64(), f["hint_px"][1].as_f64()) {
-        (Some(x), Some(y)) => format!(" data-hint=\"{x:.3},{y:.3}\""),
+        (Some(x), Some(y)) => format!(
+            " data-hint=\"{x:.3},{y:.3}\" data-zoom=\"{}\"",
+            f["zoom"].as_f64().unwrap_or(4.0)
+        ),
         _ => String::new(),
     };
     if click {
@@ -1018,6 +1021,7 @@ mod tests {
                 refused: Some(String::new()),
                 click: false,
                 hint_px: Some([1.0, 2.0]),
+                zoom: Some(4.0),
             }),
         };
         let mut last = std::collections::BTreeMap::new();
@@ -1199,8 +1203,9 @@ mod tests {
         // Waiting for a click: no detector's mark, the help and the zoom's hint.
         st["session"]["snapshot"]["click"] = json!(true);
         st["session"]["snapshot"]["hint_px"] = json!([310.0, 205.5]);
+        st["session"]["snapshot"]["zoom"] = json!(8.0);
         let page = render(&st, None);
-        assert!(page.contains("data-click=\"1\" data-hint=\"310.000,205.500\""));
+        assert!(page.contains("data-click=\"1\" data-hint=\"310.000,205.500\" data-zoom=\"8\""));
         assert!(page.contains("id=\"clickhelp\"") && page.contains("Click the nozzle's tip"));
         assert!(page.contains(
             "<g id=\"found\" transform=\"translate(0.000 0.000)\" style=\"display:none\">"

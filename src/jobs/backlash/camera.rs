@@ -376,6 +376,7 @@ impl Backlash {
                 refused: None,
                 click: false,
                 hint_px: None,
+                zoom: None,
             },
         );
         Ok((seq, [w, h]))
@@ -431,6 +432,7 @@ impl Backlash {
                     refused,
                     click: false,
                     hint_px: None,
+                    zoom: None,
                 },
             );
         }
@@ -736,6 +738,7 @@ impl Backlash {
             clicks,
         } = run;
         let http = self.http()?;
+        self.clicks.forget(id);
         let total = 6 + 2 * cycles;
         let mut n = 0;
         let mut read = |what: String| {
@@ -817,6 +820,9 @@ impl Backlash {
             (dx[0] * unit[0] + dy[0] * unit[1]).hypot(dx[1] * unit[0] + dy[1] * unit[1]);
         report.scale = Some(scale);
         report.reference_px = Some(reference);
+        if clicks {
+            self.clicks.point_at(id, reference);
+        }
         // 2. The seed's cycles, read from the image.
         let mut got = Vec::new();
         for c in 1..=cycles {

@@ -138,11 +138,19 @@ struct Pending {
     tx: oneshot::Sender<([f64; 2], f64)>,
 }
 
-/// The one snapshot waiting for a click, if any, and the last click (where the page zooms).
+/// The page's zoom on a snapshot before the camera point's place in the picture is known (the
+/// ±0.5 mm scale moves, 40 px apart at 80 px/mm, stay in view) and after it (the cycles' two
+/// approaches differ by the backlash only: the finger's slip is half as large in the picture).
+pub(crate) const ZOOM_SCALE: f64 = 4.0;
+pub(crate) const ZOOM_CYCLES: f64 = 8.0;
+
+/// The one snapshot waiting for a click, if any, the last click and the camera point's place
+/// in the picture (where the page zooms).
 #[derive(Default)]
 pub(crate) struct Clicks {
     pending: Mutex<Option<Pending>>,
     last: Mutex<Option<(i64, [f64; 2])>>,
+    point: Mutex<Option<(i64, [f64; 2])>>,
 }
 
 impl Clicks {
@@ -152,13 +160,36 @@ impl Clicks {
             .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
-    /// Where `session`'s last click was, px.
-    pub(crate) fn last(&self, session: i64) -> Option<[f64; 2]> {
-        let g = self
-            .last
+    /// Where the page zooms for `session`, px, and by how much: on the camera point once the
+    /// scale is known, else on the last click.
+    pub(crate) fn hint(&self, session: i64) -> Option<([f64; 2], f64)> {
+        let of = |m: &Mutex<Option<(i64, [f64; 2])>>| {
+            m.lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                .filter(|(s, _)| *s == session)
+                .map(|(_, p)| p)
+        };
+        of(&self.point)
+            .map(|p| (p, ZOOM_CYCLES))
+            .or_else(|| of(&self.last).map(|p| (p, ZOOM_SCALE)))
+    }
+
+    /// A new measurement of `session` starts: no zoom yet.
+    pub(crate) fn forget(&self, session: i64) {
+        for m in [&self.last, &self.point] {
+            let mut g = m.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            if g.is_some_and(|(s, _)| s == session) {
+                *g = None;
+            }
+        }
+    }
+
+    /// The camera point is at `at_px` in `session`'s pictures.
+    pub(crate) fn point_at(&self, session: i64, at_px: [f64; 2]) {
+        *self
+            .point
             .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        g.filter(|(s, _)| *s == session).map(|(_, p)| p)
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some((session, at_px));
     }
 
     /// The snapshot `seq` of `session` is waiting for its click.

@@ -533,7 +533,10 @@ impl Calibration for Backlash {
             camera: s.camera.clone(),
             snapshot: self.frames.newest(s.id).map(|mut f| {
                 f.click = self.clicks.waiting(s.id, f.seq);
-                f.hint_px = self.clicks.last(s.id);
+                if let Some((at, zoom)) = self.clicks.hint(s.id) {
+                    f.hint_px = Some(at);
+                    f.zoom = Some(zoom);
+                }
                 f
             }),
         };

@@ -33,8 +33,11 @@ pub struct SnapshotInfo {
     pub refused: Option<String>,
     /// The click-in-snapshot flow waits for the person to click the nozzle's tip in it.
     pub click: bool,
-    /// Where the person clicked last in this session, px (the page zooms there).
+    /// Where the page zooms in for the click, px (the last click, or the camera point once the
+    /// scale is known) …
     pub hint_px: Option<[f64; 2]>,
+    /// … and by how much.
+    pub zoom: Option<f64>,
 }
 
 struct Frame {
@@ -111,6 +114,7 @@ mod tests {
             refused: None,
             click: false,
             hint_px: None,
+            zoom: None,
         }
     }
 
