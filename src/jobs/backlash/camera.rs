@@ -284,7 +284,17 @@ impl CameraReport {
     /// The statistics' settings for these cycles: the camera's noise floor, not a jog's.
     pub(super) fn params(&self, base: &BacklashParams) -> BacklashParams {
         if self.axis_px_per_mm > 0.0 && self.detection_sd_px > 0.0 {
-            camera_scale::camera_params(base, self.detection_sd_px, self.axis_px_per_mm)
+            // The scale's sd along the axis: the larger of X's and Y's relative sd.
+            let rel = self.scale.map_or(0.0, |c| {
+                (c.x.scale_sd_px_per_mm / c.x.scale_px_per_mm)
+                    .max(c.y.scale_sd_px_per_mm / c.y.scale_px_per_mm)
+            });
+            camera_scale::camera_params(
+                base,
+                self.detection_sd_px,
+                self.axis_px_per_mm,
+                rel * self.axis_px_per_mm,
+            )
         } else {
             base.clone()
         }
