@@ -283,6 +283,7 @@ impl BacklashConfig {
             prior_cycle_sd_mm: self.prior_cycle_sd_mm,
             accel_budget_fraction: self.accel_budget_fraction,
             outlier_sigmas: self.outlier_sigmas,
+            scale_rel_sd: 0.0,
         }
     }
 

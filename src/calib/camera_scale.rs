@@ -234,11 +234,14 @@ pub(crate) fn cycle(
 
 /// The backlash statistics' settings for camera cycles: the reading resolution becomes the
 /// camera's, so the noise floor and outlier limit of [`super::backlash::analyse`] are the
-/// detection's (per cycle sd √2·u/scale, u the detection's px sd) instead of a jog step's.
+/// detection's (per cycle sd √2·u/scale, u the detection's px sd) instead of a jog step's, and
+/// the scale's relative uncertainty (`scale_sd_px_per_mm / scale_px_per_mm`, from
+/// [`fit_axis`]) enters the stated ± in proportion to the value.
 pub(crate) fn camera_params(
     base: &BacklashParams,
     detection_sd_px: f64,
     scale_px_per_mm: f64,
+    scale_sd_px_per_mm: f64,
 ) -> BacklashParams {
     let cycle_sd_mm = std::f64::consts::SQRT_2 * detection_sd_px / scale_px_per_mm;
     BacklashParams {
@@ -248,6 +251,7 @@ pub(crate) fn camera_params(
             .prior_cycle_sd_mm
             .min(3.0 * cycle_sd_mm)
             .max(cycle_sd_mm),
+        scale_rel_sd: (scale_sd_px_per_mm / scale_px_per_mm).abs(),
         ..base.clone()
     }
 }
@@ -325,7 +329,7 @@ mod tests {
         let minus = [r[0], r[1] + 0.03 * 80.0];
         let c = cycle(&cam, Axis::X, 100.0, plus, minus, r);
         assert!((c.backlash_mm() - 0.06).abs() < 1e-3, "{c:?}");
-        let p = camera_params(&BacklashParams::default(), 0.1, 80.0);
+        let p = camera_params(&BacklashParams::default(), 0.1, 80.0, 0.08);
         let res = crate::calib::backlash::analyse("x", &[c, c, c], None, &p).unwrap();
         assert!((res.backlash_mm - 0.06).abs() < 1e-3);
     }

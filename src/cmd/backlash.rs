@@ -762,7 +762,12 @@ fn camera_procedure(
             reference,
         ));
     }
-    let p = camera_scale::camera_params(params, ref_u, scale.x.scale_px_per_mm);
+    let p = camera_scale::camera_params(
+        params,
+        ref_u,
+        scale.x.scale_px_per_mm,
+        scale.x.scale_sd_px_per_mm,
+    );
     Ok(backlash::analyse("x", &cyc, None, &p)
         .ok()
         .map(|r| (r.backlash_mm, r.uncertainty_mm, refused)))

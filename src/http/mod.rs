@@ -170,6 +170,7 @@ fn router(shared: Shared) -> Router {
         .route("/api/sessions/{id}/diagram.svg", get(diagram))
         .route("/api/sessions/{id}/convergence.svg", get(convergence))
         .route("/api/plots/soak.svg", get(soak_plot))
+        .route("/api/backlash/snapshot.jpg", get(backlash_snapshot))
         .route("/api/{*op}", post(operation))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
@@ -366,6 +367,44 @@ async fn soak_plot(State(h): State<Shared>) -> Response {
     match crate::jobs::soak::soak_picture(&h.m, &h.soak).await {
         Ok(text) => svg(text),
         Err(why) => error(StatusCode::SERVICE_UNAVAILABLE, &why),
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct SeqQuery {
+    seq: Option<u64>,
+}
+
+/// The backlash measurement's camera frame (`?seq=N` as the status names it, or the newest),
+/// served from klipcal's memory: the page shows it even where the webcam's own address is not
+/// reachable (inside Mainsail's iframe, on a phone).
+async fn backlash_snapshot(
+    State(h): State<Shared>,
+    q: Result<Query<SeqQuery>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let Some(cals) = &h.cals else {
+        return no_sessions();
+    };
+    let Ok(Query(q)) = q else {
+        return error(
+            StatusCode::BAD_REQUEST,
+            "seq: expected a whole number, e.g. /api/backlash/snapshot.jpg?seq=3",
+        );
+    };
+    match cals.snapshot_jpeg("backlash", q.seq) {
+        Some(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg")], jpeg).into_response(),
+        None => error(
+            StatusCode::NOT_FOUND,
+            &match q.seq {
+                Some(n) => format!(
+                    "camera frame {n} is no longer kept (klipcal keeps the newest few); \
+                     /api/status names the newest"
+                ),
+                None => "no camera frame since klipcal started: frames are kept while \
+                         KLIPCAL_BACKLASH_CAMERA measures"
+                    .to_string(),
+            },
+        ),
     }
 }
 

@@ -98,6 +98,12 @@ impl Calibrations {
         &self.core
     }
 
+    /// A camera frame `kind` keeps for the page (`seq`, or the newest), JPEG.
+    #[must_use]
+    pub fn snapshot_jpeg(&self, kind: &str, seq: Option<u64>) -> Option<Vec<u8>> {
+        self.by_kind(kind)?.snapshot_jpeg(seq)
+    }
+
     fn by_kind(&self, kind: &str) -> Option<&Arc<dyn Calibration>> {
         self.list.iter().find(|c| c.kind() == kind)
     }
@@ -449,6 +455,7 @@ mod tests {
             "_KLIPCAL_PROMPT_CLOSE",
             "_KLIPCAL_CANCEL_ASK",
             "_KLIPCAL_BACKLASH_JOG",
+            "_KLIPCAL_BACKLASH_TIP",
         ] {
             assert!(
                 all_ops().iter().any(|o| o.macro_name == helper),
@@ -456,9 +463,9 @@ mod tests {
             );
             assert!(!visible.contains(&&helper[1..]), "{helper} shows");
         }
-        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA (issue 27).
+        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA and KLIPCAL_BACKLASH_CLICK (issue 27).
         assert!(
-            visible.len() <= 17,
+            visible.len() <= 18,
             "{} buttons: {visible:?}",
             visible.len()
         );

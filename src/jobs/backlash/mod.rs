@@ -9,8 +9,10 @@
 
 mod apply;
 pub mod camera;
+pub mod click;
 mod dual;
 mod guide;
+pub mod snapshot;
 
 use std::collections::BTreeMap;
 
@@ -89,6 +91,8 @@ pub(crate) static OPS: &[Op<BacklashCall>] = &[
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
     camera::OP,
+    click::START_OP,
+    click::TIP_OP,
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
@@ -131,8 +135,10 @@ pub(crate) enum BacklashCall {
     Start(StartRequest),
     /// `klipcal_backlash_jog`.
     Jog(Press),
-    /// `klipcal_backlash_camera`.
+    /// `klipcal_backlash_camera` and `klipcal_backlash_click`.
     Camera(camera::CameraRequest),
+    /// `klipcal_backlash_tip`: a click in the snapshot on the page.
+    Tip(click::TipRequest),
     /// `klipcal_backlash_apply`.
     Apply,
 }
@@ -271,18 +277,40 @@ pub(crate) struct BacklashStatus {
     pub active_mm: BTreeMap<String, f64>,
     /// Axes read through the nozzle camera: how, per result key.
     pub camera: BTreeMap<String, camera::CameraReport>,
+    /// The newest camera frame of this session (kept in memory since klipcal started), with
+    /// what the detector found in it: `GET /api/backlash/snapshot.jpg?seq=` serves it.
+    pub snapshot: Option<snapshot::SnapshotInfo>,
 }
 
 /// The backlash calibration.
 pub(crate) struct Backlash {
     core: Core,
     settings: BacklashConfig,
+    /// The camera frames the page shows (shared with the measurement's task).
+    frames: std::sync::Arc<snapshot::Frames>,
+    /// The snapshot waiting for the person's click (shared likewise).
+    clicks: std::sync::Arc<click::Clicks>,
 }
 
 impl Backlash {
     /// Over the shared core, with `[backlash]`.
     pub(crate) fn new(core: Core, settings: BacklashConfig) -> Self {
-        Self { core, settings }
+        Self {
+            core,
+            settings,
+            frames: std::sync::Arc::default(),
+            clicks: std::sync::Arc::default(),
+        }
+    }
+
+    /// Another handle on the same calibration (for a task that outlives the call).
+    fn sibling(&self) -> Self {
+        Self {
+            core: self.core.clone(),
+            settings: self.settings.clone(),
+            frames: self.frames.clone(),
+            clicks: self.clicks.clone(),
+        }
     }
 
     /// The camera point saved by KLIPCAL_BACKLASH_SET_POINT, if any.
@@ -453,6 +481,14 @@ impl Declare for Backlash {
             results,
             active_mm: s.active_mm.clone(),
             camera: s.camera.clone(),
+            snapshot: self.frames.newest(s.id).map(|mut f| {
+                f.click = self.clicks.waiting(s.id, f.seq);
+                if let Some((at, zoom)) = self.clicks.hint(s.id) {
+                    f.hint_px = Some(at);
+                    f.zoom = Some(zoom);
+                }
+                f
+            }),
         };
         SessionStatus::new(KIND, s.head(), &body)
     }
@@ -470,6 +506,7 @@ impl Calibration for Backlash {
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
                 BacklashCall::Camera(r) => self.camera(&r).await,
+                BacklashCall::Tip(r) => self.tip(&r),
                 BacklashCall::Apply => self.apply().await,
             }
         }
@@ -490,6 +527,10 @@ impl Calibration for Backlash {
 
     fn held(&self, _row: &SessionRow) -> Option<Hold> {
         None
+    }
+
+    fn snapshot_jpeg(&self, seq: Option<u64>) -> Option<Vec<u8>> {
+        self.frames.jpeg(seq)
     }
 
     fn heaters_turned_off<'a>(&'a self, _row: &'a SessionRow) -> BoxFuture<'a, ()> {

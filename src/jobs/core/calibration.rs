@@ -112,6 +112,10 @@ pub trait Calibration: Declared + Send + Sync {
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.
     fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()>;
+    /// A camera frame it keeps for the page (`seq`, or the newest), JPEG.
+    fn snapshot_jpeg(&self, _seq: Option<u64>) -> Option<Vec<u8>> {
+        None
+    }
     /// Runs once the daemon is connected (e.g. a follower the settings switch on).
     fn connected(&self) -> BoxFuture<'_, ()> {
         Box::pin(async {})
