@@ -21,7 +21,6 @@
 //!    floor ([`crate::calib::camera_scale::camera_params`]); KLIPCAL_BACKLASH_APPLY applies
 //!    them through the same verified path.
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -30,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use super::snapshot::SnapshotInfo;
-use super::{key_words, next_line, result_key, start_note, Backlash, BacklashBody, BacklashCall};
+use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall};
 use super::{Session, State};
 use super::{JOG_F, KIND, TITLE};
 use crate::calib::backlash::{BacklashParams, Cycle};
@@ -587,52 +586,19 @@ impl Backlash {
             .active_values(&detection, &cf, axis, carriage, &key)
             .await?;
         let progress = format!("camera: measuring {}", key_words(&key));
-        let existing = {
-            let _g = self.core.lock().await;
-            match self.active()? {
-                Some(mut s) if s.state == State::Measured => {
-                    s.state = State::Measuring;
-                    s.progress = progress.clone();
-                    s.guide = None;
-                    s.point = point;
-                    s.detection = detection.clone();
-                    s.active_mm.extend(active_mm.clone());
-                    s.carriage = carriage;
-                    s.kinematics = kin.clone();
-                    self.core.save(s.id, &s)?;
-                    Some(s)
-                }
-                Some(s) => {
-                    return Err(user(format!(
-                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
-                        s.id,
-                        s.state.name()
-                    )))
-                }
-                None => None,
-            }
-        };
-        let id = match existing {
-            Some(s) => s.id,
-            None => {
-                let mut s = Session::new(
-                    State::Measuring,
-                    progress.clone(),
-                    BacklashBody {
-                        point,
-                        detection,
-                        active_mm,
-                        guide: None,
-                        cycles: BTreeMap::new(),
-                        max_accel_mm_s2: max_accel,
-                        carriage,
-                        kinematics: kin,
-                        camera: BTreeMap::new(),
-                    },
-                );
-                self.core.create(KIND, &mut s, |s, id| s.id = id).await?
-            }
-        };
+        let id = self
+            .begin_axis(super::guide::AxisStart {
+                progress,
+                point,
+                detection,
+                active_mm,
+                guide: None,
+                carriage,
+                kinematics: kin,
+                max_accel_mm_s2: max_accel,
+            })
+            .await?
+            .id;
         let clicks = req.clicks;
         let me = Arc::new(self.sibling());
         let fail_me = me.clone();

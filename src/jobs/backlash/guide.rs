@@ -4,11 +4,74 @@
 
 use super::*;
 
+/// What the measurement of one axis starts with ([`Backlash::begin_axis`]).
+pub(super) struct AxisStart {
+    pub(super) progress: String,
+    pub(super) point: [f64; 3],
+    pub(super) detection: Detection,
+    pub(super) active_mm: BTreeMap<String, f64>,
+    /// The guide, for the guided measurement.
+    pub(super) guide: Option<Guide>,
+    pub(super) carriage: Option<u32>,
+    pub(super) kinematics: String,
+    pub(super) max_accel_mm_s2: Option<f64>,
+}
+
 impl Backlash {
     pub(super) async fn detect(&self) -> anyhow::Result<(Detection, ConfigFile)> {
         let help = self.core.m().call("printer.gcode.help", json!({})).await?;
         let cf = self.core.m().configfile().await?;
         Ok((kb::detect(&help, &cf.config)?, cf))
+    }
+
+    /// Starts measuring an axis, guided or by camera: in the session that has measured other
+    /// axes (`measured`), or in a new one; refused while an axis is being measured.
+    pub(super) async fn begin_axis(&self, a: AxisStart) -> anyhow::Result<Session> {
+        let existing = {
+            let _g = self.core.lock().await;
+            match self.active()? {
+                Some(mut s) if s.state == State::Measured => {
+                    s.state = State::Measuring;
+                    s.progress = a.progress.clone();
+                    s.guide = a.guide.clone();
+                    s.point = a.point;
+                    s.detection = a.detection.clone();
+                    s.active_mm.extend(a.active_mm.clone());
+                    s.carriage = a.carriage;
+                    s.kinematics = a.kinematics.clone();
+                    self.core.save(s.id, &s)?;
+                    Some(s)
+                }
+                Some(s) => {
+                    return Err(user(format!(
+                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
+                        s.id,
+                        s.state.name()
+                    )))
+                }
+                None => None,
+            }
+        };
+        if let Some(s) = existing {
+            return Ok(s);
+        }
+        let mut s = Session::new(
+            State::Measuring,
+            a.progress,
+            BacklashBody {
+                point: a.point,
+                detection: a.detection,
+                active_mm: a.active_mm,
+                guide: a.guide,
+                cycles: BTreeMap::new(),
+                max_accel_mm_s2: a.max_accel_mm_s2,
+                carriage: a.carriage,
+                kinematics: a.kinematics,
+                camera: BTreeMap::new(),
+            },
+        );
+        s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
+        Ok(s)
     }
 
     /// What compensation is active while measuring (measurements are residuals to it): the
@@ -259,53 +322,18 @@ impl Backlash {
             .await?;
         let (guide, step) =
             Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
-        let existing = {
-            let _g = self.core.lock().await;
-            match self.active()? {
-                Some(mut s) if s.state == State::Measured => {
-                    s.state = State::Measuring;
-                    s.progress = format!("measuring {}", axis.name());
-                    s.guide = Some(guide.clone());
-                    s.point = point;
-                    s.detection = detection.clone();
-                    s.active_mm.extend(active_mm.clone());
-                    s.carriage = carriage;
-                    s.kinematics = kin.to_string();
-                    self.core.save(s.id, &s)?;
-                    Some(s)
-                }
-                Some(s) => {
-                    return Err(user(format!(
-                        "session {} is {}; finish the axis in progress or KLIPCAL_CANCEL",
-                        s.id,
-                        s.state.name()
-                    )))
-                }
-                None => None,
-            }
-        };
-        let s = match existing {
-            Some(s) => s,
-            None => {
-                let mut s = Session::new(
-                    State::Measuring,
-                    format!("measuring {}", axis.name()),
-                    BacklashBody {
-                        point,
-                        detection,
-                        active_mm,
-                        guide: Some(guide),
-                        cycles: BTreeMap::new(),
-                        max_accel_mm_s2: max_accel,
-                        carriage,
-                        kinematics: kin.to_string(),
-                        camera: BTreeMap::new(),
-                    },
-                );
-                s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
-                s
-            }
-        };
+        let s = self
+            .begin_axis(AxisStart {
+                progress: format!("measuring {}", axis.name()),
+                point,
+                detection,
+                active_mm,
+                guide: Some(guide),
+                carriage,
+                kinematics: kin.to_string(),
+                max_accel_mm_s2: max_accel,
+            })
+            .await?;
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
         let msg = format!(
