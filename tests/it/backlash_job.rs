@@ -190,11 +190,14 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     assert!((applied_y - by).abs() < 1e-3, "{r}");
     let cf = m.configfile().await.unwrap();
     for (key, want) in [("x_backlash", applied), ("y_backlash", applied_y)] {
-        let written = cf["settings"]["backlash_compensation"][key].as_f64();
+        let written = cf
+            .settings
+            .option("backlash_compensation", key)
+            .and_then(Value::as_f64);
         assert!(
             written.is_some_and(|w| (w - want).abs() < 1e-3),
-            "config after restart: {}",
-            cf["settings"]["backlash_compensation"]
+            "config after restart: {:?}",
+            cf.settings.section("backlash_compensation")
         );
     }
     // The command's reply after the restart: what the config says, and the simulated play
@@ -383,7 +386,9 @@ async fn dual_carriage_x_per_carriage_and_the_shared_y_go_into_the_seeds_delayed
     assert!(lines[1].contains("Y_BACKLASH=0 "), "{include}");
     let cf = m.configfile().await.unwrap();
     assert_eq!(
-        cf["settings"]["backlash_compensation"]["x_backlash"].as_f64(),
+        cf.settings
+            .option("backlash_compensation", "x_backlash")
+            .and_then(Value::as_f64),
         Some(0.0)
     );
     // Compensated: a re-measurement of carriage 1 finds (almost) no play left.
@@ -435,13 +440,12 @@ async fn pr_7157_a_and_b_measured_through_the_prompts_are_written_to_backlash() 
     assert_eq!(done["state"], "done", "{done}\n{}", d.log_text());
     let cf = m.configfile().await.unwrap();
     for k in ["a", "b"] {
-        let written = cf["settings"]["backlash"][k].as_f64();
+        let written = cf.settings.option("backlash", k).and_then(Value::as_f64);
         let want =
             (measured["results"][k]["backlash_mm"].as_f64().unwrap() * 1000.0).round() / 1000.0;
         assert!(
             written.is_some_and(|w| (w - want).abs() < 1.5e-3),
-            "[backlash] {k}: {} against {want}",
-            cf["settings"]["backlash"]
+            "[backlash] {k}: {written:?} against {want}",
         );
     }
 }

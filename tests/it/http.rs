@@ -12,7 +12,7 @@ use crate::bench::{extension_request, Bench, Daemon};
 use crate::browser::{artifact, Browser};
 use crate::session::{measuring_session, session, simulated_readings, wait_state, PLANT};
 
-fn client_from(local: &str) -> reqwest::Client {
+pub fn client_from(local: &str) -> reqwest::Client {
     reqwest::Client::builder()
         .local_address(Some(local.parse().unwrap()))
         .timeout(Duration::from_secs(30))

@@ -227,8 +227,10 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     // Klipper runs the new values, and the file differs only in those two values.
     let new_x = sol["stepper_x"]["rotation_distance_new"].as_f64().unwrap();
     let cf = m.configfile().await.unwrap();
-    let running = cf["settings"]["stepper_x"]["rotation_distance"]
-        .as_f64()
+    let running = cf
+        .settings
+        .option("stepper_x", "rotation_distance")
+        .and_then(Value::as_f64)
         .unwrap();
     assert!((running - new_x).abs() < 1e-5, "{running} vs {new_x}");
     let after = steppers_cfg(&bench);
