@@ -201,7 +201,8 @@ impl FourNode {
     /// The time constants of the bed with the thermistor's node held (and the heater's power
     /// free): the modes the power decays with and the surface relaxes with, s, slowest first.
     #[must_use]
-    pub fn clamped_taus_s(&self) -> Vec<f64> {
+    #[cfg(test)]
+    pub(crate) fn clamped_taus_s(&self) -> Vec<f64> {
         let s = self.sensor_node();
         let k = |i: usize, j: usize| -> f64 {
             match (i.min(j), i.max(j)) {
