@@ -8,7 +8,7 @@ use serde_json::{json, Map, Value};
 use crate::moonraker::{self, Moonraker};
 
 /// One X/Y stepper as Klipper runs it.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct Stepper {
     /// `stepper_x` or `stepper_y`.
     pub name: String,
@@ -44,7 +44,7 @@ pub struct Features {
 }
 
 /// Everything `check` prints.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct Summary {
     /// Moonraker's version.
     pub moonraker_version: String,

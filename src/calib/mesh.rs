@@ -232,6 +232,9 @@ fn check(caps: &[&Capture]) -> Result<usize, Error> {
     Ok(n)
 }
 
+/// The least span of frame temperature between the coldest and the hottest mesh a fit takes, °C.
+pub const MIN_SPAN_C: f64 = 0.5;
+
 /// Fits `kind` to the captures, per point.
 ///
 /// # Errors
@@ -254,9 +257,9 @@ pub fn fit(caps: &[&Capture], kind: ModelKind) -> Result<Fit, Error> {
         .iter()
         .map(|c| c.span_c().1)
         .fold(f64::NEG_INFINITY, f64::max);
-    if hi - lo < 0.5 {
+    if hi - lo < MIN_SPAN_C {
         return Err(Error::Fit(format!(
-            "the meshes span {lo:.2}..{hi:.2} °C; expected at least 0.5 °C between the coldest and the hottest"
+            "the meshes span {lo:.2}..{hi:.2} °C; expected at least {MIN_SPAN_C} °C between the coldest and the hottest"
         )));
     }
     let centre = 0.5 * (lo + hi);

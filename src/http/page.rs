@@ -60,6 +60,7 @@ figure[data-click="1"] .snap{cursor:crosshair;outline:3px solid #2b8a3e}#clicked
 #found circle,#found line{fill:none;stroke:#e03131;stroke-width:2}.approach.plus{fill:#1c7ed6}.approach.minus{fill:#f76707}
 figure{margin:.4em 0}figcaption{font-size:.9em}
 .saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
+@media (max-width:600px){main{padding:.3em}section{padding:.6em .5em}td,th{padding:.2em .25em;font-size:.88em}}
 "#;
 
 const SCRIPT: &str = r#"
@@ -793,7 +794,7 @@ fn solution(h: &mut String, s: &Value) {
     let Some(r) = s["rounds"].as_array().and_then(|r| r.last()) else {
         return;
     };
-    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
+    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_<wbr>distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
     for (k, name) in ["stepper_x", "stepper_y"].iter().enumerate() {
         let f = |key: &str| r[key][k].as_f64();
         let _ = write!(
@@ -829,7 +830,7 @@ fn rounds_table(h: &mut String, s: &Value) {
     let Some(rounds) = s["rounds"].as_array().filter(|r| !r.is_empty()) else {
         return;
     };
-    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
+    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100&nbsp;mm</th><th>converged</th><th>applied</th></tr>");
     let mut solved = false;
     for r in rounds {
         solved |= !r["scale"].is_null();
@@ -950,7 +951,7 @@ mod tests {
         use crate::jobs::backlash::BacklashStatus;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
         use crate::jobs::core::StatusHead;
-        use crate::jobs::mesh::{MeshStatus, ResultDoc};
+        use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
         let head = StatusHead {
             id: 1,
             state: "measuring".into(),
@@ -983,6 +984,18 @@ mod tests {
                 directions: String::new(),
                 cooling: None,
             }),
+            // Both the reading and the reason, so that every key of the follower is listed.
+            follow: FollowStatus {
+                following: true,
+                stopped: Some(String::new()),
+                reading: Some(FollowReading {
+                    frame_c: 0.0,
+                    trend: crate::calib::mesh::Phase::Heating,
+                    loaded: Some(String::new()),
+                    offset_mm: [0.0; 2],
+                    residual_um: Some(0.0),
+                }),
+            },
             ..MeshStatus::default()
         };
         let cycles = vec![0.1, 0.11, 0.1, 0.12, 0.1]
@@ -1002,7 +1015,7 @@ mod tests {
         .unwrap();
         let backlash = BacklashStatus {
             point: [0.0; 3],
-            branch: crate::klipper::backlash::detect(&json!({}), &json!({})).unwrap(),
+            branch: crate::klipper::backlash::detect(&json!({}), &Default::default()).unwrap(),
             axis: None,
             cycle: None,
             cycles: [("x".to_string(), cycles)].into(),
@@ -1099,14 +1112,16 @@ mod tests {
             read.len()
         );
         // `ok`, `error` and `message` are the answer's wrapping (`http::answer`), not the
-        // status; the follower's fields sit in `follow`, still the follower's own JSON.
+        // status.
         let wrapping = ["ok", "error", "message"];
-        let follower = ["following", "stopped", "loaded", "residual_um"];
         let have = typed_status_keys();
+        for follower in ["following", "stopped", "loaded", "residual_um", "frame_c"] {
+            assert!(read.contains(follower), "the page reads {follower}");
+        }
         let missing: Vec<&String> = read
             .iter()
             .filter(|k| !have.contains(*k))
-            .filter(|k| !wrapping.contains(&k.as_str()) && !follower.contains(&k.as_str()))
+            .filter(|k| !wrapping.contains(&k.as_str()))
             .collect();
         assert!(
             missing.is_empty(),

@@ -15,6 +15,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+use super::answers::ConfigFile;
 use super::protocol::{self, Incoming, RpcError};
 use super::Error;
 
@@ -487,14 +488,16 @@ impl Moonraker {
             .map(|_| ())
     }
 
-    /// Klipper's configfile object: `config` (raw strings as written) and `settings` (parsed,
-    /// with defaults), plus `save_config_pending`.
+    /// Klipper's configfile object, typed: `config` (text as written) and the `settings` klipcal
+    /// reads (parsed, with Klipper's defaults).
     ///
     /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn configfile(&self) -> Result<Value, Error> {
-        let mut m = self.objects_query(json!({ "configfile": null })).await?;
-        Ok(m.remove("configfile").unwrap_or(Value::Null))
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub async fn configfile(&self) -> Result<ConfigFile, Error> {
+        let mut m = self
+            .objects_query(json!({ "configfile": ["config", "settings"] }))
+            .await?;
+        ConfigFile::parse(m.remove("configfile").unwrap_or_else(|| json!({})))
     }
 
     /// Sends an event to Moonraker's clients (`connection.send_event`).

@@ -2,10 +2,12 @@
 //! the cloneable handle every task uses, and HTTP file transfer. It knows nothing of
 //! calibrations: it carries requests, replies, notifications and agent calls.
 
+pub mod answers;
 mod client;
 mod http;
 pub mod protocol;
 
+pub use answers::ConfigFile;
 pub use client::{AgentCall, ClientOptions, ConnState, Event, Moonraker};
 pub use http::Files;
 pub use protocol::RpcError;

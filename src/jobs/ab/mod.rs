@@ -359,7 +359,7 @@ pub struct AbBody {
     pub skew_before: Option<f64>,
     /// Unix time the print finished.
     pub print_done_unix: Option<f64>,
-    /// The heaters were turned off by the hold limit.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
     pub heaters_off: bool,
     /// The soak ran past `soak_max_s` and waits for the user's choice.
     #[serde(default)]
@@ -428,7 +428,16 @@ impl Ab {
         if s.state == State::Printing {
             let _ = self.core.m().gcode("CANCEL_PRINT").await;
         }
-        let _ = self.core.heaters_off().await;
+        // The status says the heaters are off when they are (issue 26 B.7: the cancel said so
+        // while `heaters_off` stayed false).
+        if self.core.heaters_off().await.is_ok() {
+            let _ = self
+                .update(id, |d| {
+                    d.heaters_off = true;
+                    Ok(())
+                })
+                .await;
+        }
         let answer = self
             .core
             .cancel_session::<State, AbBody>(
@@ -491,7 +500,7 @@ impl Ab {
             rounds,
             heaters_off: s.heaters_off,
         };
-        SessionStatus::new(KIND, s.head(), &body)
+        Ok(SessionStatus::new(KIND, s.head(), &body)?.with_console_lines(body.missing))
     }
 }
 
@@ -516,7 +525,7 @@ pub struct AbStatus {
     pub missing: Vec<String>,
     /// Every round so far.
     pub rounds: Vec<AbRoundStatus>,
-    /// The hold limit turned the heaters off.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
     pub heaters_off: bool,
 }
 

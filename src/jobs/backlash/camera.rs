@@ -558,17 +558,14 @@ impl Backlash {
         }
         let (detection, cf) = self.detect().await?;
         let note = start_note(&detection);
-        let kin = cf["settings"]["printer"]["kinematics"]
-            .as_str()
-            .unwrap_or("")
-            .to_string();
+        let kin = cf.settings.printer.kinematics.clone();
         if axis.is_motor() && kin != "corexy" {
             return Err(user(format!(
                 "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
                 axis.name().to_uppercase()
             )));
         }
-        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let max_accel = cf.settings.printer.max_accel;
         let carriage = self
             .carriage_for(&detection, &cf, axis, req.carriage)
             .await?;
@@ -687,45 +684,6 @@ impl Backlash {
             json!({"session": id, "state": "measuring", "axis": axis.name(),
                   "carriage": carriage, "webcam": cam, "message": msg}),
         )
-    }
-
-    /// What compensation is active while measuring (measurements are residuals to it).
-    async fn active_values(
-        &self,
-        detection: &crate::klipper::backlash::Detection,
-        cf: &Value,
-        axis: GuideAxis,
-        carriage: Option<u32>,
-        key: &str,
-    ) -> anyhow::Result<BTreeMap<String, f64>> {
-        use crate::klipper::backlash::Branch;
-        let mut active_mm = BTreeMap::new();
-        match detection.branch {
-            Branch::Seed => {
-                let r = self.seed_values().await?;
-                active_mm.insert("x".into(), r.x_mm);
-                active_mm.insert("y".into(), r.y_mm);
-                active_mm.insert("z".into(), r.z_mm);
-                if carriage.is_some() {
-                    let own = match axis {
-                        GuideAxis::Y => r.y_mm,
-                        _ => r.x_mm,
-                    };
-                    active_mm.insert(key.to_string(), own);
-                }
-            }
-            Branch::Pr7157 { .. } => {
-                if let Some(o) = cf["settings"]["backlash"].as_object() {
-                    for (k, v) in o {
-                        if let Some(f) = v.as_f64() {
-                            active_mm.insert(k.clone(), f);
-                        }
-                    }
-                }
-            }
-            Branch::Neither => {}
-        }
-        Ok(active_mm)
     }
 
     /// The measurement itself (the runner's steps; run again from the start after an outage).

@@ -35,6 +35,7 @@ use crate::jobs::core::{Envelope, SessionState};
 use crate::jobs::user;
 use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
 use crate::klipper::GcodeCmd;
+use crate::moonraker::ConfigFile;
 use crate::store::SessionRow;
 
 /// `CYCLES=`, shared by the guided and the camera measurement.

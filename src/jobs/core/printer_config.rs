@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context};
 use serde::{Deserialize, Serialize};
-use serde_json::json;
+use serde_json::{json, Value};
 
 use crate::klipper::{self, Config, MemFiles};
 use crate::moonraker::{Event, Files, Moonraker};
@@ -509,7 +509,10 @@ where
 async fn verify(m: &Moonraker, values: &[ValueSet]) -> anyhow::Result<()> {
     let cf = m.configfile().await?;
     for v in values {
-        let got = &cf["settings"][v.section.to_lowercase()][v.key.to_lowercase()];
+        let got = cf
+            .settings
+            .option(&v.section, &v.key)
+            .unwrap_or(&Value::Null);
         let want: Option<f64> = v.value.parse().ok();
         let ok = match (got.as_f64(), want) {
             (Some(g), Some(w)) => (g - w).abs() <= 1e-9 * w.abs().max(1.0),

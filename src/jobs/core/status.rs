@@ -23,6 +23,10 @@ pub struct SessionStatus {
     /// sit beside the head's).
     #[serde(flatten)]
     pub body: BTreeMap<String, Value>,
+    /// Lines the console's status shows under the session (the A/B readings still missing);
+    /// not in the JSON, where the body has them under its own name.
+    #[serde(skip)]
+    pub console_lines: Vec<String>,
 }
 
 impl SessionStatus {
@@ -40,7 +44,15 @@ impl SessionStatus {
             kind: kind.to_string(),
             head,
             body,
+            console_lines: Vec::new(),
         })
+    }
+
+    /// With `lines` shown under the session on the console.
+    #[must_use]
+    pub fn with_console_lines(mut self, lines: Vec<String>) -> Self {
+        self.console_lines = lines;
+        self
     }
 
     /// A session whose kind no calibration knows: what the store says of it.
@@ -56,6 +68,7 @@ impl SessionStatus {
                 notes: Vec::new(),
             },
             body: BTreeMap::new(),
+            console_lines: Vec::new(),
         }
     }
 }

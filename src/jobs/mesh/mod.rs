@@ -350,7 +350,7 @@ pub struct Mesh {
     settings: MeshConfig,
     soak: SoakParams,
     follow: Arc<Mutex<Option<CancellationToken>>>,
-    follow_status: Arc<Mutex<Value>>,
+    follow_status: Arc<Mutex<FollowStatus>>,
 }
 
 impl Mesh {
@@ -362,7 +362,7 @@ impl Mesh {
             settings,
             soak,
             follow: Arc::new(Mutex::new(None)),
-            follow_status: Arc::new(Mutex::new(json!({"following": false}))),
+            follow_status: Arc::new(Mutex::new(FollowStatus::default())),
         }
     }
 
@@ -419,7 +419,7 @@ impl Mesh {
             .follow_status
             .lock()
             .map(|v| v.clone())
-            .unwrap_or(Value::Null);
+            .unwrap_or_default();
         let body = MeshStatus {
             meshes: s.captures.len(),
             frame_c: s
@@ -443,28 +443,50 @@ pub struct MeshStatus {
     pub frame_c: Vec<f64>,
     /// The fit and the profiles written, once written.
     pub result: Option<ResultDoc>,
-    /// The follower: `{"following": false}`, or while following its frame temperature, trend,
-    /// loaded profile, offset and residual; `{"following": false, "stopped": why}` once stopped.
-    pub follow: Value,
+    /// The follower.
+    pub follow: FollowStatus,
 }
 
-/// The probe's section in Klipper's settings: `[probe]`, `[bltouch]`, `[smart_effector]`, an
-/// eddy probe or another module's `[… probe]` — the first with a `z_offset`.
-fn probe_settings(settings: &Value) -> Value {
-    let Some(map) = settings.as_object() else {
-        return Value::Null;
-    };
-    let is_probe = |name: &str| {
-        name == "probe"
-            || name == "bltouch"
-            || name == "smart_effector"
-            || name.starts_with("probe_eddy_current")
-            || name.ends_with(" probe")
-    };
-    map.iter()
-        .find(|(k, v)| is_probe(k) && v.get("z_offset").is_some())
-        .map(|(_, v)| v.clone())
-        .unwrap_or(Value::Null)
+/// The follower's status: `{"following": false}`, or while following its frame temperature,
+/// trend, loaded profile, offset and residual; `{"following": false, "stopped": why}` once
+/// stopped.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub struct FollowStatus {
+    /// Whether the follower runs.
+    pub following: bool,
+    /// Why it stopped, once stopped.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stopped: Option<String>,
+    /// Its last reading, while following.
+    #[serde(flatten)]
+    pub reading: Option<FollowReading>,
+}
+
+impl FollowStatus {
+    /// Stopped, and why.
+    pub(crate) fn stopped(why: &str) -> Self {
+        Self {
+            following: false,
+            stopped: Some(why.to_string()),
+            reading: None,
+        }
+    }
+}
+
+/// The follower's last reading and what it did with it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FollowReading {
+    /// The frame temperature, °C.
+    pub frame_c: f64,
+    /// Whether the frame warms or cools.
+    pub trend: Phase,
+    /// The profile loaded, once one is.
+    pub loaded: Option<String>,
+    /// The offset set again after each load (`KLIPCAL_MESH_OFFSET`), mm.
+    pub offset_mm: [f64; 2],
+    /// How far the loaded profile is from the model at this temperature, µm (none when the
+    /// reading was not used).
+    pub residual_um: Option<f64>,
 }
 
 /// Klipper's own words in a refused G-code (Moonraker's message without the wrapping).

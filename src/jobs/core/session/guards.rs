@@ -85,7 +85,7 @@ impl Core {
 
     async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
         let cf = self.inner.m.configfile().await?;
-        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
+        if let Some(t) = cf.settings.idle_timeout.and_then(|i| i.timeout) {
             self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
         }
         Ok(())
