@@ -12,7 +12,7 @@ use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
 
 /// Answers agent calls until the channel closes.
-pub async fn serve(
+pub(crate) async fn serve(
     m: Moonraker,
     cals: Option<Calibrations>,
     mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>,
@@ -37,7 +37,7 @@ fn rpc_error(e: &anyhow::Error) -> RpcError {
 /// # Errors
 /// Unknown method (-32601), no session database (503), a user's mistake (400, the message
 /// says what was wrong and what is expected), or the daemon's failure (500).
-pub async fn dispatch(
+pub(crate) async fn dispatch(
     m: &Moonraker,
     cals: Option<&Calibrations>,
     method: &str,
@@ -120,7 +120,7 @@ async fn answer(
 /// An outcome as JSON for an HTTP caller: the result with `"ok": true`, or
 /// `{"ok": false, "error": {"code", "message"}}` (the console's message).
 #[must_use]
-pub fn result_json(outcome: Result<Value, RpcError>) -> Value {
+pub(crate) fn result_json(outcome: Result<Value, RpcError>) -> Value {
     match outcome {
         Ok(Value::Object(mut o)) => {
             o.insert("ok".into(), json!(true));
@@ -159,7 +159,7 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
 
 /// `klipcal_status`'s answer (the agent's, `/api/status`'s and the page's).
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct StatusAnswer {
+pub(crate) struct StatusAnswer {
     /// klipcal's name and version.
     pub daemon: DaemonInfo,
     /// Where klipcal's page is, or why it is off; `None` without sessions or page.
@@ -175,7 +175,7 @@ pub struct StatusAnswer {
 
 /// Where klipcal's page is (`{"address"}`), or why it is off (`{"off"}`).
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct PageInfo {
+pub(crate) struct PageInfo {
     /// The page's address.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub address: Option<String>,
@@ -186,7 +186,7 @@ pub struct PageInfo {
 
 /// klipcal's name and version.
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct DaemonInfo {
+pub(crate) struct DaemonInfo {
     /// `klipcal`.
     pub name: &'static str,
     /// The crate's version.
@@ -195,7 +195,7 @@ pub struct DaemonInfo {
 
 /// Moonraker's connection as the status shows it.
 #[derive(Debug, Clone, Default, serde::Serialize)]
-pub struct Connection {
+pub(crate) struct Connection {
     /// `connected`, `unreachable` or `stopped`.
     pub moonraker: &'static str,
     /// Klipper's state, when connected.

@@ -22,7 +22,7 @@ pub fn calc_skew_factor(ac: f64, bd: f64, ad: f64) -> Option<f64> {
 /// [`calc_skew_factor`] is `xy_factor`: AC = s√(2 + 2 sin ψ), BD = s√(2 − 2 sin ψ), AD = s,
 /// ψ = atan(xy_factor).
 #[must_use]
-pub fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
+pub(crate) fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
     let sin = xy_factor.atan().sin();
     [
         side_mm * (2.0 + 2.0 * sin).sqrt(),
@@ -106,7 +106,7 @@ pub enum SkewClass {
 
 /// Classifies a skew angle with Prusa's thresholds.
 #[must_use]
-pub fn classify_skew(angle_deg: f64) -> SkewClass {
+pub(crate) fn classify_skew(angle_deg: f64) -> SkewClass {
     match angle_deg.abs() {
         a if a > 0.25 => SkewClass::Extreme,
         a if a > 0.12 => SkewClass::Mild,

@@ -185,7 +185,7 @@ fn signature(session: &Value) -> String {
 /// The whole page for a status answer (`{"ok", "session", "last", …}` or an error) and, while
 /// readings are taken, the layout diagram.
 #[must_use]
-pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
+pub(crate) fn render(status: &Value, diagram_svg: Option<&str>) -> String {
     let session = status.get("session").cloned().unwrap_or(Value::Null);
     let mut h = String::new();
     let _ = write!(

@@ -17,13 +17,13 @@ use super::gcode_cmd::{format_num, GcodeCmd};
 use super::Error;
 
 /// The command PR 7259 registers.
-pub const SET_CMD: &str = "SET_BACKLASH_COMPENSATION";
+pub(crate) const SET_CMD: &str = "SET_BACKLASH_COMPENSATION";
 /// PR 7259's section.
-pub const SEED_SECTION: &str = "backlash_compensation";
+pub(crate) const SEED_SECTION: &str = "backlash_compensation";
 /// PR 7157's section.
-pub const PR7157_SECTION: &str = "backlash";
+pub(crate) const PR7157_SECTION: &str = "backlash";
 /// PR 7259's run-time limit on SMOOTH_TIME, s.
-pub const MAX_SMOOTH_TIME_S: f64 = 0.1;
+pub(crate) const MAX_SMOOTH_TIME_S: f64 = 0.1;
 
 /// Which backlash compensation the printer's Klipper has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -221,7 +221,7 @@ pub fn parse_reply(text: &str) -> Result<BacklashReply, Error> {
 
 /// A carriage and its values, for the dual-carriage include.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct CarriageBacklash {
+pub(crate) struct CarriageBacklash {
     /// The name `SET_DUAL_CARRIAGE CARRIAGE=` takes.
     pub carriage: String,
     /// What `SET_BACKLASH_COMPENSATION` sets while it is the active carriage.
@@ -229,7 +229,7 @@ pub struct CarriageBacklash {
 }
 
 /// The name of the klipcal-managed include for a dual-carriage printer with PR 7259.
-pub const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
+pub(crate) const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
 
 /// The klipcal-managed include for a dual-carriage printer with PR 7259 (the seed's recipe:
 /// non-zero values cannot sit in `[backlash_compensation]` there, so a `[delayed_gcode]`
@@ -237,7 +237,7 @@ pub const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
 ///
 /// # Errors
 /// A carriage name outside `[A-Za-z0-9_.-]`, or a value [`set_backlash_command`] refuses.
-pub fn dual_carriage_include(
+pub(crate) fn dual_carriage_include(
     primary: &CarriageBacklash,
     dual: &CarriageBacklash,
 ) -> Result<String, Error> {

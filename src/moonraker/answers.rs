@@ -104,7 +104,7 @@ pub struct DualCarriageSettings {
 impl DualCarriageSettings {
     /// The axis with two carriages, lower case (`x` when not said).
     #[must_use]
-    pub fn axis(&self) -> String {
+    pub(crate) fn axis(&self) -> String {
         self.axis.as_deref().unwrap_or("x").to_ascii_lowercase()
     }
 }
@@ -156,7 +156,7 @@ impl ConfigFile {
     /// # Errors
     /// [`Error::Protocol`] naming the part that is malformed: not an object, an option as
     /// written that is not text, or a setting klipcal reads of the wrong type.
-    pub fn parse(v: Value) -> Result<Self, Error> {
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
         let raw: RawConfigFile =
             serde_json::from_value(v).map_err(|e| bad("configfile object", e))?;
         let sections = raw.settings;
@@ -224,7 +224,7 @@ impl Settings {
 
     /// The axis `[dual_carriage]` moves, lower case (`x` when not said or without one).
     #[must_use]
-    pub fn dual_carriage_axis(&self) -> String {
+    pub(crate) fn dual_carriage_axis(&self) -> String {
         self.dual_carriage
             .as_ref()
             .map_or_else(|| "x".into(), DualCarriageSettings::axis)
@@ -232,7 +232,7 @@ impl Settings {
 
     /// `position_endstop` of a stepper section or of `[dual_carriage]`.
     #[must_use]
-    pub fn position_endstop(&self, section: &str) -> Option<f64> {
+    pub(crate) fn position_endstop(&self, section: &str) -> Option<f64> {
         if section == "dual_carriage" {
             self.dual_carriage.as_ref()?.position_endstop
         } else {

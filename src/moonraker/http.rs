@@ -42,7 +42,7 @@ impl Files {
 
     /// Moonraker's HTTP base, `http://host:port`.
     #[must_use]
-    pub fn base(&self) -> &str {
+    pub(crate) fn base(&self) -> &str {
         &self.base
     }
 
@@ -91,7 +91,7 @@ impl Files {
     ///
     /// # Errors
     /// HTTP failure, or Moonraker's refusal (404 when the file does not exist).
-    pub async fn delete(&self, root: &str, path: &str) -> Result<Value, Error> {
+    pub(crate) async fn delete(&self, root: &str, path: &str) -> Result<Value, Error> {
         let url = format!("{}/server/files/{root}/{path}", self.base);
         self.result("DELETE", &url, self.client.delete(&url)).await
     }
@@ -109,7 +109,7 @@ impl Files {
     ///
     /// # Errors
     /// HTTP failure or Moonraker's refusal.
-    pub async fn delete_api(&self, path: &str) -> Result<Value, Error> {
+    pub(crate) async fn delete_api(&self, path: &str) -> Result<Value, Error> {
         let url = format!("{}{path}", self.base);
         self.result("DELETE", &url, self.client.delete(&url)).await
     }

@@ -69,7 +69,7 @@ impl Error {
     /// while the websocket is down (`connected` is the connection's state now). An outage is
     /// waited out; every other error is a real failure.
     #[must_use]
-    pub fn is_unreachable(&self, connected: bool) -> bool {
+    pub(crate) fn is_unreachable(&self, connected: bool) -> bool {
         match self {
             Error::NotConnected(_) | Error::Disconnected(_) => true,
             Error::Timeout { .. } | Error::Http { .. } => !connected,

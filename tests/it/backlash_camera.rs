@@ -405,8 +405,7 @@ async fn pr_7157_a_and_b_on_corexy_are_measured_from_the_camera_and_written_to_b
         let want = r["values"][k].as_f64().unwrap();
         assert!(
             written.is_some_and(|w| (w - want).abs() < 1e-6 && (w - drawn).abs() <= 0.003),
-            "[backlash] {k}: {:?} against {want} (drawn {drawn})",
-            cf.settings.section("backlash")
+            "[backlash] {k}: {written:?} against {want} (drawn {drawn})",
         );
     }
 }

@@ -510,7 +510,7 @@ impl Ab {
     ///
     /// # Errors
     /// A session already running, bad arguments, or a printer that is printing.
-    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
         let d = &self.settings.defaults;
         let bed = req.bed_temp_c.unwrap_or(d.bed_temp_c);
         let nozzle = req.nozzle_temp_c.unwrap_or(d.nozzle_temp_c);

@@ -9,7 +9,7 @@ impl Backlash {
     /// # Errors
     /// Nothing measured, a printer printing, neither branch (with the reason), a reply that
     /// disagrees, or a config Klipper rejects (rolled back).
-    pub async fn apply(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn apply(&self) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.state == State::Measured => s,
             _ => {

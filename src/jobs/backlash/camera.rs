@@ -72,7 +72,7 @@ pub(super) const OP: Op<BacklashCall> = Op {
 
 /// `KLIPCAL_BACKLASH_CAMERA`, or `KLIPCAL_BACKLASH_CLICK` (`clicks`).
 #[derive(Debug, Clone, PartialEq)]
-pub struct CameraRequest {
+pub(crate) struct CameraRequest {
     pub axis: GuideAxis,
     pub cycles: Option<usize>,
     pub carriage: Option<i64>,
@@ -109,7 +109,7 @@ impl CameraRequest {
 
 /// The chosen webcam.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Webcam {
+pub(crate) struct Webcam {
     pub name: String,
     /// The absolute snapshot URL.
     pub snapshot_url: String,
@@ -237,7 +237,7 @@ fn along(axis: GuideAxis, d_mm: [f64; 2]) -> f64 {
 
 /// One reading: the mean of two still frames.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Seen {
+pub(crate) struct Seen {
     pub centre_px: [f64; 2],
     pub uncertainty_px: f64,
     /// Frames taken, and refused by detection.
@@ -247,7 +247,7 @@ pub struct Seen {
 
 /// One camera cycle, as the page and the status show it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraCycle {
+pub(crate) struct CameraCycle {
     pub plus_px: [f64; 2],
     pub minus_px: [f64; 2],
     /// Where each approach stopped along the axis, mm from the camera point's reading (+:
@@ -261,7 +261,7 @@ pub struct CameraCycle {
 
 /// How an axis was read through the camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraReport {
+pub(crate) struct CameraReport {
     pub webcam: Webcam,
     pub scale: Option<CameraScale>,
     /// The nozzle at the camera point (X approached moving +), px.
@@ -284,7 +284,17 @@ impl CameraReport {
     /// The statistics' settings for these cycles: the camera's noise floor, not a jog's.
     pub(super) fn params(&self, base: &BacklashParams) -> BacklashParams {
         if self.axis_px_per_mm > 0.0 && self.detection_sd_px > 0.0 {
-            camera_scale::camera_params(base, self.detection_sd_px, self.axis_px_per_mm)
+            // The scale's sd along the axis: the larger of X's and Y's relative sd.
+            let rel = self.scale.map_or(0.0, |c| {
+                (c.x.scale_sd_px_per_mm / c.x.scale_px_per_mm)
+                    .max(c.y.scale_sd_px_per_mm / c.y.scale_px_per_mm)
+            });
+            camera_scale::camera_params(
+                base,
+                self.detection_sd_px,
+                self.axis_px_per_mm,
+                rel * self.axis_px_per_mm,
+            )
         } else {
             base.clone()
         }

@@ -182,7 +182,7 @@ impl Backlash {
     ///
     /// # Errors
     /// A measurement in progress, a printer that is printing or not homed.
-    pub async fn set_point(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn set_point(&self) -> anyhow::Result<Value> {
         // The point is what every reading of a measurement is taken against (issue 27's walk).
         if let Some(s) = self.active()? {
             if matches!(s.state, State::Measuring | State::Applying) {
@@ -222,7 +222,7 @@ impl Backlash {
     /// # Errors
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
-    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
         let carriage_arg = req.carriage;
         let axis = req.axis;
         let mut params = self.settings.guide();
@@ -324,7 +324,7 @@ impl Backlash {
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
-    pub async fn jog(&self, press: Press) -> anyhow::Result<Value> {
+    pub(crate) async fn jog(&self, press: Press) -> anyhow::Result<Value> {
         // The press and its reading are saved before the machine moves.
         let (s, step) = {
             let _g = self.core.lock().await;

@@ -15,7 +15,7 @@ use crate::klipper::gcode_cmd;
 
 /// What one poll saw.
 #[derive(Debug, Clone, PartialEq)]
-pub enum SoakUpdate {
+pub(crate) enum SoakUpdate {
     /// The bed is still heating towards its target.
     Heating,
     /// Heated; waiting for the power to settle. `text` is the progress in words.
@@ -46,7 +46,7 @@ pub enum SoakUpdate {
 }
 
 /// One bed soak in progress.
-pub struct BedSoak {
+pub(crate) struct BedSoak {
     detector: SoakDetector,
     start: Instant,
     target_c: f64,
@@ -71,12 +71,12 @@ pub struct BedSoak {
 
 /// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
 /// next look at it, and its question to the user, come well within it).
-pub const BOUND_SLACK_S: f64 = 60.0;
+pub(crate) const BOUND_SLACK_S: f64 = 60.0;
 
 /// A wait in words: minutes, or hours and minutes for a bed that needs hours (where a soak
 /// before a print offers to print now, `prints`, the words say so).
 #[must_use]
-pub fn eta_words(eta_s: f64, prints: bool) -> String {
+pub(crate) fn eta_words(eta_s: f64, prints: bool) -> String {
     let min = (eta_s / 60.0).ceil();
     if min >= 90.0 {
         format!(
@@ -154,7 +154,12 @@ impl BedSoak {
     /// Starts watching a bed heated to `target_c`; fails after `max_s` (named as the setting
     /// `max_setting` in the error).
     #[must_use]
-    pub fn new(params: SoakParams, target_c: f64, max_s: f64, max_setting: &'static str) -> Self {
+    pub(crate) fn new(
+        params: SoakParams,
+        target_c: f64,
+        max_s: f64,
+        max_setting: &'static str,
+    ) -> Self {
         Self {
             detector: SoakDetector::new(params),
             start: Instant::now(),
@@ -243,7 +248,7 @@ impl BedSoak {
     }
 
     /// Allows `extra_s` more from now (the user chose to wait).
-    pub fn extend(&mut self, extra_s: f64) {
+    pub(crate) fn extend(&mut self, extra_s: f64) {
         self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
         self.rebound = true;
     }
@@ -254,7 +259,7 @@ impl BedSoak {
     ///
     /// # Errors
     /// Moonraker failures.
-    pub async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
+    pub(crate) async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
         if target_c > 0.0 {
             core.hold_heaters_for(bound_s).await?;
         }
@@ -283,7 +288,7 @@ impl BedSoak {
     ///
     /// # Errors
     /// The soak took longer than allowed (a user error naming the setting), or Moonraker failed.
-    pub async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
+    pub(crate) async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
         if !self.primed {
             let n = self.prime(core).await;
             if n > 0 {
@@ -442,7 +447,7 @@ impl BedSoak {
 ///
 /// # Errors
 /// Moonraker unreachable, no heater_bed, or nothing to plot (the message says which).
-pub async fn soak_picture(
+pub(crate) async fn soak_picture(
     m: &crate::moonraker::Moonraker,
     params: &SoakParams,
 ) -> Result<String, String> {
@@ -459,7 +464,11 @@ pub async fn soak_picture(
 }
 
 /// Saves [`soak_picture`] under the config root; returns its name for the user.
-pub async fn save_soak_picture(core: &Core, params: &SoakParams, path: &str) -> Option<String> {
+pub(crate) async fn save_soak_picture(
+    core: &Core,
+    params: &SoakParams,
+    path: &str,
+) -> Option<String> {
     let svg = soak_picture(core.m(), params).await.ok()?;
     core.save_picture(path, svg).await
 }

@@ -35,7 +35,7 @@ impl SessionStatus {
     ///
     /// # Errors
     /// `body` does not serialize to a JSON object.
-    pub fn new(kind: &str, head: StatusHead, body: &impl Serialize) -> anyhow::Result<Self> {
+    pub(crate) fn new(kind: &str, head: StatusHead, body: &impl Serialize) -> anyhow::Result<Self> {
         let body = match serde_json::to_value(body)? {
             Value::Object(o) => o.into_iter().collect(),
             other => anyhow::bail!("a {kind} status is not an object: {other}"),
@@ -50,7 +50,7 @@ impl SessionStatus {
 
     /// With `lines` shown under the session on the console.
     #[must_use]
-    pub fn with_console_lines(mut self, lines: Vec<String>) -> Self {
+    pub(crate) fn with_console_lines(mut self, lines: Vec<String>) -> Self {
         self.console_lines = lines;
         self
     }
@@ -75,7 +75,7 @@ impl SessionStatus {
 
 /// The sessions part of the status.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct SessionsStatus {
+pub(crate) struct SessionsStatus {
     /// The active session of any kind, or else the newest one.
     pub session: Option<SessionStatus>,
     /// Per kind, its newest session, final or not.
