@@ -269,6 +269,9 @@ pub struct Guide {
     /// Past ends the crossing), axis coordinate.
     #[serde(default)]
     pub entry_mm: Option<f64>,
+    /// The size of the jog that brought the nozzle where it is (0: a move, not a jog).
+    #[serde(default)]
+    pub last_jog_mm: f64,
 }
 
 impl Guide {
@@ -296,6 +299,7 @@ impl Guide {
             cycles: Vec::new(),
             overshoots: 0,
             entry_mm: None,
+            last_jog_mm: 0.0,
             params,
         };
         g.pos_mm = -g.params.approach_mm;
@@ -364,11 +368,13 @@ impl Guide {
                     )));
                 }
                 self.pos_mm = next;
+                self.last_jog_mm = jog;
                 Ok(self.step(vec![next], None))
             }
             Press::Overshot => {
                 self.overshoots += 1;
                 self.entry_mm = None;
+                self.last_jog_mm = 0.0;
                 self.pos_mm -= self.dir() * a;
                 Ok(self.step(vec![self.pos_mm], None))
             }
@@ -398,11 +404,18 @@ impl Guide {
             Press::Past => {
                 let entry = self.entry_mm.unwrap_or_else(|| self.position_mm());
                 if self.dir() * (self.position_mm() - entry) < 1e-9 {
-                    return Err(Error::BacklashGuide(
-                        "Past needs at least one fine jog after Centred: jog until the nozzle \
-                         looks off the mark on the far side"
-                            .into(),
-                    ));
+                    // Past with no jog since Centred: the nozzle already looked past when
+                    // Centred was pressed, so the mark was crossed within the last jog; a fine
+                    // jog's middle is as good a reading as a crossing's, a coarse one's is not.
+                    let q = self.last_jog_mm;
+                    if q <= 0.0 || q > self.fine_mm() + 1e-12 {
+                        return Err(Error::BacklashGuide(
+                            "the nozzle already looked past the mark at Centred after a coarse \
+                             jog: press Overshot to approach again, with fine jogs near the mark"
+                                .into(),
+                        ));
+                    }
+                    return self.record(self.position_mm() - self.dir() * q / 2.0);
                 }
                 // The crossing's midpoint: the person's "looks centred" zone cancels.
                 self.record(0.5 * (entry + self.position_mm()))
@@ -415,6 +428,7 @@ impl Guide {
     fn record(&mut self, reading: f64) -> Result<Step, Error> {
         let a = self.params.approach_mm;
         self.entry_mm = None;
+        self.last_jog_mm = 0.0;
         if self.phase == Phase::Plus {
             self.pending_x1_mm = Some(reading);
             self.phase = Phase::Minus;
@@ -450,6 +464,7 @@ impl Guide {
         }
         let a = self.params.approach_mm;
         self.entry_mm = None;
+        self.last_jog_mm = 0.0;
         // Back to 1 mm before the centre on the approach side, but never further than the
         // current position is from it already.
         let back = if self.phase == Phase::Plus {
@@ -540,7 +555,7 @@ mod tests {
             .press(Press::Past)
             .unwrap_err()
             .to_string()
-            .contains("one fine jog"));
+            .contains("press Overshot"));
         g.press(Press::Fine).unwrap();
         let s = g.press(Press::Past).unwrap();
         assert!((s.recorded.unwrap() - 9.905).abs() < 1e-9, "{s:?}");
@@ -551,6 +566,19 @@ mod tests {
         assert!((s.moves_mm[0] - 0.90).abs() < 1e-9);
         let s = g.press(Press::Overshot).unwrap();
         assert!((s.moves_mm[0] - 1.90).abs() < 1e-9);
+        // Past at once after a fine jog: the mark was crossed within it, read at its middle.
+        let s = g.press(Press::Coarse).unwrap();
+        assert!((s.moves_mm[0] - 1.8).abs() < 1e-9);
+        for _ in 0..17 {
+            g.press(Press::Coarse).unwrap();
+        }
+        g.press(Press::Fine).unwrap();
+        g.press(Press::Centred).unwrap();
+        let s = g.press(Press::Past).unwrap();
+        assert!(
+            (s.recorded.unwrap() - (10.0 + 0.09 + 0.005)).abs() < 1e-9,
+            "{s:?}"
+        );
         // Past before Centred says what comes first.
         assert!(g
             .press(Press::Past)
