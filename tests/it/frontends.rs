@@ -874,6 +874,7 @@ async fn backlash_axis(kind: Kind) {
     let mut moved = false;
     let mut per_press = Vec::new();
     let mut minus = false;
+    let mut crossing = false;
     loop {
         if session(&bench).await["state"] == "measured" {
             break;
@@ -883,11 +884,19 @@ async fn backlash_axis(kind: Kind) {
         if presses <= UI_PRESSES {
             if let Some(d) = ui.dialog().await {
                 minus = d.title.contains('−');
+                crossing = d.buttons.iter().any(|b| b == "Past");
             }
         }
         let dir = if minus { -1.0 } else { 1.0 };
         let seen = dir * (crate::backlash::nozzle(&bench)[0] - mark[0]);
-        let want = if seen >= -0.003 {
+        let want = if crossing {
+            // After Centred: fine through the mark until it looks past, then Past.
+            if seen > 0.003 {
+                "past"
+            } else {
+                "fine"
+            }
+        } else if seen >= -0.003 {
             "centred"
         } else if seen < -0.12 {
             "coarse"
@@ -908,6 +917,7 @@ async fn backlash_axis(kind: Kind) {
             .await
             .unwrap();
             minus = r["phase"] == "Minus";
+            crossing = r["crossing"] == true;
             tokio::time::sleep(Duration::from_millis(50)).await;
             continue;
         }
@@ -927,7 +937,7 @@ async fn backlash_axis(kind: Kind) {
         m.gcode("M400").await.unwrap();
         let after = ui.rows().await;
         per_press.push(added(&rows_before, &after).len());
-        if !moved && want != "centred" {
+        if !moved && want != "centred" && want != "past" {
             assert_ne!(
                 crate::backlash::nozzle(&bench)[0],
                 at,
