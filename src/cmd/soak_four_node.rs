@@ -198,43 +198,6 @@ impl FourNode {
         w / self.p_max_w
     }
 
-    /// The time constants of the bed with the thermistor's node held (and the heater's power
-    /// free): the modes the power decays with and the surface relaxes with, s, slowest first.
-    #[must_use]
-    #[cfg(test)]
-    pub(crate) fn clamped_taus_s(&self) -> Vec<f64> {
-        let s = self.sensor_node();
-        let k = |i: usize, j: usize| -> f64 {
-            match (i.min(j), i.max(j)) {
-                (0, 1) => self.k_pad_plate,
-                (1, 2) => self.k_plate_surf,
-                (2, 3) => self.h_surf_air,
-                (0, 3) => self.h_pad_air,
-                _ => 0.0,
-            }
-        };
-        let free: Vec<usize> = (0..4).filter(|i| *i != s).collect();
-        // Symmetric form C^-1/2 K C^-1/2 of the conductance matrix over the free nodes (the
-        // held node and the room are fixed: their conductances sit on the diagonal).
-        let m = nalgebra::DMatrix::from_fn(free.len(), free.len(), |a, b| {
-            let (i, j) = (free[a], free[b]);
-            let kij = if i == j {
-                (0..4).map(|n| k(i, n)).sum::<f64>() + if i == 3 { self.h_air_room } else { 0.0 }
-            } else {
-                -k(i, j)
-            };
-            kij / (self.c[i] * self.c[j]).sqrt()
-        });
-        let mut taus: Vec<f64> = m
-            .symmetric_eigen()
-            .eigenvalues
-            .iter()
-            .map(|l| 1.0 / l)
-            .collect();
-        taus.sort_by(|a, b| b.total_cmp(a));
-        taus
-    }
-
     /// Heat flows into each node at temperatures `t` and heater power `p` (W).
     fn flows(&self, t: &[f64; 4], p_w: f64) -> [f64; 4] {
         let q_pp = self.k_pad_plate * (t[0] - t[1]);
@@ -703,10 +666,6 @@ pub(crate) struct BedResult {
     pub sigma: f64,
     /// klipcal's rule with `soak.bed` set to this kind's preset, when asked for.
     pub with_preset: Option<f64>,
-    /// klipcal's rule before the lag bound (ΔP / G alone), without and with the preset.
-    pub before: Option<f64>,
-    /// See `before`.
-    pub before_preset: Option<f64>,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
 }
@@ -805,15 +764,6 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         g_used: c.g,
         sigma: d.fit().map_or(0.0, |f| f.test_sd),
         with_preset: None,
-        before: detector(
-            samples,
-            &SoakParams {
-                no_lag_bound: true,
-                ..params.clone()
-            },
-        )
-        .0,
-        before_preset: None,
         left_c,
     }
 }
@@ -853,14 +803,6 @@ pub(crate) fn run_bed(
             ..params.clone()
         };
         r.with_preset = detector(&samples, &with).0;
-        r.before_preset = detector(
-            &samples,
-            &SoakParams {
-                no_lag_bound: true,
-                ..with
-            },
-        )
-        .0;
     }
     Some(r)
 }
@@ -882,73 +824,6 @@ mod tests {
         assert!(
             r.max_pwm_diff <= PWM_TOL && r.max_gain_rel <= GAIN_TOL,
             "{r:?}"
-        );
-    }
-
-    /// The lag bound (calib::soak::LagBank) on the four-node family: run at the bed's slowest
-    /// clamped time constant itself (the detector uses the grid's τ at or above it), it holds
-    /// what the simulated surface still had to warm at every bin from reaching the band on,
-    /// under Klipper's PID with its noisy readings: every kind, every corner of the grid's
-    /// knobs, wherever that τ is within the detector's `tau_max_s` (1 h). With one lag stage
-    /// instead of `LAG_STAGES` it fails (the surface is two and three nodes from the
-    /// thermistor).
-    #[test]
-    fn the_lag_bound_holds_the_surface_on_every_four_node_bed_whose_modes_it_covers() {
-        use crate::calib::soak::LagBank;
-        let mut rng = fastrand::Rng::with_seed(11);
-        let (mut checked, mut bins, mut worst_margin) = (0, 0, f64::INFINITY);
-        for kind in Kind::all() {
-            for corner in 0..16 {
-                let f = |b: u32| f64::from((corner >> b) & 1);
-                let knobs = Knobs {
-                    coupling: f(0),
-                    plate: f(1),
-                    enclosure: f(2),
-                    noise: f(3),
-                };
-                let bed = FourNode::new(kind, knobs, &mut rng);
-                let slowest = bed.clamped_taus_s()[0];
-                if slowest > 3600.0 {
-                    continue;
-                }
-                let gains = autotune(&bed, &mut rng).expect("autotune finished");
-                let samples = heat_up(&bed, gains, 2.0 * 3600.0, &mut rng);
-                let fin = bed.surface_final_c();
-                let taus = [slowest];
-                let mut bank = LagBank::new(samples[0][2], 1);
-                let mut reached = false;
-                for chunk in samples.chunks_exact(10) {
-                    let t = chunk.iter().map(|s| s[0]).sum::<f64>() / 10.0;
-                    let temp = chunk.iter().map(|s| s[2]).sum::<f64>() / 10.0;
-                    bank.push(&taus, t, temp);
-                    reached |= (temp - bed.target_c).abs() <= 2.0;
-                    if !reached {
-                        continue;
-                    }
-                    // Like with like: the bin's mean surface against the bin's mean reading.
-                    let left = fin - chunk.iter().map(|s| s[4]).sum::<f64>() / 10.0;
-                    let bound = bank.bounds(bed.target_c)[0];
-                    worst_margin = f64::min(worst_margin, bound - left);
-                    bins += 1;
-                    // 0.1 K: the truth is the surface with the thermistor's node exactly at its
-                    // target, and Klipper holds it in a limit cycle (pwm changes under 0.05 are
-                    // held, the derivative acts on noisy 0.01 °C readings) whose ripple the
-                    // surface follows by a few hundredths of a kelvin: a tenth of the budget.
-                    assert!(
-                        bound + 0.1 >= left,
-                        "{} {knobs:?}: slowest mode {slowest:.0} s, at {t:.0} s the surface had \
-                         {left:.3} K to go, the bound said {bound:.3} K",
-                        kind.name(),
-                    );
-                }
-                checked += 1;
-            }
-        }
-        // The open-frame kinds all have their modes within the hour; so do small enclosures.
-        assert!(checked >= 64, "{checked} beds checked");
-        assert!(
-            bins > 50_000 && worst_margin >= -0.1,
-            "{bins} {worst_margin}"
         );
     }
 
