@@ -205,8 +205,8 @@ pub struct BacklashSolveArgs {
 /// `klipcal bench backlash`
 #[derive(Debug, Args)]
 pub struct BenchBacklashArgs {
-    /// Simulated axes per model.
-    #[arg(long, default_value_t = 2000)]
+    /// Simulated axes per model and person.
+    #[arg(long, default_value_t = 1000)]
     pub axes: usize,
     /// RNG seed.
     #[arg(long, default_value_t = 4)]

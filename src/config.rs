@@ -297,6 +297,7 @@ impl BacklashConfig {
             small_fine_mm: self.small_fine_mm,
             max_travel_mm: self.max_travel_mm,
             plausible_mm: self.plausible_mm,
+            crossing: true,
         }
     }
 }

@@ -1,7 +1,12 @@
 //! PURE: the seed's camera procedure (shared/seeds/004, steps 1–8) as a resumable state
 //! machine. Per cycle: from 1 mm before the camera point the person jogs only in + (coarse or
 //! fine) until centred (X1); the machine moves 1 mm further in +; the person jogs only in −
-//! until centred (X2). "Overshot — start over" re-approaches from 1 mm back, because moving
+//! until centred (X2). Each "centred" is read as a crossing (issue 27): the person presses
+//! Centred where the nozzle first looks centred, keeps jogging fine the same way, and presses
+//! Past where it first looks off the mark on the far side; the reading is the midpoint. A
+//! person who stops short (a wide "looks centred") enters early and leaves late by the same
+//! amount, so it cancels; one who reacts a jog late is late at both and the two fine-jog sizes
+//! remove it ([`super::backlash::analyse`]). The estimator never knows which person it has. "Overshot — start over" re-approaches from 1 mm back, because moving
 //! back would defeat the measurement. Positions are along-axis offsets from the camera point;
 //! A and B are the CoreXY motor directions (A = X + Y, B = X − Y). The state serialises, so a
 //! runner saves it before every move and resumes after a crash. No I/O, no clock.
@@ -107,6 +112,9 @@ pub struct GuideParams {
     /// camera point in the approach direction (the person was centred there when it was
     /// saved, so only the backlash and drift separate them).
     pub plausible_mm: f64,
+    /// Read each approach as a crossing (Centred, fine jogs, Past; the midpoint). Off: Centred
+    /// records the position, as the seed's single pass does (the benchmark's anchors).
+    pub crossing: bool,
 }
 
 impl Default for GuideParams {
@@ -119,6 +127,7 @@ impl Default for GuideParams {
             small_fine_mm: 0.0025,
             max_travel_mm: 3.0,
             plausible_mm: 0.3,
+            crossing: true,
         }
     }
 }
@@ -196,10 +205,12 @@ pub enum Press {
     Centred,
     /// Went past the centre: re-approach from 1 mm back.
     Overshot,
+    /// After Centred: the nozzle now looks off the mark on the far side (ends the crossing).
+    Past,
 }
 
 impl Press {
-    /// Parses `coarse|fine|centred|overshot` (any case; `centered` accepted).
+    /// Parses `coarse|fine|centred|past|overshot` (any case; `centered` accepted).
     ///
     /// # Errors
     /// Anything else, with the accepted values.
@@ -209,8 +220,9 @@ impl Press {
             "fine" => Ok(Press::Fine),
             "centred" | "centered" => Ok(Press::Centred),
             "overshot" => Ok(Press::Overshot),
+            "past" => Ok(Press::Past),
             _ => Err(Error::BacklashGuide(format!(
-                "PRESS={}: expected coarse, fine, centred or overshot",
+                "PRESS={}: expected coarse, fine, centred, past or overshot",
                 text.trim()
             ))),
         }
@@ -229,6 +241,9 @@ pub struct Step {
     pub cycle: usize,
     /// A reading recorded by this step (saved before the machine moves).
     pub recorded: Option<f64>,
+    /// Centred was pressed in this approach: the person now jogs fine to Past.
+    #[serde(default)]
+    pub crossing: bool,
 }
 
 /// The guided procedure's whole state (serialisable; resumable).
@@ -250,6 +265,13 @@ pub struct Guide {
     pub cycles: Vec<Cycle>,
     /// Overshoots pressed so far (reported).
     pub overshoots: usize,
+    /// Where the nozzle first looked centred in the approach in progress (Centred pressed;
+    /// Past ends the crossing), axis coordinate.
+    #[serde(default)]
+    pub entry_mm: Option<f64>,
+    /// The size of the jog that brought the nozzle where it is (0: a move, not a jog).
+    #[serde(default)]
+    pub last_jog_mm: f64,
 }
 
 impl Guide {
@@ -276,6 +298,8 @@ impl Guide {
             pending_x1_mm: None,
             cycles: Vec::new(),
             overshoots: 0,
+            entry_mm: None,
+            last_jog_mm: 0.0,
             params,
         };
         g.pos_mm = -g.params.approach_mm;
@@ -297,6 +321,7 @@ impl Guide {
             phase: self.phase,
             cycle: (self.cycles.len() + 1).min(self.params.cycles),
             recorded,
+            crossing: self.entry_mm.is_some(),
         }
     }
 
@@ -343,13 +368,25 @@ impl Guide {
                     )));
                 }
                 self.pos_mm = next;
+                self.last_jog_mm = jog;
                 Ok(self.step(vec![next], None))
             }
             Press::Overshot => {
                 self.overshoots += 1;
+                self.entry_mm = None;
+                self.last_jog_mm = 0.0;
                 self.pos_mm -= self.dir() * a;
                 Ok(self.step(vec![self.pos_mm], None))
             }
+            Press::Centred if self.entry_mm.is_some() => Err(Error::BacklashGuide(
+                "Centred is already recorded for this approach; jog fine until the nozzle looks \
+                 off the mark on the far side, then press Past"
+                    .into(),
+            )),
+            Press::Past if self.entry_mm.is_none() => Err(Error::BacklashGuide(
+                "press Centred first, where the nozzle first looks centred; Past comes after it"
+                    .into(),
+            )),
             Press::Centred => {
                 if self.dir() * self.pos_mm < -self.params.plausible_mm {
                     return Err(Error::BacklashGuide(format!(
@@ -358,32 +395,64 @@ impl Guide {
                         -self.dir() * self.pos_mm
                     )));
                 }
-                let reading = self.position_mm();
-                if self.phase == Phase::Plus {
-                    self.pending_x1_mm = Some(reading);
-                    self.phase = Phase::Minus;
-                    // Seed step 5: 1 mm further in +.
-                    self.pos_mm += a;
-                    Ok(self.step(vec![self.pos_mm], Some(reading)))
-                } else {
-                    let x1 = self.pending_x1_mm.take().ok_or_else(|| {
-                        Error::BacklashGuide("internal: no X1 for this cycle".into())
-                    })?;
-                    let fine_mm = Some(self.fine_mm());
-                    self.cycles.push(Cycle {
-                        x1_mm: x1,
-                        x2_mm: reading,
-                        fine_mm,
-                    });
-                    if self.cycles.len() >= self.params.cycles {
-                        self.phase = Phase::Done;
-                        return Ok(self.step(Vec::new(), Some(reading)));
-                    }
-                    self.phase = Phase::Plus;
-                    self.pos_mm = -a;
-                    Ok(self.step(vec![self.pos_mm], Some(reading)))
+                if self.params.crossing {
+                    self.entry_mm = Some(self.position_mm());
+                    return Ok(self.step(Vec::new(), None));
                 }
+                self.record(self.position_mm())
             }
+            Press::Past => {
+                let entry = self.entry_mm.unwrap_or_else(|| self.position_mm());
+                if self.dir() * (self.position_mm() - entry) < 1e-9 {
+                    // Past with no jog since Centred: the nozzle already looked past when
+                    // Centred was pressed, so the mark was crossed within the last jog; a fine
+                    // jog's middle is as good a reading as a crossing's, a coarse one's is not.
+                    let q = self.last_jog_mm;
+                    if q <= 0.0 || q > self.fine_mm() + 1e-12 {
+                        return Err(Error::BacklashGuide(
+                            "the nozzle already looked past the mark at Centred after a coarse \
+                             jog: press Overshot to approach again, with fine jogs near the mark"
+                                .into(),
+                        ));
+                    }
+                    return self.record(self.position_mm() - self.dir() * q / 2.0);
+                }
+                // The crossing's midpoint: the person's "looks centred" zone cancels.
+                self.record(0.5 * (entry + self.position_mm()))
+            }
+        }
+    }
+
+    /// Records the approach's reading and moves on (to the other approach, the next cycle, or
+    /// done).
+    fn record(&mut self, reading: f64) -> Result<Step, Error> {
+        let a = self.params.approach_mm;
+        self.entry_mm = None;
+        self.last_jog_mm = 0.0;
+        if self.phase == Phase::Plus {
+            self.pending_x1_mm = Some(reading);
+            self.phase = Phase::Minus;
+            // Seed step 5: 1 mm further in +.
+            self.pos_mm += a;
+            Ok(self.step(vec![self.pos_mm], Some(reading)))
+        } else {
+            let x1 = self
+                .pending_x1_mm
+                .take()
+                .ok_or_else(|| Error::BacklashGuide("internal: no X1 for this cycle".into()))?;
+            let fine_mm = Some(self.fine_mm());
+            self.cycles.push(Cycle {
+                x1_mm: x1,
+                x2_mm: reading,
+                fine_mm,
+            });
+            if self.cycles.len() >= self.params.cycles {
+                self.phase = Phase::Done;
+                return Ok(self.step(Vec::new(), Some(reading)));
+            }
+            self.phase = Phase::Plus;
+            self.pos_mm = -a;
+            Ok(self.step(vec![self.pos_mm], Some(reading)))
         }
     }
 
@@ -394,6 +463,8 @@ impl Guide {
             return self.step(Vec::new(), None);
         }
         let a = self.params.approach_mm;
+        self.entry_mm = None;
+        self.last_jog_mm = 0.0;
         // Back to 1 mm before the centre on the approach side, but never further than the
         // current position is from it already.
         let back = if self.phase == Phase::Plus {
@@ -425,7 +496,13 @@ mod tests {
                 return;
             }
             let dir = if step.phase == Phase::Plus { 1.0 } else { -1.0 };
-            let press = if dir * nozzle >= -g.fine_mm() / 2.0 {
+            let press = if step.crossing {
+                if dir * nozzle > g.fine_mm() / 2.0 {
+                    Press::Past
+                } else {
+                    Press::Fine
+                }
+            } else if dir * nozzle >= -g.fine_mm() / 2.0 {
                 Press::Centred
             } else if dir * nozzle < -0.15 {
                 Press::Coarse
@@ -469,14 +546,45 @@ mod tests {
             assert!(s.moves_mm[0] > last, "a jog moved back");
             last = s.moves_mm[0];
         }
+        // Centred opens the crossing (nothing moves); Past after one fine jog records the
+        // midpoint of where the nozzle looked centred and where it looked past.
         let s = g.press(Press::Centred).unwrap();
-        assert!((s.recorded.unwrap() - 9.9).abs() < 1e-9);
+        assert!(s.crossing && s.moves_mm.is_empty() && s.recorded.is_none());
+        assert!(g.press(Press::Centred).is_err());
+        assert!(g
+            .press(Press::Past)
+            .unwrap_err()
+            .to_string()
+            .contains("press Overshot"));
+        g.press(Press::Fine).unwrap();
+        let s = g.press(Press::Past).unwrap();
+        assert!((s.recorded.unwrap() - 9.905).abs() < 1e-9, "{s:?}");
+        assert!(!s.crossing);
         // Seed step 5: 1 mm further in +, then jogs go −.
-        assert!((s.moves_mm[0] - 0.9).abs() < 1e-9);
+        assert!((s.moves_mm[0] - 0.91).abs() < 1e-9);
         let s = g.press(Press::Fine).unwrap();
-        assert!((s.moves_mm[0] - 0.89).abs() < 1e-9);
+        assert!((s.moves_mm[0] - 0.90).abs() < 1e-9);
         let s = g.press(Press::Overshot).unwrap();
-        assert!((s.moves_mm[0] - 1.89).abs() < 1e-9);
+        assert!((s.moves_mm[0] - 1.90).abs() < 1e-9);
+        // Past at once after a fine jog: the mark was crossed within it, read at its middle.
+        let s = g.press(Press::Coarse).unwrap();
+        assert!((s.moves_mm[0] - 1.8).abs() < 1e-9);
+        for _ in 0..17 {
+            g.press(Press::Coarse).unwrap();
+        }
+        g.press(Press::Fine).unwrap();
+        g.press(Press::Centred).unwrap();
+        let s = g.press(Press::Past).unwrap();
+        assert!(
+            (s.recorded.unwrap() - (10.0 + 0.09 + 0.005)).abs() < 1e-9,
+            "{s:?}"
+        );
+        // Past before Centred says what comes first.
+        assert!(g
+            .press(Press::Past)
+            .unwrap_err()
+            .to_string()
+            .contains("Centred first"));
     }
 
     #[test]
@@ -510,14 +618,22 @@ mod tests {
         g.press(Press::Coarse).unwrap();
         g.press(Press::Centred).unwrap();
         g.press(Press::Fine).unwrap();
+        g.press(Press::Past).unwrap();
+        g.press(Press::Fine).unwrap();
+        g.press(Press::Centred).unwrap();
         let text = serde_json::to_string(&g).unwrap();
         let mut back: Guide = serde_json::from_str(&text).unwrap();
+        // (serde_json's parse is within an ulp, not exact.)
+        assert!((back.pos_mm - g.pos_mm).abs() < 1e-12);
+        back.pos_mm = g.pos_mm;
         assert_eq!(back, g);
         let s = back.resume();
         assert_eq!(s.phase, Phase::Minus);
-        // In the − approach at 0.09: restart from 1 mm further in +.
-        assert!((s.moves_mm[0] - 1.09).abs() < 1e-12);
-        assert!((back.pending_x1_mm.unwrap() - 299.1).abs() < 1e-9);
+        // In the − approach at 0.1 (a crossing open): restart from 1 mm further in +, the
+        // crossing closed.
+        assert!((s.moves_mm[0] - 1.1).abs() < 1e-12);
+        assert!(!s.crossing && back.entry_mm.is_none());
+        assert!((back.pending_x1_mm.unwrap() - 299.105).abs() < 1e-9);
     }
 
     #[test]

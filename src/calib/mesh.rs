@@ -233,7 +233,7 @@ fn check(caps: &[&Capture]) -> Result<usize, Error> {
 }
 
 /// The least span of frame temperature between the coldest and the hottest mesh a fit takes, °C.
-pub const MIN_SPAN_C: f64 = 0.5;
+pub(crate) const MIN_SPAN_C: f64 = 0.5;
 
 /// Fits `kind` to the captures, per point.
 ///

@@ -510,7 +510,9 @@ mod tests {
             if let Some(call) = gcode.split("action_call_remote_method(\"").nth(1) {
                 let method: String = call.chars().take_while(|c| *c != '"').collect();
                 assert!(methods.contains(&method), "{name} calls {method}");
-                // Said by Klipper itself, before the call goes out (issue 9 item 9).
+                // Said by Klipper itself, before the call goes out (issue 9 item 9), by every
+                // macro a user calls; not by the helpers pressed in klipcal's dialogs (issue 26
+                // A.4: a backlash axis's jog presses added a row each).
                 let asked = gcode.lines().position(|l| {
                     l.trim_start().starts_with("RESPOND ")
                         && l.contains("MSG=\"asking the klipcal service...\"")
@@ -518,10 +520,14 @@ mod tests {
                 let calls = gcode
                     .lines()
                     .position(|l| l.contains("action_call_remote_method("));
-                assert!(
-                    asked.is_some() && asked < calls,
-                    "{name} gives no feedback when the service is down"
-                );
+                if name.starts_with('_') {
+                    assert_eq!(asked, None, "{name}, a dialog's helper, says it asks");
+                } else {
+                    assert!(
+                        asked.is_some() && asked < calls,
+                        "{name} gives no feedback when the service is down"
+                    );
+                }
             }
         }
         let readme = include_str!("../../README.md");

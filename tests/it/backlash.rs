@@ -59,7 +59,14 @@ async fn measure(
         let noise = (rng.f64() * 2.0 - 1.0) * 0.0015;
         let seen = dir * (axis.coord(nozzle(bench)) - axis.coord(mark)) + noise;
         let fine = g.fine_mm();
-        let press = if seen >= -fine / 2.0 {
+        let press = if step.crossing {
+            // Centred pressed: through the mark until it looks past, then Past.
+            if seen > fine / 2.0 {
+                Press::Past
+            } else {
+                Press::Fine
+            }
+        } else if seen >= -fine / 2.0 {
             Press::Centred
         } else if seen < -0.12 {
             Press::Coarse

@@ -58,12 +58,15 @@ fn answered_if(remote: bool) -> impl Fn(&[String]) -> bool {
 }
 
 /// Whether klipcal answered on the console after saying it was asked (its answer, or its
-/// refusal in red).
+/// refusal in red); a helper (`_KLIPCAL_…`, pressed in klipcal's dialogs) does not say it asks
+/// (issue 26 A.4), so its answer counts from the start.
 fn klipcal_answered(lines: &[String]) -> bool {
-    lines
+    let from = lines
         .iter()
-        .skip_while(|l| !l.contains("asking the klipcal service..."))
-        .skip(1)
+        .position(|l| l.contains("asking the klipcal service..."))
+        .map_or(0, |i| i + 1);
+    lines[from..]
+        .iter()
         .any(|l| l.starts_with("klipcal ") || l.starts_with("!! klipcal: "))
 }
 

@@ -162,7 +162,9 @@ impl Ab {
         }
         let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?;
         let progress = pairs_progress(&round.layout.pairs, &have, s.options.readings_per_pair);
-        message.push('\n');
+        // One console row per entry: what was saved, then where every pair stands (issue 26
+        // A.4: two rows each).
+        message.push_str(" · ");
         message.push_str(&progress);
         if missing.is_empty() && s.state == State::Measuring {
             message.push_str("\nall pairs measured: KLIPCAL_AB_SOLVE computes the new values");
@@ -306,15 +308,18 @@ pub(super) fn measuring_dialog(s: &Session) -> Vec<String> {
     } else {
         "on the bed"
     };
-    let mut lines = vec![format!(
+    // One text row (issue 26 A.4: each prompt line is a console row).
+    let picture = s
+        .rounds
+        .last()
+        .and_then(|r| r.picture.clone())
+        .map(|p| format!(" Picture: {p}"))
+        .unwrap_or_default();
+    vec![format!(
         "Calipers, part still {on}: {} readings per pair, outer face to outer face just below \
-         the top chamfer. The pairs and what to type are on the console.",
+         the top chamfer. The pairs and what to type are on the console.{picture}",
         s.options.readings_per_pair
-    )];
-    if let Some(p) = s.rounds.last().and_then(|r| r.picture.clone()) {
-        lines.push(format!("picture: {p}"));
-    }
-    lines
+    )]
 }
 
 pub(super) fn measuring_guide(s: &Session, page: Option<&str>) -> Vec<String> {

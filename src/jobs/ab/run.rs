@@ -211,14 +211,17 @@ impl Ab {
                 return Some(xy);
             }
         }
-        self.core
-            .console(&format!(
-                "{TITLE}: asking Klipper for its skew correction (GET_CURRENT_SKEW, answered \
-                 below) to turn it off for the calibration print and back on afterwards"
-            ))
-            .await;
+        // The line and the question in one script (one console row fewer).
+        let why = crate::jobs::core::console::respond_line(&format!(
+            "{TITLE}: asking Klipper for its skew correction (GET_CURRENT_SKEW, answered below) \
+             to turn it off for the calibration print and back on afterwards"
+        ));
         let mut rx = self.core.m().events();
-        self.core.m().gcode("GET_CURRENT_SKEW").await.ok()?;
+        self.core
+            .m()
+            .gcode(&format!("{why}\nGET_CURRENT_SKEW"))
+            .await
+            .ok()?;
         let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
         while let Ok(Ok(e)) = tokio::time::timeout_at(deadline, rx.recv()).await {
             if let crate::moonraker::Event::GcodeResponse(text) = e {
@@ -415,7 +418,16 @@ impl Ab {
             self.core.printer_idle().await?;
             // Klipper keeps the heaters on while it prints; once the print ends, it turns them
             // off by itself after the hold limit if klipcal is not there to do it.
-            self.core.hold_heaters_for(s.options.hold_max_s).await?;
+            // Said in the same script as the hold (one console row fewer; issue 26 A.4).
+            self.core
+                .hold_heaters_with(
+                    s.options.hold_max_s,
+                    &crate::jobs::core::console::respond_line(&format!(
+                        "A/B calibration: printing {}",
+                        round.file
+                    )),
+                )
+                .await?;
             self.core.m().print_start(&round.file).await?;
             let now = now_unix();
             self.update(id, |s| {
@@ -425,9 +437,6 @@ impl Ab {
                 Ok(())
             })
             .await?;
-            self.core
-                .console(&format!("A/B calibration: printing {}", round.file))
-                .await;
         }
         let mut standby = 0;
         loop {

@@ -186,14 +186,14 @@ impl Ab {
                 &format!("{TITLE}: {line}: {how}"),
                 &Prompt {
                     title: "klipcal: the bed has not settled".into(),
-                    lines: vec![
-                        line.clone(),
-                        format!(
-                            "Print now: the readings may carry some thermal drift. Wait: 10 more \
-                             minutes. No answer: the bed stays hot and klipcal keeps waiting, up \
-                             to {hold_min:.0} min. Cancel: heaters off."
-                        ),
-                    ],
+                    // One text row (issue 26 A.4: each prompt line is a console row).
+                    lines: vec![format!(
+                        "{}{}. Print now: the readings may carry some thermal drift. Wait: 10 \
+                         more minutes. No answer: the bed stays hot and klipcal keeps waiting, \
+                         up to {hold_min:.0} min. Cancel: heaters off.",
+                        line[..1].to_uppercase(),
+                        &line[1..]
+                    )],
                     buttons: vec![
                         Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
                         Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
@@ -226,6 +226,9 @@ impl Ab {
             Ok(())
         })
         .await?;
+        // The question is answered: its dialog closes with this answer, in the same script (the
+        // runner's own close then has nothing to do; issue 26 A.4).
+        self.core.prompt_end().await;
         Ok(json!({"session": s.id, "choice": choice,
                   "message": if choice == "print" { "printing now" } else { "waiting 10 min more" }}))
     }

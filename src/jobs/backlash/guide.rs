@@ -114,11 +114,41 @@ impl Backlash {
             ("+", "+")
         };
         let axis = g.axis.name().to_uppercase();
+        if step.crossing {
+            // After Centred: through the mark to where it first looks off it (issue 27: the
+            // midpoint cancels a person's own idea of "centred").
+            return Prompt {
+                title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
+                lines: vec![
+                    format!(
+                        "Keep jogging {axis}{sign} fine until the nozzle first looks off the mark on the far side, then press Past."
+                    ),
+                    format!(
+                        "Fine {} mm. The reading is halfway between Centred and Past.",
+                        g.fine_mm()
+                    ),
+                ],
+                buttons: vec![
+                    Button::new(
+                        &format!("Fine {axis}{sign}"),
+                        "_KLIPCAL_BACKLASH_JOG PRESS=fine",
+                        "secondary",
+                    ),
+                    Button::new("Past", "_KLIPCAL_BACKLASH_JOG PRESS=past", "primary"),
+                    Button::new(
+                        "Overshot - start over",
+                        "_KLIPCAL_BACKLASH_JOG PRESS=overshot",
+                        "warning",
+                    ),
+                ],
+                footer: vec![Button::cancel_asking()],
+            };
+        }
         Prompt {
             title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
             lines: vec![
                 format!(
-                    "Jog {axis}{sign} until the nozzle is centred on the camera mark; never back."
+                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back."
                 ),
                 format!(
                     "Coarse {} mm, fine {} mm. Past the centre? Press Overshot: it starts the approach over from {} mm back.",
@@ -320,7 +350,7 @@ impl Backlash {
         )
     }
 
-    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|overshot`.
+    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|past|overshot`.
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
@@ -392,7 +422,8 @@ impl Backlash {
         };
         Ok(
             json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
-                  "phase": format!("{:?}", step.phase), "cycle": step.cycle, "message": message}),
+                  "phase": format!("{:?}", step.phase), "crossing": step.crossing,
+                  "cycle": step.cycle, "message": message}),
         )
     }
 }

@@ -98,14 +98,14 @@ pub(crate) static OPS: &[Op<BacklashCall>] = &[
             "klipcal_backlash_jog",
             "_KLIPCAL_BACKLASH_JOG",
             "backlash/jog",
-            "backlash prompt button, PRESS=coarse, fine, centred or overshot (moves only in the approach direction)",
+            "backlash prompt button, PRESS=coarse, fine, centred, past or overshot (moves only in the approach direction; the reading is halfway between centred and past)",
             &[arg(
                 "press",
                 ArgKind::Text,
                 "fine",
-                "coarse, fine, centred or overshot",
+                "coarse, fine, centred, past or overshot",
                 "",
-                "coarse, fine, centred or overshot",
+                "coarse, fine, centred, past or overshot",
             )],
         ),
         parse: |a| {

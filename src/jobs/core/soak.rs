@@ -180,7 +180,7 @@ impl BedSoak {
     /// A soak no print follows (a mesh capture): its console lines and progress neither offer
     /// to print now nor state what printing now would cost (issue 26 B.7).
     #[must_use]
-    pub fn before_no_print(mut self) -> Self {
+    pub(crate) fn before_no_print(mut self) -> Self {
         self.prints = false;
         self
     }
@@ -260,9 +260,6 @@ impl BedSoak {
     /// # Errors
     /// Moonraker failures.
     pub(crate) async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
-        if target_c > 0.0 {
-            core.hold_heaters_for(bound_s).await?;
-        }
         // A bed already at this target (heated again after an apply so that the next round
         // starts warm, or an unheated bed left off) is not sent its target a second time: the
         // console showed SET_HEATER_TEMPERATURE twice (issue 26 B.7).
@@ -272,15 +269,24 @@ impl BedSoak {
             .await
         {
             match v["heater_bed"]["target"].as_f64() {
-                Some(now) if (now - target_c).abs() < 0.05 => return Ok(()),
+                Some(now) if (now - target_c).abs() < 0.05 => {
+                    if target_c > 0.0 {
+                        core.hold_heaters_for(bound_s).await?;
+                    }
+                    return Ok(());
+                }
                 // No heated bed (BED=0 on a printer without one): nothing to set.
                 None if target_c <= 0.0 => return Ok(()),
                 _ => {}
             }
         }
-        core.m()
-            .gcode(&gcode_cmd::set_heater_temperature("heater_bed", target_c)?)
-            .await?;
+        let set = gcode_cmd::set_heater_temperature("heater_bed", target_c)?;
+        if target_c > 0.0 {
+            // The bound first, in the same script (one console row).
+            core.hold_heaters_with(bound_s, &set).await?;
+        } else {
+            core.m().gcode(&set).await?;
+        }
         Ok(())
     }
 

@@ -414,7 +414,8 @@ pub(crate) const fn bed_arg(help: &'static str) -> ArgSpec {
     )
 }
 
-/// The line every remote macro says first: if nothing follows, the service is not running.
+/// The line every remote macro a user calls says first: if nothing follows, the service is not
+/// running. Helpers (`_KLIPCAL_…`, pressed in klipcal's dialogs) do not say it.
 pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
 
 /// `config/klipcal.cfg` for `ops`: one `[gcode_macro]` per operation, one
@@ -451,7 +452,12 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
                 for l in before {
                     let _ = writeln!(out, "  {l}");
                 }
-                let _ = writeln!(out, "  {ASKING}");
+                // A helper (leading `_`) is pressed in one of klipcal's dialogs, which the
+                // service just sent: it says nothing first (issue 26 A.4: a backlash axis's
+                // ~130 jog presses added an "asking" row each).
+                if !op.macro_name.starts_with('_') {
+                    let _ = writeln!(out, "  {ASKING}");
+                }
                 let _ = writeln!(
                     out,
                     "  {{action_call_remote_method({:?}, **params)}}",
