@@ -622,22 +622,28 @@ impl SoakParams {
     /// Which slowest decay is ruled out, and why, in words.
     #[must_use]
     pub(crate) fn slowest_words(&self) -> String {
-        let min = self.slowest_s() / 60.0;
+        let m = self.slowest_s() / 60.0;
+        // Whole minutes for real beds; a test bench's seconds-long settings stay readable.
+        let min = if m < 10.0 {
+            format!("{m:.1}")
+        } else {
+            format!("{m:.0}")
+        };
         match self.frame.as_str() {
             "open" if self.slowest_s() < self.tau_max_s => format!(
-                "ruling out decays up to {min:.0} min, the bed stack's own on an open frame \
+                "ruling out decays up to {min} min, the bed stack's own on an open frame \
                  (soak.frame = \"open\"; in an enclosure this may be early)"
             ),
             "open" => format!(
-                "ruling out decays up to {min:.0} min (soak.tau_max_s, already below the open \
+                "ruling out decays up to {min} min (soak.tau_max_s, already below the open \
                  frame's {:.0} min)",
                 OPEN_FRAME_TAU_MAX_S / 60.0
             ),
             "enclosed" => format!(
-                "ruling out decays up to {min:.0} min (soak.tau_max_s; soak.frame = \"enclosed\")"
+                "ruling out decays up to {min} min (soak.tau_max_s; soak.frame = \"enclosed\")"
             ),
             _ => format!(
-                "ruling out decays up to {min:.0} min (soak.tau_max_s, for a plate and an \
+                "ruling out decays up to {min} min (soak.tau_max_s, for a plate and an \
                  enclosure; soak.frame = \"open\" shortens it to {:.0} min on an open frame)",
                 OPEN_FRAME_TAU_MAX_S / 60.0
             ),
