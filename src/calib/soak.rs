@@ -72,9 +72,14 @@ pub struct SoakParams {
     pub bed: String,
     /// The slowest time constant the bed and its surroundings (plate, enclosure) may have: a
     /// decay this slow is ruled out before the bed is declared stable, so a longer value waits
-    /// longer on every bed (an open-frame printer whose plate settles within 20 min may set
-    /// 1800). Default 3600 s (1 h: a plate and an enclosure).
+    /// longer on every bed (on an open frame, `frame = "open"` caps it at the bed stack's own
+    /// bound). Default 3600 s (1 h: a plate and an enclosure).
     pub tau_max_s: f64,
+    /// The printer's frame: "open" (no enclosure: nothing around the bed warms for hours, so
+    /// the slowest decay ruled out is the bed stack's own, [`OPEN_FRAME_TAU_MAX_S`], when that
+    /// is below `tau_max_s`), "enclosed", or "" (unknown). "enclosed" and "" use `tau_max_s`.
+    /// Default "".
+    pub frame: String,
     /// Issue 10's rule, for the bench's comparison only: stable once this much power (fraction
     /// of full power) is ruled out, whatever the surface. Not a setting.
     #[serde(skip)]
@@ -93,6 +98,7 @@ impl Default for SoakParams {
             surface_budget_c: 1.0,
             bed: String::new(),
             tau_max_s: 3600.0,
+            frame: String::new(),
             fixed_remaining: None,
         }
     }
@@ -166,6 +172,34 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
         charge_s: 900.0,
     },
 ];
+
+/// The slowest decay the rule rules out on an open frame (`soak.frame = "open"`), s: 20 min.
+///
+/// With the thermistor's node held, the bed is a network of heat capacities C_i joined by
+/// conductances to that node and to the room; its slowest time constant is at most the trace
+/// of K⁻¹C, Σ C_i R_i, where R_i is node i's resistance to ground (the held node or the room;
+/// taking the room's path away only raises it). Per m², the slowest stacks of real beds:
+/// - thermistor in a 1.5 mm silicone pad, 1 mm of silicone and 0.2 mm of adhesive (0.2 W/mK)
+///   to the plate: R = 0.006 m²K/W; a 10 mm aluminium plate (24.3 kJ/m²K): 146 s;
+/// - 1 mm magnet sheet (2.9 kJ/m²K) behind 0.2 mm of adhesive and half its 0.4 W/mK:
+///   R = 0.0083, 24 s; a 1.5 mm steel sheet (5.4 kJ/m²K) on it with 0.002 m²K/W of contact,
+///   R = 0.0115: 62 s; so 232 s (3.9 min) for steel on a magnet over a 10 mm plate;
+/// - 5 mm glass (10.5 kJ/m²K) on clips over a 0.5 mm air gap (0.03 W/mK) and half its own
+///   1 W/mK: R = 0.025, 264 s; with the plate 410 s (6.8 min);
+/// - insulation under the pad: 6 mm cork (2.4 kJ/m²K, 0.04 W/mK, its underside at 5 W/m²K):
+///   R = 0.086, 206 s; 10 mm of foam, 46 s.
+///
+/// The worst open stack (pad-sensed, 10 mm plate, 5 mm glass on a poor gap, cork) is thus at
+/// most 616 s (10.3 min) however weak its convection (h only lowers R). Beside it, the
+/// carriage or frame the bed is screwed to (a 6 mm aluminium Y plate of 250 mm, 0.9 kJ/K,
+/// cooled on both faces at 5–10 W/m²K) settles in about 12 min, through spacers that carry a
+/// few watts. Twice the stack's bound covers both: 20 min. Not covered: an enclosure, or a
+/// frame built in a box (the air warms for hours: that is what `tau_max_s` is for).
+pub(crate) const OPEN_FRAME_TAU_MAX_S: f64 = 1200.0;
+
+/// What `soak.frame` accepts, for its error.
+const FRAME_NAMES: &str = "\"\" (unknown: up to tau_max_s), \"open\" (no enclosure: up to 20 min) \
+                           or \"enclosed\" (up to tau_max_s)";
 
 /// What `soak.bed` accepts, for its error.
 const BED_NAMES: &str = "\"\" (unknown), \"bare-plate\", \"steel-plate\", \"bare-pad\", \
@@ -564,7 +598,56 @@ impl SoakParams {
             p.tau_max_s >= 20.0 * p.bin_s && p.tau_max_s <= 14_400.0,
             "at least 20 bins (bin_s) and at most 14400 s (4 h)",
         )?;
+        if !["", "open", "enclosed"].contains(&p.frame.as_str()) {
+            return Err(SoakParamsError {
+                key: "frame",
+                value: format!("{:?}", p.frame),
+                expected: FRAME_NAMES,
+            });
+        }
         Ok(())
+    }
+
+    /// The slowest decay the rule rules out, s: `tau_max_s`, or on an open frame the bed
+    /// stack's own bound when that is shorter.
+    #[must_use]
+    pub(crate) fn slowest_s(&self) -> f64 {
+        if self.frame == "open" {
+            self.tau_max_s.min(OPEN_FRAME_TAU_MAX_S)
+        } else {
+            self.tau_max_s
+        }
+    }
+
+    /// Which slowest decay is ruled out, and why, in words.
+    #[must_use]
+    pub(crate) fn slowest_words(&self) -> String {
+        let m = self.slowest_s() / 60.0;
+        // Whole minutes for real beds; a test bench's seconds-long settings stay readable.
+        let min = if m < 10.0 {
+            format!("{m:.1}")
+        } else {
+            format!("{m:.0}")
+        };
+        match self.frame.as_str() {
+            "open" if self.slowest_s() < self.tau_max_s => format!(
+                "ruling out decays up to {min} min, the bed stack's own on an open frame \
+                 (soak.frame = \"open\"; in an enclosure this may be early)"
+            ),
+            "open" => format!(
+                "ruling out decays up to {min} min (soak.tau_max_s, already below the open \
+                 frame's {:.0} min)",
+                OPEN_FRAME_TAU_MAX_S / 60.0
+            ),
+            "enclosed" => format!(
+                "ruling out decays up to {min} min (soak.tau_max_s; soak.frame = \"enclosed\")"
+            ),
+            _ => format!(
+                "ruling out decays up to {min} min (soak.tau_max_s, for a plate and an \
+                 enclosure; soak.frame = \"open\" shortens it to {:.0} min on an open frame)",
+                OPEN_FRAME_TAU_MAX_S / 60.0
+            ),
+        }
     }
 }
 
@@ -812,11 +895,12 @@ impl SoakDetector {
         };
         let mut taus = Vec::new();
         let mut tau = grid_min_s(&params);
-        while tau < params.tau_max_s / 1.1 {
+        let slowest = params.slowest_s();
+        while tau < slowest / 1.1 {
             taus.push(tau);
             tau *= GRID_RATIO;
         }
-        taus.push(params.tau_max_s);
+        taus.push(slowest);
         let k = taus.len() + 1 + EXTRA_COLS;
         let coupling = Coupling::fallback(
             &params,
@@ -1509,7 +1593,7 @@ impl SoakDetector {
             format!(
                 "the print surface can still {surface} by at most {:.2} K (budget {budget:.1} K); \
                  power best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most \
-                 {:.2} % (allowed {:.2} %; power noise {:.2} %); {}",
+                 {:.2} % (allowed {:.2} %; power noise {:.2} %); {}; {}",
                 fit.surface_upper_c,
                 remaining * 100.0,
                 tau_s / 60.0,
@@ -1517,16 +1601,18 @@ impl SoakDetector {
                 remaining_upper * 100.0,
                 theta * 100.0,
                 sigma2.sqrt() * 100.0,
-                self.coupling.why
+                self.coupling.why,
+                p.slowest_words()
             )
         } else {
             format!(
                 "the power is still changing too much to tell where it settles (stable once less \
                  than {:.2} % can still {fall}, the surface's budget of {budget:.1} K; power \
-                 noise {:.2} %); {}",
+                 noise {:.2} %); {}; {}",
                 theta * 100.0,
                 sigma2.sqrt() * 100.0,
-                self.coupling.why
+                self.coupling.why,
+                p.slowest_words()
             )
         };
         if span_ok && ruled_out && !saturated_recently && !frozen {
@@ -1587,9 +1673,9 @@ impl SoakDetector {
         let statistical = if ruled_out {
             Some(0.0)
         } else {
-            let need =
-                (Z * p.tau_max_s * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta).powf(2.0 / 3.0);
-            Some((need - span).max(0.0).min(4.0 * p.tau_max_s))
+            let need = (Z * p.slowest_s() * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta)
+                .powf(2.0 / 3.0);
+            Some((need - span).max(0.0).min(4.0 * p.slowest_s()))
         };
         let eta_s = match (physical, statistical) {
             (Some(a), Some(b)) => Some(a.max(b)),
@@ -2601,6 +2687,86 @@ mod tests {
             d.coupling().why
         );
         assert!((d.threshold() - 1.0 / 30.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn soak_frame_is_read_and_refused_by_name_when_not_a_frame() {
+        let p: SoakParams = toml::from_str("frame = \"open\"\n").expect("parses");
+        assert_eq!(p.frame, "open");
+        assert!(p.validate().is_ok());
+        assert_eq!(p.slowest_s(), OPEN_FRAME_TAU_MAX_S);
+        // A shorter tau_max_s still wins; "enclosed" and unknown keep tau_max_s.
+        let short = SoakParams {
+            tau_max_s: 900.0,
+            ..p.clone()
+        };
+        assert_eq!(short.slowest_s(), 900.0);
+        for frame in ["", "enclosed"] {
+            let q = SoakParams {
+                frame: frame.into(),
+                ..SoakParams::default()
+            };
+            assert!(q.validate().is_ok());
+            assert_eq!(q.slowest_s(), 3600.0);
+        }
+        for bad in ["Open", "opne", "closed"] {
+            let q = SoakParams {
+                frame: bad.into(),
+                ..SoakParams::default()
+            };
+            let e = q.validate().expect_err(bad);
+            assert_eq!(e.key, "frame");
+            assert_eq!(e.value, format!("{bad:?}"));
+            let msg = e.to_string();
+            assert!(
+                msg.starts_with("soak.frame = ")
+                    && msg.contains("\"open\"")
+                    && msg.contains("\"enclosed\""),
+                "{msg}"
+            );
+        }
+    }
+
+    /// An open-frame bed whose stack settles in about 8 min (steel on a magnet over a
+    /// pad-sensed plate): with soak.frame = "open" the rule rules out decays up to 20 min, not
+    /// 60, so it declares sooner, still with the surface within the budget, and says which.
+    #[test]
+    fn an_open_frame_rules_out_the_bed_stacks_own_decays_and_says_so() {
+        for seed in 0..3 {
+            // Surface node: c_s / (G + h_s) = 21.6 / 0.045 = 480 s.
+            let bed = two_node_bed(
+                1.0 / 30.0,
+                0.4,
+                21.6,
+                0.002,
+                0.012,
+                0.05,
+                4.0 * 3600.0,
+                seed,
+            );
+            let unknown = SoakParams {
+                bed: "steel-pad".into(),
+                ..SoakParams::default()
+            };
+            let open = SoakParams {
+                frame: "open".into(),
+                ..unknown.clone()
+            };
+            let (_, before) = run_bed(unknown, &bed, 0);
+            let (d, after) = run_bed(open, &bed, 0);
+            let (before, after) = (before.expect("declared"), after.expect("declared"));
+            assert!(
+                after + 300.0 < before,
+                "seed {seed}: open {after} s, unknown {before} s"
+            );
+            let left = surface_left(&bed, after);
+            assert!(left <= 1.0, "seed {seed}: {left} K left at {after} s");
+            let why = d.explanation();
+            assert!(
+                why.contains("up to 20 min") && why.contains("soak.frame = \"open\""),
+                "{why}"
+            );
+        }
     }
 
     #[test]

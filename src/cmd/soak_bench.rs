@@ -803,6 +803,74 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
                 }
             );
         }
+        // soak.frame = "open": right on open frames (never early, the timeliness target), a
+        // user's error on enclosed ones (how early, on the surface).
+        {
+            let open_s = crate::calib::soak::OPEN_FRAME_TAU_MAX_S;
+            let oe = early(&|r| r.open);
+            let op = early(&|r| r.open_preset);
+            let os = soak_min(&|r| r.open);
+            let slowest = res.iter().map(|r| r.slowest_s).fold(0.0, f64::max);
+            let worst = res
+                .iter()
+                .filter(|r| {
+                    r.open.is_some_and(|d| d < r.moment_s)
+                        || r.open_preset.is_some_and(|d| d < r.moment_s)
+                })
+                .map(|r| r.open_left_c)
+                .fold(0.0, f64::max);
+            let preset_words = |ps: f64| {
+                if ps <= 15.0 {
+                    "PASS".to_string()
+                } else {
+                    format!("MISS by {:.1} min", ps - 15.0)
+                }
+            };
+            if kind.enclosed {
+                println!(
+                    "      soak.frame = \"open\" set on this enclosed bed (a user's error; slowest \
+                     clamped mode {:.0} min, rule up to {:.0} min): early {oe} of {}{}, the surface \
+                     up to {worst:.2} K short of its final temperature at the declaration (budget \
+                     {budget:.1} K); soak {}",
+                    slowest / 60.0,
+                    open_s / 60.0,
+                    res.len(),
+                    if steel_open {
+                        format!(", with the preset {op}")
+                    } else {
+                        String::new()
+                    },
+                    words(os),
+                );
+            } else {
+                ok &= oe == 0 && op == 0 && slowest <= open_s;
+                println!(
+                    "      with soak.frame = \"open\" (decays up to {:.0} min; these beds' slowest \
+                     clamped mode {:.1} min at most   target ≤ {:.0} min   {}): early {oe}   target \
+                     0   {}; soak after reaching the target {}{}",
+                    open_s / 60.0,
+                    slowest / 60.0,
+                    open_s / 60.0,
+                    pass(slowest <= open_s),
+                    pass(oe == 0),
+                    words(os),
+                    if steel_open {
+                        let ps = soak_min(&|r| r.open_preset);
+                        format!(
+                            "   target ≤ 15 min   {}; with soak.bed = \"{}\" too: early {op}   \
+                             target 0   {}; soak {}   target ≤ 15 min   {}",
+                            preset_words(os),
+                            crate::cmd::soak_four_node::preset_name(kind),
+                            pass(op == 0),
+                            words(soak_min(&|r| r.open_preset)),
+                            preset_words(ps)
+                        )
+                    } else {
+                        String::new()
+                    }
+                );
+            }
+        }
         println!(
             "      coupling: identified (lower end from the bed's own heat-up) on {} of {} beds; \
              the G used at or below the true G on {safe} of {}   target all   {}; {}",
@@ -847,6 +915,9 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
     // every kind.
     let mut grid_early = Vec::new();
     let mut grid_n = 0;
+    // Enclosed beds wrongly declared open: reported, not a failure (a user's error).
+    let mut wrong_open: Vec<(f64, String)> = Vec::new();
+    let mut enclosed_n = 0;
     let mut rng = fastrand::Rng::with_seed(seed + 9000);
     for kind in Kind::all() {
         for coupling in [0.0, 1.0] {
@@ -881,6 +952,29 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
                                 r.left_c
                             ));
                         }
+                        let open_early = r.open.is_some_and(|d| d < r.moment_s)
+                            || r.open_preset.is_some_and(|d| d < r.moment_s);
+                        if open_early {
+                            let line = format!(
+                                "{} {knobs:?} with soak.frame = \"open\": declared {:.1} min \
+                                 (with the preset {:.1}), surface moment {:.1} min ({:.2} K left; \
+                                 slowest clamped mode {:.0} min)",
+                                kind.name(),
+                                r.open.unwrap_or(f64::NAN) / 60.0,
+                                r.open_preset.unwrap_or(f64::NAN) / 60.0,
+                                r.moment_s / 60.0,
+                                r.open_left_c,
+                                r.slowest_s / 60.0
+                            );
+                            if kind.enclosed {
+                                wrong_open.push((r.open_left_c, line));
+                            } else {
+                                grid_early.push(line);
+                            }
+                        }
+                        if kind.enclosed {
+                            enclosed_n += 1;
+                        }
                         if r.with_preset.is_some_and(|d| d < r.moment_s) {
                             grid_early.push(format!(
                                 "{} {knobs:?} with soak.bed = {:?}: declared {:.1} min, surface \
@@ -898,13 +992,23 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
     }
     println!(
         "    grid of the four-node knobs (coupling, plate thickness, enclosure, noise at their \
-         ends, every kind; open-frame steel also with its soak.bed preset): early {} of {grid_n}   \
+         ends, every kind; open-frame steel also with its soak.bed preset; open frames also with \
+         soak.frame = \"open\"): early {} of {grid_n}   \
          target 0   {}",
         grid_early.len(),
         pass(grid_early.is_empty())
     );
     for g in &grid_early {
         println!("      {g}");
+    }
+    println!(
+        "    the grid's enclosed beds with soak.frame = \"open\" set wrongly (a user's error, no \
+         target): early on {} of {enclosed_n}, the surface up to {:.2} K short at the declaration",
+        wrong_open.len(),
+        wrong_open.iter().map(|w| w.0).fold(0.0, f64::max)
+    );
+    for (_, w) in &wrong_open {
+        println!("      {w}");
     }
     ok && grid_early.is_empty()
 }

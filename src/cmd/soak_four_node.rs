@@ -198,6 +198,42 @@ impl FourNode {
         w / self.p_max_w
     }
 
+    /// The time constants of the bed with the thermistor's node held (and the heater's power
+    /// free): the modes the power decays with and the surface relaxes with, s, slowest first.
+    #[must_use]
+    pub(crate) fn clamped_taus_s(&self) -> Vec<f64> {
+        let s = self.sensor_node();
+        let k = |i: usize, j: usize| -> f64 {
+            match (i.min(j), i.max(j)) {
+                (0, 1) => self.k_pad_plate,
+                (1, 2) => self.k_plate_surf,
+                (2, 3) => self.h_surf_air,
+                (0, 3) => self.h_pad_air,
+                _ => 0.0,
+            }
+        };
+        let free: Vec<usize> = (0..4).filter(|i| *i != s).collect();
+        // Symmetric form C^-1/2 K C^-1/2 of the conductance matrix over the free nodes (the
+        // held node and the room are fixed: their conductances sit on the diagonal).
+        let m = nalgebra::DMatrix::from_fn(free.len(), free.len(), |a, b| {
+            let (i, j) = (free[a], free[b]);
+            let kij = if i == j {
+                (0..4).map(|n| k(i, n)).sum::<f64>() + if i == 3 { self.h_air_room } else { 0.0 }
+            } else {
+                -k(i, j)
+            };
+            kij / (self.c[i] * self.c[j]).sqrt()
+        });
+        let mut taus: Vec<f64> = m
+            .symmetric_eigen()
+            .eigenvalues
+            .iter()
+            .map(|l| 1.0 / l)
+            .collect();
+        taus.sort_by(|a, b| b.total_cmp(a));
+        taus
+    }
+
     /// Heat flows into each node at temperatures `t` and heater power `p` (W).
     fn flows(&self, t: &[f64; 4], p_w: f64) -> [f64; 4] {
         let q_pp = self.k_pad_plate * (t[0] - t[1]);
@@ -668,6 +704,15 @@ pub(crate) struct BedResult {
     pub with_preset: Option<f64>,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
+    /// klipcal's rule with `soak.frame = "open"` (on an enclosed bed: the user's error),
+    /// without and with the kind's preset (when asked for).
+    pub open: Option<f64>,
+    /// See `open`.
+    pub open_preset: Option<f64>,
+    /// Surface left at the `open` and `open_preset` declarations, K (0 when not early).
+    pub open_left_c: f64,
+    /// The bed's slowest clamped time constant, s.
+    pub slowest_s: f64,
 }
 
 /// Runs the detector over the samples; the declaration and the detector.
@@ -743,12 +788,23 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         }
         out
     };
-    let left_c = rule.map_or(0.0, |at| {
-        samples
-            .iter()
-            .find(|s| s[0] >= at)
-            .map_or(0.0, |s| fin - s[4])
-    });
+    let left_at = |at: Option<f64>| {
+        at.map_or(0.0, |at| {
+            samples
+                .iter()
+                .find(|s| s[0] >= at)
+                .map_or(0.0, |s| fin - s[4])
+        })
+    };
+    let left_c = left_at(rule);
+    let open = detector(
+        samples,
+        &SoakParams {
+            frame: "open".into(),
+            ..params.clone()
+        },
+    )
+    .0;
     BedResult {
         moment_s,
         reach_s,
@@ -765,6 +821,10 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         sigma: d.fit().map_or(0.0, |f| f.test_sd),
         with_preset: None,
         left_c,
+        open,
+        open_preset: None,
+        open_left_c: left_at(open),
+        slowest_s: bed.clamped_taus_s()[0],
     }
 }
 
@@ -803,6 +863,23 @@ pub(crate) fn run_bed(
             ..params.clone()
         };
         r.with_preset = detector(&samples, &with).0;
+        let open = detector(
+            &samples,
+            &SoakParams {
+                frame: "open".into(),
+                ..with
+            },
+        )
+        .0;
+        r.open_preset = open;
+        if let Some(at) = open {
+            let fin = bed.surface_final_c();
+            let left = samples
+                .iter()
+                .find(|s| s[0] >= at)
+                .map_or(0.0, |s| fin - s[4]);
+            r.open_left_c = r.open_left_c.max(left);
+        }
     }
     Some(r)
 }
@@ -824,6 +901,43 @@ mod tests {
         assert!(
             r.max_pwm_diff <= PWM_TOL && r.max_gain_rel <= GAIN_TOL,
             "{r:?}"
+        );
+    }
+
+    /// soak.frame = "open" rules out decays up to `OPEN_FRAME_TAU_MAX_S`: every open-frame
+    /// bed of this family, at every corner of the knobs, settles within it; the enclosed ones
+    /// do not all (which is why the setting is not the default).
+    #[test]
+    fn open_frame_beds_have_their_slowest_clamped_mode_within_the_open_frame_bound() {
+        let mut rng = fastrand::Rng::with_seed(11);
+        let (mut open_max, mut enclosed_max) = (0.0f64, 0.0f64);
+        for kind in Kind::all() {
+            for corner in 0..16u32 {
+                let f = |b: u32| f64::from((corner >> b) & 1);
+                let knobs = Knobs {
+                    coupling: f(0),
+                    plate: f(1),
+                    enclosure: f(2),
+                    noise: f(3),
+                };
+                for _ in 0..8 {
+                    let bed = FourNode::new(kind, knobs, &mut rng);
+                    let slowest = bed.clamped_taus_s()[0];
+                    if kind.enclosed {
+                        enclosed_max = enclosed_max.max(slowest);
+                    } else {
+                        open_max = open_max.max(slowest);
+                    }
+                }
+            }
+        }
+        assert!(
+            open_max <= crate::calib::soak::OPEN_FRAME_TAU_MAX_S,
+            "open frame: slowest clamped mode {open_max} s"
+        );
+        assert!(
+            enclosed_max > crate::calib::soak::OPEN_FRAME_TAU_MAX_S,
+            "enclosed: {enclosed_max} s"
         );
     }
 

@@ -134,6 +134,13 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     };
     // (Worded for the surface rule of issue 29.)
     let started_at = at("the bed is at 60 °C, waiting until its print surface can warm by at most");
+    // It says which slowest decay it rules out, and why (this bench's tau_max_s = 30 s, frame
+    // unset).
+    assert!(
+        console[started_at].contains("ruling out decays up to 0.5 min (soak.tau_max_s,"),
+        "{}",
+        console[started_at]
+    );
     let stable_at = at("bed stable after");
     assert!(started_at < stable_at, "{console:#?}");
     let percents: Vec<f64> = console

@@ -373,10 +373,11 @@ impl BedSoak {
                     self.soaking_since_s = Some(t_s);
                     core.console(&format!(
                         "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}){}",
+                         warm by at most {} ({}; {}){}",
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
                         self.detector.coupling().why,
+                        self.detector.params().slowest_words(),
                         if self.prints {
                             "; KLIPCAL_SOAK_CHOICE CHOICE=print prints now"
                         } else {
