@@ -36,12 +36,22 @@ use crate::calib::backlash::{BacklashParams, Cycle};
 use crate::calib::backlash_guide::GuideAxis;
 use crate::calib::camera_scale::{self, CameraScale, Sighting};
 use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
-use crate::jobs::core::table::{arg, ArgKind, Args, Op, OpSpec};
+use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::core::SessionState;
 use crate::jobs::user;
 use crate::klipper::GcodeCmd;
 
 /// The camera measurement's operation, declared in the backlash table.
+/// AXIS= of the camera and the click measurement (no Z: the camera looks up at the nozzle).
+pub(super) const AXIS_ARG: ArgSpec = arg(
+    "axis",
+    ArgKind::Text,
+    "X",
+    "X, Y, A or B",
+    "",
+    "the axis: X, Y, or A/B (CoreXY motors)",
+);
+
 pub(super) const OP: Op<BacklashCall> = Op {
     spec: OpSpec::remote(
         "klipcal_backlash_camera",
@@ -49,14 +59,7 @@ pub(super) const OP: Op<BacklashCall> = Op {
         "backlash/camera",
         "measure backlash from the nozzle camera, no tapping: AXIS=X or Y (A/B on CoreXY), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
         &[
-            arg(
-                "axis",
-                ArgKind::Text,
-                "X",
-                "X, Y, A or B",
-                "",
-                "the axis: X, Y, or A/B (CoreXY motors)",
-            ),
+            AXIS_ARG,
             super::CYCLES_ARG,
             super::CARRIAGE_ARG,
         ],

@@ -25,14 +25,7 @@ pub(super) const START_OP: Op<BacklashCall> = Op {
         "backlash/click",
         "measure backlash by clicking the nozzle's tip in camera snapshots on klipcal's page (no detection, no jogging): AXIS=X or Y (A/B on CoreXY), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
         &[
-            arg(
-                "axis",
-                ArgKind::Text,
-                "X",
-                "X, Y, A or B",
-                "",
-                "the axis: X, Y, or A/B (CoreXY motors)",
-            ),
+            super::camera::AXIS_ARG,
             super::CYCLES_ARG,
             super::CARRIAGE_ARG,
         ],
