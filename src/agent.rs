@@ -12,7 +12,7 @@ use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
 
 /// Answers agent calls until the channel closes.
-pub async fn serve(
+pub(crate) async fn serve(
     m: Moonraker,
     cals: Option<Calibrations>,
     mut calls: tokio::sync::mpsc::UnboundedReceiver<AgentCall>,
@@ -37,7 +37,7 @@ fn rpc_error(e: &anyhow::Error) -> RpcError {
 /// # Errors
 /// Unknown method (-32601), no session database (503), a user's mistake (400, the message
 /// says what was wrong and what is expected), or the daemon's failure (500).
-pub async fn dispatch(
+pub(crate) async fn dispatch(
     m: &Moonraker,
     cals: Option<&Calibrations>,
     method: &str,
@@ -47,7 +47,35 @@ pub async fn dispatch(
     if let Some(c) = change {
         console::send_script(m, &c.script()).await;
     }
-    outcome
+    outcome.and_then(Answer::into_json)
+}
+
+/// What an operation answers: the status, typed (the console's summary reads its fields), or
+/// another operation's JSON.
+enum Answer {
+    Status(Box<StatusAnswer>),
+    Json(Value),
+}
+
+impl Answer {
+    fn into_json(self) -> Result<Value, RpcError> {
+        match self {
+            Answer::Status(a) => {
+                serde_json::to_value(a).map_err(|e| rpc_error(&anyhow::Error::from(e)))
+            }
+            Answer::Json(v) => Ok(v),
+        }
+    }
+
+    /// The answer on the console, for a macro's caller.
+    fn console_text(&self) -> String {
+        match self {
+            Answer::Status(a) => status_text(a),
+            Answer::Json(v) => v["message"]
+                .as_str()
+                .map_or_else(|| v.to_string(), str::to_string),
+        }
+    }
 }
 
 /// A call's outcome; its dialog changes are held by the caller (see [`holding_prompts`]).
@@ -56,13 +84,16 @@ async fn answer(
     cals: Option<&Calibrations>,
     method: &str,
     args: &Value,
-) -> Result<Value, RpcError> {
+) -> Result<Answer, RpcError> {
     if crate::jobs::registry::is_core_method(method) {
         // Read whole first: a status call with an unknown argument is refused like any other.
         if crate::jobs::core::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
             == crate::jobs::core::CoreCall::Status
         {
-            return status(m, cals).await;
+            // The status answers at once, whatever Moonraker's state: while it is unreachable,
+            // the printer's part is null and `connection` says why (the sessions come from
+            // the database).
+            return Ok(Answer::Status(Box::new(status_answer(m, cals).await?)));
         }
     }
     let Some(cals) = cals else {
@@ -80,13 +111,16 @@ async fn answer(
             ),
         });
     }
-    cals.call(method, args).await.map_err(|e| rpc_error(&e))
+    cals.call(method, args)
+        .await
+        .map(Answer::Json)
+        .map_err(|e| rpc_error(&e))
 }
 
 /// An outcome as JSON for an HTTP caller: the result with `"ok": true`, or
 /// `{"ok": false, "error": {"code", "message"}}` (the console's message).
 #[must_use]
-pub fn result_json(outcome: Result<Value, RpcError>) -> Value {
+pub(crate) fn result_json(outcome: Result<Value, RpcError>) -> Value {
     match outcome {
         Ok(Value::Object(mut o)) => {
             o.insert("ok".into(), json!(true));
@@ -104,13 +138,13 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
         // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
         // klipcal RPC error"), so failures travel as a JSON result the caller can read.
         Some(r) => {
-            r.send(Ok(result_json(outcome)));
+            r.send(Ok(result_json(outcome.and_then(Answer::into_json))));
             change.map(|c| c.script()).unwrap_or_default()
         }
         // A macro's caller reads the console: the answer first, then the dialog, one script.
         None => {
             let text = match &outcome {
-                Ok(v) => answer_script(&console_text(&call.method, v), false),
+                Ok(a) => answer_script(&a.console_text(), false),
                 Err(e) => answer_script(&e.message, true),
             };
             console::answer_then_prompt(&text, change.as_ref())
@@ -125,7 +159,7 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
 
 /// `klipcal_status`'s answer (the agent's, `/api/status`'s and the page's).
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct StatusAnswer {
+pub(crate) struct StatusAnswer {
     /// klipcal's name and version.
     pub daemon: DaemonInfo,
     /// Where klipcal's page is, or why it is off; `None` without sessions or page.
@@ -141,7 +175,7 @@ pub struct StatusAnswer {
 
 /// Where klipcal's page is (`{"address"}`), or why it is off (`{"off"}`).
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct PageInfo {
+pub(crate) struct PageInfo {
     /// The page's address.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub address: Option<String>,
@@ -152,7 +186,7 @@ pub struct PageInfo {
 
 /// klipcal's name and version.
 #[derive(Debug, Clone, serde::Serialize)]
-pub struct DaemonInfo {
+pub(crate) struct DaemonInfo {
     /// `klipcal`.
     pub name: &'static str,
     /// The crate's version.
@@ -161,7 +195,7 @@ pub struct DaemonInfo {
 
 /// Moonraker's connection as the status shows it.
 #[derive(Debug, Clone, Default, serde::Serialize)]
-pub struct Connection {
+pub(crate) struct Connection {
     /// `connected`, `unreachable` or `stopped`.
     pub moonraker: &'static str,
     /// Klipper's state, when connected.
@@ -174,13 +208,6 @@ pub struct Connection {
     /// What unreachable means for a user, in words.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub message: Option<String>,
-}
-
-/// The status answers at once, whatever Moonraker's state: while it is unreachable, the
-/// printer's part is null and `connection` says why (the sessions come from the database).
-async fn status(m: &Moonraker, cals: Option<&Calibrations>) -> Result<Value, RpcError> {
-    let answer = status_answer(m, cals).await?;
-    serde_json::to_value(answer).map_err(|e| rpc_error(&anyhow::Error::from(e)))
 }
 
 async fn status_answer(
@@ -261,101 +288,181 @@ async fn status_answer(
     })
 }
 
-fn console_text(method: &str, v: &Value) -> String {
-    match method {
-        "klipcal_status" => {
-            let p = &v["printer"];
-            let mut t = format!(
-                "klipcal {} connected; Klipper {}",
-                v["daemon"]["version"].as_str().unwrap_or("?"),
-                p["klippy_state"].as_str().unwrap_or("?")
-            );
-            if let Some(k) = p["kinematics"].as_str() {
-                t.push_str(&format!(", kinematics {k}"));
-            }
-            if let Some(steppers) = p["steppers"].as_array() {
-                for s in steppers {
-                    t.push_str(&format!(
-                        "\n{} rotation_distance {}",
-                        s["name"].as_str().unwrap_or("?"),
-                        s["rotation_distance_mm"]
-                    ));
-                }
-            }
-            if let Some(why) = v["page"]["off"].as_str() {
-                t.push_str(&format!("\nklipcal's page is off: {why}"));
-            } else if let Some(address) = v["page"]["address"].as_str() {
-                t.push_str(&format!("\npage: {address}"));
-            }
-            if let Some(sess) = v.get("session").filter(|s| !s.is_null()) {
-                let state = sess["state"].as_str().unwrap_or("?");
-                t.push_str(&format!("\nsession {}: {state}", sess["id"]));
-                // "cancelled — cancelled" said nothing: the progress when it adds to the state,
-                // and why a session ended.
-                match sess["progress"].as_str() {
-                    Some(p) if !p.is_empty() && p != state => t.push_str(&format!(" — {p}")),
-                    _ => {}
-                }
-                if let Some(why) = sess["reason"].as_str().filter(|r| !r.is_empty()) {
-                    if sess["progress"].as_str() != Some(why) {
-                        t.push_str(&format!(" ({why})"));
-                    }
-                }
-                for m in sess["missing"].as_array().into_iter().flatten() {
-                    t.push_str(&format!("\n  {}", m.as_str().unwrap_or("")));
-                }
-            }
-            t
-        }
-        _ => v["message"]
-            .as_str()
-            .map_or_else(|| v.to_string(), str::to_string),
+/// The status on the console: klipcal and Klipper, the steppers' rotation_distance, the
+/// page, and the session with its progress, why it ended and what it still needs.
+fn status_text(a: &StatusAnswer) -> String {
+    let p = a.printer.as_ref();
+    let mut t = format!(
+        "klipcal {} connected; Klipper {}",
+        a.daemon.version,
+        p.map_or("?", |p| p.klippy_state.as_str())
+    );
+    if let Some(k) = p.and_then(|p| p.kinematics.as_deref()) {
+        t.push_str(&format!(", kinematics {k}"));
     }
+    for s in p.map(|p| p.steppers.as_slice()).unwrap_or_default() {
+        // As JSON writes it (40.0, null), as it always read.
+        t.push_str(&format!(
+            "\n{} rotation_distance {}",
+            s.name,
+            Value::from(s.rotation_distance_mm)
+        ));
+    }
+    match &a.page {
+        Some(PageInfo { off: Some(why), .. }) => {
+            t.push_str(&format!("\nklipcal's page is off: {why}"));
+        }
+        Some(PageInfo {
+            address: Some(address),
+            ..
+        }) => t.push_str(&format!("\npage: {address}")),
+        _ => {}
+    }
+    if let Some(sess) = &a.sessions.session {
+        let h = &sess.head;
+        t.push_str(&format!("\nsession {}: {}", h.id, h.state));
+        // "cancelled — cancelled" said nothing: the progress when it adds to the state, and
+        // why a session ended.
+        if !h.progress.is_empty() && h.progress != h.state {
+            t.push_str(&format!(" — {}", h.progress));
+        }
+        if let Some(why) = h.reason.as_deref().filter(|r| !r.is_empty()) {
+            if h.progress != why {
+                t.push_str(&format!(" ({why})"));
+            }
+        }
+        for m in &sess.console_lines {
+            t.push_str(&format!("\n  {m}"));
+        }
+    }
+    t
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::jobs::core::status::SessionStatus;
+    use crate::jobs::core::StatusHead;
+
+    fn answer(printer: Option<printer::Summary>) -> StatusAnswer {
+        StatusAnswer {
+            daemon: DaemonInfo {
+                name: "klipcal",
+                version: "0.1.0",
+            },
+            page: None,
+            connection: Connection::default(),
+            printer,
+            sessions: SessionsStatus::default(),
+        }
+    }
+
+    fn ready() -> printer::Summary {
+        printer::Summary {
+            klippy_state: "ready".into(),
+            ..printer::Summary::default()
+        }
+    }
+
+    fn session(id: i64, state: &str, progress: &str, reason: Option<&str>) -> SessionStatus {
+        let head = StatusHead {
+            id,
+            state: state.into(),
+            progress: progress.into(),
+            reason: reason.map(str::to_string),
+            notes: vec![],
+        };
+        SessionStatus::new("ab", head, &json!({})).unwrap()
+    }
 
     #[test]
     fn the_status_answer_on_the_console_names_state_and_rotation_distances() {
-        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {"klippy_state": "ready",
-            "kinematics": "corexy", "steppers": [{"name": "stepper_x", "rotation_distance_mm": 40.0}]}});
-        let t = console_text("klipcal_status", &v);
-        assert!(t.contains("Klipper ready"), "{t}");
-        assert!(t.contains("stepper_x rotation_distance 40.0"), "{t}");
+        let a = answer(Some(printer::Summary {
+            kinematics: Some("corexy".into()),
+            steppers: vec![printer::Stepper {
+                name: "stepper_x".into(),
+                rotation_distance_mm: Some(40.0),
+                ..printer::Stepper::default()
+            }],
+            ..ready()
+        }));
+        let t = Answer::Status(Box::new(a)).console_text();
+        assert_eq!(
+            t,
+            "klipcal 0.1.0 connected; Klipper ready, kinematics corexy\n\
+             stepper_x rotation_distance 40.0"
+        );
+        // Moonraker unreachable: no printer part.
+        assert_eq!(
+            status_text(&answer(None)),
+            "klipcal 0.1.0 connected; Klipper ?"
+        );
     }
 
     #[test]
     fn the_status_says_where_the_page_is_or_why_it_is_off() {
-        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {},
-            "page": {"off": "another program listens on 0.0.0.0:7150"}});
-        let t = console_text("klipcal_status", &v);
+        let mut a = answer(Some(printer::Summary::default()));
+        a.page = Some(PageInfo {
+            address: None,
+            off: Some("another program listens on 0.0.0.0:7150".into()),
+        });
+        let t = status_text(&a);
         assert!(
             t.contains("klipcal's page is off: another program listens on 0.0.0.0:7150"),
             "{t}"
         );
-        let v = json!({"daemon": {}, "printer": {}, "page": {"address": "http://10.0.0.5:7150/"}});
-        assert!(console_text("klipcal_status", &v).contains("page: http://10.0.0.5:7150/"));
+        a.page = Some(PageInfo {
+            address: Some("http://10.0.0.5:7150/".into()),
+            off: None,
+        });
+        assert!(status_text(&a).contains("page: http://10.0.0.5:7150/"));
     }
 
     #[test]
     fn a_finished_session_on_the_console_says_why_not_its_state_twice() {
-        let v = json!({"daemon": {"version": "0.1.0"}, "printer": {"klippy_state": "ready"},
-            "session": {"id": 3, "state": "cancelled", "progress": "cancelled",
-                        "reason": "cancelled by the user"}});
-        let t = console_text("klipcal_status", &v);
+        let mut a = answer(Some(ready()));
+        a.sessions.session = Some(session(
+            3,
+            "cancelled",
+            "cancelled",
+            Some("cancelled by the user"),
+        ));
+        let t = status_text(&a);
         assert!(
             t.contains("session 3: cancelled (cancelled by the user)"),
             "{t}"
         );
         assert!(!t.contains("cancelled — cancelled"), "{t}");
-        let v = json!({"daemon": {}, "printer": {}, "session": {"id": 4, "state": "soaking",
-            "progress": "bed at 60 °C, settling", "reason": null}});
-        let t = console_text("klipcal_status", &v);
+        a.sessions.session = Some(session(4, "soaking", "bed at 60 °C, settling", None));
+        let t = status_text(&a);
         assert!(
             t.contains("session 4: soaking — bed at 60 °C, settling"),
             "{t}"
         );
+    }
+
+    #[test]
+    fn the_readings_still_missing_are_listed_under_the_session() {
+        let mut a = answer(Some(ready()));
+        a.sessions.session = Some(
+            session(5, "measuring", "waiting for caliper readings", None)
+                .with_console_lines(vec!["A-D1: 3 more".into(), "A-D2: 5 more".into()]),
+        );
+        let t = status_text(&a);
+        assert!(
+            t.ends_with("session 5: measuring — waiting for caliper readings\n  A-D1: 3 more\n  A-D2: 5 more"),
+            "{t}"
+        );
+        // Not in the JSON: the A/B body has them as `missing`.
+        let v = Answer::Status(Box::new(a)).into_json().unwrap();
+        assert!(v["session"].get("console_lines").is_none(), "{v}");
+    }
+
+    #[test]
+    fn another_operation_answers_the_console_with_its_message() {
+        let a = Answer::Json(json!({"session": 2, "message": "session 2 started"}));
+        assert_eq!(a.console_text(), "session 2 started");
+        let a = Answer::Json(json!({"following": false}));
+        assert_eq!(a.console_text(), "{\"following\":false}");
     }
 }

@@ -142,7 +142,7 @@ fn init_tracing(level: &str) {
 }
 
 /// Client options from the settings, with the agent's remote methods.
-pub fn client_options(config: &Config) -> ClientOptions {
+pub(crate) fn client_options(config: &Config) -> ClientOptions {
     let m = &config.moonraker;
     let mut subscriptions = Map::new();
     for obj in ["print_stats", "heater_bed", "webhooks"] {

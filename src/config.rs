@@ -137,7 +137,7 @@ impl Default for MeshConfig {
 impl MeshConfig {
     /// The follower's policy from these settings.
     #[must_use]
-    pub fn follow_policy(&self) -> crate::calib::mesh_follow::FollowPolicy {
+    pub(crate) fn follow_policy(&self) -> crate::calib::mesh_follow::FollowPolicy {
         crate::calib::mesh_follow::FollowPolicy {
             tolerance_um: self.tolerance_um,
             min_interval_s: self.follow_interval_s,
@@ -195,7 +195,7 @@ impl HttpConfig {
     ///
     /// # Errors
     /// An entry that is not an address or a CIDR range.
-    pub fn trusted(&self) -> Result<Vec<ipnet::IpNet>, Error> {
+    pub(crate) fn trusted(&self) -> Result<Vec<ipnet::IpNet>, Error> {
         self.trusted_clients
             .iter()
             .map(|t| {
@@ -274,7 +274,7 @@ impl Default for BacklashConfig {
 
 impl BacklashConfig {
     /// The statistics' settings.
-    pub fn params(&self) -> crate::calib::backlash::BacklashParams {
+    pub(crate) fn params(&self) -> crate::calib::backlash::BacklashParams {
         crate::calib::backlash::BacklashParams {
             none_needed_max_mm: self.none_needed_max_mm,
             needed_from_mm: self.needed_from_mm,
@@ -288,7 +288,7 @@ impl BacklashConfig {
     }
 
     /// The guided procedure's settings.
-    pub fn guide(&self) -> crate::calib::backlash_guide::GuideParams {
+    pub(crate) fn guide(&self) -> crate::calib::backlash_guide::GuideParams {
         crate::calib::backlash_guide::GuideParams {
             cycles: self.cycles,
             approach_mm: self.approach_mm,
@@ -419,7 +419,7 @@ impl Default for DaemonConfig {
 }
 
 /// The conventional path, `~/printer_data/config/klipcal.toml`.
-pub fn default_path() -> PathBuf {
+pub(crate) fn default_path() -> PathBuf {
     expand_home("~/printer_data/config/klipcal.toml")
 }
 
@@ -437,7 +437,7 @@ impl Config {
     ///
     /// # Errors
     /// An unreadable file, bad TOML, an unknown key or a value out of range.
-    pub fn load(explicit: Option<&Path>) -> Result<Self, Error> {
+    pub(crate) fn load(explicit: Option<&Path>) -> Result<Self, Error> {
         let path = match explicit {
             Some(p) => p.to_path_buf(),
             None => {
@@ -488,7 +488,7 @@ impl Config {
     ///
     /// # Errors
     /// The first key whose value is out of range.
-    pub fn validate(&self) -> Result<(), Error> {
+    pub(crate) fn validate(&self) -> Result<(), Error> {
         let m = &self.moonraker;
         if m.url.starts_with("wss://") {
             return Err(Error::Invalid {
@@ -767,7 +767,7 @@ impl Config {
     }
 
     /// The HTTP base URL derived from the websocket URL (`ws://h:p/websocket` → `http://h:p`).
-    pub fn http_base(&self) -> String {
+    pub(crate) fn http_base(&self) -> String {
         let url = &self.moonraker.url;
         let (scheme, rest) = ("http://", url.strip_prefix("ws://").unwrap_or(url));
         let host = rest.split('/').next().unwrap_or(rest);

@@ -5,7 +5,7 @@
 use serde::{Deserialize, Serialize};
 
 /// The current schema version.
-pub const LAYOUT_VERSION: u32 = 1;
+pub(crate) const LAYOUT_VERSION: u32 = 1;
 
 /// A printed calibration layout.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -9,7 +9,7 @@ use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// One heater sample.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BedSample {
+pub(crate) struct BedSample {
     /// Seconds, any origin (the plot shows minutes from the first sample).
     pub t_s: f64,
     /// °C.
@@ -22,7 +22,7 @@ pub struct BedSample {
 
 /// The detector's fitted decay of the bed power: P(t) = final + remaining · e^(−(t − now)/τ).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct DecayCurve {
+pub(crate) struct DecayCurve {
     /// The time the fit describes as "now" (same origin as the samples).
     pub now_s: f64,
     /// Time constant, s.
@@ -35,7 +35,7 @@ pub struct DecayCurve {
 
 /// One round of a calibration: its residual scale error per axis and the uncertainty.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct RoundPoint {
+pub(crate) struct RoundPoint {
     /// 1-based round.
     pub n: u32,
     /// |scale − 1| per axis in µm per 100 mm.
@@ -94,7 +94,7 @@ pub(crate) fn decay_points(
 ///
 /// # Errors
 /// No samples, or plotters failed (the message says which).
-pub fn soak_svg(
+pub(crate) fn soak_svg(
     samples: &[BedSample],
     fit: Option<DecayCurve>,
     eta_s: Option<f64>,
@@ -240,7 +240,7 @@ pub fn soak_svg(
 ///
 /// # Errors
 /// No solved round, or plotters failed.
-pub fn convergence_svg(
+pub(crate) fn convergence_svg(
     rounds: &[RoundPoint],
     labels: [&str; 2],
     title: &str,
@@ -312,7 +312,7 @@ pub fn convergence_svg(
 ///
 /// # Errors
 /// No solved round.
-pub fn convergence_of_status(doc: &Value) -> Result<String, String> {
+pub(crate) fn convergence_of_status(doc: &Value) -> Result<String, String> {
     let points: Vec<RoundPoint> = doc["rounds"]
         .as_array()
         .into_iter()
@@ -352,7 +352,7 @@ pub(crate) fn current_heat_start(targets: &[f64]) -> usize {
 
 /// The soak plot's title: the target and the minutes `samples` really span.
 #[must_use]
-pub fn soak_title(samples: &[BedSample]) -> String {
+pub(crate) fn soak_title(samples: &[BedSample]) -> String {
     let (target, minutes) = match (samples.first(), samples.last()) {
         (Some(a), Some(b)) => (b.target_c, ((b.t_s - a.t_s) / 60.0).max(0.0)),
         _ => (f64::NAN, 0.0),
@@ -364,7 +364,7 @@ pub fn soak_title(samples: &[BedSample]) -> String {
 /// the current heat-up began ([`current_heat_start`]) and what a soak detector fed with them
 /// says: its fitted decay and ETA while soaking.
 #[must_use]
-pub fn replay_soak(
+pub(crate) fn replay_soak(
     bed: &Value,
     params: &SoakParams,
 ) -> Option<(Vec<BedSample>, Option<DecayCurve>, Option<f64>)> {
@@ -626,7 +626,7 @@ const PNG_FONT: &[u8] = include_bytes!("../assets/fonts/DejaVuSans-klipcal-subse
 const PNG_FONT_FAMILY: &str = "DejaVu Sans";
 
 /// Width of the PNG twins of klipcal's pictures, px: readable on a phone, a few MB while drawn.
-pub const PNG_WIDTH_PX: u32 = 900;
+pub(crate) const PNG_WIDTH_PX: u32 = 900;
 
 /// An SVG picture (one of klipcal's) drawn as PNG, `width_px` wide, the height from the
 /// picture's aspect ratio, on white; text in the embedded font whatever family it names.
@@ -634,7 +634,7 @@ pub const PNG_WIDTH_PX: u32 = 900;
 /// # Errors
 /// SVG text resvg cannot read, a width of 0 or above 8000 px, or a picture that would be taller
 /// than 8000 px.
-pub fn svg_to_png(svg: &str, width_px: u32) -> anyhow::Result<Vec<u8>> {
+pub(crate) fn svg_to_png(svg: &str, width_px: u32) -> anyhow::Result<Vec<u8>> {
     use resvg::{tiny_skia, usvg};
     if !(1..=8000).contains(&width_px) {
         anyhow::bail!("PNG width {width_px} px; expected 1..8000");

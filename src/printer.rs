@@ -8,7 +8,7 @@ use serde_json::{json, Map, Value};
 use crate::moonraker::{self, Moonraker};
 
 /// One X/Y stepper as Klipper runs it.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub struct Stepper {
     /// `stepper_x` or `stepper_y`.
     pub name: String,
@@ -26,7 +26,7 @@ pub struct Stepper {
 
 /// Which features klipcal relies on are available.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Features {
+pub(crate) struct Features {
     /// A `PRINT_START` macro.
     pub print_start: bool,
     /// `[skew_correction]` (SET_SKEW).
@@ -44,8 +44,8 @@ pub struct Features {
 }
 
 /// Everything `check` prints.
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Summary {
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub(crate) struct Summary {
     /// Moonraker's version.
     pub moonraker_version: String,
     /// Klipper's state: ready, startup, shutdown, error, disconnected.
@@ -73,7 +73,7 @@ pub struct Summary {
 }
 
 /// The objects `gather` queries.
-pub fn query_objects() -> Value {
+pub(crate) fn query_objects() -> Value {
     json!({
         "configfile": ["settings"],
         "toolhead": ["axis_minimum", "axis_maximum"],
@@ -103,7 +103,7 @@ fn strings(v: &Value) -> Vec<String> {
 impl Summary {
     /// Builds the summary from `server.info`, `printer.info`, and — when Klipper is ready —
     /// `printer.objects.list`, `printer.gcode.help` and a query of [`query_objects`].
-    pub fn from_answers(
+    pub(crate) fn from_answers(
         server_info: &Value,
         printer_info: Option<&Value>,
         objects: Option<&[String]>,
@@ -184,7 +184,7 @@ impl Summary {
     }
 
     /// Why the printer cannot be calibrated now, if it cannot.
-    pub fn problem(&self) -> Option<String> {
+    pub(crate) fn problem(&self) -> Option<String> {
         if self.klippy_state != "ready" {
             let msg = self.klippy_message.trim();
             return Some(if msg.is_empty() {
@@ -197,7 +197,7 @@ impl Summary {
     }
 
     /// The summary as readable text, one fact a line.
-    pub fn render(&self) -> String {
+    pub(crate) fn render(&self) -> String {
         let mut t = String::new();
         let yes = |b: bool| if b { "yes" } else { "no" };
         let opt = |v: Option<f64>| v.map_or("?".to_string(), |x| format!("{x}"));
@@ -285,7 +285,7 @@ impl Summary {
 /// # Errors
 /// When Moonraker cannot be asked at all; Klipper not being ready is not an error (the summary
 /// says so).
-pub async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
+pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
     let server_info = m.server_info().await?;
     let printer_info = m.printer_info().await.ok();
     let ready = printer_info

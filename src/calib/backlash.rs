@@ -12,12 +12,12 @@ use serde::{Deserialize, Serialize};
 use super::Error;
 
 /// The seed's default smooth_time, s ("0.005 is a good choice for backlash up to 0.1 mm").
-pub const SEED_SMOOTH_TIME_S: f64 = 0.005;
+pub(crate) const SEED_SMOOTH_TIME_S: f64 = 0.005;
 /// The largest smooth_time PR 7259's module accepts, s.
-pub const MAX_SMOOTH_TIME_S: f64 = 0.1;
+pub(crate) const MAX_SMOOTH_TIME_S: f64 = 0.1;
 
 /// Extra acceleration of the compensation, mm/s²: the seed's rule of thumb 2·b/t².
-pub fn extra_accel_mm_s2(backlash_mm: f64, smooth_time_s: f64) -> f64 {
+pub(crate) fn extra_accel_mm_s2(backlash_mm: f64, smooth_time_s: f64) -> f64 {
     2.0 * backlash_mm / (smooth_time_s * smooth_time_s)
 }
 
@@ -36,7 +36,7 @@ pub struct Cycle {
 
 impl Cycle {
     /// This cycle's backlash, X1 − X2 (mm; may be slightly negative from noise).
-    pub fn backlash_mm(&self) -> f64 {
+    pub(crate) fn backlash_mm(&self) -> f64 {
         self.x1_mm - self.x2_mm
     }
 }
@@ -86,7 +86,7 @@ impl BacklashParams {
     ///
     /// # Errors
     /// Names the setting that is out of range and what is expected.
-    pub fn validate(&self) -> Result<(), Error> {
+    pub(crate) fn validate(&self) -> Result<(), Error> {
         let bad = |m: String| Err(Error::BacklashParams(m));
         let fin = [
             self.none_needed_max_mm,
@@ -130,7 +130,7 @@ pub enum Verdict {
 
 /// smooth_time chosen from the acceleration budget.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct SmoothTime {
+pub(crate) struct SmoothTime {
     /// The smooth_time, s: the seed's 0.005 or longer.
     pub smooth_time_s: f64,
     /// 2·b/t² at that smooth_time, mm/s².
@@ -144,7 +144,7 @@ pub struct SmoothTime {
 /// smooth_time for `backlash_mm`: the seed's 0.005 s, raised (to a multiple of 0.1 ms) where
 /// 2·b/t² would exceed `budget_fraction · max_accel`; capped at 0.1 s. Without a max_accel the
 /// default stays.
-pub fn smooth_time_for(
+pub(crate) fn smooth_time_for(
     backlash_mm: f64,
     max_accel_mm_s2: Option<f64>,
     budget_fraction: f64,
@@ -411,7 +411,7 @@ pub fn analyse(
 ///
 /// # Errors
 /// Text that is not that shape: names the axis and cycle and says what is expected.
-pub fn parse_readings(text: &str) -> Result<BTreeMap<String, Vec<Cycle>>, Error> {
+pub(crate) fn parse_readings(text: &str) -> Result<BTreeMap<String, Vec<Cycle>>, Error> {
     const EXPECTED: &str = "expected a JSON object {\"x\": [[x1_mm, x2_mm], …], \"y\": …} with \
                             axes x, y, z, a or b";
     let v: serde_json::Value = serde_json::from_str(text)
@@ -474,7 +474,7 @@ pub fn parse_readings(text: &str) -> Result<BTreeMap<String, Vec<Cycle>>, Error>
 ///
 /// # Errors
 /// As [`parse_readings`] and [`analyse`].
-pub fn solve(
+pub(crate) fn solve(
     text: &str,
     max_accel_mm_s2: Option<f64>,
     params: &BacklashParams,
@@ -498,7 +498,7 @@ pub fn solve(
 
 /// The common smooth_time for the module (one value for every axis): the longest any
 /// compensated axis needs, or the seed's default when none is compensated.
-pub fn common_smooth_time_s<'a>(results: impl IntoIterator<Item = &'a AxisResult>) -> f64 {
+pub(crate) fn common_smooth_time_s<'a>(results: impl IntoIterator<Item = &'a AxisResult>) -> f64 {
     results
         .into_iter()
         .filter(|r| r.compensate)
@@ -513,7 +513,7 @@ pub fn common_smooth_time_s<'a>(results: impl IntoIterator<Item = &'a AxisResult
 /// (a move along a diagonal) loses a/2 (or b/2) on each of X and Y. Two results agree when
 /// they differ by at most twice their combined uncertainty. `None` when fewer than two of the
 /// four directions were measured.
-pub fn corexy_xy_answer(results: &BTreeMap<String, AxisResult>) -> Option<String> {
+pub(crate) fn corexy_xy_answer(results: &BTreeMap<String, AxisResult>) -> Option<String> {
     let get = |k: &str| results.get(k);
     let agree = |p: &AxisResult, q: &AxisResult| {
         (p.backlash_mm - q.backlash_mm).abs() <= 2.0 * p.uncertainty_mm.hypot(q.uncertainty_mm)

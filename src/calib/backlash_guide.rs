@@ -36,7 +36,7 @@ impl GuideAxis {
     ///
     /// # Errors
     /// Anything else, with the accepted values.
-    pub fn parse(text: &str) -> Result<GuideAxis, Error> {
+    pub(crate) fn parse(text: &str) -> Result<GuideAxis, Error> {
         match text.trim().to_ascii_uppercase().as_str() {
             "X" => Ok(GuideAxis::X),
             "Y" => Ok(GuideAxis::Y),
@@ -62,7 +62,7 @@ impl GuideAxis {
     }
 
     /// Whether this is a CoreXY motor direction.
-    pub fn is_motor(self) -> bool {
+    pub(crate) fn is_motor(self) -> bool {
         matches!(self, GuideAxis::A | GuideAxis::B)
     }
 
@@ -137,7 +137,7 @@ impl GuideParams {
     ///
     /// # Errors
     /// Names the value out of range and what is expected.
-    pub fn validate(&self) -> Result<(), Error> {
+    pub(crate) fn validate(&self) -> Result<(), Error> {
         let bad = |m: String| Err(Error::BacklashGuide(m));
         if !(1..=50).contains(&self.cycles) {
             return bad(format!("CYCLES={}: expected 1..50", self.cycles));
@@ -214,7 +214,7 @@ impl Press {
     ///
     /// # Errors
     /// Anything else, with the accepted values.
-    pub fn parse(text: &str) -> Result<Press, Error> {
+    pub(crate) fn parse(text: &str) -> Result<Press, Error> {
         match text.trim().to_ascii_lowercase().as_str() {
             "coarse" => Ok(Press::Coarse),
             "fine" => Ok(Press::Fine),
@@ -335,7 +335,7 @@ impl Guide {
     }
 
     /// The absolute axis coordinate of the current position.
-    pub fn position_mm(&self) -> f64 {
+    pub(crate) fn position_mm(&self) -> f64 {
         self.origin_mm + self.pos_mm
     }
 
@@ -458,7 +458,7 @@ impl Guide {
 
     /// After a crash or restart: the machine's position and last direction are unknown, so
     /// the approach in progress starts over from 1 mm back (recorded readings are kept).
-    pub fn resume(&mut self) -> Step {
+    pub(crate) fn resume(&mut self) -> Step {
         if self.phase == Phase::Done {
             return self.step(Vec::new(), None);
         }

@@ -17,7 +17,7 @@ use crate::layout::{Layout, Pair, Pylon, LAYOUT_VERSION};
 
 /// Group ids and directions of a layout: the motor directions first, then (full) the others.
 #[must_use]
-pub fn layout_groups(kin: Kinematics, full: bool) -> Vec<(&'static str, f64)> {
+pub(crate) fn layout_groups(kin: Kinematics, full: bool) -> Vec<(&'static str, f64)> {
     let mut g = match kin {
         Kinematics::CoreXy => vec![("A", 45.0), ("B", -45.0)],
         Kinematics::Cartesian => vec![("X", 0.0), ("Y", 90.0)],
@@ -35,7 +35,7 @@ pub fn layout_groups(kin: Kinematics, full: bool) -> Vec<(&'static str, f64)> {
 /// outer face to the far faces of pylons 2 and 3 at `d1_mm` and `d2_mm`. Used by the bench and
 /// by tests; the real job's layout comes from `gcode`.
 #[must_use]
-pub fn simulated_layout(kin: Kinematics, full: bool, d1_mm: f64, d2_mm: f64) -> Layout {
+pub(crate) fn simulated_layout(kin: Kinematics, full: bool, d1_mm: f64, d2_mm: f64) -> Layout {
     let thickness = 3.6;
     let mut pylons = Vec::new();
     let mut pairs = Vec::new();
@@ -84,7 +84,7 @@ pub fn simulated_layout(kin: Kinematics, full: bool, d1_mm: f64, d2_mm: f64) -> 
 
 /// Noise and range of the simulated machines (issue 4 §5).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct SimParams {
+pub(crate) struct SimParams {
     /// Motor scales drawn uniformly within 1 ± this.
     pub motor_scale_range: f64,
     /// Frame skew drawn uniformly within ± this, degrees.
@@ -113,7 +113,7 @@ pub struct SimParams {
 /// a bias of their own (how they hold the jaws, the same on every pair of a print), and now
 /// and then a reading squeezed or tilted (jaw pressure).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct HumanReader {
+pub(crate) struct HumanReader {
     /// The caliper's last digit, mm.
     pub resolution_mm: f64,
     /// Standard deviation of a person's bias across people, mm.
@@ -168,7 +168,7 @@ fn uniform(rng: &mut StdRng, lo: f64, hi: f64) -> f64 {
 /// (the faces model: perpendicular distance between parallel faces, pylons shrinking about
 /// their own centres, the plate drifting by `drift` between print and measurement).
 #[must_use]
-pub fn print_and_measure(
+pub(crate) fn print_and_measure(
     layout: &Layout,
     m: &Matrix2<f64>,
     shrink: f64,
@@ -229,7 +229,7 @@ pub fn print_and_measure(
 
 /// Median and 95th percentile of absolute values.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
-pub struct Stats {
+pub(crate) struct Stats {
     /// Median.
     pub median: f64,
     /// 95th percentile.
@@ -256,7 +256,7 @@ fn std_dev(values: &[f64]) -> f64 {
 }
 
 /// Directions residual errors are reported along, degrees.
-pub const REPORT_DIRECTIONS: [(&str, f64); 4] = [
+pub(crate) const REPORT_DIRECTIONS: [(&str, f64); 4] = [
     ("X", 0.0),
     ("Y", 90.0),
     ("+45° (A)", 45.0),
@@ -265,7 +265,7 @@ pub const REPORT_DIRECTIONS: [(&str, f64); 4] = [
 
 /// One estimate's spread beside its Cramér–Rao bound.
 #[derive(Debug, Clone, PartialEq)]
-pub struct CrbLine {
+pub(crate) struct CrbLine {
     /// What was estimated.
     pub name: String,
     /// Standard deviation of (estimate − noiseless estimate) over the machines.
@@ -276,7 +276,7 @@ pub struct CrbLine {
 
 /// The figures of one scenario.
 #[derive(Debug, Clone, PartialEq)]
-pub struct ScenarioReport {
+pub(crate) struct ScenarioReport {
     /// Motion system.
     pub kinematics: Kinematics,
     /// `full` layout (else `paper`).
@@ -306,11 +306,11 @@ pub struct ScenarioReport {
 }
 
 /// The coverage target of a stated 95 % interval with human readings.
-pub const COVERAGE_TARGET: (f64, f64) = (0.93, 0.97);
+pub(crate) const COVERAGE_TARGET: (f64, f64) = (0.93, 0.97);
 
 /// First-print 95 % interval coverage of the two stepper scales over `machines` machines.
 #[must_use]
-pub fn coverage(kin: Kinematics, full: bool, cfg: &BenchConfig, p: &SimParams) -> [f64; 2] {
+pub(crate) fn coverage(kin: Kinematics, full: bool, cfg: &BenchConfig, p: &SimParams) -> [f64; 2] {
     let layout = simulated_layout(kin, full, p.d_mm.0, p.d_mm.1);
     let facts = facts(kin);
     let mut rng = StdRng::seed_from_u64(
@@ -352,7 +352,7 @@ pub fn coverage(kin: Kinematics, full: bool, cfg: &BenchConfig, p: &SimParams) -
 
 /// Benchmark settings.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BenchConfig {
+pub(crate) struct BenchConfig {
     /// Machines per scenario.
     pub machines: usize,
     /// RNG seed.
@@ -393,7 +393,7 @@ pub(crate) fn facts(kin: Kinematics) -> MotionFacts {
 
 /// Runs one scenario (kinematics × layout) over `cfg.machines` random machines.
 #[must_use]
-pub fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioReport {
+pub(crate) fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioReport {
     let p = &cfg.params;
     let layout = simulated_layout(kin, full, p.d_mm.0, p.d_mm.1);
     let facts = facts(kin);
@@ -587,7 +587,7 @@ fn exact_corrections(kin: Kinematics, layout: &Layout, m: &Matrix2<f64>) -> [f64
 
 /// Runs the four scenarios (CoreXY and Cartesian × paper and full).
 #[must_use]
-pub fn run(cfg: &BenchConfig) -> Vec<ScenarioReport> {
+pub(crate) fn run(cfg: &BenchConfig) -> Vec<ScenarioReport> {
     let mut out = Vec::new();
     for kin in [Kinematics::CoreXy, Kinematics::Cartesian] {
         for full in [false, true] {
@@ -600,7 +600,7 @@ pub fn run(cfg: &BenchConfig) -> Vec<ScenarioReport> {
 /// The residual target (95th percentile, µm/100 mm) for a direction in a scenario, if any:
 /// paper 25 along its measured (motor) directions; full 15 along X, Y and both diagonals.
 #[must_use]
-pub fn target_um_per_100mm(kin: Kinematics, full: bool, direction: &str) -> Option<f64> {
+pub(crate) fn target_um_per_100mm(kin: Kinematics, full: bool, direction: &str) -> Option<f64> {
     let motor = match kin {
         Kinematics::CoreXy => direction.contains("45"),
         Kinematics::Cartesian => direction == "X" || direction == "Y",
@@ -615,7 +615,7 @@ pub fn target_um_per_100mm(kin: Kinematics, full: bool, direction: &str) -> Opti
 
 /// Whether every figure with a target meets it.
 #[must_use]
-pub fn all_targets_met(reports: &[ScenarioReport]) -> bool {
+pub(crate) fn all_targets_met(reports: &[ScenarioReport]) -> bool {
     reports.iter().all(|r| {
         r.failures == 0
             && r.residual.iter().all(|(name, s)| {
@@ -628,13 +628,13 @@ pub fn all_targets_met(reports: &[ScenarioReport]) -> bool {
 
 /// Whether a coverage lies in [`COVERAGE_TARGET`].
 #[must_use]
-pub fn coverage_met(c: f64) -> bool {
+pub(crate) fn coverage_met(c: f64) -> bool {
     (COVERAGE_TARGET.0..=COVERAGE_TARGET.1).contains(&c)
 }
 
 /// Human-readable report, each figure beside its target.
 #[must_use]
-pub fn format_report(reports: &[ScenarioReport]) -> String {
+pub(crate) fn format_report(reports: &[ScenarioReport]) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let mark = |ok: bool| if ok { "ok" } else { "MISSED" };

@@ -5,7 +5,7 @@ use serde::Serialize;
 
 /// What the budget is computed from. Defaults are the paper's §3.7 conditions.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct BudgetInputs {
+pub(crate) struct BudgetInputs {
     /// Build plate coefficient of thermal expansion, 1/K (paper: 1.2e-5, spring steel).
     pub plate_cte_per_k: f64,
     /// Bed temperature band, ±K (paper: 2).
@@ -74,7 +74,7 @@ impl Default for BudgetInputs {
 
 /// The budget: each term is a bound on one reading's error, mm.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct ErrorBudget {
+pub(crate) struct ErrorBudget {
     /// Plate thermal drift: CTE × temperature band × length.
     pub bed_mm: f64,
     /// Filament cross-section: half of (2ε/d) × line width reaches the face.
@@ -95,7 +95,7 @@ pub struct ErrorBudget {
 
 /// Computes the error budget of seed 000 §3.
 #[must_use]
-pub fn error_budget(inp: &BudgetInputs) -> ErrorBudget {
+pub(crate) fn error_budget(inp: &BudgetInputs) -> ErrorBudget {
     let bed_mm = inp.plate_cte_per_k * inp.temp_band_k * inp.bed_length_mm;
     let filament_mm = 0.5
         * (2.0 * inp.filament_tolerance_mm / inp.filament_diameter_mm.max(f64::MIN_POSITIVE))

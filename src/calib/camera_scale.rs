@@ -19,7 +19,7 @@ use super::Error;
 
 /// A nozzle centre seen at a commanded axis position.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct Sighting {
+pub(crate) struct Sighting {
     /// Commanded position of the axis being calibrated, mm.
     pub commanded_mm: f64,
     /// The detected centre, px.
@@ -49,7 +49,7 @@ pub struct AxisScale {
 ///
 /// # Errors
 /// Fewer than two distinct positions, a non-finite number, or a line too short to measure.
-pub fn fit_axis(axis: &str, s: &[Sighting]) -> Result<AxisScale, Error> {
+pub(crate) fn fit_axis(axis: &str, s: &[Sighting]) -> Result<AxisScale, Error> {
     let bad = |m: String| Err(Error::CameraScale(format!("axis {axis}: {m}")));
     if s.iter().any(|v| {
         !(v.commanded_mm.is_finite()
@@ -160,7 +160,7 @@ impl CameraScale {
     ///
     /// # Errors
     /// The two directions are (nearly) parallel: the map cannot be inverted.
-    pub fn from_axes(x: AxisScale, y: AxisScale) -> Result<CameraScale, Error> {
+    pub(crate) fn from_axes(x: AxisScale, y: AxisScale) -> Result<CameraScale, Error> {
         let [ax, ay] = [x.direction_px_per_mm, y.direction_px_per_mm];
         let det = ax[0] * ay[1] - ax[1] * ay[0];
         let sin = det / (x.scale_px_per_mm * y.scale_px_per_mm);
@@ -192,7 +192,7 @@ impl CameraScale {
     }
 
     /// The detected centre `centre_px` relative to `reference_px`, in machine mm.
-    pub fn position_mm(&self, centre_px: [f64; 2], reference_px: [f64; 2]) -> [f64; 2] {
+    pub(crate) fn position_mm(&self, centre_px: [f64; 2], reference_px: [f64; 2]) -> [f64; 2] {
         self.to_mm([
             centre_px[0] - reference_px[0],
             centre_px[1] - reference_px[1],
@@ -211,7 +211,7 @@ pub enum Axis {
 /// moving + (centre `plus_px`) and once moving − (`minus_px`). Each reading is the commanded
 /// position that would put the nozzle on `reference_px` (the seed's "back in the centre"), so
 /// X1 − X2 is the backlash and [`super::backlash::analyse`] takes the cycles as they are.
-pub fn cycle(
+pub(crate) fn cycle(
     scale: &CameraScale,
     axis: Axis,
     commanded_mm: f64,
@@ -237,7 +237,7 @@ pub fn cycle(
 /// detection's (per cycle sd √2·u/scale, u the detection's px sd) instead of a jog step's, and
 /// the scale's relative uncertainty (`scale_sd_px_per_mm / scale_px_per_mm`, from
 /// [`fit_axis`]) enters the stated ± in proportion to the value.
-pub fn camera_params(
+pub(crate) fn camera_params(
     base: &BacklashParams,
     detection_sd_px: f64,
     scale_px_per_mm: f64,

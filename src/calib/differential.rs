@@ -6,11 +6,11 @@ use serde::Serialize;
 use super::Error;
 
 /// Scales further than this from 1 are rejected as input errors (±5 %).
-pub const SCALE_LIMIT: f64 = 0.05;
+pub(crate) const SCALE_LIMIT: f64 = 0.05;
 
 /// One pair's centre reading as the group fit needs it.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PairPoint {
+pub(crate) struct PairPoint {
     /// Pair id.
     pub pair: String,
     /// Commanded outer edge-to-edge distance D, mm.
@@ -23,7 +23,7 @@ pub struct PairPoint {
 
 /// The scale of one group.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct GroupScale {
+pub(crate) struct GroupScale {
     /// Group id.
     pub group: String,
     /// Measuring direction, degrees from +X.
@@ -47,7 +47,7 @@ pub struct GroupScale {
 ///
 /// # Errors
 /// Fewer than two distinct nominals, a farther pair not reading longer, or |α − 1| > 5 %.
-pub fn group_scale(
+pub(crate) fn group_scale(
     group: &str,
     direction_deg: f64,
     points: &[PairPoint],
@@ -129,13 +129,13 @@ pub fn group_scale(
 
 /// The paper's update: new rotation_distance = current × α.
 #[must_use]
-pub fn new_rotation_distance(current_mm: f64, scale: f64) -> f64 {
+pub(crate) fn new_rotation_distance(current_mm: f64, scale: f64) -> f64 {
     current_mm * scale
 }
 
 /// Steps per mm for firmware that uses it: full_steps × microsteps × gear_ratio / rotation_distance.
 #[must_use]
-pub fn steps_per_mm(
+pub(crate) fn steps_per_mm(
     full_steps_per_rotation: u32,
     microsteps: u32,
     gear_ratio: f64,
@@ -146,7 +146,7 @@ pub fn steps_per_mm(
 
 /// A group has converged when |α − 1| is below its precision bound.
 #[must_use]
-pub fn converged(scale: f64, precision: f64) -> bool {
+pub(crate) fn converged(scale: f64, precision: f64) -> bool {
     (scale - 1.0).abs() < precision
 }
 
@@ -154,7 +154,7 @@ pub fn converged(scale: f64, precision: f64) -> bool {
 /// after applying the first's correction. When a correction made a group's error larger (by
 /// more than `precision`), returns a warning that the two motors may be swapped.
 #[must_use]
-pub fn swap_warning(
+pub(crate) fn swap_warning(
     previous: &[(String, f64)],
     now: &[(String, f64)],
     precision: f64,

@@ -27,11 +27,11 @@
 //! many national styles: each is read as exactly the intended values or refused whole.
 
 /// Most readings one entry may carry.
-pub const MAX_ITEMS: usize = 50;
+pub(crate) const MAX_ITEMS: usize = 50;
 
 /// A pair's plausibility window and the caliper's resolution.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Window {
+pub(crate) struct Window {
     /// Nominal distance, mm.
     pub nominal_mm: f64,
     /// Absolute tolerance, mm (the floor of the window).
@@ -46,26 +46,26 @@ pub struct Window {
 impl Window {
     /// Half-width of the window, mm.
     #[must_use]
-    pub fn half_width_mm(&self) -> f64 {
+    pub(crate) fn half_width_mm(&self) -> f64 {
         self.tolerance_mm + self.nominal_mm * self.max_change_pct / 100.0
     }
 
     /// Whether `v` lies in the window.
     #[must_use]
-    pub fn contains(&self, v: f64) -> bool {
+    pub(crate) fn contains(&self, v: f64) -> bool {
         (v - self.nominal_mm).abs() <= self.half_width_mm()
     }
 
     /// Decimals the caliper shows (0.01 mm → 2, 0.005 mm → 3).
     #[must_use]
-    pub fn decimals(&self) -> usize {
+    pub(crate) fn decimals(&self) -> usize {
         decimals_of(self.resolution_mm)
     }
 }
 
 /// Decimals of a resolution (0.01 → 2, 0.02 → 2, 0.005 → 3, 0.1 → 1), at most 6.
 #[must_use]
-pub fn decimals_of(resolution_mm: f64) -> usize {
+pub(crate) fn decimals_of(resolution_mm: f64) -> usize {
     (0..=6)
         .find(|d| {
             let x = resolution_mm * 10f64.powi(*d as i32);
@@ -78,7 +78,7 @@ pub fn decimals_of(resolution_mm: f64) -> usize {
 /// the pair or "nothing saved", which the caller adds).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0}")]
-pub struct Refused(pub String);
+pub(crate) struct Refused(pub String);
 
 /// One reading as typed, and where.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -109,7 +109,7 @@ pub fn fields(texts: &[String]) -> Vec<Item> {
 
 /// The page's field number `n` (from 1), or `None` when blank.
 #[must_use]
-pub fn field(text: &str, n: usize) -> Option<Item> {
+pub(crate) fn field(text: &str, n: usize) -> Option<Item> {
     (!text.trim().is_empty()).then(|| Item {
         text: text.trim().to_string(),
         label: format!("field {n}"),
@@ -121,7 +121,7 @@ pub fn field(text: &str, n: usize) -> Option<Item> {
 
 /// A number a program sent as a number (a JSON number): no text to misread.
 #[must_use]
-pub fn sent_number(v: f64, label: &str) -> Item {
+pub(crate) fn sent_number(v: f64, label: &str) -> Item {
     Item {
         text: v.to_string(),
         label: label.to_string(),
@@ -133,7 +133,7 @@ pub fn sent_number(v: f64, label: &str) -> Item {
 
 /// One reading typed on its own (the console's `VALUE=`): a comma is its decimal mark.
 #[must_use]
-pub fn single(text: &str, label: &str) -> Vec<Item> {
+pub(crate) fn single(text: &str, label: &str) -> Vec<Item> {
     if text.trim().is_empty() {
         return Vec::new();
     }
@@ -149,7 +149,7 @@ pub fn single(text: &str, label: &str) -> Vec<Item> {
 /// A list of readings (the console's `VALUES=`): commas (or white space) separate them; a
 /// trailing or doubled comma is tolerated; a lone `mm` belongs to the number before it.
 #[must_use]
-pub fn list(text: &str) -> Vec<Item> {
+pub(crate) fn list(text: &str) -> Vec<Item> {
     let mut out: Vec<String> = Vec::new();
     for raw in text.split([',', ' ', '\t', '\n', '\r']) {
         let item = raw.trim();
@@ -276,7 +276,7 @@ fn number(item: &Item, window: &Window) -> Result<f64, String> {
 ///
 /// # Errors
 /// [`Refused`] when the entry is empty, too long, or any item is not a plausible reading.
-pub fn parse(items: &[Item], pair: &str, window: &Window) -> Result<Vec<f64>, Refused> {
+pub(crate) fn parse(items: &[Item], pair: &str, window: &Window) -> Result<Vec<f64>, Refused> {
     if items.is_empty() {
         return Err(Refused(format!(
             "no reading for {pair}; expected VALUES={} (mm, a dot as decimal mark)",
@@ -313,7 +313,7 @@ pub fn parse(items: &[Item], pair: &str, window: &Window) -> Result<Vec<f64>, Re
 ///
 /// # Errors
 /// The item is not a reading as a caliper shows it, or not in the pair's window.
-pub fn one(item: &Item, pair: &str, window: &Window) -> Result<f64, String> {
+pub(crate) fn one(item: &Item, pair: &str, window: &Window) -> Result<f64, String> {
     match number(item, window) {
         Ok(v) if v <= 0.0 => Err("a reading must be a distance above 0 mm".to_string()),
         Ok(v) if !window.contains(v) => Err(format!(
@@ -347,7 +347,7 @@ fn comma_decimal(items: &[Item], window: &Window) -> Option<String> {
 
 /// A distance in mm with at most 3 decimals and no trailing zeros (`150`, `10.02`).
 #[must_use]
-pub fn fmt_mm(v: f64) -> String {
+pub(crate) fn fmt_mm(v: f64) -> String {
     let s = format!("{v:.3}");
     let s = s.trim_end_matches('0');
     s.trim_end_matches('.').to_string()
@@ -357,7 +357,7 @@ pub fn fmt_mm(v: f64) -> String {
 /// to the micron of a 40 mm pulley's travel and more (6 decimals), trailing zeros dropped
 /// (`40`, `40.102895`).
 #[must_use]
-pub fn fmt_rd(v: f64) -> String {
+pub(crate) fn fmt_rd(v: f64) -> String {
     let s = format!("{v:.6}");
     let s = s.trim_end_matches('0');
     s.trim_end_matches('.').to_string()
@@ -365,7 +365,7 @@ pub fn fmt_rd(v: f64) -> String {
 
 /// An example entry that fits a pair (`10.02,10.03,10.01`).
 #[must_use]
-pub fn example(nominal_mm: f64) -> String {
+pub(crate) fn example(nominal_mm: f64) -> String {
     [0.02, 0.03, 0.01]
         .iter()
         .map(|d| format!("{:.2}", nominal_mm + d))

@@ -12,7 +12,7 @@ use super::Error;
 /// bow differs between the two, so they are fitted apart when they differ).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "lowercase")]
-pub enum Phase {
+pub(crate) enum Phase {
     /// Frame temperature rising.
     Heating,
     /// Frame temperature falling.
@@ -23,7 +23,7 @@ pub enum Phase {
 /// temperature at the moment each point was probed (VGB has one temperature per mesh: the
 /// same value repeated).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Capture {
+pub(crate) struct Capture {
     /// Name (`COLD27.3`, `capture_3`).
     pub name: String,
     /// Frame temperature per point, °C.
@@ -37,7 +37,7 @@ pub struct Capture {
 impl Capture {
     /// A mesh with one temperature for all points (VGB's profiles).
     #[must_use]
-    pub fn uniform(name: &str, temp_c: f64, points_mm: Vec<f64>, phase: Phase) -> Self {
+    pub(crate) fn uniform(name: &str, temp_c: f64, points_mm: Vec<f64>, phase: Phase) -> Self {
         Self {
             name: name.into(),
             temps_c: vec![temp_c; points_mm.len()],
@@ -48,7 +48,7 @@ impl Capture {
 
     /// Mean frame temperature of the mesh, °C.
     #[must_use]
-    pub fn mean_temp_c(&self) -> f64 {
+    pub(crate) fn mean_temp_c(&self) -> f64 {
         self.temps_c.iter().sum::<f64>() / self.temps_c.len().max(1) as f64
     }
 
@@ -77,7 +77,7 @@ pub enum ModelKind {
 
 impl ModelKind {
     /// All kinds, linear first (the default when nothing predicts better).
-    pub const ALL: [ModelKind; 3] = [
+    pub(crate) const ALL: [ModelKind; 3] = [
         ModelKind::Linear,
         ModelKind::Quadratic,
         ModelKind::Piecewise,
@@ -85,7 +85,7 @@ impl ModelKind {
 
     /// Lowercase name.
     #[must_use]
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             ModelKind::Linear => "linear",
             ModelKind::Quadratic => "quadratic",
@@ -123,7 +123,7 @@ pub struct Fit {
 /// A predicted mesh; `clamped` says the temperature was outside the captured range and the
 /// edge of the range was used instead (never a silent extrapolation).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Prediction {
+pub(crate) struct Prediction {
     /// z per point, mm.
     pub points_mm: Vec<f64>,
     /// The temperature actually used, °C.
@@ -135,7 +135,7 @@ pub struct Prediction {
 impl Fit {
     /// Number of mesh points.
     #[must_use]
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.points.len()
     }
 
@@ -157,7 +157,7 @@ impl Fit {
 
     /// z of every point at `temp_c`, clamped to the captured range.
     #[must_use]
-    pub fn predict(&self, temp_c: f64) -> Prediction {
+    pub(crate) fn predict(&self, temp_c: f64) -> Prediction {
         let used = temp_c.clamp(self.range_c.0, self.range_c.1);
         Prediction {
             points_mm: (0..self.len()).map(|i| self.eval(i, used)).collect(),
@@ -168,7 +168,7 @@ impl Fit {
 
     /// z of point `i` at that point's own temperature (clamped).
     #[must_use]
-    pub fn predict_point(&self, i: usize, temp_c: f64) -> f64 {
+    pub(crate) fn predict_point(&self, i: usize, temp_c: f64) -> f64 {
         self.eval(i, temp_c.clamp(self.range_c.0, self.range_c.1))
     }
 
@@ -182,7 +182,7 @@ impl Fit {
 
 /// Largest |a − b|, µm, of two meshes in mm.
 #[must_use]
-pub fn max_abs_diff_um(a: &[f64], b: &[f64]) -> f64 {
+pub(crate) fn max_abs_diff_um(a: &[f64], b: &[f64]) -> f64 {
     a.iter()
         .zip(b)
         .map(|(x, y)| (x - y).abs() * 1000.0)
@@ -232,11 +232,14 @@ fn check(caps: &[&Capture]) -> Result<usize, Error> {
     Ok(n)
 }
 
+/// The least span of frame temperature between the coldest and the hottest mesh a fit takes, °C.
+pub const MIN_SPAN_C: f64 = 0.5;
+
 /// Fits `kind` to the captures, per point.
 ///
 /// # Errors
 /// Fewer captures than the model needs, meshes of different sizes, or all at one temperature.
-pub fn fit(caps: &[&Capture], kind: ModelKind) -> Result<Fit, Error> {
+pub(crate) fn fit(caps: &[&Capture], kind: ModelKind) -> Result<Fit, Error> {
     let n = check(caps)?;
     if caps.len() < kind.min_captures() {
         return Err(Error::Fit(format!(
@@ -254,9 +257,9 @@ pub fn fit(caps: &[&Capture], kind: ModelKind) -> Result<Fit, Error> {
         .iter()
         .map(|c| c.span_c().1)
         .fold(f64::NEG_INFINITY, f64::max);
-    if hi - lo < 0.5 {
+    if hi - lo < MIN_SPAN_C {
         return Err(Error::Fit(format!(
-            "the meshes span {lo:.2}..{hi:.2} °C; expected at least 0.5 °C between the coldest and the hottest"
+            "the meshes span {lo:.2}..{hi:.2} °C; expected at least {MIN_SPAN_C} °C between the coldest and the hottest"
         )));
     }
     let centre = 0.5 * (lo + hi);
@@ -298,7 +301,7 @@ fn polyfit(samples: &[(f64, f64)], centre: f64, order: usize) -> Result<Vec<f64>
 
 /// Prediction error statistics, µm.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct ErrorStats {
+pub(crate) struct ErrorStats {
     /// Largest absolute error.
     pub max_um: f64,
     /// Mean absolute error.
@@ -330,7 +333,7 @@ impl ErrorStats {
 
 /// Errors of `fit` against a measured mesh (each point at its own temperature).
 #[must_use]
-pub fn judge(fit: &Fit, c: &Capture) -> ErrorStats {
+pub(crate) fn judge(fit: &Fit, c: &Capture) -> ErrorStats {
     let e: Vec<f64> = (0..fit.len().min(c.points_mm.len()))
         .map(|i| fit.predict_point(i, c.temps_c[i]) - c.points_mm[i])
         .collect();
@@ -341,7 +344,7 @@ pub fn judge(fit: &Fit, c: &Capture) -> ErrorStats {
 /// the others' range is predicted by a model fitted to the others (captures at either end are
 /// not predicted: that would be extrapolation). `None` when no capture can be held out.
 #[must_use]
-pub fn lomo(caps: &[&Capture], kind: ModelKind) -> Option<ErrorStats> {
+pub(crate) fn lomo(caps: &[&Capture], kind: ModelKind) -> Option<ErrorStats> {
     let mut errors = Vec::new();
     for (held, f) in held_out(caps, kind) {
         errors
@@ -376,7 +379,7 @@ fn held_out<'a>(caps: &[&'a Capture], kind: ModelKind) -> Vec<(&'a Capture, Fit)
 ///
 /// # Errors
 /// Fewer than two meshes, or meshes of different sizes.
-pub fn vgb_two_mesh(caps: &[&Capture]) -> Result<Fit, Error> {
+pub(crate) fn vgb_two_mesh(caps: &[&Capture]) -> Result<Fit, Error> {
     check(caps)?;
     let cold = caps
         .iter()
@@ -406,7 +409,7 @@ pub fn vgb_two_mesh(caps: &[&Capture]) -> Result<Fit, Error> {
 /// VGB's two-mesh method, judged leave-one-out on the captures between its COLD and HOT
 /// (its own two meshes excluded), each mesh at its one mean temperature.
 #[must_use]
-pub fn vgb_lomo(caps: &[&Capture]) -> Option<ErrorStats> {
+pub(crate) fn vgb_lomo(caps: &[&Capture]) -> Option<ErrorStats> {
     let f = vgb_two_mesh(caps).ok()?;
     let mut errors = Vec::new();
     for c in caps {
@@ -421,7 +424,7 @@ pub fn vgb_lomo(caps: &[&Capture]) -> Option<ErrorStats> {
 
 /// The models tried, their LOMO errors, and the one chosen.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Selection {
+pub(crate) struct Selection {
     /// (kind, LOMO errors) for every model that could be cross-validated.
     pub models: Vec<(ModelKind, ErrorStats)>,
     /// The chosen model fitted to all captures.
@@ -433,7 +436,7 @@ pub struct Selection {
 ///
 /// # Errors
 /// As [`fit`] for the linear model.
-pub fn select(caps: &[&Capture]) -> Result<Selection, Error> {
+pub(crate) fn select(caps: &[&Capture]) -> Result<Selection, Error> {
     let linear = fit(caps, ModelKind::Linear)?;
     let mut models = Vec::new();
     for kind in ModelKind::ALL {
@@ -518,7 +521,7 @@ fn lomo_bias_um(caps: &[&Capture], kind: ModelKind) -> Option<f64> {
 /// How the meshes taken while the frame warmed compare with those taken while it cooled
 /// (VGB's appendix: the bow differs, a hysteresis).
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
-pub struct DirectionComparison {
+pub(crate) struct DirectionComparison {
     /// Largest systematic error, µm, of one direction's model predicting the other
     /// direction's meshes — held out by construction, only those inside the model's range,
     /// averaged per point over the meshes so probe noise does not count.
@@ -535,7 +538,7 @@ impl DirectionComparison {
     /// The directions differ: across, the models miss by more than `tolerance_um`, and by
     /// more than twice what they miss within a direction.
     #[must_use]
-    pub fn differ(&self, tolerance_um: f64) -> bool {
+    pub(crate) fn differ(&self, tolerance_um: f64) -> bool {
         self.n_cross > 0
             && self.cross_um > tolerance_um
             && !matches!(self.own_um, Some(o) if self.cross_um <= 2.0 * o)
@@ -544,7 +547,7 @@ impl DirectionComparison {
 
 /// Compares two directions, each with its chosen model.
 #[must_use]
-pub fn compare_directions(
+pub(crate) fn compare_directions(
     heating: &Selection,
     heat: &[&Capture],
     cooling: &Selection,
@@ -569,7 +572,7 @@ pub fn compare_directions(
 /// Which meshes the fit used, and why.
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
 #[serde(rename_all = "snake_case", tag = "kind")]
-pub enum Directions {
+pub(crate) enum Directions {
     /// One model for every direction. `cooling_fitted` false: the cooling meshes (too few to
     /// fit, or none inside the heating range) were judged, not fitted; true: fewer than two
     /// heating meshes, so all meshes were fitted together.
@@ -590,7 +593,7 @@ pub enum Directions {
 impl Directions {
     /// In words, for the session's notes and the console.
     #[must_use]
-    pub fn describe(&self, tolerance_um: f64) -> String {
+    pub(crate) fn describe(&self, tolerance_um: f64) -> String {
         let floor = |c: &DirectionComparison| {
             c.own_um
                 .map(|o| format!(", {o:.1} µm within a direction"))
@@ -635,7 +638,7 @@ impl Directions {
 
 /// The model per direction of the frame temperature.
 #[derive(Debug, Clone, PartialEq)]
-pub struct DirectionalSelection {
+pub(crate) struct DirectionalSelection {
     /// The model followed while the frame warms — and in every direction when `cooling` is
     /// `None`.
     pub heating: Selection,
@@ -652,7 +655,7 @@ pub struct DirectionalSelection {
 ///
 /// # Errors
 /// As [`select`] on the meshes used.
-pub fn select_directions(
+pub(crate) fn select_directions(
     caps: &[&Capture],
     tolerance_um: f64,
 ) -> Result<DirectionalSelection, Error> {
@@ -719,7 +722,7 @@ pub fn select_directions(
 
 /// A profile set: temperatures and the worst error of using the nearest profile.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct ProfilePlan {
+pub(crate) struct ProfilePlan {
     /// Profile temperatures, °C, ascending.
     pub temps_c: Vec<f64>,
     /// Largest |model(T) − model(nearest profile)| over the range, µm.
@@ -737,7 +740,7 @@ fn grid(lo: f64, hi: f64) -> Vec<f64> {
 
 /// Worst error of using the nearest of `temps_c` anywhere in `[lo, hi]`, µm.
 #[must_use]
-pub fn quantisation_um(fit: &Fit, temps_c: &[f64], lo: f64, hi: f64) -> f64 {
+pub(crate) fn quantisation_um(fit: &Fit, temps_c: &[f64], lo: f64, hi: f64) -> f64 {
     let meshes: Vec<Vec<f64>> = temps_c.iter().map(|&t| fit.predict(t).points_mm).collect();
     grid(lo, hi)
         .into_iter()
@@ -750,7 +753,7 @@ pub fn quantisation_um(fit: &Fit, temps_c: &[f64], lo: f64, hi: f64) -> f64 {
 
 /// Index of the temperature nearest `t` (the lower one on a tie).
 #[must_use]
-pub fn nearest(temps_c: &[f64], t: f64) -> usize {
+pub(crate) fn nearest(temps_c: &[f64], t: f64) -> usize {
     let mut best = 0;
     for (k, &x) in temps_c.iter().enumerate() {
         if (x - t).abs() < (temps_c[best] - t).abs() {
@@ -766,7 +769,12 @@ pub fn nearest(temps_c: &[f64], t: f64) -> usize {
 ///
 /// # Errors
 /// A tolerance that is not positive, or an empty range.
-pub fn plan_profiles(fit: &Fit, lo: f64, hi: f64, tolerance_um: f64) -> Result<ProfilePlan, Error> {
+pub(crate) fn plan_profiles(
+    fit: &Fit,
+    lo: f64,
+    hi: f64,
+    tolerance_um: f64,
+) -> Result<ProfilePlan, Error> {
     if tolerance_um.is_nan() || tolerance_um <= 0.0 {
         return Err(Error::Fit(format!(
             "tolerance {tolerance_um} µm; expected a positive number of µm (default 5)"
@@ -827,7 +835,7 @@ pub fn plan_profiles(fit: &Fit, lo: f64, hi: f64, tolerance_um: f64) -> Result<P
 
 /// VGB's fixed grid: one profile per `step_c` from `lo` to `hi` inclusive.
 #[must_use]
-pub fn vgb_grid(lo: f64, hi: f64, step_c: f64) -> Vec<f64> {
+pub(crate) fn vgb_grid(lo: f64, hi: f64, step_c: f64) -> Vec<f64> {
     let n = ((hi - lo) / step_c + 1e-9).floor() as usize;
     (0..=n).map(|k| lo + k as f64 * step_c).collect()
 }

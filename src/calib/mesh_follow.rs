@@ -49,7 +49,7 @@ impl Default for FollowPolicy {
 /// last turn, then cooling until it rose `band_c` above the lowest. Starts as heating (a
 /// print warms the frame).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct Trend {
+pub(crate) struct Trend {
     phase: Phase,
     extreme_c: Option<f64>,
     band_c: f64,
@@ -58,7 +58,7 @@ pub struct Trend {
 impl Trend {
     /// A trend detector with a dead band of `band_c` °C.
     #[must_use]
-    pub fn new(band_c: f64) -> Self {
+    pub(crate) fn new(band_c: f64) -> Self {
         Self {
             phase: Phase::Heating,
             extreme_c: None,
@@ -68,12 +68,12 @@ impl Trend {
 
     /// The direction so far.
     #[must_use]
-    pub fn phase(&self) -> Phase {
+    pub(crate) fn phase(&self) -> Phase {
         self.phase
     }
 
     /// One reading; returns the direction after it.
-    pub fn push(&mut self, temp_c: f64) -> Phase {
+    pub(crate) fn push(&mut self, temp_c: f64) -> Phase {
         if !temp_c.is_finite() {
             return self.phase;
         }
@@ -96,7 +96,7 @@ impl Trend {
 
 /// One direction's model and profiles.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Branch {
+pub(crate) struct Branch {
     /// Heating or cooling.
     pub phase: Phase,
     /// Its model.
@@ -107,7 +107,7 @@ pub struct Branch {
 
 /// What the follower asks for after a sample.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Decision {
+pub(crate) enum Decision {
     /// Nothing to do (`why` for status).
     Keep {
         /// Why nothing is loaded: "within tolerance", "busy", "interval".
@@ -210,7 +210,7 @@ impl Follower {
     /// A follower over the heating profiles and, when heating and cooling differ, the
     /// cooling ones: the frame temperature's [`Trend`] picks the set.
     #[must_use]
-    pub fn with_directions(
+    pub(crate) fn with_directions(
         policy: FollowPolicy,
         heating: Branch,
         cooling: Option<Branch>,
@@ -249,7 +249,7 @@ impl Follower {
 
     /// The loaded profile: its direction and temperature.
     #[must_use]
-    pub fn loaded(&self) -> Option<(Phase, f64)> {
+    pub(crate) fn loaded(&self) -> Option<(Phase, f64)> {
         self.loaded.map(|(s, k)| {
             let b = &self.sets[s].branch;
             (b.phase, b.temps_c[k])
@@ -258,7 +258,7 @@ impl Follower {
 
     /// The direction of the frame temperature's trend so far.
     #[must_use]
-    pub fn trend(&self) -> Phase {
+    pub(crate) fn trend(&self) -> Phase {
         self.trend.phase()
     }
 
@@ -268,7 +268,7 @@ impl Follower {
     }
 
     /// Checks the sensor is still reporting at `t_s` (call on a timer).
-    pub fn tick(&mut self, t_s: f64) -> Option<Decision> {
+    pub(crate) fn tick(&mut self, t_s: f64) -> Option<Decision> {
         if let Some(r) = &self.stopped {
             return Some(Decision::Stopped { reason: r.clone() });
         }
@@ -296,7 +296,7 @@ impl Follower {
     }
 
     /// One frame temperature sample. `busy` while homing or probing (never load then).
-    pub fn push(&mut self, t_s: f64, temp_c: f64, busy: bool) -> Decision {
+    pub(crate) fn push(&mut self, t_s: f64, temp_c: f64, busy: bool) -> Decision {
         if let Some(d) = self.tick(t_s) {
             return d;
         }

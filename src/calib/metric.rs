@@ -25,7 +25,7 @@ impl Kinematics {
     ///
     /// # Errors
     /// Any other kinematics.
-    pub fn parse(name: &str) -> Result<Self, Error> {
+    pub(crate) fn parse(name: &str) -> Result<Self, Error> {
         match name.trim().to_ascii_lowercase().as_str() {
             "corexy" => Ok(Self::CoreXy),
             "cartesian" => Ok(Self::Cartesian),
@@ -37,7 +37,7 @@ impl Kinematics {
 
     /// Unit vectors (commanded XY) of the directions stepper_x and stepper_y move the toolhead.
     #[must_use]
-    pub fn motor_axes(self) -> [[f64; 2]; 2] {
+    pub(crate) fn motor_axes(self) -> [[f64; 2]; 2] {
         let r = std::f64::consts::FRAC_1_SQRT_2;
         match self {
             Self::CoreXy => [[r, r], [r, -r]],
@@ -47,7 +47,7 @@ impl Kinematics {
 
     /// Klipper's name: `corexy` or `cartesian`.
     #[must_use]
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             Self::CoreXy => "corexy",
             Self::Cartesian => "cartesian",
@@ -56,7 +56,7 @@ impl Kinematics {
 
     /// Names of the two motor directions, e.g. `("A", "B")`.
     #[must_use]
-    pub fn motor_names(self) -> (&'static str, &'static str) {
+    pub(crate) fn motor_names(self) -> (&'static str, &'static str) {
         match self {
             Self::CoreXy => ("A", "B"),
             Self::Cartesian => ("X", "Y"),
@@ -65,7 +65,7 @@ impl Kinematics {
 
     /// Matrix whose columns are the motor axes: commanded XY = R · motor coordinates.
     #[must_use]
-    pub fn motor_basis(self) -> Matrix2<f64> {
+    pub(crate) fn motor_basis(self) -> Matrix2<f64> {
         let [u, v] = self.motor_axes();
         Matrix2::new(u[0], v[0], u[1], v[1])
     }
@@ -73,7 +73,7 @@ impl Kinematics {
 
 /// One group's measured scale along a commanded direction.
 #[derive(Debug, Clone, PartialEq)]
-pub struct DirectionScale {
+pub(crate) struct DirectionScale {
     /// Group id.
     pub group: String,
     /// Commanded measuring direction, degrees from +X.
@@ -86,7 +86,7 @@ pub struct DirectionScale {
 
 /// A value with its standard uncertainty.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct Estimate {
+pub(crate) struct Estimate {
     /// The value.
     pub value: f64,
     /// Its standard uncertainty.
@@ -95,7 +95,7 @@ pub struct Estimate {
 
 /// A group's agreement with the fitted metric.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct GroupResidual {
+pub(crate) struct GroupResidual {
     /// Group id.
     pub group: String,
     /// Measured scale.
@@ -111,7 +111,7 @@ pub struct GroupResidual {
 
 /// The fitted metric.
 #[derive(Debug, Clone, PartialEq)]
-pub struct MetricFit {
+pub(crate) struct MetricFit {
     /// Motion system the fit is parameterised in.
     pub kinematics: Kinematics,
     /// H = (MᵀM)⁻¹ in the motor basis: [h11, h12, h22].
@@ -139,7 +139,7 @@ fn unit(direction_deg: f64) -> [f64; 2] {
 ///
 /// # Errors
 /// The directions do not cover both motor directions (nothing to solve for one stepper).
-pub fn fit_metric(kin: Kinematics, groups: &[DirectionScale]) -> Result<MetricFit, Error> {
+pub(crate) fn fit_metric(kin: Kinematics, groups: &[DirectionScale]) -> Result<MetricFit, Error> {
     let [u, v] = kin.motor_axes();
     let rows: Vec<([f64; 3], f64, f64)> = groups
         .iter()
@@ -240,7 +240,7 @@ pub fn fit_metric(kin: Kinematics, groups: &[DirectionScale]) -> Result<MetricFi
 
 /// G = MᵀM in commanded XY from H in the motor basis.
 #[must_use]
-pub fn metric_xy(kin: Kinematics, h_motor: &Vector3<f64>) -> Matrix2<f64> {
+pub(crate) fn metric_xy(kin: Kinematics, h_motor: &Vector3<f64>) -> Matrix2<f64> {
     let h = Matrix2::new(h_motor[0], h_motor[1], h_motor[1], h_motor[2]);
     let r = kin.motor_basis();
     let h_xy = r * h * r.transpose();
@@ -250,7 +250,7 @@ pub fn metric_xy(kin: Kinematics, h_motor: &Vector3<f64>) -> Matrix2<f64> {
 /// Where the shear goes on a CoreXY.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum ShearTo {
+pub(crate) enum ShearTo {
     /// A and B rotation distances remove common scale and all shear (the paper's fixed point).
     Motors,
     /// Matched belts, skewed frame: one common scale for A and B, shear to Klipper's skew.
@@ -259,7 +259,7 @@ pub enum ShearTo {
 
 /// The corrections derived from a metric.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct Corrections {
+pub(crate) struct Corrections {
     /// Scale factor (new/old rotation_distance) for stepper_x and stepper_y.
     pub stepper_scale: [Estimate; 2],
     /// Klipper xy skew factor to set (`None` when skew is not applied through Klipper).
@@ -304,7 +304,7 @@ fn propagate(fit: &MetricFit, f: &dyn Fn(&Vector3<f64>) -> f64) -> Estimate {
 ///   identity (physical = M·K⁻¹·S·c with S Klipper's x − y·xy); without shear observed, only
 ///   kx, ky from the two axes.
 #[must_use]
-pub fn corrections(fit: &MetricFit, shear_to: ShearTo, current_xy: f64) -> Corrections {
+pub(crate) fn corrections(fit: &MetricFit, shear_to: ShearTo, current_xy: f64) -> Corrections {
     let kin = fit.kinematics;
     // The print saw M·S(current); the corrections act on M = (M·S)·S(current)⁻¹.
     let s_inv = Matrix2::new(1.0, current_xy, 0.0, 1.0);

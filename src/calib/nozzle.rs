@@ -27,7 +27,7 @@ use serde::Serialize;
 
 /// A grey image borrowed from its decoder: row-major, one byte per pixel.
 #[derive(Debug, Clone, Copy)]
-pub struct Gray<'a> {
+pub(crate) struct Gray<'a> {
     pub width: usize,
     pub height: usize,
     pub data: &'a [u8],
@@ -36,7 +36,7 @@ pub struct Gray<'a> {
 /// Limits of the detection. The defaults suit 320×240 to 1920×1080 snapshots of a nozzle that
 /// spans a few percent of the frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct DetectParams {
+pub(crate) struct DetectParams {
     /// Refuse when more than this fraction of pixels is clipped white (≥ 250) or black (≤ 5).
     pub max_clipped_fraction: f64,
     /// The nozzle must stand out from the background by at least this many grey levels.
@@ -72,7 +72,7 @@ impl Default for DetectParams {
 /// Why no centre is given.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 #[serde(tag = "reason", rename_all = "snake_case")]
-pub enum Refusal {
+pub(crate) enum Refusal {
     /// The buffer does not hold width × height pixels, or the picture is too small.
     BadImage { detail: String },
     /// Too many pixels clipped white or black.
@@ -156,14 +156,14 @@ impl std::fmt::Display for Refusal {
 /// The nozzle looks brighter or darker than its background (by the mean over its region).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
-pub enum Polarity {
+pub(crate) enum Polarity {
     Bright,
     Dark,
 }
 
 /// What the detection saw, for a person checking their camera.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Diagnostics {
+pub(crate) struct Diagnostics {
     /// Background level at the centre, grey levels.
     pub background: f64,
     /// Noise sd of the picture after the background is taken out, grey levels.
@@ -188,7 +188,7 @@ pub struct Diagnostics {
 
 /// A found nozzle.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct Detection {
+pub(crate) struct Detection {
     /// Centre, px (pixel centres at integers).
     pub centre_px: [f64; 2],
     /// 1 sd per axis, px.
@@ -648,7 +648,7 @@ fn edge_circle(rs: &[f32], w: usize, h: usize, c0: [f64; 2], he: f64, sign: f64)
 ///
 /// # Errors
 /// A [`Refusal`] naming what is wrong with the picture and what is expected.
-pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
+pub(crate) fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
     let (w, h) = (img.width, img.height);
     if w.checked_mul(h) != Some(img.data.len()) {
         return Err(Refusal::BadImage {

@@ -6,14 +6,14 @@ use std::collections::BTreeMap;
 use super::Error;
 
 /// Readings per pair id, in pair-id order; values in mm, not yet validated.
-pub type RawReadings = BTreeMap<String, Vec<f64>>;
+pub(crate) type RawReadings = BTreeMap<String, Vec<f64>>;
 
 /// Parses readings text: a JSON object when it starts with `{`, otherwise `pair,reading` CSV.
 ///
 /// # Errors
 /// Malformed JSON or CSV, a non-number, or a value that is not an array; the message names the
 /// pair (or CSV line) and what is expected.
-pub fn parse_readings(text: &str) -> Result<RawReadings, Error> {
+pub(crate) fn parse_readings(text: &str) -> Result<RawReadings, Error> {
     if text.trim_start().starts_with('{') {
         parse_json(text)
     } else {
@@ -25,7 +25,7 @@ pub fn parse_readings(text: &str) -> Result<RawReadings, Error> {
 ///
 /// # Errors
 /// See [`parse_readings`].
-pub fn parse_json(text: &str) -> Result<RawReadings, Error> {
+pub(crate) fn parse_json(text: &str) -> Result<RawReadings, Error> {
     let value: serde_json::Value =
         serde_json::from_str(text).map_err(|e| Error::ReadingsJson(e.to_string()))?;
     let serde_json::Value::Object(map) = value else {
@@ -60,7 +60,7 @@ pub fn parse_json(text: &str) -> Result<RawReadings, Error> {
 ///
 /// # Errors
 /// See [`parse_readings`].
-pub fn parse_csv(text: &str) -> Result<RawReadings, Error> {
+pub(crate) fn parse_csv(text: &str) -> Result<RawReadings, Error> {
     let mut out = RawReadings::new();
     for (i, raw_line) in text.lines().enumerate() {
         let line = raw_line.trim();
@@ -101,7 +101,7 @@ pub fn parse_csv(text: &str) -> Result<RawReadings, Error> {
 
 /// How readings are reduced to a centre.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct CentreRules {
+pub(crate) struct CentreRules {
     /// Fewer readings than this is an error (default 3).
     pub min_readings: usize,
     /// Readings farther than this many scaled MADs from the median are outliers (default 3).
@@ -132,7 +132,7 @@ impl Default for CentreRules {
 
 /// One pair's readings reduced to a centre.
 #[derive(Debug, Clone, PartialEq)]
-pub struct PairCentre {
+pub(crate) struct PairCentre {
     /// Pair id.
     pub pair: String,
     /// Median of the kept readings, mm.
@@ -160,7 +160,7 @@ pub struct PairCentre {
 /// Checked by `klipcal bench metrology` with human readings: the stated 95 % interval
 /// (± 1.96 u of the scale) holds the exact correction 95–97 % of the time.
 #[must_use]
-pub fn centre_uncertainty(rules: &CentreRules, observed_sigma_mm: f64, n: usize) -> f64 {
+pub(crate) fn centre_uncertainty(rules: &CentreRules, observed_sigma_mm: f64, n: usize) -> f64 {
     let sigma = rules.caliper_sigma_mm.max(observed_sigma_mm);
     let scatter = 1.253 * sigma / (n.max(1) as f64).sqrt();
     scatter.hypot(rules.resolution_mm / 12f64.sqrt())
@@ -168,7 +168,7 @@ pub fn centre_uncertainty(rules: &CentreRules, observed_sigma_mm: f64, n: usize)
 
 /// Median of a non-empty slice (NaN-free); `None` when empty.
 #[must_use]
-pub fn median(values: &[f64]) -> Option<f64> {
+pub(crate) fn median(values: &[f64]) -> Option<f64> {
     if values.is_empty() {
         return None;
     }
@@ -190,7 +190,7 @@ pub fn median(values: &[f64]) -> Option<f64> {
 ///
 /// # Errors
 /// Fewer than `min_readings` readings, or a reading that is not a positive finite number.
-pub fn centre(
+pub(crate) fn centre(
     pair: &str,
     readings_mm: &[f64],
     rules: &CentreRules,

@@ -22,7 +22,7 @@ pub fn calc_skew_factor(ac: f64, bd: f64, ad: f64) -> Option<f64> {
 /// [`calc_skew_factor`] is `xy_factor`: AC = s√(2 + 2 sin ψ), BD = s√(2 − 2 sin ψ), AD = s,
 /// ψ = atan(xy_factor).
 #[must_use]
-pub fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
+pub(crate) fn set_skew_lengths(xy_factor: f64, side_mm: f64) -> [f64; 3] {
     let sin = xy_factor.atan().sin();
     [
         side_mm * (2.0 + 2.0 * sin).sqrt(),
@@ -46,6 +46,33 @@ pub fn set_skew_command(xy_factor: f64) -> Option<String> {
 #[must_use]
 pub fn klipper_toolhead_xy(commanded: [f64; 2], xy_factor: f64) -> [f64; 2] {
     [commanded[0] - commanded[1] * xy_factor, commanded[1]]
+}
+
+/// The XY skew factor Klipper applies now, from what its status reports, without
+/// GET_CURRENT_SKEW (whose answer lands on the user's console; `[skew_correction]` has no
+/// status of its own). `gcode` is `gcode_move.position` (before the skew transform), `toolhead`
+/// is `toolhead.position` (after it): Klipper's `calc_skew` gives x' = x − y·xy − z·(xz − xy·yz)
+/// and y' = y − z·yz, so at Z = 0 (within 1 µm) the factor is (x − x')/y, and a toolhead
+/// exactly where the G-code put it at any Z means no skew (a non-zero XY factor cancelled to
+/// the last bit by an XZ one is not a real printer). `None` where the positions cannot tell
+/// (|Y| under 1 mm: unhomed or at the origin; Z above 0 with a skew active).
+#[must_use]
+pub fn xy_factor_from_positions(gcode: [f64; 3], toolhead: [f64; 3]) -> Option<f64> {
+    let [x, y, z] = gcode;
+    let [xt, yt, _] = toolhead;
+    if !(x.is_finite() && y.is_finite() && z.is_finite() && xt.is_finite() && yt.is_finite()) {
+        return None;
+    }
+    if y.abs() < 1.0 {
+        return None;
+    }
+    if x == xt && y == yt {
+        return Some(0.0);
+    }
+    if z.abs() > 1e-3 {
+        return None;
+    }
+    Some((x - xt) / y)
 }
 
 /// Klipper's classic method: AC, BD, AD measured on a printed square → its skew factor.
@@ -79,7 +106,7 @@ pub enum SkewClass {
 
 /// Classifies a skew angle with Prusa's thresholds.
 #[must_use]
-pub fn classify_skew(angle_deg: f64) -> SkewClass {
+pub(crate) fn classify_skew(angle_deg: f64) -> SkewClass {
     match angle_deg.abs() {
         a if a > 0.25 => SkewClass::Extreme,
         a if a > 0.12 => SkewClass::Mild,
@@ -208,6 +235,22 @@ pub fn fit_points(nominal: &[[f64; 2]], measured: &[[f64; 2]]) -> Result<PointFi
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn the_xy_factor_is_read_from_the_positions_where_they_tell_it() {
+        use super::xy_factor_from_positions as f;
+        let xy = 0.004_321;
+        let at = |x: f64, y: f64, z: f64| f([x, y, z], [x - y * xy, y, z]);
+        assert!((at(100.0, 120.0, 0.0).unwrap() - xy).abs() < 1e-12);
+        assert!((at(10.0, -50.0, 0.0005).unwrap() - xy).abs() < 1e-12);
+        // No skew: the toolhead where the G-code put it, at any height.
+        assert_eq!(f([100.0, 120.0, 7.0], [100.0, 120.0, 7.3]), Some(0.0));
+        // Cannot tell: Y at the origin (unhomed), Z above the bed with a skew active.
+        assert_eq!(f([0.0, 0.0, 0.0], [0.0, 0.0, 0.0]), None);
+        assert_eq!(at(100.0, 0.5, 0.0), None);
+        assert_eq!(at(100.0, 120.0, 5.0), None);
+        assert_eq!(f([f64::NAN, 120.0, 0.0], [100.0, 120.0, 0.0]), None);
+    }
+
     use super::*;
 
     /// Physical XY of a commanded point on a machine whose frame shears x by `f`·y.

@@ -14,7 +14,7 @@ use crate::layout::Layout;
 
 /// What the solver needs to know about one XY stepper.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct StepperFacts {
+pub(crate) struct StepperFacts {
     /// Klipper `rotation_distance`, mm.
     pub rotation_distance_mm: f64,
     /// Klipper `microsteps`.
@@ -27,7 +27,7 @@ pub struct StepperFacts {
 
 /// The printer facts the solver needs (a subset of the Klipper config).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct MotionFacts {
+pub(crate) struct MotionFacts {
     /// Motion system.
     pub kinematics: Kinematics,
     /// `[stepper_x]`.
@@ -38,7 +38,7 @@ pub struct MotionFacts {
 
 /// Solver options; defaults follow the paper.
 #[derive(Debug, Clone, PartialEq)]
-pub struct SolveOptions {
+pub(crate) struct SolveOptions {
     /// How readings are reduced.
     pub rules: CentreRules,
     /// Where a CoreXY's shear goes.
@@ -66,7 +66,7 @@ impl Default for SolveOptions {
 
 /// One stepper's correction.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct StepperResult {
+pub(crate) struct StepperResult {
     /// Direction the stepper drives (`A`, `B`, `X`, `Y`).
     pub direction: String,
     /// Current rotation_distance, mm.
@@ -85,7 +85,7 @@ pub struct StepperResult {
 
 /// Skew result.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct SkewResult {
+pub(crate) struct SkewResult {
     /// Whether the print observed the shear (needs a group off the motor directions).
     pub observed: bool,
     /// Whether the correction goes through Klipper's skew_correction.
@@ -111,7 +111,7 @@ pub struct SkewResult {
 
 /// X/Y anisotropy (what A/B rotation distances cannot fix on a CoreXY).
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct AnisotropyResult {
+pub(crate) struct AnisotropyResult {
     /// Observed (needs a full layout).
     pub observed: bool,
     /// √(gxx/gyy) − 1: X travel over Y travel, minus 1.
@@ -126,7 +126,7 @@ pub struct AnisotropyResult {
 
 /// One pair's reduced readings.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct PairResult {
+pub(crate) struct PairResult {
     /// Pair id.
     pub pair: String,
     /// Nominal mm.
@@ -143,7 +143,7 @@ pub struct PairResult {
 
 /// One group's result.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct GroupResult {
+pub(crate) struct GroupResult {
     /// Group id.
     pub group: String,
     /// Direction, degrees from +X.
@@ -168,7 +168,7 @@ pub struct GroupResult {
 
 /// Fit summary.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct FitSummary {
+pub(crate) struct FitSummary {
     /// All three metric entries observed.
     pub full: bool,
     /// χ² of the group residuals.
@@ -179,7 +179,7 @@ pub struct FitSummary {
 
 /// Everything `klipcal solve` reports.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
-pub struct Solution {
+pub(crate) struct Solution {
     /// Motion system.
     pub kinematics: Kinematics,
     /// stepper_x correction.
@@ -228,7 +228,7 @@ fn check_facts(name: &str, s: &StepperFacts) -> Result<(), Error> {
 /// Readings for pairs the layout lacks or missing for pairs it has, non-numbers, non-positive
 /// readings, fewer than 3 per pair, a far pair not reading longer, a scale beyond ±5 %, a
 /// layout whose kinematics differs from the printer's, or unusable printer facts.
-pub fn solve(
+pub(crate) fn solve(
     layout: &Layout,
     raw: &RawReadings,
     facts: &MotionFacts,

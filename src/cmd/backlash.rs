@@ -28,7 +28,10 @@ use crate::config::BacklashConfig;
 /// # Errors
 /// An unreadable file, or readings refused by [`backlash::solve`] (the message names the axis
 /// and cycle and says what is expected).
-pub fn solve(args: &BacklashSolveArgs, settings: &BacklashConfig) -> anyhow::Result<ExitCode> {
+pub(crate) fn solve(
+    args: &BacklashSolveArgs,
+    settings: &BacklashConfig,
+) -> anyhow::Result<ExitCode> {
     let text = std::fs::read_to_string(&args.readings)
         .with_context(|| format!("cannot read readings file {}", args.readings.display()))?;
     let results = solve_text(&text, args.max_accel, &settings.params())
@@ -47,7 +50,7 @@ pub fn solve(args: &BacklashSolveArgs, settings: &BacklashConfig) -> anyhow::Res
 ///
 /// # Errors
 /// An unreadable file, or bytes that are not a JPEG or PNG picture.
-pub fn image(args: &BacklashImageArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn image(args: &BacklashImageArgs) -> anyhow::Result<ExitCode> {
     let bytes = std::fs::read(&args.file)
         .with_context(|| format!("cannot read picture {}", args.file.display()))?;
     let (w, h, grey) = camera_render::decode_gray(&bytes)
@@ -424,7 +427,10 @@ fn p95(v: &[f64]) -> f64 {
 /// # Errors
 /// None in practice.
 #[cfg(feature = "bench")]
-pub fn bench(args: &BenchBacklashArgs, settings: &BacklashConfig) -> anyhow::Result<ExitCode> {
+pub(crate) fn bench(
+    args: &BenchBacklashArgs,
+    settings: &BacklashConfig,
+) -> anyhow::Result<ExitCode> {
     let params = settings.params();
     let base = settings.guide();
     let axes = args.axes.max(10);

@@ -53,7 +53,7 @@ fn anon_kib(pid: u32) -> u64 {
 ///
 /// # Errors
 /// A process that is not running.
-pub async fn footprint(a: &FootprintArgs) -> anyhow::Result<ExitCode> {
+pub(crate) async fn footprint(a: &FootprintArgs) -> anyhow::Result<ExitCode> {
     const TICKS_PER_S: f64 = 100.0; // Linux USER_HZ
     let start = Instant::now();
     let (_, cpu0) = sample(a.klipcal_pid)?;
@@ -189,7 +189,9 @@ pub async fn footprint(a: &FootprintArgs) -> anyhow::Result<ExitCode> {
 ///
 /// # Errors
 /// None today; the signature matches the other commands.
-pub fn metrology(args: &crate::cli::MetrologyArgs) -> anyhow::Result<std::process::ExitCode> {
+pub(crate) fn metrology(
+    args: &crate::cli::MetrologyArgs,
+) -> anyhow::Result<std::process::ExitCode> {
     use crate::calib::bench_metrology::{all_targets_met, format_report, run, BenchConfig};
     let cfg = BenchConfig {
         machines: args.machines.max(1),

@@ -304,7 +304,9 @@ async fn snapshot(State(cam): State<Shared>) -> Response {
 ///
 /// # Errors
 /// A bad spec, or the port cannot be bound.
-pub async fn serve(args: &crate::cli::BenchCameraArgs) -> anyhow::Result<std::process::ExitCode> {
+pub(crate) async fn serve(
+    args: &crate::cli::BenchCameraArgs,
+) -> anyhow::Result<std::process::ExitCode> {
     let spec = CameraSpec::parse(&args.spec)?;
     let cam = Cam::new(spec, args.state_file.clone())?;
     let shared: Shared = Arc::new(Mutex::new(cam));

@@ -94,7 +94,7 @@ fn test_json(name: &str, t: f64, s: &mesh::ErrorStats) -> Value {
 ///
 /// # Errors
 /// An unreadable config, or profiles that cannot be fitted.
-pub fn fit_cmd(a: &MeshFitArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn fit_cmd(a: &MeshFitArgs) -> anyhow::Result<ExitCode> {
     let l = load(&a.printer_cfg)?;
     let refs: Vec<&Capture> = l.fitted.iter().collect();
     let sel = select(&refs)?;
@@ -202,7 +202,7 @@ fn status_json_bytes(profiles: &[MeshProfile]) -> usize {
 ///
 /// # Errors
 /// An unreadable config, a bad range or tolerance, or an unwritable output file.
-pub fn profiles_cmd(a: &MeshProfilesArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn profiles_cmd(a: &MeshProfilesArgs) -> anyhow::Result<ExitCode> {
     let l = load(&a.printer_cfg)?;
     let refs: Vec<&Capture> = l.fitted.iter().collect();
     let sel = select(&refs)?;
@@ -394,7 +394,7 @@ fn template() -> MeshProfile {
 /// # Errors
 /// A simulation that produces unusable captures (a bug).
 #[cfg(feature = "bench")]
-pub fn bench(a: &BenchMeshArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn bench(a: &BenchMeshArgs) -> anyhow::Result<ExitCode> {
     let mut rng = StdRng::seed_from_u64(a.seed);
     let gantries = [
         (

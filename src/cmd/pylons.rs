@@ -16,7 +16,7 @@ use crate::klipper::Config;
 /// # Errors
 /// Missing or bad config values the flags do not override; kinematics other than corexy and
 /// cartesian.
-pub fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machine> {
+pub(crate) fn machine_from(config: &Config, args: &PylonsArgs) -> anyhow::Result<Machine> {
     let kinematics = args
         .kinematics
         .as_deref()
@@ -44,7 +44,7 @@ fn parse_center(text: &str) -> anyhow::Result<[f64; 2]> {
 ///
 /// # Errors
 /// A bad `--layout` or `--center`.
-pub fn options_from(args: &PylonsArgs, generated_at_unix_s: i64) -> anyhow::Result<Options> {
+pub(crate) fn options_from(args: &PylonsArgs, generated_at_unix_s: i64) -> anyhow::Result<Options> {
     let mut o = Options {
         layout: LayoutKind::parse(&args.layout)?,
         d1_mm: args.d1,
@@ -75,7 +75,7 @@ fn write(path: &Path, text: &str) -> anyhow::Result<()> {
 /// # Errors
 /// An unreadable or invalid Klipper config, bad flags, a layout that does not fit (with the
 /// suggested `--d2`), or a file that cannot be written.
-pub fn run(args: &PylonsArgs) -> anyhow::Result<()> {
+pub(crate) fn run(args: &PylonsArgs) -> anyhow::Result<()> {
     let config = Config::load(&FsFiles, &args.printer_cfg)
         .with_context(|| format!("reading {}", args.printer_cfg.display()))?;
     let machine = machine_from(&config, args)?;

@@ -10,7 +10,7 @@ use crate::cli::SoakDetectArgs;
 
 /// One line of a bed trace.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TraceSample {
+pub(crate) struct TraceSample {
     /// Time of the sample.
     pub t_s: f64,
     /// Heater power, fraction of full power (0..1).
@@ -26,7 +26,7 @@ const EXPECTED: &str = "expected `t_s,power,temp_c,target_c` (numbers; power 0..
 
 /// A bed trace that cannot be used.
 #[derive(Debug, thiserror::Error)]
-pub enum TraceError {
+pub(crate) enum TraceError {
     /// The file could not be read.
     #[error("cannot read trace {path}")]
     Read {
@@ -54,7 +54,7 @@ pub enum TraceError {
 ///
 /// # Errors
 /// The first bad line, named by number, with what was wrong and what is expected.
-pub fn parse_trace(text: &str) -> Result<Vec<TraceSample>, TraceError> {
+pub(crate) fn parse_trace(text: &str) -> Result<Vec<TraceSample>, TraceError> {
     let mut out: Vec<TraceSample> = Vec::new();
     let mut seen_line = false;
     for (i, raw) in text.lines().enumerate() {
@@ -122,7 +122,7 @@ pub fn parse_trace(text: &str) -> Result<Vec<TraceSample>, TraceError> {
 ///
 /// # Errors
 /// The file cannot be read, or a line is malformed ([`parse_trace`]).
-pub fn read_trace(path: &Path) -> Result<Vec<TraceSample>, TraceError> {
+pub(crate) fn read_trace(path: &Path) -> Result<Vec<TraceSample>, TraceError> {
     let text = std::fs::read_to_string(path).map_err(|source| TraceError::Read {
         path: path.to_path_buf(),
         source,
@@ -132,7 +132,7 @@ pub fn read_trace(path: &Path) -> Result<Vec<TraceSample>, TraceError> {
 
 /// What the detector concluded about a whole trace.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct TraceVerdict {
+pub(crate) struct TraceVerdict {
     /// When it declared equilibrium, or `None`.
     pub stable_at_s: Option<f64>,
     /// The status after the last sample (or at the declaration).
@@ -144,7 +144,7 @@ pub struct TraceVerdict {
 }
 
 /// Replays a trace through a fresh detector, stopping at the first declaration.
-pub fn replay(samples: &[TraceSample], params: &SoakParams) -> TraceVerdict {
+pub(crate) fn replay(samples: &[TraceSample], params: &SoakParams) -> TraceVerdict {
     let mut d = SoakDetector::new(params.clone());
     let mut status = SoakStatus::Heating;
     for s in samples {
@@ -170,7 +170,7 @@ pub fn replay(samples: &[TraceSample], params: &SoakParams) -> TraceVerdict {
 ///
 /// # Errors
 /// An unreadable or malformed trace (the message names the line and what is expected).
-pub fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
+pub(crate) fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
     let trace = match (&args.trace, &args.klippy_log) {
         (Some(trace), _) => trace,
         (None, Some(log)) => return detect_log(log, args.json, params),
@@ -200,7 +200,7 @@ pub fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Result<Exit
 
 /// One hold of the bed at a heated target in a klippy.log, as the detector judged it.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct LogHold {
+pub(crate) struct LogHold {
     /// Klipper's eventtime when the target was set, s.
     pub from_eventtime_s: f64,
     /// The target before, °C.
@@ -218,7 +218,7 @@ pub struct LogHold {
 /// Every hold of the bed at a heated target in one start of Klipper, judged by a detector
 /// that sees the whole history (as the daemon would), with `max_power` when the log gives it.
 #[must_use]
-pub fn log_holds(
+pub(crate) fn log_holds(
     stats: &[crate::klipper::klippy_log::BedStat],
     max_power: Option<f64>,
     params: &SoakParams,

@@ -297,7 +297,7 @@ fn pass(ok: bool) -> &'static str {
 ///
 /// # Errors
 /// None in practice; the signature matches the other commands.
-pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
+pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCode> {
     let started = Instant::now();
     let params = params.clone();
     let mut rng = fastrand::Rng::with_seed(args.seed);
@@ -502,6 +502,14 @@ pub fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result<ExitCo
         let ok = r.surface_early == 0;
         families_ok &= ok;
         println!("  family {}: {} beds", r.name, r.beds);
+        println!(
+            "    before the lag bound (ΔP / G alone): early {} ({:.1} %); within 1.5 × surface \
+             moment + 5 min {:.1} %; soak after reaching the target {:.1} min (median)",
+            r.before_surface_early,
+            fp(r.before_surface_early),
+            fp(r.before_surface_within),
+            r.before_median_soak_min
+        );
         println!(
             "    judged on the surface (the plate, 1 K; surface within 1 K {:.1} min after reaching \
              the target, median): early {:4} ({:5.1} %)   target 0   {}; within 1.5 × surface \
@@ -741,9 +749,24 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
         };
         let (bound_true, bound_used) = (bound_min(&|r| r.g_true), bound_min(&|r| r.g_used));
         let soak = soak_min(&rule);
+        let before = |r: &BedResult| r.before;
+        let within_before = res
+            .iter()
+            .filter(|r| {
+                r.before
+                    .is_some_and(|d| d >= r.moment_s && d <= 1.5 * r.moment_s + 300.0)
+            })
+            .count();
         println!("    {} ({} beds; surface within {budget:.1} K after {:.1} min past reaching the target, median):", kind.name(), res.len(), surf);
         println!(
-            "      klipcal: early {e} ({:.0} %)   target 0   {}; soak after reaching the target {}{}",
+            "      before the lag bound (ΔP / G alone): early {}; within 1.5 × surface moment + 5 \
+             min {within_before} ({:.0} %); soak after reaching the target {}",
+            early(&before),
+            pct(within_before, res.len()),
+            words(soak_min(&before)),
+        );
+        println!(
+            "      klipcal (ΔP / G and the lag bound): early {e} ({:.0} %)   target 0   {}; soak after reaching the target {}{}",
             100.0 * e as f64 / n,
             pass(e == 0),
             words(soak),
@@ -786,6 +809,18 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
             let pe = early(&|r| r.with_preset);
             ok &= pe == 0;
             let ps = soak_min(&|r| r.with_preset);
+            let preset_g = crate::calib::soak::BED_PRESETS
+                .iter()
+                .find(|b| b.name == crate::cmd::soak_four_node::preset_name(kind))
+                .map_or(f64::NAN, |b| b.g);
+            println!(
+                "      with soak.bed = \"{}\", before the lag bound: early {}; soak after reaching \
+                 the target {}; information bound with the preset's G {:.1} min (median)",
+                crate::cmd::soak_four_node::preset_name(kind),
+                early(&|r| r.before_preset),
+                words(soak_min(&|r| r.before_preset)),
+                bound_min(&|r| r.g_true.min(preset_g)),
+            );
             println!(
                 "      with soak.bed = \"{}\" (G 1/{:.0}, capped by the heat-up): early {pe}   \
                  target 0   {}; soak after reaching the target {}   target ≤ 15 min   {}",

@@ -12,11 +12,11 @@ use super::soak::{parse_trace, TraceSample};
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 /// Where the real traces live in the source tree.
-pub const REAL_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/soak/real");
+pub(crate) const REAL_DIR: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/soak/real");
 
 /// One real trace and what its header says of the printer.
 #[derive(Debug, Clone)]
-pub struct RealTrace {
+pub(crate) struct RealTrace {
     /// The file's name without `.csv`.
     pub name: String,
     /// The samples, t_s from the target change.
@@ -44,7 +44,7 @@ fn header<'a>(text: &'a str, key: &str) -> Option<&'a str> {
 ///
 /// # Errors
 /// A header line missing, or a sample line that does not parse; named with the file.
-pub fn parse_real(name: &str, text: &str) -> Result<RealTrace, String> {
+pub(crate) fn parse_real(name: &str, text: &str) -> Result<RealTrace, String> {
     let need = |key: &str| header(text, key).ok_or_else(|| format!("{name}: no `# {key}:` line"));
     let control = need("heater_bed control")?.to_string();
     let max_power = need("heater_bed max_power")?
@@ -74,7 +74,7 @@ pub fn parse_real(name: &str, text: &str) -> Result<RealTrace, String> {
 ///
 /// # Errors
 /// The folder or a file cannot be read, or a file does not parse.
-pub fn load_dir(dir: &Path) -> Result<Vec<RealTrace>, String> {
+pub(crate) fn load_dir(dir: &Path) -> Result<Vec<RealTrace>, String> {
     let entries = std::fs::read_dir(dir).map_err(|e| format!("{}: {e}", dir.display()))?;
     let mut paths: Vec<_> = entries
         .filter_map(Result::ok)
@@ -96,7 +96,7 @@ pub fn load_dir(dir: &Path) -> Result<Vec<RealTrace>, String> {
 
 /// What the detector did on one real trace.
 #[derive(Debug, Clone)]
-pub struct RealOutcome {
+pub(crate) struct RealOutcome {
     /// The first sample inside the band, s.
     pub reach_s: Option<f64>,
     /// When the detector declared the bed stable, s.
@@ -116,7 +116,7 @@ pub struct RealOutcome {
 /// that no declaration comes before the bed reached its band plus `settle_s` + `min_soak_s`,
 /// nor while the temperature is out of the band.
 #[must_use]
-pub fn run_real(trace: &RealTrace, params: &SoakParams) -> RealOutcome {
+pub(crate) fn run_real(trace: &RealTrace, params: &SoakParams) -> RealOutcome {
     let mut det = SoakDetector::new(params.clone());
     det.set_max_power(trace.max_power);
     let in_band = |s: &TraceSample| (s.temp_c - s.target_c).abs() <= params.temp_band_c;

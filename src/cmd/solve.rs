@@ -20,7 +20,7 @@ use crate::layout::Layout;
 ///
 /// # Errors
 /// Kinematics other than corexy or cartesian.
-pub fn motion_facts(f: &PrinterFacts) -> anyhow::Result<MotionFacts> {
+pub(crate) fn motion_facts(f: &PrinterFacts) -> anyhow::Result<MotionFacts> {
     let kinematics = match &f.kinematics {
         crate::klipper::Kinematics::CoreXy => Kinematics::CoreXy,
         crate::klipper::Kinematics::Cartesian => Kinematics::Cartesian,
@@ -67,7 +67,7 @@ fn previous_round(path: &Path) -> anyhow::Result<Vec<(String, f64)>> {
 /// # Errors
 /// Unreadable files, a bad layout, readings or printer config; the message names the file,
 /// pair or option and what is expected.
-pub fn load_and_solve(args: &SolveArgs) -> anyhow::Result<Solution> {
+pub(crate) fn load_and_solve(args: &SolveArgs) -> anyhow::Result<Solution> {
     let layout_text = std::fs::read_to_string(&args.layout)
         .with_context(|| format!("reading the layout {}", args.layout.display()))?;
     let layout: Layout = serde_json::from_str(&layout_text).with_context(|| {
@@ -115,7 +115,7 @@ pub fn load_and_solve(args: &SolveArgs) -> anyhow::Result<Solution> {
 ///
 /// # Errors
 /// See [`load_and_solve`].
-pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
+pub(crate) fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
     let sol = load_and_solve(args)?;
     if args.json {
         println!("{}", serde_json::to_string_pretty(&sol)?);
@@ -127,7 +127,7 @@ pub fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
 
 /// Human-readable solution.
 #[must_use]
-pub fn format_solution(s: &Solution) -> String {
+pub(crate) fn format_solution(s: &Solution) -> String {
     use std::fmt::Write as _;
     let mut o = String::new();
     let _ = writeln!(

@@ -37,7 +37,7 @@ fn trapezoid_s(len_mm: f64, v0_2: f64, v1_2: f64, vc2: f64, a: f64) -> f64 {
 
 impl Planner {
     /// A planner at `accel_mm_s2` with Klipper's `square_corner_velocity`.
-    pub fn new(accel_mm_s2: f64, square_corner_velocity_mm_s: f64) -> Self {
+    pub(crate) fn new(accel_mm_s2: f64, square_corner_velocity_mm_s: f64) -> Self {
         Self {
             accel_mm_s2,
             junction_deviation_mm: square_corner_velocity_mm_s.powi(2)
@@ -49,7 +49,7 @@ impl Planner {
     }
 
     /// An XY move of `d` mm at up to `speed_mm_s`.
-    pub fn xy(&mut self, d: [f64; 2], speed_mm_s: f64) {
+    pub(crate) fn xy(&mut self, d: [f64; 2], speed_mm_s: f64) {
         let len_mm = d[0].hypot(d[1]);
         if len_mm < 1e-12 {
             return;
@@ -62,13 +62,13 @@ impl Planner {
     }
 
     /// Something that stops the toolhead (extruder-only or Z move, dwell) and takes `t_s`.
-    pub fn stop(&mut self, t_s: f64) {
+    pub(crate) fn stop(&mut self, t_s: f64) {
         self.flush();
         self.total_s += t_s;
     }
 
     /// Total planned time so far, s.
-    pub fn total_s(&mut self) -> f64 {
+    pub(crate) fn total_s(&mut self) -> f64 {
         self.flush();
         self.total_s
     }

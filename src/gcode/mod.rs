@@ -66,7 +66,7 @@ pub enum Kinematics {
 
 impl Kinematics {
     /// The name Klipper and `layout.json` use.
-    pub fn as_str(self) -> &'static str {
+    pub(crate) fn as_str(self) -> &'static str {
         match self {
             Kinematics::CoreXy => "corexy",
             Kinematics::Cartesian => "cartesian",
@@ -77,7 +77,7 @@ impl Kinematics {
     ///
     /// # Errors
     /// Any other kinematics.
-    pub fn parse(text: &str) -> Result<Self, Error> {
+    pub(crate) fn parse(text: &str) -> Result<Self, Error> {
         match text.trim().to_ascii_lowercase().as_str() {
             "corexy" => Ok(Kinematics::CoreXy),
             "cartesian" => Ok(Kinematics::Cartesian),
@@ -104,7 +104,7 @@ impl LayoutKind {
     ///
     /// # Errors
     /// Any other name.
-    pub fn parse(text: &str) -> Result<Self, Error> {
+    pub(crate) fn parse(text: &str) -> Result<Self, Error> {
         match text.trim().to_ascii_lowercase().as_str() {
             "paper" => Ok(LayoutKind::Paper),
             "full" => Ok(LayoutKind::Full),
@@ -117,7 +117,7 @@ impl LayoutKind {
     }
 
     /// `paper` or `full`.
-    pub fn as_str(self) -> &'static str {
+    pub(crate) fn as_str(self) -> &'static str {
         match self {
             LayoutKind::Paper => "paper",
             LayoutKind::Full => "full",
@@ -162,7 +162,7 @@ impl Machine {
     /// # Errors
     /// [`Error::Config`]: a config without the facts the job needs, or kinematics other than
     /// corexy and cartesian without an override.
-    pub fn from_config(
+    pub(crate) fn from_config(
         config: &crate::klipper::Config,
         kinematics: Option<Kinematics>,
         nozzle_diameter_mm: Option<f64>,
@@ -355,7 +355,7 @@ impl Default for Options {
 
 impl Options {
     /// The line width used: the explicit one, else 1.25 × nozzle diameter.
-    pub fn line_width(&self, machine: &Machine) -> f64 {
+    pub(crate) fn line_width(&self, machine: &Machine) -> f64 {
         self.line_width_mm
             .unwrap_or(1.25 * machine.nozzle_diameter_mm)
     }

@@ -45,7 +45,7 @@ pub(crate) struct PlacedPylon {
 impl PlacedPylon {
     /// The core segment of the stadium footprint: the long axis between the centres of the
     /// rounded ends of a slab `length_mm` long and `thickness_mm` thick.
-    pub fn core(&self, length_mm: f64, thickness_mm: f64) -> ([f64; 2], [f64; 2]) {
+    pub(crate) fn core(&self, length_mm: f64, thickness_mm: f64) -> ([f64; 2], [f64; 2]) {
         let half = (length_mm - thickness_mm) / 2.0;
         (
             add(self.center, scale(self.axis, -half)),

@@ -11,21 +11,21 @@ use crate::config::HttpConfig;
 
 /// The checks, built once from `[http]`.
 #[derive(Debug, Clone)]
-pub struct Guard {
+pub(crate) struct Guard {
     trusted: Vec<ipnet::IpNet>,
     api_key: Option<String>,
     host_names: Vec<String>,
 }
 
 /// Why a request is refused: the status and a message that says what to change.
-pub type Refusal = (StatusCode, String);
+pub(crate) type Refusal = (StatusCode, String);
 
 impl Guard {
     /// The guard for these settings.
     ///
     /// # Errors
     /// A `trusted_clients` entry that is not an address or range.
-    pub fn new(cfg: &HttpConfig) -> Result<Self, crate::config::Error> {
+    pub(crate) fn new(cfg: &HttpConfig) -> Result<Self, crate::config::Error> {
         Ok(Self {
             trusted: cfg.trusted()?,
             api_key: (!cfg.api_key.is_empty()).then(|| cfg.api_key.clone()),
@@ -41,7 +41,12 @@ impl Guard {
     ///
     /// # Errors
     /// The refusal: 403 (address, key, origin, host), 405 (not POST) or 415 (not JSON).
-    pub fn check(&self, peer: IpAddr, method: &Method, headers: &HeaderMap) -> Result<(), Refusal> {
+    pub(crate) fn check(
+        &self,
+        peer: IpAddr,
+        method: &Method,
+        headers: &HeaderMap,
+    ) -> Result<(), Refusal> {
         let peer = peer.to_canonical();
         let key = headers.get("x-api-key").and_then(|v| v.to_str().ok());
         let key_ok = match (&self.api_key, key) {

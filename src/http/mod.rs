@@ -28,10 +28,10 @@ use crate::moonraker::{Moonraker, RpcError};
 use crate::plots;
 
 /// Largest request body accepted (a long list of readings is a few hundred bytes).
-pub const MAX_BODY_BYTES: usize = 64 * 1024;
+pub(crate) const MAX_BODY_BYTES: usize = 64 * 1024;
 
 /// What the handlers share.
-pub struct Http {
+pub(crate) struct Http {
     m: Moonraker,
     cals: Option<Calibrations>,
     guard: guard::Guard,
@@ -45,7 +45,7 @@ type Shared = Arc<Http>;
 /// else its name with `.local` (what Mainsail's own hosts answer to); a loopback bind says the
 /// page is on this host only.
 #[must_use]
-pub fn page_address(
+pub(crate) fn page_address(
     bound: SocketAddr,
     primary_ip: Option<std::net::IpAddr>,
     hostname: Option<&str>,
@@ -97,12 +97,12 @@ pub fn page_address_here(bound: SocketAddr) -> String {
 
 /// HTTP paths that are another operation with one argument set: `ab/clear` is `ab/measure`
 /// with `clear`.
-pub const ALIASES: &[(&str, &str, &str)] = &[("ab/clear", "ab/measure", "clear")];
+pub(crate) const ALIASES: &[(&str, &str, &str)] = &[("ab/clear", "ab/measure", "clear")];
 
 /// Every path a POST may name under `/api/`: each operation's of the command table, then the
 /// aliases.
 #[must_use]
-pub fn operation_paths() -> Vec<&'static str> {
+pub(crate) fn operation_paths() -> Vec<&'static str> {
     crate::jobs::registry::all_ops()
         .iter()
         .filter_map(|o| o.http)
@@ -113,7 +113,7 @@ pub fn operation_paths() -> Vec<&'static str> {
 /// Why the page could not start, in a user's words: the address and, when it is taken, what
 /// to do about it.
 #[must_use]
-pub fn page_off_words(bind: &str, e: &anyhow::Error) -> String {
+pub(crate) fn page_off_words(bind: &str, e: &anyhow::Error) -> String {
     let in_use = e.chain().any(|c| {
         c.downcast_ref::<std::io::Error>()
             .is_some_and(|io| io.kind() == std::io::ErrorKind::AddrInUse)
@@ -132,7 +132,7 @@ pub fn page_off_words(bind: &str, e: &anyhow::Error) -> String {
 ///
 /// # Errors
 /// Bad settings or an address that cannot be bound (in use, not this host's).
-pub async fn start(
+pub(crate) async fn start(
     cfg: &HttpConfig,
     m: Moonraker,
     cals: Option<Calibrations>,
@@ -170,6 +170,7 @@ fn router(shared: Shared) -> Router {
         .route("/api/sessions/{id}/diagram.svg", get(diagram))
         .route("/api/sessions/{id}/convergence.svg", get(convergence))
         .route("/api/plots/soak.svg", get(soak_plot))
+        .route("/api/backlash/snapshot.jpg", get(backlash_snapshot))
         .route("/api/{*op}", post(operation))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
@@ -366,6 +367,44 @@ async fn soak_plot(State(h): State<Shared>) -> Response {
     match crate::jobs::soak::soak_picture(&h.m, &h.soak).await {
         Ok(text) => svg(text),
         Err(why) => error(StatusCode::SERVICE_UNAVAILABLE, &why),
+    }
+}
+
+#[derive(serde::Deserialize)]
+struct SeqQuery {
+    seq: Option<u64>,
+}
+
+/// The backlash measurement's camera frame (`?seq=N` as the status names it, or the newest),
+/// served from klipcal's memory: the page shows it even where the webcam's own address is not
+/// reachable (inside Mainsail's iframe, on a phone).
+async fn backlash_snapshot(
+    State(h): State<Shared>,
+    q: Result<Query<SeqQuery>, axum::extract::rejection::QueryRejection>,
+) -> Response {
+    let Some(cals) = &h.cals else {
+        return no_sessions();
+    };
+    let Ok(Query(q)) = q else {
+        return error(
+            StatusCode::BAD_REQUEST,
+            "seq: expected a whole number, e.g. /api/backlash/snapshot.jpg?seq=3",
+        );
+    };
+    match cals.snapshot_jpeg("backlash", q.seq) {
+        Some(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg")], jpeg).into_response(),
+        None => error(
+            StatusCode::NOT_FOUND,
+            &match q.seq {
+                Some(n) => format!(
+                    "camera frame {n} is no longer kept (klipcal keeps the newest few); \
+                     /api/status names the newest"
+                ),
+                None => "no camera frame since klipcal started: frames are kept while \
+                         KLIPCAL_BACKLASH_CAMERA measures"
+                    .to_string(),
+            },
+        ),
     }
 }
 

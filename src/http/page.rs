@@ -54,7 +54,13 @@ button:disabled{opacity:.5;cursor:default}.row{display:flex;gap:.6em;flex-wrap:w
 table{border-collapse:collapse;width:100%}td,th{text-align:left;padding:.2em .4em;border-bottom:1px solid #e9ecef}
 img.plot,.diagram svg{width:100%;height:auto;max-height:70vh}.diagram .pair.hl line{stroke:#e03131;stroke-width:1.2}
 .diagram .pair.hl text{fill:#c92a2a;font-weight:700}#banner{display:none;background:#fff3bf;padding:.5em 1em}
+.snap{position:relative;line-height:0;overflow:hidden}.stage{position:relative;transform-origin:0 0}
+.snap img{width:100%;height:auto;display:block}.snap svg{position:absolute;left:0;top:0;width:100%;height:100%}
+figure[data-click="1"] .snap{cursor:crosshair;outline:3px solid #2b8a3e}#clicked circle{fill:none;stroke:#2b8a3e;stroke-width:2}.snap svg *{vector-effect:non-scaling-stroke}
+#found circle,#found line{fill:none;stroke:#e03131;stroke-width:2}.approach.plus{fill:#1c7ed6}.approach.minus{fill:#f76707}
+figure{margin:.4em 0}figcaption{font-size:.9em}
 .saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
+@media (max-width:600px){main{padding:.3em}section{padding:.6em .5em}td,th{padding:.2em .25em;font-size:.88em}}
 "#;
 
 const SCRIPT: &str = r#"
@@ -105,28 +111,64 @@ $$('button[data-op]').forEach(b=>b.addEventListener('click',async ev=>{ev.preven
 const sig=document.body.dataset.sig;
 async function poll(){
   try{const r=await fetch('/api/status');const j=await r.json();const s=j.session||{};
-    const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{})].join('|');
+    const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{}),Object.values(s.camera||{}).reduce((n,c)=>n+(c.cycles||[]).length,0)].join('|');
+    const f=s.snapshot,fig=$('#snapshot');
+    if(f&&!fig&&!dirty)location.reload();
+    if(f&&fig&&(f.click||fig.dataset.click==='1')&&(String(f.seq)!==fig.dataset.seq||(f.click?'1':'0')!==fig.dataset.click)&&!dirty)location.reload();
+    if(f&&fig&&String(f.seq)!==fig.dataset.seq){fig.dataset.seq=String(f.seq);$('#snapimg').src='/api/backlash/snapshot.jpg?seq='+f.seq;
+      const g=$('#found'),c=f.centre_px;g.style.display=c?'':'none';if(c)g.setAttribute('transform','translate('+(c[0]+.5)+' '+(c[1]+.5)+')');
+      $('#snapcap').textContent=f.refused?f.what+': no reading, '+f.refused:(c?f.what+': nozzle at ('+c[0].toFixed(2)+', '+c[1].toFixed(2)+') px ± '+f.uncertainty_px.toFixed(2)+' px':f.what)}
     const p=$('#progress');if(p&&s.progress!==undefined)p.textContent=s.progress;
     const k=$('#klippy');if(k&&j.connection)k.textContent=j.connection.klippy_state||j.connection.moonraker;
     if(now!==sig){if(dirty)$('#banner').style.display='block';else location.reload()}
   }catch(e){}
 }
 setInterval(poll,3000);
+// The click-in-snapshot flow: a click on the picture is the nozzle's tip in the picture's
+// pixels (pixel centres at whole numbers), whatever the zoom; without a zoom yet, a first
+// click zooms in there.
+const fig=$('#snapshot');
+if(fig&&fig.dataset.click==='1'){
+  const img=$('#snapimg'),stage=$('.stage',fig);let ZOOM=+(fig.dataset.zoom||4);
+  let at=fig.dataset.hint?fig.dataset.hint.split(',').map(Number):null;
+  const view=()=>{if(!at){stage.style.transform='';return}
+    const W=stage.clientWidth,H=stage.clientHeight,k=W/img.naturalWidth;
+    stage.style.transform='translate('+(W/2-ZOOM*(at[0]+.5)*k)+'px,'+(H/2-ZOOM*(at[1]+.5)*k)+'px) scale('+ZOOM+')'};
+  const ready=()=>{view();fig.dataset.ready='1'};
+  if(img.complete&&img.naturalWidth)ready();else img.addEventListener('load',ready);
+  const whole=$('#wholepic');if(whole)whole.addEventListener('click',ev=>{ev.preventDefault();at=null;ZOOM=4;view()});
+  $('.snap',fig).addEventListener('click',async ev=>{
+    if(fig.dataset.sent)return;
+    const r=img.getBoundingClientRect(),k=img.naturalWidth/r.width;
+    const x=(ev.clientX-r.left)*k-.5,y=(ev.clientY-r.top)*k-.5;
+    if(!at){at=[x,y];view();say($('#clickhelp'),'Now click the tip exactly (zoomed in).',true);return}
+    fig.dataset.sent='1';
+    const c=$('#clicked');c.setAttribute('transform','translate('+(x+.5)+' '+(y+.5)+')');c.style.display='';
+    const j=await call('backlash/tip',{x:+x.toFixed(3),y:+y.toFixed(3),frame:+fig.dataset.seq,sd:+Math.max(k*(ev.pointerType==='touch'?3:1),0.05).toFixed(3)});
+    if(j.ok){say($('#clickhelp'),j.message,true);setInterval(poll,600)}
+    else{delete fig.dataset.sent;c.style.display='none';say($('#clickhelp'),j.error.message,false)}});
+}
 const soak=$('#soak');if(soak)setInterval(()=>{soak.src='/api/plots/soak.svg?t='+Date.now()},15000);
 "#;
 
 /// The signature the script compares with each poll to know when to reload.
 fn signature(session: &Value) -> String {
     if session.is_null() {
-        return "|||{}".into();
+        return "|||{}|0".into();
     }
     let readings = if session["readings"].is_null() {
         "{}".to_string()
     } else {
         session["readings"].to_string()
     };
+    let camera_cycles: usize = session["camera"].as_object().map_or(0, |o| {
+        o.values()
+            .filter_map(|c| c["cycles"].as_array())
+            .map(Vec::len)
+            .sum()
+    });
     format!(
-        "{}|{}|{}|{}",
+        "{}|{}|{}|{}|{camera_cycles}",
         session["id"]
             .as_i64()
             .map(|v| v.to_string())
@@ -143,7 +185,7 @@ fn signature(session: &Value) -> String {
 /// The whole page for a status answer (`{"ok", "session", "last", …}` or an error) and, while
 /// readings are taken, the layout diagram.
 #[must_use]
-pub fn render(status: &Value, diagram_svg: Option<&str>) -> String {
+pub(crate) fn render(status: &Value, diagram_svg: Option<&str>) -> String {
     let session = status.get("session").cloned().unwrap_or(Value::Null);
     let mut h = String::new();
     let _ = write!(
@@ -456,6 +498,14 @@ fn backlash_section(h: &mut String, s: &Value) {
             text(&s["cycle"])
         );
     }
+    if s["snapshot"].is_object() {
+        snapshot_figure(h, s);
+    }
+    if let Some(reports) = s["camera"].as_object() {
+        for (key, rep) in reports {
+            camera_cycles(h, key, rep, &s["results"][key.as_str()]);
+        }
+    }
     if let Some(results) = s["results"].as_object().filter(|r| !r.is_empty()) {
         h.push_str(
             "<div class=\"scroll\"><table><tr><th>axis</th><th>backlash mm</th><th>± mm</th>\
@@ -488,6 +538,163 @@ fn backlash_section(h: &mut String, s: &Value) {
         }
     }
     h.push_str("</section>");
+}
+
+/// A number of px with 2 decimals.
+fn px(v: &Value) -> String {
+    v.as_f64().map(|x| format!("{x:.2}")).unwrap_or_default()
+}
+
+/// The caption of a camera frame: where it was taken, and what detection found (the script
+/// builds the same words when a newer frame comes).
+fn snapshot_caption(f: &Value) -> String {
+    match f["refused"].as_str() {
+        Some(why) => format!("{}: no reading, {why}", text(&f["what"])),
+        None if f["centre_px"].is_array() => format!(
+            "{}: nozzle at ({}, {}) px ± {} px",
+            text(&f["what"]),
+            px(&f["centre_px"][0]),
+            px(&f["centre_px"][1]),
+            px(&f["uncertainty_px"])
+        ),
+        None => text(&f["what"]),
+    }
+}
+
+/// The newest camera frame (served by klipcal itself, `/api/backlash/snapshot.jpg`) with the
+/// nozzle marked where the detector found it, and every cycle's approach positions. Pixel
+/// centres are at integers in the detector's frame; the SVG's pixel i spans [i, i + 1], so a
+/// mark is drawn at the centre + ½.
+fn snapshot_figure(h: &mut String, s: &Value) {
+    let f = &s["snapshot"];
+    let (w, hh) = (
+        f["width"].as_u64().unwrap_or(640),
+        f["height"].as_u64().unwrap_or(480),
+    );
+    let seq = text(&f["seq"]);
+    let click = f["click"] == Value::Bool(true);
+    let hint = match (f["hint_px"][0].as_f64(), f["hint_px"][1].as_f64()) {
+        (Some(x), Some(y)) => format!(
+            " data-hint=\"{x:.3},{y:.3}\" data-zoom=\"{}\"",
+            f["zoom"].as_f64().unwrap_or(4.0)
+        ),
+        _ => String::new(),
+    };
+    if click {
+        let _ = write!(
+            h,
+            "<p class=\"msg ok\" id=\"clickhelp\"><b>Click the nozzle's tip</b> in the picture \
+             below{}. <button class=\"quiet\" id=\"wholepic\">Whole picture</button></p>",
+            if hint.is_empty() {
+                ": a first click zooms in there, a second one marks the tip"
+            } else {
+                " (zoomed in where you clicked last)"
+            }
+        );
+    }
+    let _ = write!(
+        h,
+        "<figure id=\"snapshot\" data-seq=\"{seq}\" data-click=\"{}\"{hint}><div class=\"snap\">\
+         <div class=\"stage\"><img id=\"snapimg\" src=\"/api/backlash/snapshot.jpg?seq={seq}\" \
+         width=\"{w}\" height=\"{hh}\" alt=\"the nozzle camera's newest frame\">\
+         <svg id=\"snapmarks\" viewBox=\"0 0 {w} {hh}\" preserveAspectRatio=\"none\" aria-hidden=\"true\">",
+        u8::from(click)
+    );
+    let at = |p: &Value| {
+        p[0].as_f64()
+            .zip(p[1].as_f64())
+            .map(|(x, y)| (x + 0.5, y + 0.5))
+    };
+    for rep in s["camera"].as_object().into_iter().flat_map(|o| o.values()) {
+        for c in rep["cycles"].as_array().into_iter().flatten() {
+            for (k, class) in [("plus_px", "plus"), ("minus_px", "minus")] {
+                if let Some((x, y)) = at(&c[k]) {
+                    let _ = write!(
+                        h,
+                        "<circle class=\"approach {class}\" cx=\"{x:.3}\" cy=\"{y:.3}\" r=\"1.5\"/>"
+                    );
+                }
+            }
+        }
+    }
+    // Waiting for a click, the detector's finding is not shown: the person judges the tip.
+    let (found, (x, y)) = match at(&f["centre_px"]).filter(|_| !click) {
+        Some(p) => ("", p),
+        None => (" style=\"display:none\"", (0.0, 0.0)),
+    };
+    let r = f["radius_px"].as_f64().unwrap_or(20.0).max(4.0);
+    let _ = write!(
+        h,
+        "<g id=\"found\" transform=\"translate({x:.3} {y:.3})\"{found}><circle r=\"{r:.1}\"/>\
+         <line x1=\"-{r:.1}\" x2=\"{r:.1}\" y1=\"0\" y2=\"0\"/><line y1=\"-{r:.1}\" y2=\"{r:.1}\" x1=\"0\" x2=\"0\"/></g>\
+         <g id=\"clicked\" style=\"display:none\"><circle r=\"3\"/></g></svg></div></div>\
+         <figcaption id=\"snapcap\">{}</figcaption><small>{}blue dots: each cycle's nozzle \
+         approached from below (moving +); orange: from above (moving −)</small></figure>",
+        snapshot_caption(f),
+        if found.is_empty() {
+            "red cross: the nozzle as the detector found it; "
+        } else {
+            ""
+        }
+    );
+}
+
+/// One axis read through the camera: each cycle's approach positions and backlash, then the
+/// median and spread the result gives.
+fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
+    let scale = &rep["scale"];
+    let _ = write!(
+        h,
+        "<div class=\"scroll camera\" data-key=\"{}\"><p><b>{}</b> from webcam '{}': \
+         {} px/mm, rotation {}°, {} frames ({} refused and taken again)</p>\
+         <table><tr><th>cycle</th><th>from below mm</th><th>from above mm</th><th>backlash mm</th></tr>",
+        esc(key),
+        esc(&key.to_uppercase()),
+        text(&rep["webcam"]["name"]),
+        scale["x"]["scale_px_per_mm"]
+            .as_f64()
+            .map(|v| format!("{v:.1}"))
+            .unwrap_or_default(),
+        scale["rotation_deg"]
+            .as_f64()
+            .map(|v| format!("{v:.1}"))
+            .unwrap_or_default(),
+        text(&rep["frames"]),
+        text(&rep["refused_frames"])
+    );
+    let outliers: Vec<u64> = result["outliers"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_u64)
+        .collect();
+    let f4 = |v: &Value| v.as_f64().map(|x| format!("{x:.4}")).unwrap_or_default();
+    for (i, c) in rep["cycles"].as_array().into_iter().flatten().enumerate() {
+        let _ = write!(
+            h,
+            "<tr class=\"cycle\"><td>{}{}</td><td>{}</td><td>{}</td><td class=\"b\">{}</td></tr>",
+            i + 1,
+            if outliers.contains(&(i as u64 + 1)) {
+                " (outlier, left out)"
+            } else {
+                ""
+            },
+            f4(&c["plus_mm"]),
+            f4(&c["minus_mm"]),
+            f4(&c["backlash_mm"])
+        );
+    }
+    if result.is_object() {
+        let _ = write!(
+            h,
+            "<tr class=\"median\"><th colspan=\"3\">median ± uncertainty</th><td>{} ± {}</td></tr>\
+             <tr class=\"spread\"><th colspan=\"3\">spread (largest − smallest kept)</th><td>{}</td></tr>",
+            f4(&result["backlash_mm"]),
+            f4(&result["uncertainty_mm"]),
+            f4(&result["spread_mm"])
+        );
+    }
+    h.push_str("</table></div>");
 }
 
 fn readings_form(h: &mut String, s: &Value, diagram_svg: Option<&str>) {
@@ -587,7 +794,7 @@ fn solution(h: &mut String, s: &Value) {
     let Some(r) = s["rounds"].as_array().and_then(|r| r.last()) else {
         return;
     };
-    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
+    h.push_str("<section id=\"solution\"><h2>Solution</h2><div class=\"scroll\"><table><tr><th>stepper</th><th>rotation_<wbr>distance now</th><th>new</th><th>scale ± uncertainty</th></tr>");
     for (k, name) in ["stepper_x", "stepper_y"].iter().enumerate() {
         let f = |key: &str| r[key][k].as_f64();
         let _ = write!(
@@ -623,7 +830,7 @@ fn rounds_table(h: &mut String, s: &Value) {
     let Some(rounds) = s["rounds"].as_array().filter(|r| !r.is_empty()) else {
         return;
     };
-    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100 mm</th><th>converged</th><th>applied</th></tr>");
+    h.push_str("<section id=\"rounds\"><h2>Rounds</h2><div class=\"scroll\"><table><tr><th>round</th><th>job</th><th>error µm/100&nbsp;mm</th><th>converged</th><th>applied</th></tr>");
     let mut solved = false;
     for r in rounds {
         solved |= !r["scale"].is_null();
@@ -696,6 +903,46 @@ mod tests {
         }
     }
 
+    /// A camera report with every part filled in.
+    fn camera_report() -> crate::jobs::backlash::camera::CameraReport {
+        use crate::calib::camera_scale::{fit_axis, CameraScale, Sighting};
+        let sight = |dir: [f64; 2]| -> Vec<Sighting> {
+            [-0.5, 0.0, 0.5]
+                .map(|t| Sighting {
+                    commanded_mm: t,
+                    centre_px: [320.0 + 80.0 * t * dir[0], 240.0 + 80.0 * t * dir[1]],
+                    uncertainty_px: 0.02,
+                })
+                .to_vec()
+        };
+        let scale = CameraScale::from_axes(
+            fit_axis("x", &sight([1.0, 0.0])).unwrap(),
+            fit_axis("y", &sight([0.0, 1.0])).unwrap(),
+        )
+        .unwrap();
+        crate::jobs::backlash::camera::CameraReport {
+            webcam: crate::jobs::backlash::camera::Webcam {
+                name: "nozzle".into(),
+                snapshot_url: String::new(),
+            },
+            scale: Some(scale),
+            reference_px: Some([320.0, 240.0]),
+            cycles: vec![crate::jobs::backlash::camera::CameraCycle {
+                plus_px: [320.0, 240.0],
+                minus_px: [326.0, 240.0],
+                plus_mm: 0.0,
+                minus_mm: 0.08,
+                backlash_mm: 0.08,
+            }],
+            detection_sd_px: 0.02,
+            axis_px_per_mm: 80.0,
+            frames: 12,
+            refused_frames: 0,
+            last_px: None,
+            clicks: 0,
+        }
+    }
+
     /// A status of each kind, built from the typed structs the agent serializes, with every
     /// nested part filled in.
     fn typed_status_keys() -> std::collections::BTreeSet<String> {
@@ -704,7 +951,7 @@ mod tests {
         use crate::jobs::backlash::BacklashStatus;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
         use crate::jobs::core::StatusHead;
-        use crate::jobs::mesh::{MeshStatus, ResultDoc};
+        use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
         let head = StatusHead {
             id: 1,
             state: "measuring".into(),
@@ -737,6 +984,18 @@ mod tests {
                 directions: String::new(),
                 cooling: None,
             }),
+            // Both the reading and the reason, so that every key of the follower is listed.
+            follow: FollowStatus {
+                following: true,
+                stopped: Some(String::new()),
+                reading: Some(FollowReading {
+                    frame_c: 0.0,
+                    trend: crate::calib::mesh::Phase::Heating,
+                    loaded: Some(String::new()),
+                    offset_mm: [0.0; 2],
+                    residual_um: Some(0.0),
+                }),
+            },
             ..MeshStatus::default()
         };
         let cycles = vec![0.1, 0.11, 0.1, 0.12, 0.1]
@@ -756,14 +1015,27 @@ mod tests {
         .unwrap();
         let backlash = BacklashStatus {
             point: [0.0; 3],
-            branch: crate::klipper::backlash::detect(&json!({}), &json!({})).unwrap(),
+            branch: crate::klipper::backlash::detect(&json!({}), &Default::default()).unwrap(),
             axis: None,
             cycle: None,
             cycles: [("x".to_string(), cycles)].into(),
             corexy_answer: None,
             results: [("x".to_string(), result)].into(),
             active_mm: Default::default(),
-            camera: Default::default(),
+            camera: [("x".to_string(), camera_report())].into(),
+            snapshot: Some(crate::jobs::backlash::snapshot::SnapshotInfo {
+                seq: 1,
+                width: 640,
+                height: 480,
+                what: String::new(),
+                centre_px: Some([1.0, 2.0]),
+                radius_px: Some(20.0),
+                uncertainty_px: Some(0.03),
+                refused: Some(String::new()),
+                click: false,
+                hint_px: Some([1.0, 2.0]),
+                zoom: Some(4.0),
+            }),
         };
         let mut last = std::collections::BTreeMap::new();
         last.insert(
@@ -840,14 +1112,16 @@ mod tests {
             read.len()
         );
         // `ok`, `error` and `message` are the answer's wrapping (`http::answer`), not the
-        // status; the follower's fields sit in `follow`, still the follower's own JSON.
+        // status.
         let wrapping = ["ok", "error", "message"];
-        let follower = ["following", "stopped", "loaded", "residual_um"];
         let have = typed_status_keys();
+        for follower in ["following", "stopped", "loaded", "residual_um", "frame_c"] {
+            assert!(read.contains(follower), "the page reads {follower}");
+        }
         let missing: Vec<&String> = read
             .iter()
             .filter(|k| !have.contains(*k))
-            .filter(|k| !wrapping.contains(&k.as_str()) && !follower.contains(&k.as_str()))
+            .filter(|k| !wrapping.contains(&k.as_str()))
             .collect();
         assert!(
             missing.is_empty(),
@@ -916,6 +1190,46 @@ mod tests {
             "{page}"
         );
         assert!(page.contains("data-op=\"backlash/apply\""));
+    }
+
+    #[test]
+    fn a_camera_frame_is_shown_with_its_mark_or_as_the_snapshot_to_click_in() {
+        let mut st = json!({"ok": true, "session": {"kind": "backlash", "id": 9, "state": "measuring",
+            "progress": "camera", "axis": null,
+            "snapshot": {"seq": 12, "width": 640, "height": 480, "what": "X cycle 1/5 <b>",
+                         "centre_px": [300.25, 200.5], "radius_px": 28.0, "uncertainty_px": 0.05,
+                         "refused": null, "click": false, "hint_px": null},
+            "camera": {"x": {"webcam": {"name": "nozzle"}, "scale": {"x": {"scale_px_per_mm": 80.0},
+                "rotation_deg": 12.0}, "frames": 9, "refused_frames": 1,
+                "cycles": [{"plus_px": [300.0, 200.0], "minus_px": [306.0, 200.0],
+                            "plus_mm": 0.0012, "minus_mm": 0.0814, "backlash_mm": 0.0802}]}}},
+            "last": {}});
+        let page = render(&st, None);
+        assert!(
+            page.contains("src=\"/api/backlash/snapshot.jpg?seq=12\""),
+            "{page}"
+        );
+        // The mark at the detector's centre, + ½ for the SVG's pixel edges.
+        assert!(page.contains("<g id=\"found\" transform=\"translate(300.750 201.000)\">"));
+        assert!(page.contains("X cycle 1/5 &lt;b&gt;: nozzle at (300.25, 200.50) px ± 0.05 px"));
+        assert!(page.contains("<td>0.0012</td><td>0.0814</td><td class=\"b\">0.0802</td>"));
+        assert_eq!(page.matches("class=\"approach ").count(), 2);
+        assert!(page.contains("data-sig=\"9|measuring||{}|1\""), "{page}");
+        // Waiting for a click: no detector's mark, the help and the zoom's hint.
+        st["session"]["snapshot"]["click"] = json!(true);
+        st["session"]["snapshot"]["hint_px"] = json!([310.0, 205.5]);
+        st["session"]["snapshot"]["zoom"] = json!(8.0);
+        let page = render(&st, None);
+        assert!(page.contains("data-click=\"1\" data-hint=\"310.000,205.500\" data-zoom=\"8\""));
+        assert!(page.contains("id=\"clickhelp\"") && page.contains("Click the nozzle's tip"));
+        assert!(page.contains(
+            "<g id=\"found\" transform=\"translate(0.000 0.000)\" style=\"display:none\">"
+        ));
+        // A refused frame says why.
+        st["session"]["snapshot"]["click"] = json!(false);
+        st["session"]["snapshot"]["centre_px"] = Value::Null;
+        st["session"]["snapshot"]["refused"] = json!("two candidates");
+        assert!(render(&st, None).contains("X cycle 1/5 &lt;b&gt;: no reading, two candidates"));
     }
 
     #[test]

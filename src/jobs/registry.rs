@@ -31,19 +31,19 @@ pub fn all_ops() -> Vec<&'static OpSpec> {
 
 /// Whether `method` is one of the common operations'.
 #[must_use]
-pub fn is_core_method(method: &str) -> bool {
+pub(crate) fn is_core_method(method: &str) -> bool {
     CORE_OPS.iter().any(|o| o.spec.method == Some(method))
 }
 
 /// The operation of a remote method.
 #[must_use]
-pub fn op_of_method(method: &str) -> Option<&'static OpSpec> {
+pub(crate) fn op_of_method(method: &str) -> Option<&'static OpSpec> {
     all_ops().into_iter().find(|o| o.method == Some(method))
 }
 
 /// Every remote method the daemon registers with Moonraker.
 #[must_use]
-pub fn all_methods() -> Vec<String> {
+pub(crate) fn all_methods() -> Vec<String> {
     all_ops()
         .iter()
         .filter_map(|o| o.method.map(str::to_string))
@@ -52,7 +52,7 @@ pub fn all_methods() -> Vec<String> {
 
 /// `config/klipcal.cfg`, generated from the table (`klipcal macros`).
 #[must_use]
-pub fn macros_cfg() -> String {
+pub(crate) fn macros_cfg() -> String {
     table::macros_cfg(&all_ops())
 }
 
@@ -66,7 +66,7 @@ pub struct Calibrations {
 impl Calibrations {
     /// Every calibration klipcal has, over `core`, each with its own sections of the settings.
     #[must_use]
-    pub fn new(core: Core, config: &crate::config::Config) -> Self {
+    pub(crate) fn new(core: Core, config: &crate::config::Config) -> Self {
         let list: Vec<Arc<dyn Calibration>> = vec![
             Arc::new(super::ab::Ab::new(
                 core.clone(),
@@ -94,8 +94,14 @@ impl Calibrations {
 
     /// The shared core.
     #[must_use]
-    pub fn core(&self) -> &Core {
+    pub(crate) fn core(&self) -> &Core {
         &self.core
+    }
+
+    /// A camera frame `kind` keeps for the page (`seq`, or the newest), JPEG.
+    #[must_use]
+    pub fn snapshot_jpeg(&self, kind: &str, seq: Option<u64>) -> Option<Vec<u8>> {
+        self.by_kind(kind)?.snapshot_jpeg(seq)
     }
 
     fn by_kind(&self, kind: &str) -> Option<&Arc<dyn Calibration>> {
@@ -104,7 +110,7 @@ impl Calibrations {
 
     /// Whether `method` is one of the calibrations' or the common ones.
     #[must_use]
-    pub fn knows(&self, method: &str) -> bool {
+    pub(crate) fn knows(&self, method: &str) -> bool {
         op_of_method(method).is_some()
     }
 
@@ -113,7 +119,7 @@ impl Calibrations {
     ///
     /// # Errors
     /// The calibration's error (user errors say what was wrong and what is expected).
-    pub async fn call(&self, method: &str, args: &Value) -> anyhow::Result<Value> {
+    pub(crate) async fn call(&self, method: &str, args: &Value) -> anyhow::Result<Value> {
         if is_core_method(method) {
             return match CoreCall::parse(method, args)? {
                 CoreCall::Cancel(reason) => self.cancel(&reason).await,
@@ -151,7 +157,7 @@ impl Calibrations {
     ///
     /// # Errors
     /// No session to cancel.
-    pub async fn cancel(&self, reason: &str) -> anyhow::Result<Value> {
+    pub(crate) async fn cancel(&self, reason: &str) -> anyhow::Result<Value> {
         let row = self
             .core
             .active()?
@@ -175,7 +181,7 @@ impl Calibrations {
     }
 
     /// Resumes the active session after a daemon start or a reconnect.
-    pub async fn resume(&self) {
+    pub(crate) async fn resume(&self) {
         for c in &self.list {
             c.connected().await;
         }
@@ -198,7 +204,7 @@ impl Calibrations {
     ///
     /// # Errors
     /// A damaged database.
-    pub fn status(&self) -> anyhow::Result<SessionsStatus> {
+    pub(crate) fn status(&self) -> anyhow::Result<SessionsStatus> {
         let row = match self.core.active()? {
             Some(row) => Some(row),
             None => self.core.store().latest_session()?,
@@ -224,7 +230,7 @@ impl Calibrations {
     ///
     /// # Errors
     /// A damaged database.
-    pub fn session(&self, id: i64) -> anyhow::Result<Option<Value>> {
+    pub(crate) fn session(&self, id: i64) -> anyhow::Result<Option<Value>> {
         let Some(row) = self.core.store().session(id)? else {
             return Ok(None);
         };
@@ -238,13 +244,16 @@ impl Calibrations {
     ///
     /// # Errors
     /// A damaged database.
-    pub fn sessions(&self, limit: usize) -> anyhow::Result<Vec<crate::store::SessionSummary>> {
+    pub(crate) fn sessions(
+        &self,
+        limit: usize,
+    ) -> anyhow::Result<Vec<crate::store::SessionSummary>> {
         Ok(self.core.store().sessions(limit)?)
     }
 
     /// Turns the heaters off once a waiting session's hold limit has passed. Runs until
     /// shutdown.
-    pub async fn hold_watchdog(self) {
+    pub(crate) async fn hold_watchdog(self) {
         loop {
             tokio::select! {
                 () = self.core.shutdown().cancelled() => return,
@@ -446,6 +455,7 @@ mod tests {
             "_KLIPCAL_PROMPT_CLOSE",
             "_KLIPCAL_CANCEL_ASK",
             "_KLIPCAL_BACKLASH_JOG",
+            "_KLIPCAL_BACKLASH_TIP",
         ] {
             assert!(
                 all_ops().iter().any(|o| o.macro_name == helper),
@@ -453,9 +463,9 @@ mod tests {
             );
             assert!(!visible.contains(&&helper[1..]), "{helper} shows");
         }
-        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA (issue 27).
+        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA and KLIPCAL_BACKLASH_CLICK (issue 27).
         assert!(
-            visible.len() <= 17,
+            visible.len() <= 18,
             "{} buttons: {visible:?}",
             visible.len()
         );

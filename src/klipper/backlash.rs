@@ -17,13 +17,13 @@ use super::gcode_cmd::{format_num, GcodeCmd};
 use super::Error;
 
 /// The command PR 7259 registers.
-pub const SET_CMD: &str = "SET_BACKLASH_COMPENSATION";
+pub(crate) const SET_CMD: &str = "SET_BACKLASH_COMPENSATION";
 /// PR 7259's section.
-pub const SEED_SECTION: &str = "backlash_compensation";
+pub(crate) const SEED_SECTION: &str = "backlash_compensation";
 /// PR 7157's section.
-pub const PR7157_SECTION: &str = "backlash";
+pub(crate) const PR7157_SECTION: &str = "backlash";
 /// PR 7259's run-time limit on SMOOTH_TIME, s.
-pub const MAX_SMOOTH_TIME_S: f64 = 0.1;
+pub(crate) const MAX_SMOOTH_TIME_S: f64 = 0.1;
 
 /// Which backlash compensation the printer's Klipper has.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
@@ -60,21 +60,14 @@ impl Detection {
 }
 
 /// Detects the branch from Moonraker's `printer.gcode.help` answer (an object keyed by
-/// command) and `configfile.config` (section → options; the `{"config": …}` wrapper allowed).
+/// command) and `configfile.config` (section → options as written).
 ///
 /// # Errors
-/// [`Error::Settings`] when either answer is not a JSON object.
-pub fn detect(help: &Value, config: &Value) -> Result<Detection, Error> {
+/// [`Error::Settings`] when the help answer is not a JSON object.
+pub fn detect(help: &Value, cfg: &super::RawConfig) -> Result<Detection, Error> {
     let help = help.as_object().ok_or_else(|| {
         Error::Settings("printer.gcode.help: expected an object of commands".into())
     })?;
-    let cfg = config.as_object().ok_or_else(|| {
-        Error::Settings("expected a JSON object mapping section names to options".into())
-    })?;
-    let cfg = match cfg.get("config") {
-        Some(Value::Object(inner)) => inner,
-        _ => cfg,
-    };
     let has_cmd = help.keys().any(|k| k.eq_ignore_ascii_case(SET_CMD));
     let dual_carriage = cfg.contains_key("dual_carriage");
     let det = |branch, why: String| Detection {
@@ -93,8 +86,7 @@ pub fn detect(help: &Value, config: &Value) -> Result<Detection, Error> {
     if let Some(sec) = cfg.get(PR7157_SECTION) {
         let kin = sec
             .get("kinematics")
-            .and_then(Value::as_str)
-            .unwrap_or("cartesian")
+            .map_or("cartesian", String::as_str)
             .trim()
             .to_ascii_lowercase();
         return Ok(det(
@@ -229,7 +221,7 @@ pub fn parse_reply(text: &str) -> Result<BacklashReply, Error> {
 
 /// A carriage and its values, for the dual-carriage include.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct CarriageBacklash {
+pub(crate) struct CarriageBacklash {
     /// The name `SET_DUAL_CARRIAGE CARRIAGE=` takes.
     pub carriage: String,
     /// What `SET_BACKLASH_COMPENSATION` sets while it is the active carriage.
@@ -237,7 +229,7 @@ pub struct CarriageBacklash {
 }
 
 /// The name of the klipcal-managed include for a dual-carriage printer with PR 7259.
-pub const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
+pub(crate) const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
 
 /// The klipcal-managed include for a dual-carriage printer with PR 7259 (the seed's recipe:
 /// non-zero values cannot sit in `[backlash_compensation]` there, so a `[delayed_gcode]`
@@ -245,7 +237,7 @@ pub const DUAL_CARRIAGE_INCLUDE: &str = "klipcal_backlash.cfg";
 ///
 /// # Errors
 /// A carriage name outside `[A-Za-z0-9_.-]`, or a value [`set_backlash_command`] refuses.
-pub fn dual_carriage_include(
+pub(crate) fn dual_carriage_include(
     primary: &CarriageBacklash,
     dual: &CarriageBacklash,
 ) -> Result<String, Error> {
@@ -329,18 +321,19 @@ mod tests {
     fn detection_tells_the_seed_branch_pr_7157_and_neither_apart() {
         let help =
             json!({"G28": "", "SET_BACKLASH_COMPENSATION": "Set backlash compensation parameters"});
+        let raw = |v: Value| -> super::super::RawConfig { serde_json::from_value(v).unwrap() };
         let d = detect(
             &help,
-            &json!({"backlash_compensation": {"x_backlash": "0"}}),
+            &raw(json!({"backlash_compensation": {"x_backlash": "0"}})),
         )
         .unwrap();
         assert_eq!(d.branch, Branch::Seed);
-        let cfg = json!({"config": {"backlash": {"kinematics": "corexy", "a": "0.0"}}});
+        let cfg = raw(json!({"backlash": {"kinematics": "corexy", "a": "0.0"}}));
         let d = detect(&json!({"G28": ""}), &cfg).unwrap();
         assert_eq!(d.branch, Branch::Pr7157 { corexy: true });
-        let d = detect(&json!({"G28": ""}), &json!({"backlash": {"x": "0"}})).unwrap();
+        let d = detect(&json!({"G28": ""}), &raw(json!({"backlash": {"x": "0"}}))).unwrap();
         assert_eq!(d.branch, Branch::Pr7157 { corexy: false });
-        let d = detect(&json!({"G28": ""}), &json!({"dual_carriage": {}})).unwrap();
+        let d = detect(&json!({"G28": ""}), &raw(json!({"dual_carriage": {}}))).unwrap();
         assert_eq!(d.branch, Branch::Neither);
         assert!(d.dual_carriage && !d.can_apply());
         assert!(
@@ -348,7 +341,7 @@ mod tests {
             "{}",
             d.why
         );
-        assert!(detect(&json!([]), &json!({})).is_err());
+        assert!(detect(&json!([]), &raw(json!({}))).is_err());
     }
 
     #[test]

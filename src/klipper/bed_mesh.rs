@@ -8,9 +8,9 @@ use super::gcode_cmd::GcodeCmd;
 use super::Error;
 
 /// `bed_mesh.PROFILE_VERSION`: profiles with another version are ignored by Klipper.
-pub const PROFILE_VERSION: i64 = 1;
+pub(crate) const PROFILE_VERSION: i64 = 1;
 /// Prefix of the profiles klipcal owns; all others are the user's and are never touched.
-pub const KLIPCAL_PREFIX: &str = "klipcal_";
+pub(crate) const KLIPCAL_PREFIX: &str = "klipcal_";
 
 /// `bed_mesh.PROFILE_OPTIONS`, in the order Klipper writes them (the same names as the
 /// `mesh_params` of Klipper's `bed_mesh` status).
@@ -53,14 +53,14 @@ pub struct MeshProfile {
 impl MeshProfile {
     /// The points row-major (y rows, x columns) in one vector.
     #[must_use]
-    pub fn flat_mm(&self) -> Vec<f64> {
+    pub(crate) fn flat_mm(&self) -> Vec<f64> {
         self.points_mm.iter().flatten().copied().collect()
     }
 }
 
 /// What a VGB profile name says.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum VgbKind {
+pub(crate) enum VgbKind {
     /// `COLDxx.x`: the cold reference mesh.
     Cold,
     /// `HOTxx.x`: the hot reference mesh.
@@ -112,7 +112,7 @@ fn get_u(s: &Section, key: &str) -> Result<usize, Error> {
 /// # Errors
 /// A missing option, a value that is not a number, or points that do not form
 /// `y_count` rows of `x_count` values.
-pub fn parse_profile(s: &Section) -> Result<Option<MeshProfile>, Error> {
+pub(crate) fn parse_profile(s: &Section) -> Result<Option<MeshProfile>, Error> {
     let name = s
         .name
         .strip_prefix("bed_mesh ")
@@ -223,7 +223,7 @@ fn param_words(m: &MeshParams) -> [(&'static str, String); 10] {
 /// # Errors
 /// The first profile that differs, naming it, each option that differs with both values,
 /// and what is expected.
-pub fn check_same_params(profiles: &[&MeshProfile]) -> Result<(), Error> {
+pub(crate) fn check_same_params(profiles: &[&MeshProfile]) -> Result<(), Error> {
     let Some(first) = profiles.first() else {
         return Ok(());
     };
@@ -252,7 +252,7 @@ pub fn check_same_params(profiles: &[&MeshProfile]) -> Result<(), Error> {
 /// Why a profile is not one of VGB's (`None` when it is): klipcal's own, a VGB-like name
 /// in the wrong case or without a temperature, or another name.
 #[must_use]
-pub fn vgb_ignored_why(name: &str) -> Option<String> {
+pub(crate) fn vgb_ignored_why(name: &str) -> Option<String> {
     if vgb_kind(name).is_some() {
         return None;
     }
@@ -280,7 +280,7 @@ pub fn vgb_ignored_why(name: &str) -> Option<String> {
 
 /// The VGB kind and temperature of a profile named `COLDxx.x`, `HOTxx.x` or `TESTxx.x`.
 #[must_use]
-pub fn vgb_kind(name: &str) -> Option<(VgbKind, f64)> {
+pub(crate) fn vgb_kind(name: &str) -> Option<(VgbKind, f64)> {
     let (kind, rest) = if let Some(r) = name.strip_prefix("COLD") {
         (VgbKind::Cold, r)
     } else if let Some(r) = name.strip_prefix("HOT") {
@@ -327,7 +327,7 @@ pub fn format_profile(p: &MeshProfile) -> String {
 ///
 /// # Errors
 /// A name outside `[A-Za-z0-9_.-]`, or an offset that is not a finite number.
-pub fn load_script(name: &str, offset_mm: (f64, f64)) -> Result<String, Error> {
+pub(crate) fn load_script(name: &str, offset_mm: (f64, f64)) -> Result<String, Error> {
     let load = GcodeCmd::new("BED_MESH_PROFILE")
         .word("LOAD", name)
         .build()?;
@@ -344,7 +344,7 @@ pub fn load_script(name: &str, offset_mm: (f64, f64)) -> Result<String, Error> {
 /// The names of the `[bed_mesh klipcal_*]` profiles in printer.cfg's SAVE_CONFIG block (the
 /// ones [`replace_klipcal_profiles`] replaces), in file order.
 #[must_use]
-pub fn klipcal_profile_names(text: &str) -> Vec<String> {
+pub(crate) fn klipcal_profile_names(text: &str) -> Vec<String> {
     let Some(i) = text.find(&format!("\n{SAVE_CONFIG_MARKER}\n")) else {
         return Vec::new();
     };

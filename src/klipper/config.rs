@@ -42,7 +42,7 @@ use super::files::{has_magic, normalize_path, Files};
 use super::Error;
 
 /// The first line of Klipper's auto-generated block (`configfile.AUTOSAVE_HEADER`).
-pub const SAVE_CONFIG_MARKER: &str =
+pub(crate) const SAVE_CONFIG_MARKER: &str =
     "#*# <---------------------- SAVE_CONFIG ---------------------->";
 const SAVE_CONFIG_SECOND: &str =
     "#*# DO NOT EDIT THIS BLOCK OR BELOW. The contents are auto-generated.";
@@ -97,7 +97,7 @@ pub struct Section {
 
 impl Section {
     /// The option `key` (matched lowercased).
-    pub fn option(&self, key: &str) -> Option<&ConfigOption> {
+    pub(crate) fn option(&self, key: &str) -> Option<&ConfigOption> {
         let key = key.to_lowercase();
         self.options.iter().find(|o| o.key == key)
     }
@@ -207,7 +207,7 @@ impl Config {
     }
 
     /// Every file read, the main file first.
-    pub fn files(&self) -> &[SourceFile] {
+    pub(crate) fn files(&self) -> &[SourceFile] {
         &self.files
     }
 
@@ -217,22 +217,22 @@ impl Config {
     }
 
     /// The section named exactly `name` (section names are case-sensitive, as in Klipper).
-    pub fn section(&self, name: &str) -> Option<&Section> {
+    pub(crate) fn section(&self, name: &str) -> Option<&Section> {
         self.sections.iter().find(|s| s.name == name)
     }
 
     /// True when the section named exactly `name` exists.
-    pub fn has_section(&self, name: &str) -> bool {
+    pub(crate) fn has_section(&self, name: &str) -> bool {
         self.section(name).is_some()
     }
 
     /// The effective option `key` (case-insensitive) of section `section`.
-    pub fn option(&self, section: &str, key: &str) -> Option<&ConfigOption> {
+    pub(crate) fn option(&self, section: &str, key: &str) -> Option<&ConfigOption> {
         self.section(section)?.option(key)
     }
 
     /// The effective raw value of `[section] key`.
-    pub fn get(&self, section: &str, key: &str) -> Option<&str> {
+    pub(crate) fn get(&self, section: &str, key: &str) -> Option<&str> {
         self.option(section, key).map(|o| o.value.as_str())
     }
 

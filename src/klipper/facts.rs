@@ -82,7 +82,7 @@ impl PrinterFacts {
     /// # Errors
     /// [`Error::MissingSection`], [`Error::MissingOption`] or [`Error::BadValue`] naming the
     /// section, option, value and what is expected.
-    pub fn from_config(config: &Config) -> Result<PrinterFacts, Error> {
+    pub(crate) fn from_config(config: &Config) -> Result<PrinterFacts, Error> {
         facts_from(&ConfigSource(config))
     }
 

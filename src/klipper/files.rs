@@ -37,7 +37,7 @@ pub struct MemFiles {
 
 impl MemFiles {
     /// An empty set of files.
-    pub fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self::default()
     }
 
@@ -49,7 +49,7 @@ impl MemFiles {
     }
 
     /// Adds (or replaces) a file.
-    pub fn insert(&mut self, path: impl AsRef<Path>, text: impl Into<String>) {
+    pub(crate) fn insert(&mut self, path: impl AsRef<Path>, text: impl Into<String>) {
         self.files
             .insert(normalize_path(path.as_ref()), text.into());
     }
@@ -91,7 +91,7 @@ impl MemFiles {
 
 /// The error for reading a folder as a config file (what `open()` gives Klipper, which then
 /// stops with "Unable to open config file …").
-pub fn folder_error() -> io::Error {
+pub(crate) fn folder_error() -> io::Error {
     io::Error::other(
         "it is a folder, not a file (an [include] pattern matched it; Klipper stops on it too \
          with \"Unable to open config file\"); make the pattern match files only, e.g. *.cfg",
@@ -100,7 +100,7 @@ pub fn folder_error() -> io::Error {
 
 /// Lexical normalisation like Python's `os.path.normpath`: drops `.` components and resolves
 /// `..` against the preceding component (never above the root).
-pub fn normalize_path(path: &Path) -> PathBuf {
+pub(crate) fn normalize_path(path: &Path) -> PathBuf {
     let mut out: Vec<Component<'_>> = Vec::new();
     for c in path.components() {
         match c {
@@ -122,7 +122,7 @@ pub fn normalize_path(path: &Path) -> PathBuf {
 }
 
 /// True when the text holds a glob wildcard (`*`, `?` or `[`), as Python's `glob.has_magic`.
-pub fn has_magic(text: &str) -> bool {
+pub(crate) fn has_magic(text: &str) -> bool {
     text.contains(['*', '?', '['])
 }
 
@@ -143,7 +143,7 @@ fn path_matches(pattern: &Path, path: &Path) -> bool {
 /// Whether one file-name component matches one pattern component, as Python's `glob` does:
 /// `fnmatch` for wildcard components (hidden names only when the pattern starts with `.`),
 /// equality otherwise.
-pub fn component_matches(pattern: &str, name: &str) -> bool {
+pub(crate) fn component_matches(pattern: &str, name: &str) -> bool {
     if !has_magic(pattern) {
         return pattern == name;
     }

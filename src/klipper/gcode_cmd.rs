@@ -10,10 +10,10 @@
 use super::Error;
 
 /// Decimals used by [`GcodeCmd::num`]: enough for µm on mm values and 1e-6 on ratios.
-pub const DEFAULT_DECIMALS: u8 = 6;
+pub(crate) const DEFAULT_DECIMALS: u8 = 6;
 
 /// The prefix klipcal's console messages carry (`RESPOND PREFIX=klipcal MSG="..."`).
-pub const RESPOND_PREFIX: &str = "klipcal";
+pub(crate) const RESPOND_PREFIX: &str = "klipcal";
 
 /// A G-code command line under construction. Methods chain; the first error is kept and
 /// returned by [`GcodeCmd::build`].
@@ -159,7 +159,7 @@ impl GcodeCmd {
 ///
 /// # Errors
 /// [`Error::BadNumber`] for NaN or infinity.
-pub fn format_num(value: f64, max_decimals: u8) -> Result<String, Error> {
+pub(crate) fn format_num(value: f64, max_decimals: u8) -> Result<String, Error> {
     if !value.is_finite() {
         return Err(Error::BadNumber {
             key: String::new(),
@@ -183,7 +183,7 @@ pub fn format_num(value: f64, max_decimals: u8) -> Result<String, Error> {
 ///
 /// # Errors
 /// A sentence naming the offending character.
-pub fn check_text(text: &str) -> Result<(), String> {
+pub(crate) fn check_text(text: &str) -> Result<(), String> {
     for c in text.chars() {
         let why = match c {
             c if c.is_control() => "control characters such as line breaks end the command",
@@ -198,7 +198,7 @@ pub fn check_text(text: &str) -> Result<(), String> {
 
 /// Replaces what [`check_text`] refuses: control characters → space, `"` → `'`, `\` → `/`,
 /// `#` → space, `*` → `x`, `;` → `,`.
-pub fn sanitize_text(text: &str) -> String {
+pub(crate) fn sanitize_text(text: &str) -> String {
     text.chars()
         .map(|c| match c {
             c if c.is_control() => ' ',
@@ -217,7 +217,7 @@ pub fn sanitize_text(text: &str) -> String {
 ///
 /// # Errors
 /// [`Error::BadNumber`] for a non-finite length.
-pub fn set_skew_xy(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<String, Error> {
+pub(crate) fn set_skew_xy(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<String, Error> {
     GcodeCmd::new("SET_SKEW")
         .nums("XY", &[ac_mm, bd_mm, ad_mm])
         .build()
@@ -240,7 +240,7 @@ pub fn respond(msg: &str) -> Result<String, Error> {
 ///
 /// # Errors
 /// [`Error::BadText`] when the text fails [`check_text`].
-pub fn respond_action(action: &str) -> Result<String, Error> {
+pub(crate) fn respond_action(action: &str) -> Result<String, Error> {
     GcodeCmd::new("RESPOND")
         .word("TYPE", "command")
         .text("MSG", &format!("action:{action}"))
@@ -251,7 +251,7 @@ pub fn respond_action(action: &str) -> Result<String, Error> {
 ///
 /// # Errors
 /// [`Error::BadNumber`] for a non-finite timeout.
-pub fn set_idle_timeout(timeout_s: f64) -> Result<String, Error> {
+pub(crate) fn set_idle_timeout(timeout_s: f64) -> Result<String, Error> {
     GcodeCmd::new("SET_IDLE_TIMEOUT")
         .num_decimals("TIMEOUT", timeout_s, 0)
         .build()
@@ -261,7 +261,7 @@ pub fn set_idle_timeout(timeout_s: f64) -> Result<String, Error> {
 ///
 /// # Errors
 /// [`Error::BadName`] for a heater name outside `[A-Za-z0-9_.-]`, [`Error::BadNumber`].
-pub fn set_heater_temperature(heater: &str, target_c: f64) -> Result<String, Error> {
+pub(crate) fn set_heater_temperature(heater: &str, target_c: f64) -> Result<String, Error> {
     GcodeCmd::new("SET_HEATER_TEMPERATURE")
         .word("HEATER", heater)
         .num_decimals("TARGET", target_c, 2)

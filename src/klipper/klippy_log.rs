@@ -5,7 +5,7 @@
 
 /// One `Stats` line's bed values.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct BedStat {
+pub(crate) struct BedStat {
     /// Klipper's eventtime (s, monotonic within one start of Klipper).
     pub eventtime_s: f64,
     /// `heater_bed` target, °C.
@@ -18,7 +18,7 @@ pub struct BedStat {
 
 /// One start of Klipper in the log: its bed settings and bed stats.
 #[derive(Debug, Clone, Default, PartialEq)]
-pub struct LogSession {
+pub(crate) struct LogSession {
     /// `[heater_bed] max_power` from the config dump, when it sets one.
     pub max_power: Option<f64>,
     /// `[heater_bed] control` from the config dump (`pid`, `watermark`, …).
@@ -36,7 +36,7 @@ const CONFIG_START: &str = "===== Config file =====";
 /// timestamp before `Stats` (as some logging setups add); Stats lines without a `heater_bed:`
 /// section, or whose eventtime does not move forward, are skipped.
 #[must_use]
-pub fn parse(text: &str) -> Vec<LogSession> {
+pub(crate) fn parse(text: &str) -> Vec<LogSession> {
     let mut sessions: Vec<LogSession> = Vec::new();
     let mut in_config = false;
     let mut section = String::new();

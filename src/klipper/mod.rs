@@ -42,6 +42,10 @@ pub use gcode_cmd::GcodeCmd;
 pub use plan::{add_include, plan_values, PlannedFile, Protected, WritePlan};
 pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
 
+/// Klipper's options as written (`configfile.config`): section → option → text.
+pub(crate) type RawConfig =
+    std::collections::BTreeMap<String, std::collections::BTreeMap<String, String>>;
+
 /// Everything that can go wrong reading Klipper config text or building G-code text.
 #[derive(Debug, thiserror::Error)]
 pub enum Error {

@@ -14,14 +14,14 @@ use super::Error;
 
 /// The klipcal-managed include that holds values which cannot be written where they are
 /// defined; it sits beside the main file and is included at the end of its regular part.
-pub const OVERRIDES_FILE: &str = "klipcal_overrides.cfg";
+pub(crate) const OVERRIDES_FILE: &str = "klipcal_overrides.cfg";
 
 /// Largest relative difference in travel per motor turn between steppers of one axis that
 /// klipcal scales together (1 %).
-pub const COMPANION_TOLERANCE: f64 = 0.01;
+pub(crate) const COMPANION_TOLERANCE: f64 = 0.01;
 
 /// `(section, key, value)`.
-pub type Triple = (String, String, String);
+pub(crate) type Triple = (String, String, String);
 
 /// A file klipcal must not write, and why (said to the user).
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -239,7 +239,7 @@ pub fn add_include(text: &str, file: &str, comment: &str) -> String {
 /// [`Error::Companion`] when a companion has no `rotation_distance`, or moves more than
 /// [`COMPANION_TOLERANCE`] differently per motor turn (then the factor cannot be carried over
 /// safely); [`Error::BadValue`] for a value that is not a number above 0.
-pub fn companion_values(
+pub(crate) fn companion_values(
     config: &Config,
     values: &[(String, String, String)],
 ) -> Result<(Vec<Triple>, Vec<String>), Error> {

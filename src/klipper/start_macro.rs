@@ -6,7 +6,7 @@ use super::config::Config;
 use super::Error;
 
 /// The names slicer profiles commonly call, in the order they are reported.
-pub const COMMON_START_MACROS: [&str; 2] = ["PRINT_START", "START_PRINT"];
+pub(crate) const COMMON_START_MACROS: [&str; 2] = ["PRINT_START", "START_PRINT"];
 
 /// The outcome of looking for the start macro.
 #[derive(Debug, Clone, PartialEq, Eq)]

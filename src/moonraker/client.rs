@@ -15,6 +15,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+use super::answers::ConfigFile;
 use super::protocol::{self, Incoming, RpcError};
 use super::Error;
 
@@ -106,7 +107,7 @@ pub struct Responder {
 
 impl Responder {
     /// Sends the result (or error) back to Moonraker, which answers the HTTP caller.
-    pub fn send(self, outcome: Result<Value, RpcError>) {
+    pub(crate) fn send(self, outcome: Result<Value, RpcError>) {
         let _ = self.tx.send(Cmd::Reply {
             id: self.id,
             outcome,
@@ -188,7 +189,7 @@ impl Moonraker {
     }
 
     /// The websocket URL.
-    pub fn url(&self) -> &str {
+    pub(crate) fn url(&self) -> &str {
         &self.shared.opts.url
     }
 
@@ -198,13 +199,13 @@ impl Moonraker {
     }
 
     /// The connection state now.
-    pub fn state(&self) -> ConnState {
+    pub(crate) fn state(&self) -> ConnState {
         self.shared.state.borrow().clone()
     }
 
     /// Whether the websocket is open now: connected, or identifying itself right after
     /// connecting (so [`Moonraker::wait_connected`] is a matter of moments).
-    pub fn socket_open(&self) -> bool {
+    pub(crate) fn socket_open(&self) -> bool {
         self.shared
             .socket_open
             .load(std::sync::atomic::Ordering::SeqCst)
@@ -218,7 +219,7 @@ impl Moonraker {
     /// Why the client stopped for good, when it did: Moonraker refused to identify this
     /// client on its first connection (another agent with the same name, a wrong API key).
     /// The client then cancels its token, so the daemon stops and reports this.
-    pub fn fatal_error(&self) -> Option<String> {
+    pub(crate) fn fatal_error(&self) -> Option<String> {
         lock(&self.shared.fatal).clone()
     }
 
@@ -254,14 +255,14 @@ impl Moonraker {
 
     /// Whether `e` means Moonraker is unreachable right now ([`Error::is_unreachable`] with this
     /// connection's state): an outage to wait out, not a failure.
-    pub fn is_unreachable(&self, e: &Error) -> bool {
+    pub(crate) fn is_unreachable(&self, e: &Error) -> bool {
         e.is_unreachable(matches!(self.state(), ConnState::Connected { .. }))
     }
 
     /// Waits for Moonraker to be back after an outage, however long: connected again, and
     /// Klipper ready or `klippy_limit` spent waiting for it once connected (Klipper itself may
     /// be down; the caller then sees in what state). False when the client stopped (shutdown).
-    pub async fn wait_back(&self, klippy_limit: Duration) -> bool {
+    pub(crate) async fn wait_back(&self, klippy_limit: Duration) -> bool {
         let mut rx = self.shared.state.subscribe();
         loop {
             let connected = rx
@@ -307,7 +308,7 @@ impl Moonraker {
     ///
     /// # Errors
     /// As [`Moonraker::call`].
-    pub async fn call_within(
+    pub(crate) async fn call_within(
         &self,
         method: &str,
         params: Value,
@@ -376,7 +377,7 @@ impl Moonraker {
     ///
     /// # Errors
     /// As [`Moonraker::call`].
-    pub async fn server_info(&self) -> Result<Value, Error> {
+    pub(crate) async fn server_info(&self) -> Result<Value, Error> {
         self.call("server.info", Value::Null).await
     }
 
@@ -392,7 +393,7 @@ impl Moonraker {
     ///
     /// # Errors
     /// As [`Moonraker::call`].
-    pub async fn objects_list(&self) -> Result<Vec<String>, Error> {
+    pub(crate) async fn objects_list(&self) -> Result<Vec<String>, Error> {
         let v = self.call("printer.objects.list", Value::Null).await?;
         Ok(v["objects"]
             .as_array()
@@ -487,14 +488,16 @@ impl Moonraker {
             .map(|_| ())
     }
 
-    /// Klipper's configfile object: `config` (raw strings as written) and `settings` (parsed,
-    /// with defaults), plus `save_config_pending`.
+    /// Klipper's configfile object, typed: `config` (text as written) and the `settings` klipcal
+    /// reads (parsed, with Klipper's defaults).
     ///
     /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn configfile(&self) -> Result<Value, Error> {
-        let mut m = self.objects_query(json!({ "configfile": null })).await?;
-        Ok(m.remove("configfile").unwrap_or(Value::Null))
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub async fn configfile(&self) -> Result<ConfigFile, Error> {
+        let mut m = self
+            .objects_query(json!({ "configfile": ["config", "settings"] }))
+            .await?;
+        ConfigFile::parse(m.remove("configfile").unwrap_or_else(|| json!({})))
     }
 
     /// Sends an event to Moonraker's clients (`connection.send_event`).

@@ -42,7 +42,7 @@ impl Files {
 
     /// Moonraker's HTTP base, `http://host:port`.
     #[must_use]
-    pub fn base(&self) -> &str {
+    pub(crate) fn base(&self) -> &str {
         &self.base
     }
 
@@ -74,12 +74,8 @@ impl Files {
             .text("path", dir)
             .text("checksum", checksum)
             .part("file", part);
-        let resp = self
-            .req(self.client.post(&url).multipart(form))
-            .send()
+        self.result("POST", &url, self.client.post(&url).multipart(form))
             .await
-            .map_err(|e| http_err("POST", &url, e))?;
-        json_body("POST", &url, resp).await
     }
 
     /// Downloads `root/path`.
@@ -88,35 +84,16 @@ impl Files {
     /// HTTP failure, or Moonraker's 404 when the file does not exist.
     pub async fn download(&self, root: &str, path: &str) -> Result<Vec<u8>, Error> {
         let url = format!("{}/server/files/{root}/{path}", self.base);
-        let resp = self
-            .req(self.client.get(&url))
-            .send()
-            .await
-            .map_err(|e| http_err("GET", &url, e))?;
-        let status = resp.status();
-        let body = resp.bytes().await.map_err(|e| http_err("GET", &url, e))?;
-        if !status.is_success() {
-            return Err(Error::Http {
-                method: "GET",
-                url,
-                message: format!("{status}: {}", moonraker_message(&body)),
-            });
-        }
-        Ok(body.to_vec())
+        self.body("GET", &url, self.client.get(&url)).await
     }
 
     /// Deletes a file of a root (`DELETE /server/files/{root}/{path}`).
     ///
     /// # Errors
     /// HTTP failure, or Moonraker's refusal (404 when the file does not exist).
-    pub async fn delete(&self, root: &str, path: &str) -> Result<Value, Error> {
+    pub(crate) async fn delete(&self, root: &str, path: &str) -> Result<Value, Error> {
         let url = format!("{}/server/files/{root}/{path}", self.base);
-        let resp = self
-            .req(self.client.delete(&url))
-            .send()
-            .await
-            .map_err(|e| http_err("DELETE", &url, e))?;
-        json_body("DELETE", &url, resp).await
+        self.result("DELETE", &url, self.client.delete(&url)).await
     }
 
     /// GET an API path (e.g. `/server/info`) and return the `result` field.
@@ -125,26 +102,16 @@ impl Files {
     /// HTTP failure or Moonraker's refusal.
     pub async fn get(&self, path: &str) -> Result<Value, Error> {
         let url = format!("{}{path}", self.base);
-        let resp = self
-            .req(self.client.get(&url))
-            .send()
-            .await
-            .map_err(|e| http_err("GET", &url, e))?;
-        json_body("GET", &url, resp).await
+        self.result("GET", &url, self.client.get(&url)).await
     }
 
     /// DELETE an API path (e.g. `/server/webcams/item?uid=…`) and return the `result` field.
     ///
     /// # Errors
     /// HTTP failure or Moonraker's refusal.
-    pub async fn delete_api(&self, path: &str) -> Result<Value, Error> {
+    pub(crate) async fn delete_api(&self, path: &str) -> Result<Value, Error> {
         let url = format!("{}{path}", self.base);
-        let resp = self
-            .req(self.client.delete(&url))
-            .send()
-            .await
-            .map_err(|e| http_err("DELETE", &url, e))?;
-        json_body("DELETE", &url, resp).await
+        self.result("DELETE", &url, self.client.delete(&url)).await
     }
 
     /// POST a JSON body to an API path and return the `result` field.
@@ -153,12 +120,45 @@ impl Files {
     /// HTTP failure or Moonraker's refusal.
     pub async fn post(&self, path: &str, body: &Value) -> Result<Value, Error> {
         let url = format!("{}{path}", self.base);
+        self.result("POST", &url, self.client.post(&url).json(body))
+            .await
+    }
+
+    /// Sends one request, with the API key, and reads its body whole: every request goes
+    /// through here. A status other than success is an error with Moonraker's message.
+    async fn body(
+        &self,
+        method: &'static str,
+        url: &str,
+        r: reqwest::RequestBuilder,
+    ) -> Result<Vec<u8>, Error> {
         let resp = self
-            .req(self.client.post(&url).json(body))
+            .req(r)
             .send()
             .await
-            .map_err(|e| http_err("POST", &url, e))?;
-        json_body("POST", &url, resp).await
+            .map_err(|e| http_err(method, url, e))?;
+        let status = resp.status();
+        let body = resp.bytes().await.map_err(|e| http_err(method, url, e))?;
+        if !status.is_success() {
+            return Err(Error::Http {
+                method,
+                url: url.to_string(),
+                message: format!("{status}: {}", moonraker_message(&body)),
+            });
+        }
+        Ok(body.to_vec())
+    }
+
+    /// As [`Files::body`], for an API answer: its `result` field (or the whole JSON).
+    async fn result(
+        &self,
+        method: &'static str,
+        url: &str,
+        r: reqwest::RequestBuilder,
+    ) -> Result<Value, Error> {
+        let body = self.body(method, url, r).await?;
+        let v: Value = serde_json::from_slice(&body).map_err(|e| http_err(method, url, e))?;
+        Ok(v.get("result").cloned().unwrap_or(v))
     }
 }
 
@@ -175,24 +175,6 @@ fn moonraker_message(body: &[u8]) -> String {
         .ok()
         .and_then(|v| v["error"]["message"].as_str().map(str::to_string))
         .unwrap_or_else(|| String::from_utf8_lossy(&body[..body.len().min(300)]).into_owned())
-}
-
-async fn json_body(
-    method: &'static str,
-    url: &str,
-    resp: reqwest::Response,
-) -> Result<Value, Error> {
-    let status = resp.status();
-    let body = resp.bytes().await.map_err(|e| http_err(method, url, e))?;
-    if !status.is_success() {
-        return Err(Error::Http {
-            method,
-            url: url.to_string(),
-            message: format!("{status}: {}", moonraker_message(&body)),
-        });
-    }
-    let v: Value = serde_json::from_slice(&body).map_err(|e| http_err(method, url, e))?;
-    Ok(v.get("result").cloned().unwrap_or(v))
 }
 
 fn hex(bytes: &[u8]) -> String {

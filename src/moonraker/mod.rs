@@ -2,10 +2,12 @@
 //! the cloneable handle every task uses, and HTTP file transfer. It knows nothing of
 //! calibrations: it carries requests, replies, notifications and agent calls.
 
+pub mod answers;
 mod client;
 mod http;
 pub mod protocol;
 
+pub use answers::ConfigFile;
 pub use client::{AgentCall, ClientOptions, ConnState, Event, Moonraker};
 pub use http::Files;
 pub use protocol::RpcError;
@@ -67,7 +69,7 @@ impl Error {
     /// while the websocket is down (`connected` is the connection's state now). An outage is
     /// waited out; every other error is a real failure.
     #[must_use]
-    pub fn is_unreachable(&self, connected: bool) -> bool {
+    pub(crate) fn is_unreachable(&self, connected: bool) -> bool {
         match self {
             Error::NotConnected(_) | Error::Disconnected(_) => true,
             Error::Timeout { .. } | Error::Http { .. } => !connected,

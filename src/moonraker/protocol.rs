@@ -16,7 +16,7 @@ pub struct RpcError {
 
 /// One frame received from Moonraker, classified.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Incoming {
+pub(crate) enum Incoming {
     /// The reply to one of our requests.
     Response {
         /// The id we sent.
@@ -45,7 +45,7 @@ pub enum Incoming {
 }
 
 /// Builds a request frame.
-pub fn request(id: u64, method: &str, params: &Value) -> String {
+pub(crate) fn request(id: u64, method: &str, params: &Value) -> String {
     let mut frame = json!({"jsonrpc": "2.0", "method": method, "id": id});
     if !params.is_null() {
         frame["params"] = params.clone();
@@ -54,7 +54,7 @@ pub fn request(id: u64, method: &str, params: &Value) -> String {
 }
 
 /// Builds the reply to a [`Incoming::Call`].
-pub fn reply(id: &Value, outcome: &Result<Value, RpcError>) -> String {
+pub(crate) fn reply(id: &Value, outcome: &Result<Value, RpcError>) -> String {
     match outcome {
         // Moonraker treats a null result as an error: send an empty object instead.
         Ok(Value::Null) => json!({"jsonrpc": "2.0", "id": id, "result": {}}).to_string(),
@@ -69,7 +69,7 @@ pub fn reply(id: &Value, outcome: &Result<Value, RpcError>) -> String {
 ///
 /// # Errors
 /// [`Error::Protocol`] for text that is not a JSON-RPC 2.0 object.
-pub fn parse(text: &str) -> Result<Incoming, Error> {
+pub(crate) fn parse(text: &str) -> Result<Incoming, Error> {
     let v: Value = serde_json::from_str(text)
         .map_err(|e| Error::Protocol(format!("frame is not JSON ({e}): {}", clip(text))))?;
     let Value::Object(mut obj) = v else {

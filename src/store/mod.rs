@@ -49,7 +49,7 @@ pub struct SessionRow {
 
 /// A session in a list: no document.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct SessionSummary {
+pub(crate) struct SessionSummary {
     /// Id.
     pub id: i64,
     /// Kind, e.g. `ab`.
@@ -64,7 +64,7 @@ pub struct SessionSummary {
 
 /// One caliper reading.
 #[derive(Debug, Clone, PartialEq)]
-pub struct ReadingRow {
+pub(crate) struct ReadingRow {
     /// Row id.
     pub id: i64,
     /// Round number (1-based).
@@ -119,7 +119,7 @@ impl Store {
     ///
     /// # Errors
     /// The folder cannot be created or SQLite cannot open the file.
-    pub fn open(dir: &Path) -> Result<Self, Error> {
+    pub(crate) fn open(dir: &Path) -> Result<Self, Error> {
         std::fs::create_dir_all(dir).map_err(|source| Error::Folder {
             path: dir.display().to_string(),
             source,
@@ -158,7 +158,7 @@ impl Store {
 
     /// Adds state names after which a session no longer runs (each calibration's final
     /// states, registered as the daemon builds them).
-    pub fn add_final_states(&self, names: impl IntoIterator<Item = String>) {
+    pub(crate) fn add_final_states(&self, names: impl IntoIterator<Item = String>) {
         if let Ok(mut f) = self.finals.write() {
             f.extend(names);
         }
@@ -174,7 +174,12 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn create_session(&self, kind: &str, state: &str, doc: &Value) -> Result<i64, Error> {
+    pub(crate) fn create_session(
+        &self,
+        kind: &str,
+        state: &str,
+        doc: &Value,
+    ) -> Result<i64, Error> {
         let c = self.conn();
         c.execute(
             "INSERT INTO sessions (kind, state, doc) VALUES (?1, ?2, ?3)",
@@ -187,7 +192,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn save_session(&self, id: i64, state: &str, doc: &Value) -> Result<(), Error> {
+    pub(crate) fn save_session(&self, id: i64, state: &str, doc: &Value) -> Result<(), Error> {
         self.conn().execute(
             "UPDATE sessions SET state = ?2, doc = ?3, updated_at = datetime('now') WHERE id = ?1",
             params![id, state, doc.to_string()],
@@ -212,7 +217,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged document.
-    pub fn session(&self, id: i64) -> Result<Option<SessionRow>, Error> {
+    pub(crate) fn session(&self, id: i64) -> Result<Option<SessionRow>, Error> {
         let r = self
             .conn()
             .query_row(
@@ -228,7 +233,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged document.
-    pub fn active_session(&self) -> Result<Option<SessionRow>, Error> {
+    pub(crate) fn active_session(&self) -> Result<Option<SessionRow>, Error> {
         let placeholders = self
             .finals
             .read()
@@ -256,7 +261,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged document.
-    pub fn latest_session(&self) -> Result<Option<SessionRow>, Error> {
+    pub(crate) fn latest_session(&self) -> Result<Option<SessionRow>, Error> {
         let r = self
             .conn()
             .query_row(
@@ -273,7 +278,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn sessions(&self, limit: usize) -> Result<Vec<SessionSummary>, Error> {
+    pub(crate) fn sessions(&self, limit: usize) -> Result<Vec<SessionSummary>, Error> {
         let conn = self.conn();
         let mut st = conn.prepare(
             "SELECT id, kind, state, created_at, updated_at FROM sessions ORDER BY id DESC LIMIT ?1",
@@ -294,7 +299,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged document.
-    pub fn latest_session_of(&self, kind: &str) -> Result<Option<SessionRow>, Error> {
+    pub(crate) fn latest_session_of(&self, kind: &str) -> Result<Option<SessionRow>, Error> {
         let r = self
             .conn()
             .query_row(
@@ -310,7 +315,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged document.
-    pub fn latest_session_of_in(
+    pub(crate) fn latest_session_of_in(
         &self,
         kind: &str,
         state: &str,
@@ -345,7 +350,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure or a damaged value.
-    pub fn value(&self, key: &str) -> Result<Option<Value>, Error> {
+    pub(crate) fn value(&self, key: &str) -> Result<Option<Value>, Error> {
         let v: Option<String> = self
             .conn()
             .query_row("SELECT value FROM kv WHERE key = ?1", params![key], |r| {
@@ -384,7 +389,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure (then nothing of the entry is saved).
-    pub fn add_readings(
+    pub(crate) fn add_readings(
         &self,
         session: i64,
         round: i64,
@@ -407,7 +412,12 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn clear_readings(&self, session: i64, round: i64, pair: &str) -> Result<usize, Error> {
+    pub(crate) fn clear_readings(
+        &self,
+        session: i64,
+        round: i64,
+        pair: &str,
+    ) -> Result<usize, Error> {
         Ok(self.conn().execute(
             "DELETE FROM readings WHERE session_id = ?1 AND round = ?2 AND pair = ?3",
             params![session, round, pair],
@@ -418,7 +428,7 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn readings(&self, session: i64, round: i64) -> Result<Vec<ReadingRow>, Error> {
+    pub(crate) fn readings(&self, session: i64, round: i64) -> Result<Vec<ReadingRow>, Error> {
         let c = self.conn();
         let mut st = c.prepare(
             "SELECT id, round, pair, value_mm FROM readings \

@@ -11,6 +11,7 @@ use serde_json::{json, Value};
 
 use crate::backlash::{connect, last_reply, reply_now, set_point};
 use crate::bench::{assert_refused_everywhere, extension_request, free_port, poll, Bench, Daemon};
+use crate::browser::{artifact, Browser};
 
 const TRUE_X_MM: f64 = 0.08;
 
@@ -293,4 +294,580 @@ async fn without_a_module_the_start_says_so_and_set_point_waits_for_the_measurem
             .contains("KLIPCAL_BACKLASH_APPLY"),
         "{s}"
     );
+}
+
+/// The session once `key`'s result is in and the measurement is over (measured or failed).
+async fn wait_result(files: &klipcal::moonraker::Files, d: &Daemon, key: &str) -> Value {
+    let done = poll(Duration::from_secs(300), || async {
+        let st = extension_request(files, "klipcal_status", json!({}))
+            .await
+            .ok()?;
+        let s = st["session"].clone();
+        let over = s["kind"] == "backlash"
+            && (s["state"] == "failed"
+                || (s["state"] == "measured" && !s["results"][key].is_null()));
+        over.then_some(s)
+    })
+    .await;
+    done.unwrap_or_else(|| {
+        panic!(
+            "the camera measurement of {key} did not end\n{}",
+            d.log_text()
+        )
+    })
+}
+
+/// Runs `KLIPCAL_BACKLASH_CAMERA {args}` through Klipper and checks `key`'s result against the
+/// drawn play: within 1.5 µm (issue 27's target is 3 µm at p95; these seeds read within 1 µm).
+/// With a reading taken when two frames agreed, a ringing nozzle caught twice at the same phase
+/// read CoreXY A 2.1 µm high (0.0621 mm of 0.060, every cycle): this fails then. Not against
+/// the stated ±: on these cameras it is 0.2–0.5 µm while a detection bias of up to ~1 µm (0.07
+/// px, the same in every cycle) stays, the coverage shortfall `klipcal bench backlash` reports
+/// (issue 27, the statistics' part).
+async fn camera_axis(
+    m: &klipcal::moonraker::Moonraker,
+    files: &klipcal::moonraker::Files,
+    d: &Daemon,
+    args: &str,
+    key: &str,
+    drawn_mm: f64,
+) -> Value {
+    m.gcode(&format!("KLIPCAL_BACKLASH_CAMERA {args}"))
+        .await
+        .unwrap();
+    let s = wait_result(files, d, key).await;
+    assert_eq!(s["state"], "measured", "{args}: {s}\n{}", d.log_text());
+    let r = &s["results"][key];
+    let b = r["backlash_mm"].as_f64().unwrap();
+    let u = r["uncertainty_mm"].as_f64().unwrap();
+    let err = b - drawn_mm;
+    eprintln!(
+        "camera {args}: {key} {b:.4} mm ± {u:.4}, drawn {drawn_mm}, error {:+.1} µm",
+        err * 1e3
+    );
+    assert!(
+        err.abs() <= 0.0015,
+        "{key}: error {err} mm over 1.5 µm: {s}"
+    );
+    assert!(u > 0.0 && u < 0.003, "{key}: stated ± {u}: {s}");
+    assert_eq!(
+        s["camera"][key]["cycles"].as_array().map(Vec::len),
+        Some(4),
+        "{s}"
+    );
+    s
+}
+
+/// PR 7157's `[backlash]` on CoreXY: A and B, the motors' directions, read from the camera
+/// through Klipper (the bench plays each motor's joint), then written to `[backlash]` by apply.
+#[tokio::test]
+async fn pr_7157_a_and_b_on_corexy_are_measured_from_the_camera_and_written_to_backlash() {
+    const A: f64 = 0.06;
+    const B: f64 = 0.04;
+    let camera = json!({"look": "ring", "px_per_mm": 70, "rotation_deg": -12,
+        "offset_px": [-20, 12], "centre_mm": [150, 150], "seed": 12});
+    let bench = Bench::start_args(
+        "corexy",
+        &[
+            "--backlash-module",
+            "pr7157",
+            "--play",
+            &format!(r#"{{"a": {A}, "b": {B}}}"#),
+            "--camera",
+            &camera.to_string(),
+            "--klipcal-bin",
+            klipcal_bin(),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    set_point(&bench, &m, [150.0, 150.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    camera_axis(&m, &files, &d, "AXIS=A CYCLES=4", "a", A).await;
+    let s = camera_axis(&m, &files, &d, "AXIS=B CYCLES=4", "b", B).await;
+    // The seed's CoreXY question, answered from the camera's A and B.
+    assert!(
+        s["corexy_answer"]
+            .as_str()
+            .is_some_and(|a| a.contains("motors A")),
+        "{s}"
+    );
+    let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
+    assert_eq!(r["state"], "done", "{r}");
+    let cf = m.configfile().await.unwrap();
+    for (k, drawn) in [("a", A), ("b", B)] {
+        let written = cf.settings.option("backlash", k).and_then(Value::as_f64);
+        let want = r["values"][k].as_f64().unwrap();
+        assert!(
+            written.is_some_and(|w| (w - want).abs() < 1e-6 && (w - drawn).abs() <= 0.003),
+            "[backlash] {k}: {written:?} against {want} (drawn {drawn})",
+        );
+    }
+}
+
+/// Dual carriage (IDEX): each carriage's X read from the camera with the carriage selected
+/// (CARRIAGE=0, then 1, each with its own play), and the shared Y, through Klipper.
+#[tokio::test]
+async fn dual_carriage_x_of_each_carriage_and_y_are_measured_from_the_camera() {
+    const X0: f64 = 0.07;
+    const X1: f64 = 0.045;
+    const Y: f64 = 0.03;
+    let camera = json!({"look": "dark_tip", "px_per_mm": 90, "rotation_deg": 8,
+        "offset_px": [10, 5], "centre_mm": [100, 100], "seed": 21});
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "seed",
+            "--dual-carriage",
+            "--play",
+            &format!(r#"{{"x": {X0}, "x1": {X1}, "y": {Y}}}"#),
+            "--camera",
+            &camera.to_string(),
+            "--klipcal-bin",
+            klipcal_bin(),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    camera_axis(&m, &files, &d, "AXIS=X CARRIAGE=0 CYCLES=4", "x@0", X0).await;
+    camera_axis(&m, &files, &d, "AXIS=X CARRIAGE=1 CYCLES=4", "x@1", X1).await;
+    let seen = std::fs::read_to_string(bench.dir.path().join("comms/nozzle_true.json")).unwrap();
+    assert!(seen.contains("\"carriage\": 1"), "{seen}");
+    let s = camera_axis(&m, &files, &d, "AXIS=Y CYCLES=4", "y", Y).await;
+    // Each carriage's X is its own: the two differ as drawn.
+    let x0 = s["results"]["x@0"]["backlash_mm"].as_f64().unwrap();
+    let x1 = s["results"]["x@1"]["backlash_mm"].as_f64().unwrap();
+    assert!((x0 - x1 - (X0 - X1)).abs() <= 0.004, "{s}");
+}
+
+/// Where the bench camera draws the nozzle at machine (x, y) mm (`klipcal bench camera`'s
+/// mapping: scale, rotation, mirror, offset), px with pixel centres at integers.
+fn drawn_px(spec: &Value, xy: [f64; 2]) -> [f64; 2] {
+    let f = |k: &str, d: f64| spec[k].as_f64().unwrap_or(d);
+    let (s, th) = (f("px_per_mm", 80.0), f("rotation_deg", 0.0).to_radians());
+    let m = if spec["mirror"] == json!(false) {
+        1.0
+    } else {
+        -1.0
+    };
+    let o = [
+        f("width", 640.0) / 2.0 + spec["offset_px"][0].as_f64().unwrap_or(0.0),
+        f("height", 480.0) / 2.0 + spec["offset_px"][1].as_f64().unwrap_or(0.0),
+    ];
+    let c = [
+        spec["centre_mm"][0].as_f64().unwrap_or(100.0),
+        spec["centre_mm"][1].as_f64().unwrap_or(100.0),
+    ];
+    let (dx, dy) = (xy[0] - c[0], xy[1] - c[1]);
+    [
+        o[0] + s * th.cos() * dx - m * s * th.sin() * dy,
+        o[1] + s * th.sin() * dx + m * s * th.cos() * dy,
+    ]
+}
+
+/// The page's frame and its marks as the browser lays them out: the mark's centre in the
+/// image's pixels (from the SVG), the same point from the screen boxes (where a person sees
+/// it over the picture), the image's natural size and whether it loaded.
+const READ_FIGURE: &str = "(() => {
+    const img = document.querySelector('#snapimg'), g = document.querySelector('#found');
+    const t = g.transform.baseVal.consolidate().matrix;
+    const ir = img.getBoundingClientRect(), gr = g.querySelector('circle').getBoundingClientRect();
+    const k = img.naturalWidth / ir.width;
+    return {loaded: img.complete && img.naturalWidth > 0, w: img.naturalWidth, h: img.naturalHeight,
+        seq: document.querySelector('#snapshot').dataset.seq, mark: [t.e - 0.5, t.f - 0.5],
+        screen: [(gr.left + gr.width / 2 - ir.left) * k - 0.5, (gr.top + gr.height / 2 - ir.top) * k - 0.5],
+        caption: document.querySelector('#snapcap').textContent,
+        approaches: document.querySelectorAll('#snapmarks circle.approach').length,
+        cycles: [...document.querySelectorAll('.camera[data-key=\"x\"] tr.cycle td.b')].map(td => td.textContent),
+        median: (document.querySelector('.camera[data-key=\"x\"] tr.median td') || {}).textContent,
+        spread: (document.querySelector('.camera[data-key=\"x\"] tr.spread td') || {}).textContent};
+})()";
+
+/// Issue 27 Build 4: klipcal's page shows the camera measurement — the newest frame, served by
+/// klipcal itself, with the nozzle marked where the detector found it (which is where the bench
+/// drew it), each approach's position, and the per-cycle values with their median and spread
+/// as the status gives them; at a desktop's and a phone's size, in Chromium.
+#[tokio::test]
+async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() {
+    let camera = json!({"look": "ring", "px_per_mm": 80, "rotation_deg": 15,
+        "offset_px": [12, -8], "centre_mm": [100, 100], "seed": 3});
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "seed",
+            "--play",
+            r#"{"x": 0.07}"#,
+            "--camera",
+            &camera.to_string(),
+            "--klipcal-bin",
+            klipcal_bin(),
+        ],
+    );
+    let d = Daemon::ready(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n[http]\nbind = \"127.0.0.1:0\"\n\
+         trusted_clients = [\"127.0.0.1/32\"]\n",
+    )
+    .await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    let base = d.page_url().await;
+    // No frame yet: said, not an empty image.
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg"))
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 404);
+    assert!(r.text().await.unwrap().contains("no camera frame"));
+    m.gcode("KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=3")
+        .await
+        .unwrap();
+    let mut b = Browser::start().await;
+    b.set_viewport(1280, 900, false).await;
+    b.open(&format!("{base}/")).await;
+    // While it measures, the frame shows and follows the measurement.
+    assert!(
+        b.wait_for(
+            "document.querySelector('#snapimg') && document.querySelector('#snapimg').naturalWidth > 0",
+            Duration::from_secs(60)
+        )
+        .await,
+        "no camera frame on the page while measuring\n{}",
+        d.log_text()
+    );
+    let first = b.eval(READ_FIGURE).await;
+    let s = wait_measured(&files, &d).await;
+    assert_eq!(s["state"], "measured", "{s}\n{}", d.log_text());
+    assert!(
+        b.wait_for(
+            "document.querySelectorAll('.camera[data-key=\"x\"] tr.median').length === 1",
+            Duration::from_secs(20)
+        )
+        .await,
+        "the page did not follow to the result"
+    );
+    let st = extension_request(&files, "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    let s = &st["session"];
+    let snap = &s["snapshot"];
+    let seq = snap["seq"].as_u64().unwrap();
+    assert!(
+        first["seq"].as_str().unwrap().parse::<u64>().unwrap() < seq,
+        "{first} {snap}"
+    );
+    // The served frame is a JPEG of the size the status gives.
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
+        .await
+        .unwrap();
+    assert_eq!(r.headers()["content-type"], "image/jpeg");
+    assert!(r.bytes().await.unwrap().starts_with(&[0xff, 0xd8]));
+    // The guard stands before it as before the page: an address outside trusted_clients is
+    // refused.
+    let r = crate::http::client_from("127.0.0.2")
+        .get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+    // A frame no longer kept, or a number that is not one, is said.
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=1"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 404);
+    assert!(r.text().await.unwrap().contains("no longer kept"));
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=x"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let truth = crate::backlash::nozzle(&bench);
+    let want = drawn_px(&camera, [truth[0], truth[1]]);
+    let found = [
+        snap["centre_px"][0].as_f64().unwrap(),
+        snap["centre_px"][1].as_f64().unwrap(),
+    ];
+    for (size, (w, h, phone)) in [("desktop", (1280, 900, false)), ("phone", (390, 844, true))] {
+        b.set_viewport(w, h, phone).await;
+        b.open(&format!("{base}/")).await;
+        assert!(
+            b.wait_for(
+                "document.querySelector('#snapimg').naturalWidth > 0",
+                Duration::from_secs(20)
+            )
+            .await
+        );
+        let f = b.eval(READ_FIGURE).await;
+        b.screenshot(&artifact(&format!("backlash-camera-{size}.png")))
+            .await;
+        eprintln!("{size}: {f}; status {found:?}; drawn {want:?}");
+        assert_eq!(f["seq"], json!(seq.to_string()), "{f}");
+        assert_eq!((f["w"].as_u64(), f["h"].as_u64()), (Some(640), Some(480)));
+        let at = |k: &str, i: usize| f[k][i].as_f64().unwrap();
+        for i in 0..2 {
+            // The mark is the detector's finding, which is where the bench drew the nozzle…
+            assert!((at("mark", i) - found[i]).abs() < 1e-3, "{f} {snap}");
+            assert!(
+                (found[i] - want[i]).abs() < 0.3,
+                "found {found:?}, drawn {want:?}"
+            );
+            // … and on the screen it sits over that point of the picture.
+            assert!(
+                (at("screen", i) - want[i]).abs() < 1.5,
+                "{size}: the mark is drawn at {:?} of the picture, the nozzle at {want:?}",
+                f["screen"]
+            );
+        }
+        assert!(
+            f["caption"]
+                .as_str()
+                .unwrap()
+                .contains(&format!("nozzle at ({:.2}, {:.2}) px", found[0], found[1])),
+            "{f}"
+        );
+        // Each cycle's two approaches are marked; the table says what the status says.
+        assert_eq!(f["approaches"], json!(6), "{f}");
+        let cycles: Vec<String> = s["camera"]["x"]["cycles"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| format!("{:.4}", c["backlash_mm"].as_f64().unwrap()))
+            .collect();
+        assert_eq!(f["cycles"], json!(cycles), "{f}");
+        let r = &s["results"]["x"];
+        assert_eq!(
+            f["median"],
+            json!(format!(
+                "{:.4} ± {:.4}",
+                r["backlash_mm"].as_f64().unwrap(),
+                r["uncertainty_mm"].as_f64().unwrap()
+            ))
+        );
+        assert_eq!(
+            f["spread"],
+            json!(format!("{:.4}", r["spread_mm"].as_f64().unwrap()))
+        );
+    }
+}
+
+/// Where image pixel `p` of the page's snapshot is on the screen now (CSS px of the window),
+/// scrolled into view; None while the page reloads.
+async fn at_screen(b: &mut Browser, p: [f64; 2]) -> Option<[f64; 2]> {
+    let v = b
+        .eval(&format!(
+            "(() => {{ const fig = document.querySelector('#snapshot'),
+                img = document.querySelector('#snapimg');
+            if (!fig || !img || !img.naturalWidth) return null;
+            fig.scrollIntoView({{block: 'center'}});
+            const r = img.getBoundingClientRect(), k = r.width / img.naturalWidth;
+            return [r.left + ({} + 0.5) * k, r.top + ({} + 0.5) * k]; }})()",
+            p[0], p[1]
+        ))
+        .await;
+    Some([v[0].as_f64()?, v[1].as_f64()?])
+}
+
+/// Issue 27 Build 4, the click-in-snapshot flow: on a camera the detector refuses (two nozzles
+/// in the picture: an IDEX's other toolhead), KLIPCAL_BACKLASH_CLICK has the person click the
+/// nozzle's tip in each snapshot on klipcal's page. The test clicks in Chromium where the bench
+/// drew the nozzle, off by up to 2 screen pixels (seeded); the clicks of the ±0.5 mm moves give
+/// the scale, the cycles' clicks the backlash, through the same statistics. It must find the
+/// drawn play within its stated ± with far fewer presses than the jog flow's ~250–300.
+#[tokio::test]
+async fn clicking_the_tip_in_snapshots_on_the_page_measures_the_drawn_play() {
+    click_flow((1280, 900, false), 4, 27, "backlash-clicks.png").await;
+}
+
+/// The same on a phone-sized page (390×844, the phone's layout): the picture is 4.5 times
+/// smaller on the screen, so the same 2-pixel slips of the finger are larger in the picture.
+#[tokio::test]
+async fn clicking_the_tip_on_a_phone_sized_page_measures_the_drawn_play() {
+    click_flow((390, 844, true), 9, 5, "backlash-clicks-phone.png").await;
+}
+
+/// Runs KLIPCAL_BACKLASH_CLICK through Klipper and clicks each snapshot in Chromium at `size`;
+/// `camera_seed` draws the camera, `click_seed` the slips.
+async fn click_flow(size: (u32, u32, bool), camera_seed: u64, click_seed: u64, shot: &str) {
+    const TRUE_X: f64 = 0.06;
+    const CYCLES: usize = 3;
+    let camera = json!({"look": "two_nozzles", "px_per_mm": 80, "rotation_deg": -20,
+        "offset_px": [-10, 6], "centre_mm": [100, 100], "seed": camera_seed});
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "seed",
+            "--play",
+            &format!(r#"{{"x": {TRUE_X}}}"#),
+            "--camera",
+            &camera.to_string(),
+            "--klipcal-bin",
+            klipcal_bin(),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let files = bench.files();
+    let (m, _c) = connect(&bench).await;
+    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    // The detector cannot read this camera: the automatic measurement says why.
+    let e = extension_request(&files, "klipcal_backlash_camera", json!({"axis": "X"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("no sure nozzle"), "{e}");
+    // A click with nothing waiting for it is refused with what to do.
+    let e = extension_request(
+        &files,
+        "klipcal_backlash_tip",
+        json!({"x": 10, "y": 10, "frame": 1}),
+    )
+    .await
+    .unwrap_err();
+    assert!(e.contains("KLIPCAL_BACKLASH_CLICK"), "{e}");
+    m.gcode(&format!("KLIPCAL_BACKLASH_CLICK AXIS=X CYCLES={CYCLES}"))
+        .await
+        .unwrap();
+    let base = d.page_url().await;
+    let mut b = Browser::start().await;
+    b.set_viewport(size.0, size.1, size.2).await;
+    b.open(&format!("{base}/")).await;
+    let mut rng = fastrand::Rng::with_seed(click_seed);
+    let mut presses = 0;
+    let mut done_seq = 0u64;
+    let mut refused_checked = false;
+    let s = loop {
+        let st = extension_request(&files, "klipcal_status", json!({}))
+            .await
+            .unwrap();
+        let s = st["session"].clone();
+        if s["state"] != "measuring" && s["kind"] == "backlash" && !s["results"]["x"].is_null() {
+            break s;
+        }
+        assert!(s["state"] != "failed", "{s}\n{}", d.log_text());
+        assert!(presses < 60, "no end after {presses} presses: {s}");
+        let ready = format!(
+            "document.querySelector('#snapshot[data-click=\"1\"][data-ready=\"1\"]') && +document.querySelector('#snapshot').dataset.seq > {done_seq}"
+        );
+        if !b.wait_for(&ready, Duration::from_secs(10)).await {
+            continue; // the next snapshot is still coming (the status is asked again)
+        }
+        let Some(seq) = b
+            .eval("(document.querySelector('#snapshot') || {dataset: {}}).dataset.seq || null")
+            .await
+            .as_str()
+            .and_then(|v| v.parse::<u64>().ok())
+        else {
+            continue; // the page is reloading
+        };
+        if !refused_checked {
+            // Another frame's number, or a point outside the picture: refused by name, and
+            // the snapshot still waits.
+            let e = extension_request(
+                &files,
+                "klipcal_backlash_tip",
+                json!({"x": 10, "y": 10, "frame": seq + 5}),
+            )
+            .await
+            .unwrap_err();
+            assert!(
+                e.contains(&format!("waiting for a click is frame {seq}")),
+                "{e}"
+            );
+            let e = extension_request(
+                &files,
+                "klipcal_backlash_tip",
+                json!({"x": 700, "y": 10, "frame": seq}),
+            )
+            .await
+            .unwrap_err();
+            assert!(e.contains("outside the 640×480 picture"), "{e}");
+            refused_checked = true;
+        }
+        let truth = crate::backlash::nozzle(&bench);
+        let drawn = drawn_px(&camera, [truth[0], truth[1]]);
+        let zoomed = b
+            .eval("(document.querySelector('.stage') || {style: {}}).style.transform || ''")
+            .await
+            != json!("");
+        if !zoomed {
+            // Whole picture: a first click near the tip zooms in there.
+            let Some(p) = at_screen(&mut b, drawn).await else {
+                continue;
+            };
+            b.tap(p[0] + 3.0, p[1] - 2.0).await;
+            presses += 1;
+            if !b
+                .wait_for(
+                    "document.querySelector('.stage').style.transform !== ''",
+                    Duration::from_secs(5),
+                )
+                .await
+            {
+                continue; // the page reloaded under the click: a press lost, counted
+            }
+        }
+        let Some(p) = at_screen(&mut b, drawn).await else {
+            continue;
+        };
+        let err = [rng.f64() * 4.0 - 2.0, rng.f64() * 4.0 - 2.0];
+        b.tap(p[0] + err[0], p[1] + err[1]).await;
+        presses += 1;
+        if b.wait_for(
+            "document.querySelector('#clickhelp').textContent.includes('saved')",
+            Duration::from_secs(10),
+        )
+        .await
+        {
+            done_seq = seq;
+        }
+    };
+    assert_eq!(s["state"], "measured", "{s}");
+    let r = &s["results"]["x"];
+    let got = r["backlash_mm"].as_f64().unwrap();
+    let u = r["uncertainty_mm"].as_f64().unwrap();
+    let cam = &s["camera"]["x"];
+    let sx = cam["scale"]["x"]["scale_px_per_mm"].as_f64().unwrap();
+    eprintln!(
+        "clicks at {size:?}: {got:.4} mm ± {u:.4}, drawn {TRUE_X}, error {:+.1} µm; \
+         {presses} presses ({} clicks), scale {sx:.2} px/mm (drawn 80)",
+        (got - TRUE_X) * 1e3,
+        cam["clicks"]
+    );
+    assert_eq!(cam["clicks"], json!(6 + 2 * CYCLES), "{cam}");
+    assert!(presses <= 6 + 2 * CYCLES + 1, "{presses} presses");
+    assert!((sx - 80.0).abs() < 1.6, "scale {sx} px/mm, drawn at 80");
+    assert!(
+        (got - TRUE_X).abs() <= 2.0 * u,
+        "measured {got} ± {u}, drawn {TRUE_X}: {s}"
+    );
+    assert!(u < 0.01, "± {u} mm");
+    // The page shows the clicked cycles as the status does.
+    b.open(&format!("{base}/")).await;
+    let cycles = b
+        .eval("[...document.querySelectorAll('.camera[data-key=\"x\"] tr.cycle td.b')].map(td => td.textContent)")
+        .await;
+    let want: Vec<String> = cam["cycles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| format!("{:.4}", c["backlash_mm"].as_f64().unwrap()))
+        .collect();
+    assert_eq!(cycles, json!(want));
+    b.screenshot(&artifact(shot)).await;
 }

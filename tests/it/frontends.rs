@@ -951,3 +951,269 @@ async fn a_backlash_axis_in_the_real_mainsail() {
 async fn a_backlash_axis_in_the_real_fluidd() {
     backlash_axis(Kind::Fluidd).await;
 }
+
+/// What a phone shows of the console: the front end's console page (Mainsail's phone
+/// dashboard has none), its text as drawn.
+async fn phone_console_text(ui: &mut Ui<'_>) -> String {
+    ui.phone().await;
+    ui.b.eval(
+        "document.querySelector('#app').__vue__.$router.push('/console').catch(() => {}), true",
+    )
+    .await;
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let t = ui.b.eval("document.body.innerText").await;
+    t.as_str().unwrap_or("").to_string()
+}
+
+/// Scrolls the dashboard's console into view (for a screenshot of what it says).
+async fn show_console(ui: &mut Ui<'_>) {
+    ui.b.eval(
+        "(() => { const t = [...document.querySelectorAll('textarea')].find(t => t.offsetParent);
+               if (t) t.scrollIntoView({block: 'start'}); return !!t; })()",
+    )
+    .await;
+}
+
+/// Back to the dashboard at desktop size.
+async fn back_to_dashboard(ui: &mut Ui<'_>) {
+    ui.desktop().await;
+    ui.b.eval("document.querySelector('#app').__vue__.$router.push('/').catch(() => {}), true")
+        .await;
+    ui.wait_ready().await;
+}
+
+/// The rows a print start adds, from klipcal and its macro (what the check tells the user).
+fn klipcal_rows(rows: &[(String, String)]) -> Vec<String> {
+    rows.iter()
+        .filter(|(t, m)| t != "command" && (m.contains("klipcal") || m.contains("thermal mesh")))
+        .map(|(_, m)| m.clone())
+        .collect()
+}
+
+/// Issue 26 A: the mesh check inside a print start, as README tells users to call it
+/// (`KLIPCAL_MESH_CHECK` in PRINT_START after homing), seen in the real Mainsail and Fluidd at
+/// desktop and phone sizes: the print pauses, klipcal probes, and the print goes on when the bed
+/// matches the model; on a shifted bed (a swapped plate) the print start is cancelled with the
+/// point and the difference named in an error row. Both front ends watch the same two prints.
+#[tokio::test]
+async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
+    use klipcal::klipper::bed_mesh::{format_profile, MeshParams, MeshProfile};
+    let started = std::time::Instant::now();
+    let bench = Bench::start_args(
+        "corexy",
+        &["--variant", "mesh", "--plant-json", crate::mesh_job::PLANT],
+    );
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    // VGB's COLD and HOT profiles of this very bed (probed now, the same at both temperatures),
+    // imported: the model then predicts the surface the check probes.
+    m.gcode_within(
+        "G28\nBED_MESH_CALIBRATE PROFILE=probed",
+        Duration::from_secs(180),
+    )
+    .await
+    .unwrap();
+    let st = m
+        .objects_query(json!({"bed_mesh": ["profiles"]}))
+        .await
+        .unwrap();
+    let points: Vec<Vec<f64>> =
+        serde_json::from_value(st["bed_mesh"]["profiles"]["probed"]["points"].clone()).unwrap();
+    let mp = &st["bed_mesh"]["profiles"]["probed"]["mesh_params"];
+    let f = |k: &str| {
+        mp[k]
+            .as_f64()
+            .unwrap_or_else(|| panic!("mesh_params {k}: {mp}"))
+    };
+    let params = MeshParams {
+        x_count: f("x_count") as usize,
+        y_count: f("y_count") as usize,
+        mesh_x_pps: f("mesh_x_pps") as usize,
+        mesh_y_pps: f("mesh_y_pps") as usize,
+        algo: mp["algo"].as_str().unwrap_or("lagrange").to_string(),
+        tension: f("tension"),
+        min_x: f("min_x"),
+        max_x: f("max_x"),
+        min_y: f("min_y"),
+        max_y: f("max_y"),
+    };
+    let path = bench.dir.path().join("config/printer.cfg");
+    let mut block = String::new();
+    for name in ["COLD25.0", "HOT35.0"] {
+        block.push_str(&format_profile(&MeshProfile {
+            name: name.into(),
+            params: params.clone(),
+            points_mm: points.clone(),
+        }));
+        block.push_str("#*#\n");
+    }
+    // README: KLIPCAL_MESH_CHECK in PRINT_START, after homing.
+    let text = std::fs::read_to_string(&path).unwrap();
+    let with_check = text.replacen(
+        "  G28\n  M190 S{bed}\n",
+        "  G28\n  KLIPCAL_MESH_CHECK\n  M190 S{bed}\n",
+        1,
+    );
+    assert_ne!(with_check, text, "no G28 in the bench's PRINT_START");
+    std::fs::write(&path, format!("{with_check}{block}")).unwrap();
+    bench.restart_klippy().await;
+    let d = Daemon::ready(&bench, &crate::mesh_job::mesh_settings()).await;
+    extension_request(&bench.files(), "klipcal_mesh_import", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("import: {e}\n{}", d.log_text()));
+    let imported = poll(Duration::from_secs(120), || async {
+        let s = crate::mesh_job::mesh_session(&bench).await;
+        matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
+    })
+    .await
+    .expect("the import finished");
+    assert_eq!(imported["state"], "done", "{imported}\n{}", d.log_text());
+    bench
+        .files()
+        .upload(
+            "gcodes",
+            "part.gcode",
+            b"PRINT_START BED=0 EXTRUDER=0\nG1 X60 Y60 Z5 F3000\nPRINT_END\n".to_vec(),
+        )
+        .await
+        .unwrap();
+
+    let mains = FrontEnd::serve(Kind::Mainsail, &bench).await;
+    let flu = FrontEnd::serve(Kind::Fluidd, &bench).await;
+    let mut bm = Browser::start().await;
+    let mut bf = Browser::start().await;
+    let mut um = Ui::open(&mut bm, &mains, "mesh-check-mainsail").await;
+    let mut uf = Ui::open(&mut bf, &flu, "mesh-check-fluidd").await;
+    println!(
+        "screenshots in {} and {}",
+        um.shots.display(),
+        uf.shots.display()
+    );
+    let print_state = || async {
+        m.objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()
+            .and_then(|v| v["print_stats"]["state"].as_str().map(str::to_string))
+            .unwrap_or_default()
+    };
+
+    // 1. The bed matches the model: the print pauses for the check and goes on.
+    let before = [um.rows().await, uf.rows().await];
+    m.print_start("part.gcode").await.unwrap();
+    for (k, ui) in [&mut um, &mut uf].into_iter().enumerate() {
+        let passed = ui
+            .wait_row("thermal mesh check passed", Duration::from_secs(180))
+            .await;
+        assert!(passed.contains("limit 0.5 mm"), "{passed}");
+        // From the macro's "asking" on (Fluidd may list rows of before the print late, as it
+        // loads its history).
+        let all = klipcal_rows(&added(&before[k], &ui.rows().await));
+        let from = all
+            .iter()
+            .rposition(|r| r.contains("asking the klipcal service"))
+            .unwrap_or(0);
+        let said = all[from..].to_vec();
+        println!("{}: the passing check's rows: {said:#?}", ui.kind.name());
+        let at = |needle: &str| said.iter().position(|r| r.contains(needle));
+        let (asked, paused, ok) = (
+            at("asking the klipcal service"),
+            at("print paused for the thermal mesh check"),
+            at("thermal mesh check passed"),
+        );
+        assert!(
+            asked.is_some() && paused.is_some() && ok.is_some() && paused < ok,
+            "{}: {said:#?}",
+            ui.kind.name()
+        );
+        // Nothing else: no dialog, no error.
+        assert_eq!(said.len(), 3, "{}: {said:#?}", ui.kind.name());
+        assert_eq!(ui.dialog().await, None);
+        show_console(ui).await;
+        ui.shot("01-check-passed-desktop").await;
+    }
+    let done = poll(Duration::from_secs(120), || async {
+        let s = print_state().await;
+        (s == "complete" || s == "cancelled" || s == "error").then_some(s)
+    })
+    .await;
+    assert_eq!(
+        done.as_deref(),
+        Some("complete"),
+        "the print did not go on after the check"
+    );
+    for ui in [&mut um, &mut uf] {
+        let text = phone_console_text(ui).await;
+        ui.shot("02-check-passed-phone").await;
+        assert!(
+            text.contains("thermal mesh check passed"),
+            "{}: the phone's console does not show the check: {text}",
+            ui.kind.name()
+        );
+        back_to_dashboard(ui).await;
+    }
+
+    // 2. A shifted bed (a swapped plate): the print start is cancelled, said in an error row
+    // naming the point and the difference.
+    let surface = bench.dir.path().join("comms/surface.json");
+    let mut sp: Value = serde_json::from_str(&std::fs::read_to_string(&surface).unwrap()).unwrap();
+    sp["tilt_x_um"] = json!(900.0);
+    std::fs::write(&surface, sp.to_string()).unwrap();
+    bench.restart_klippy().await;
+    for ui in [&mut um, &mut uf] {
+        ui.wait_ready().await;
+    }
+    let before = [um.rows().await, uf.rows().await];
+    m.print_start("part.gcode").await.unwrap();
+    for (k, ui) in [&mut um, &mut uf].into_iter().enumerate() {
+        let failed = ui
+            .wait_row("from the model", Duration::from_secs(180))
+            .await;
+        for words in [
+            "mm from the model",
+            "limit 0.5 mm",
+            "print start is cancelled",
+            " at X",
+        ] {
+            assert!(failed.contains(words), "{}: {failed}", ui.kind.name());
+        }
+        let rows = added(&before[k], &ui.rows().await);
+        let error_row = rows
+            .iter()
+            .find(|(_, m)| m.contains("from the model"))
+            .unwrap();
+        // An error row: Mainsail and Fluidd colour `!! ` lines.
+        assert!(error_row.1.starts_with("!! "), "{error_row:?}");
+        println!(
+            "{}: the failing check's rows: {:#?}",
+            ui.kind.name(),
+            klipcal_rows(&rows)
+        );
+        show_console(ui).await;
+        ui.shot("03-check-failed-desktop").await;
+    }
+    let ended = poll(Duration::from_secs(60), || async {
+        let s = print_state().await;
+        (s == "complete" || s == "cancelled" || s == "error").then_some(s)
+    })
+    .await;
+    assert_eq!(
+        ended.as_deref(),
+        Some("cancelled"),
+        "the print was not cancelled"
+    );
+    for ui in [&mut um, &mut uf] {
+        let text = phone_console_text(ui).await;
+        ui.shot("04-check-failed-phone").await;
+        assert!(
+            text.contains("from the model"),
+            "{}: the phone's console does not show the failed check: {text}",
+            ui.kind.name()
+        );
+        ui.desktop().await;
+    }
+    drop(d);
+    println!(
+        "the mesh check in a print start, both front ends: {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
+}

@@ -12,7 +12,7 @@ use crate::bench::{extension_request, Bench, Daemon};
 use crate::browser::{artifact, Browser};
 use crate::session::{measuring_session, session, simulated_readings, wait_state, PLANT};
 
-fn client_from(local: &str) -> reqwest::Client {
+pub fn client_from(local: &str) -> reqwest::Client {
     reqwest::Client::builder()
         .local_address(Some(local.parse().unwrap()))
         .timeout(Duration::from_secs(30))
@@ -426,6 +426,49 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         .await;
     assert!(table.as_str().unwrap().contains("stepper_x"), "{table}");
     b.screenshot(&artifact("page-solved.png")).await;
+    // Issue 26 B.6: on a phone (390×844) the rounds and solution tables fit, or scroll inside
+    // their own box: nothing of them lies outside the window, no cell is cut, and the page
+    // itself does not scroll sideways.
+    b.set_viewport(390, 844, true).await;
+    b.open(&format!("{base}/")).await;
+    assert!(
+        b.wait_for(
+            "document.querySelector('#rounds table') && document.querySelector('#solution table')",
+            Duration::from_secs(15)
+        )
+        .await,
+        "no rounds or solution table on the phone"
+    );
+    b.screenshot(&artifact("page-solved-phone.png")).await;
+    let fit = b.eval(TABLES_ON_A_PHONE).await;
+    let fit: Value = serde_json::from_str(fit.as_str().unwrap()).unwrap();
+    println!("tables on a phone: {fit}");
+    let w = fit["width"].as_f64().unwrap();
+    assert!(
+        fit["page"].as_f64().unwrap() <= w + 1.0,
+        "the page scrolls sideways on a phone: {fit}"
+    );
+    for id in ["rounds", "solution"] {
+        let t = &fit[id];
+        let (left, right) = (t["box"][0].as_f64().unwrap(), t["box"][1].as_f64().unwrap());
+        assert!(
+            left >= -1.0 && right <= w + 1.0,
+            "#{id}'s box lies outside the window: {fit}"
+        );
+        // A wider table (more rounds, longer numbers) scrolls inside its box; a round's table
+        // fits whole (before the phone CSS its last column hid beyond the box's edge: 402 and
+        // 448 px tables in a 342 px box).
+        assert!(
+            matches!(t["overflow"].as_str(), Some("auto" | "scroll")),
+            "#{id}'s box does not scroll: {fit}"
+        );
+        assert!(
+            t["table"].as_f64().unwrap() <= t["client"].as_f64().unwrap() + 1.0,
+            "#{id}'s table is wider than its box on a phone: {fit}"
+        );
+        assert_eq!(t["cut"], json!([]), "#{id}: cells cut on a phone: {fit}");
+    }
+    b.set_viewport(1280, 800, false).await;
     // Solving saved the rounds' plot under the config root and named it.
     let id = s["id"].as_i64().unwrap();
     let plot = bench
@@ -563,3 +606,20 @@ async fn a_cancel_from_the_page_is_said_on_the_console() {
         crate::mainsail::history(&m).await
     );
 }
+
+/// The page's tables on the window as it is: the page's width against the window's, and for
+/// `#rounds` and `#solution` their scroll box's left and right, the table's width against the
+/// box's, the box's overflow, and the cells whose text is cut.
+const TABLES_ON_A_PHONE: &str = r#"(() => {
+  const out = {width: window.innerWidth, page: document.documentElement.scrollWidth};
+  for (const id of ['rounds', 'solution']) {
+    const s = document.getElementById(id); if (!s) { out[id] = null; continue; }
+    const box = s.querySelector('.scroll') || s; const t = s.querySelector('table');
+    const r = box.getBoundingClientRect();
+    const cut = [...t.querySelectorAll('td, th')]
+      .filter(c => c.scrollWidth > c.clientWidth + 1).map(c => c.textContent);
+    out[id] = {box: [r.left, r.right], table: t.scrollWidth, client: box.clientWidth,
+               overflow: getComputedStyle(box).overflowX, cut};
+  }
+  return JSON.stringify(out);
+})()"#;

@@ -889,3 +889,89 @@ async fn a_cancelled_recapture_keeps_the_finished_one_and_never_touches_the_user
     );
     drop(d);
 }
+
+/// The command and response rows Moonraker's console store holds (what a reloaded Mainsail or
+/// Fluidd lists), after `from` rows.
+async fn console_since(m: &klipcal::moonraker::Moonraker, from: usize) -> Vec<(String, String)> {
+    crate::mainsail::history(m).await.split_off(from)
+}
+
+#[tokio::test]
+async fn a_capture_from_the_macro_says_what_a_user_needs_and_nothing_about_printing() {
+    // Issue 26 A.7 and B.7, through the macros as a user runs them.
+    let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
+    let d = Daemon::ready(&bench, &mesh_settings()).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+
+    // BED=0 on a cold bed: nothing warms the frame, and the start says so (it used to take
+    // three meshes at the same frame temperature and then fail on "meshes span 25.00..25.00").
+    let from = crate::mainsail::history(&m).await.len();
+    m.gcode("KLIPCAL_MESH_CAPTURE BED=0").await.unwrap();
+    let started = poll(Duration::from_secs(20), || async {
+        let rows = console_since(&m, from).await;
+        rows.iter()
+            .any(|(_, t)| t.contains("thermal mesh capture started"))
+            .then_some(rows)
+    })
+    .await
+    .unwrap_or_else(|| panic!("no start answer\n{}", d.log_text()));
+    let said: Vec<&String> = started
+        .iter()
+        .filter(|(k, _)| k == "response")
+        .map(|(_, t)| t)
+        .collect();
+    assert!(
+        said.iter()
+            .any(|t| t.contains("BED=0") && t.contains("frame") && t.contains("not warm")),
+        "no warning that the frame cannot warm: {said:#?}"
+    );
+    m.gcode("KLIPCAL_CANCEL").await.unwrap();
+    poll(Duration::from_secs(60), || async {
+        (mesh_session(&bench).await["state"] == "cancelled").then_some(())
+    })
+    .await
+    .expect("the BED=0 capture was cancelled");
+
+    // A heated capture: the bed's target is sent once, and its soak lines say nothing of a
+    // print (nothing prints during a capture).
+    let from = crate::mainsail::history(&m).await.len();
+    m.gcode("KLIPCAL_MESH_CAPTURE").await.unwrap();
+    let taken = poll(Duration::from_secs(600), || async {
+        let s = mesh_session(&bench).await;
+        (s["meshes"].as_u64().unwrap_or(0) >= 1 || s["state"] == "failed").then_some(s)
+    })
+    .await
+    .unwrap_or_else(|| panic!("no capture mesh\n{}", d.log_text()));
+    assert_eq!(taken["state"], "capturing", "{taken}");
+    let rows = console_since(&m, from).await;
+    let heater: Vec<&String> = rows
+        .iter()
+        .filter(|(k, t)| k == "command" && t.contains("SET_HEATER_TEMPERATURE"))
+        .map(|(_, t)| t)
+        .collect();
+    assert_eq!(heater.len(), 1, "the bed's target sent {heater:#?}");
+    let printing: Vec<&String> = rows
+        .iter()
+        .filter(|(k, t)| {
+            k == "response"
+                && t.contains("thermal mesh")
+                && (t.contains("print now")
+                    || t.contains("prints now")
+                    || t.contains("printing")
+                    || t.contains("CHOICE=print"))
+        })
+        .map(|(_, t)| t)
+        .collect();
+    assert!(
+        printing.is_empty(),
+        "a capture's lines speak of printing: {printing:#?}"
+    );
+    m.gcode("KLIPCAL_CANCEL").await.unwrap();
+    poll(Duration::from_secs(60), || async {
+        (mesh_session(&bench).await["state"] == "cancelled").then_some(())
+    })
+    .await
+    .expect("the capture was cancelled");
+    drop(d);
+}

@@ -64,7 +64,7 @@ async fn the_daemon_reads_every_file_klippers_includes_match_whatever_the_extens
     let (state, msg) = restart(&m).await;
     assert_eq!(state, "ready", "{msg}");
     let cf = m.configfile().await.unwrap();
-    let klipper: BTreeSet<String> = cf["config"].as_object().unwrap().keys().cloned().collect();
+    let klipper: BTreeSet<String> = cf.config.keys().cloned().collect();
     assert!(klipper.contains("gcode_macro KC_FROM_BAK"), "{klipper:?}");
     let pc = printer_config::fetch(&m, &files).await.unwrap();
     let ours: BTreeSet<String> = pc
@@ -78,7 +78,10 @@ async fn the_daemon_reads_every_file_klippers_includes_match_whatever_the_extens
     for s in pc.config.sections() {
         for o in &s.options {
             assert_eq!(
-                cf["config"][&s.name][&o.key].as_str(),
+                cf.config
+                    .get(&s.name)
+                    .and_then(|opts| opts.get(&o.key))
+                    .map(String::as_str),
                 Some(o.value.as_str()),
                 "[{}] {}",
                 s.name,
@@ -99,10 +102,16 @@ async fn the_daemon_reads_every_file_klippers_includes_match_whatever_the_extens
     assert!(err.contains("it is a folder"), "{err}");
 }
 
-fn rd(cf: &serde_json::Value, section: &str) -> f64 {
-    cf["settings"][section]["rotation_distance"]
-        .as_f64()
-        .unwrap_or_else(|| panic!("no {section} rotation_distance in {}", cf["settings"]))
+fn rd(cf: &klipcal::moonraker::ConfigFile, section: &str) -> f64 {
+    cf.settings
+        .option(section, "rotation_distance")
+        .and_then(serde_json::Value::as_f64)
+        .unwrap_or_else(|| {
+            panic!(
+                "no {section} rotation_distance in {:?}",
+                cf.settings.section(section)
+            )
+        })
 }
 
 fn set(section: &str, value: &str) -> ValueSet {

@@ -227,8 +227,10 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     // Klipper runs the new values, and the file differs only in those two values.
     let new_x = sol["stepper_x"]["rotation_distance_new"].as_f64().unwrap();
     let cf = m.configfile().await.unwrap();
-    let running = cf["settings"]["stepper_x"]["rotation_distance"]
-        .as_f64()
+    let running = cf
+        .settings
+        .option("stepper_x", "rotation_distance")
+        .and_then(Value::as_f64)
         .unwrap();
     assert!((running - new_x).abs() < 1e-5, "{running} vs {new_x}");
     let after = steppers_cfg(&bench);
@@ -281,15 +283,58 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         .await
         .unwrap();
     assert_eq!(st["session"]["state"], "applied", "{st}");
-    // Ending the session turns the preheat off.
-    extension_request(&files, "klipcal_cancel", json!({}))
+    // Round 2 starts on the preheated bed: its target is not sent a second time (issue 26
+    // B.7: the console showed SET_HEATER_TEMPERATURE twice).
+    let heater_commands = |h: &[(String, String)]| {
+        h.iter()
+            .filter(|(k, msg)| k == "command" && msg.contains("SET_HEATER_TEMPERATURE"))
+            .count()
+    };
+    let sent_before = heater_commands(&crate::mainsail::history(&m).await);
+    extension_request(&files, "klipcal_ab_start", json!({}))
         .await
         .unwrap();
+    let warm = poll(Duration::from_secs(60), || async {
+        let s = session(&bench).await;
+        matches!(
+            s["state"].as_str(),
+            Some("heating" | "soaking" | "printing")
+        )
+        .then_some(s)
+    })
+    .await;
+    assert!(
+        warm.is_some(),
+        "round 2 never heated: {}",
+        session(&bench).await
+    );
+    let h = crate::mainsail::history(&m).await;
+    assert_eq!(
+        heater_commands(&h),
+        sent_before,
+        "round 2 sent the bed's target again: {:#?}",
+        h.iter()
+            .filter(|(_, msg)| msg.contains("SET_HEATER_TEMPERATURE"))
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(bed_target().await, Some(60.0));
+    // Ending the session turns the heaters off, and its status says so (issue 26 B.7: the
+    // text said "heaters off" while `heaters_off` stayed false).
+    let r = extension_request(&files, "klipcal_cancel", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        r["message"].as_str().unwrap_or("").contains("heaters off"),
+        "{r}"
+    );
     let off = poll(Duration::from_secs(30), || async {
         (bed_target().await == Some(0.0)).then_some(())
     })
     .await;
     assert!(off.is_some(), "the bed stayed on after the cancel");
+    let s = session(&bench).await;
+    assert_eq!(s["state"], "cancelled", "{s}");
+    assert_eq!(s["heaters_off"], json!(true), "{s}");
 }
 
 /// Issue 9, items 1–3: an entry is taken whole or refused whole (a comma decimal is named), a

@@ -391,7 +391,7 @@ fn nix_is_root() -> bool {
 ///
 /// # Errors
 /// No printer_data layout, a print running, a conflict (named), or an I/O failure.
-pub async fn install(
+pub(crate) async fn install(
     a: &InstallArgs,
     config: &Config,
     explicit_url: Option<&str>,
@@ -870,7 +870,7 @@ async fn restart(files: &crate::moonraker::Files, changed: &[PathBuf], pd: &Path
 ///
 /// # Errors
 /// No install recorded, a print running, or an I/O failure.
-pub async fn uninstall(
+pub(crate) async fn uninstall(
     a: &UninstallArgs,
     config: &Config,
     explicit_url: Option<&str>,

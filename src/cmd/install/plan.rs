@@ -5,20 +5,20 @@
 use crate::klipper::Config;
 
 /// The include line klipcal adds to printer.cfg.
-pub const INCLUDE_LINE: &str = "[include klipcal.cfg]";
+pub(crate) const INCLUDE_LINE: &str = "[include klipcal.cfg]";
 /// The section Klipper needs for klipcal's console answers and prompts.
-pub const RESPOND_LINE: &str = "[respond]";
+pub(crate) const RESPOND_LINE: &str = "[respond]";
 /// The service name Moonraker may restart (moonraker.asvc) and the update_manager entry.
-pub const SERVICE: &str = "klipcal";
+pub(crate) const SERVICE: &str = "klipcal";
 
 /// Why the install refuses.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0}")]
-pub struct Conflict(pub String);
+pub(crate) struct Conflict(pub String);
 
 /// The macro names config/klipcal.cfg defines (`[gcode_macro NAME]`, lower-cased).
 #[must_use]
-pub fn macro_sections(macros_cfg: &str) -> Vec<String> {
+pub(crate) fn macro_sections(macros_cfg: &str) -> Vec<String> {
     macros_cfg
         .lines()
         .filter_map(|l| {
@@ -44,7 +44,7 @@ fn reads_klipcal_cfg(loaded: &Config) -> bool {
 ///
 /// # Errors
 /// A macro of klipcal's already defined by another file (named with its place).
-pub fn printer_cfg(
+pub(crate) fn printer_cfg(
     text: &str,
     loaded: &Config,
     macros_cfg: &str,
@@ -112,14 +112,18 @@ fn insert_at_top(text: &str, block: &str) -> String {
 
 /// Whether the printer's config has `[respond]`.
 #[must_use]
-pub fn has_respond(loaded: &Config) -> bool {
+pub(crate) fn has_respond(loaded: &Config) -> bool {
     loaded.has_section("respond")
 }
 
 /// moonraker.asvc with `service` listed, or `None` when it is. A missing file is created with
 /// Moonraker's default services (what Moonraker itself would write) and klipcal.
 #[must_use]
-pub fn asvc(current: Option<&str>, moonraker_defaults: &str, service: &str) -> Option<String> {
+pub(crate) fn asvc(
+    current: Option<&str>,
+    moonraker_defaults: &str,
+    service: &str,
+) -> Option<String> {
     let text = current.unwrap_or(moonraker_defaults);
     let listed = text.lines().any(|l| {
         let l = l.trim();
@@ -144,7 +148,7 @@ pub fn asvc(current: Option<&str>, moonraker_defaults: &str, service: &str) -> O
 ///
 /// # Errors
 /// A `port` that is not a port number.
-pub fn moonraker_address(conf: &str) -> Result<(String, u16), Conflict> {
+pub(crate) fn moonraker_address(conf: &str) -> Result<(String, u16), Conflict> {
     let mut in_server = false;
     let (mut host, mut port) = ("0.0.0.0".to_string(), 7125u16);
     for line in conf.lines() {
@@ -178,7 +182,7 @@ pub fn moonraker_address(conf: &str) -> Result<(String, u16), Conflict> {
 /// The websocket URL klipcal on this host reaches that Moonraker at (a wildcard host is
 /// reached on loopback).
 #[must_use]
-pub fn moonraker_url(host: &str, port: u16) -> String {
+pub(crate) fn moonraker_url(host: &str, port: u16) -> String {
     let h = match host.trim() {
         "" | "0.0.0.0" | "all" | "::" | "[::]" => "127.0.0.1".to_string(),
         h if h.contains(':') && !h.starts_with('[') => format!("[{h}]"),
@@ -190,7 +194,7 @@ pub fn moonraker_url(host: &str, port: u16) -> String {
 /// The printer's name on a host with several, from its printer_data folder's name
 /// (`printer_2_data` → `printer_2`); `None` for the conventional single `printer_data`.
 #[must_use]
-pub fn instance(printer_data_name: &str) -> Option<String> {
+pub(crate) fn instance(printer_data_name: &str) -> Option<String> {
     if printer_data_name == "printer_data" {
         return None;
     }
@@ -214,7 +218,7 @@ pub fn instance(printer_data_name: &str) -> Option<String> {
 /// The systemd service (and moonraker.asvc name) of a printer's klipcal: `klipcal` for the
 /// single printer, `klipcal-printer_2` for another (as KIAUH names `moonraker-printer_2`).
 #[must_use]
-pub fn service_name(instance: Option<&str>) -> String {
+pub(crate) fn service_name(instance: Option<&str>) -> String {
     instance.map_or_else(|| SERVICE.to_string(), |i| format!("{SERVICE}-{i}"))
 }
 
@@ -222,7 +226,7 @@ pub fn service_name(instance: Option<&str>) -> String {
 /// Moonraker is up (7126 → 7151), then the next port no other printer's klipcal and no
 /// running program uses (`taken`).
 #[must_use]
-pub fn http_port(moonraker_port: u16, taken: &[u16]) -> u16 {
+pub(crate) fn http_port(moonraker_port: u16, taken: &[u16]) -> u16 {
     let mut p = if (7125..7150).contains(&moonraker_port) {
         7150 + (moonraker_port - 7125)
     } else {
@@ -237,7 +241,7 @@ pub fn http_port(moonraker_port: u16, taken: &[u16]) -> u16 {
 /// The settings file as install writes it for one printer: the documented template with its
 /// Moonraker URL, its own data folder and its own page port.
 #[must_use]
-pub fn settings(template: &str, url: &str, data_dir: &str, http_port: u16) -> String {
+pub(crate) fn settings(template: &str, url: &str, data_dir: &str, http_port: u16) -> String {
     let quote = |v: &str| format!("\"{}\"", v.replace('\\', "\\\\").replace('"', "\\\""));
     let mut section = String::new();
     let mut out = String::new();
@@ -269,7 +273,7 @@ pub fn settings(template: &str, url: &str, data_dir: &str, http_port: u16) -> St
 /// restarts the service its section is named after, so a second printer's section is
 /// `[update_manager klipcal-printer_2]`.
 #[must_use]
-pub fn update_manager_section(bin_dir: &str, repo: &str, service: &str) -> String {
+pub(crate) fn update_manager_section(bin_dir: &str, repo: &str, service: &str) -> String {
     format!(
         "[update_manager {service}]\n\
          # added by klipcal install; klipcal uninstall removes it\n\
@@ -310,7 +314,11 @@ fn section_span(text: &str, header: &str) -> Option<(usize, usize)> {
 ///
 /// # Errors
 /// A different `[update_manager klipcal]` that klipcal did not write.
-pub fn moonraker_conf(text: &str, section: &str, ours: bool) -> Result<Option<String>, Conflict> {
+pub(crate) fn moonraker_conf(
+    text: &str,
+    section: &str,
+    ours: bool,
+) -> Result<Option<String>, Conflict> {
     let header = section.lines().next().unwrap_or("");
     match section_span(text, header) {
         Some((s, e)) => {
@@ -342,7 +350,7 @@ pub fn moonraker_conf(text: &str, section: &str, ours: bool) -> Result<Option<St
 /// Takes klipcal's additions out of a file the user changed since the install: the lines it
 /// added (`added`) and the update_manager section, leaving everything else.
 #[must_use]
-pub fn remove_additions(
+pub(crate) fn remove_additions(
     text: &str,
     added_lines: &[String],
     section_header: Option<&str>,

@@ -10,7 +10,7 @@ impl Ab {
     /// # Errors
     /// Nothing solved, a print running, an implausible change without FORCE, or Klipper failing
     /// on the new values (rolled back).
-    pub async fn apply(&self, req: &ApplyRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn apply(&self, req: &ApplyRequest) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.state == State::Solved => s,
             Some(s) => {

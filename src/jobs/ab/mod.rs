@@ -37,8 +37,8 @@ use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, Args, Fields, Op, OpSpec};
-use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
+use crate::jobs::core::table::{arg, ArgKind, Args, Fields, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::{self, PrinterFacts};
 use crate::layout::Layout;
@@ -57,7 +57,7 @@ const PAIR: crate::jobs::core::table::ArgSpec = arg(
 );
 
 /// The A/B calibration's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<AbCall>] = &[
+pub(crate) static OPS: &[Op<AbCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_ab_start",
@@ -197,7 +197,7 @@ pub static OPS: &[Op<AbCall>] = &[
 
 /// An A/B call, typed at the boundary.
 #[derive(Debug, Clone, PartialEq)]
-pub enum AbCall {
+pub(crate) enum AbCall {
     /// `klipcal_ab_start`.
     Start(StartRequest),
     /// `klipcal_measure`.
@@ -212,18 +212,8 @@ pub enum AbCall {
     Apply(ApplyRequest),
 }
 
-impl AbCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
-}
-
 /// The store's kind.
-pub const KIND: &str = "ab";
+pub(crate) const KIND: &str = "ab";
 
 /// "Wait 10 min more" after a soak that ran past `soak_max_s`.
 const SOAK_MORE_S: f64 = 600.0;
@@ -234,7 +224,7 @@ const TITLE: &str = "A/B calibration";
 /// A session's state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum State {
+pub(crate) enum State {
     /// Checking the printer.
     Preflight,
     /// The job is on the printer.
@@ -301,7 +291,7 @@ impl SessionState for State {
 
 /// The stepper facts a round was printed with.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct StepperDoc {
+pub(crate) struct StepperDoc {
     /// mm.
     pub rotation_distance_mm: f64,
     /// Microsteps.
@@ -314,7 +304,7 @@ pub struct StepperDoc {
 
 /// One print-measure-solve-apply round.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Round {
+pub(crate) struct Round {
     /// 1-based.
     pub n: u32,
     /// The job under Moonraker's gcodes root.
@@ -346,11 +336,11 @@ pub struct Round {
 }
 
 /// The whole session document, stored as JSON: the envelope around [`AbBody`].
-pub type Session = Envelope<State, AbBody>;
+pub(crate) type Session = Envelope<State, AbBody>;
 
 /// The A/B session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct AbBody {
+pub(crate) struct AbBody {
     /// Settings: `[ab]` with the start call's arguments.
     pub options: AbConfig,
     /// Rounds so far; the last is the current one.
@@ -359,7 +349,7 @@ pub struct AbBody {
     pub skew_before: Option<f64>,
     /// Unix time the print finished.
     pub print_done_unix: Option<f64>,
-    /// The heaters were turned off by the hold limit.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
     pub heaters_off: bool,
     /// The soak ran past `soak_max_s` and waits for the user's choice.
     #[serde(default)]
@@ -379,7 +369,7 @@ pub struct AbBody {
 
 /// The A/B calibration's settings: `[ab]` and `[soak]`.
 #[derive(Debug, Clone, Default)]
-pub struct AbSettings {
+pub(crate) struct AbSettings {
     /// `[ab]`: defaults of a session's options.
     pub defaults: AbConfig,
     /// `[soak]`: the bed soak detector.
@@ -388,7 +378,7 @@ pub struct AbSettings {
 
 /// The A/B calibration over the shared core.
 #[derive(Clone)]
-pub struct Ab {
+pub(crate) struct Ab {
     core: Core,
     settings: AbSettings,
 }
@@ -396,7 +386,7 @@ pub struct Ab {
 impl Ab {
     /// The calibration over `core`.
     #[must_use]
-    pub fn new(core: Core, settings: AbSettings) -> Self {
+    pub(crate) fn new(core: Core, settings: AbSettings) -> Self {
         Self { core, settings }
     }
 
@@ -428,7 +418,16 @@ impl Ab {
         if s.state == State::Printing {
             let _ = self.core.m().gcode("CANCEL_PRINT").await;
         }
-        let _ = self.core.heaters_off().await;
+        // The status says the heaters are off when they are (issue 26 B.7: the cancel said so
+        // while `heaters_off` stayed false).
+        if self.core.heaters_off().await.is_ok() {
+            let _ = self
+                .update(id, |d| {
+                    d.heaters_off = true;
+                    Ok(())
+                })
+                .await;
+        }
         let answer = self
             .core
             .cancel_session::<State, AbBody>(
@@ -442,8 +441,64 @@ impl Ab {
         self.core.prompt_end().await;
         Ok(answer)
     }
+}
 
-    /// A session as `klipcal_status` shows it.
+/// An A/B session's own part of its status.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub(crate) struct AbStatus {
+    /// The current round, 1-based (0 before the first).
+    pub round: usize,
+    /// The current round's pairs.
+    pub pairs: Option<Vec<crate::layout::Pair>>,
+    /// The current round's job.
+    pub file: Option<String>,
+    /// The current round's readings per pair, mm.
+    pub readings: BTreeMap<String, Vec<f64>>,
+    /// Readings a pair needs.
+    pub readings_per_pair: usize,
+    /// Bed temperature, °C.
+    pub bed_temp_c: f64,
+    /// The layout diagram under the config root.
+    pub diagram: Option<String>,
+    /// What is still to measure, in words (while measuring or solved).
+    pub missing: Vec<String>,
+    /// Every round so far.
+    pub rounds: Vec<AbRoundStatus>,
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
+    pub heaters_off: bool,
+}
+
+/// One round as the status shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub(crate) struct AbRoundStatus {
+    /// 1-based.
+    pub n: u32,
+    /// The job.
+    pub file: String,
+    /// rotation_distance as printed, mm (X, Y).
+    pub rotation_distance: [f64; 2],
+    /// The solved rotation_distance, mm (X, Y).
+    pub rotation_distance_new: Option<[f64; 2]>,
+    /// The solved scale (X, Y).
+    pub scale: Option<[f64; 2]>,
+    /// The larger error of the two, µm per 100 mm.
+    pub error_um_per_100mm: Option<f64>,
+    /// The scale's uncertainty (X, Y).
+    pub uncertainty: Option<[f64; 2]>,
+    /// Whether the round converged.
+    pub converged: Option<bool>,
+    /// What apply wrote.
+    pub applied: Option<ApplyReport>,
+}
+
+impl Declare for Ab {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "an A/B calibration";
+    type State = State;
+    type Session = Session;
+    type Call = AbCall;
+    const OPS: &'static [Op<AbCall>] = OPS;
+
     fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
         let rounds = s
             .rounds
@@ -491,82 +546,18 @@ impl Ab {
             rounds,
             heaters_off: s.heaters_off,
         };
-        SessionStatus::new(KIND, s.head(), &body)
+        Ok(SessionStatus::new(KIND, s.head(), &body)?.with_console_lines(body.missing))
     }
-}
-
-/// An A/B session's own part of its status.
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbStatus {
-    /// The current round, 1-based (0 before the first).
-    pub round: usize,
-    /// The current round's pairs.
-    pub pairs: Option<Vec<crate::layout::Pair>>,
-    /// The current round's job.
-    pub file: Option<String>,
-    /// The current round's readings per pair, mm.
-    pub readings: BTreeMap<String, Vec<f64>>,
-    /// Readings a pair needs.
-    pub readings_per_pair: usize,
-    /// Bed temperature, °C.
-    pub bed_temp_c: f64,
-    /// The layout diagram under the config root.
-    pub diagram: Option<String>,
-    /// What is still to measure, in words (while measuring or solved).
-    pub missing: Vec<String>,
-    /// Every round so far.
-    pub rounds: Vec<AbRoundStatus>,
-    /// The hold limit turned the heaters off.
-    pub heaters_off: bool,
-}
-
-/// One round as the status shows it.
-#[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct AbRoundStatus {
-    /// 1-based.
-    pub n: u32,
-    /// The job.
-    pub file: String,
-    /// rotation_distance as printed, mm (X, Y).
-    pub rotation_distance: [f64; 2],
-    /// The solved rotation_distance, mm (X, Y).
-    pub rotation_distance_new: Option<[f64; 2]>,
-    /// The solved scale (X, Y).
-    pub scale: Option<[f64; 2]>,
-    /// The larger error of the two, µm per 100 mm.
-    pub error_um_per_100mm: Option<f64>,
-    /// The scale's uncertainty (X, Y).
-    pub uncertainty: Option<[f64; 2]>,
-    /// Whether the round converged.
-    pub converged: Option<bool>,
-    /// What apply wrote.
-    pub applied: Option<ApplyReport>,
 }
 
 impl Calibration for Ab {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "an A/B calibration"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match AbCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 AbCall::Start(r) => self.start(&r).await,
                 AbCall::Measure(r) => self.measure(&r).await,
                 AbCall::Solve => self.solve().await,
@@ -588,12 +579,6 @@ impl Calibration for Ab {
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         self.cancel_session(row.id, reason).boxed()
-    }
-
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        self.session_status(&s)
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {

@@ -55,7 +55,7 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or an entry refused (nothing saved).
-    pub async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;
         let values = if req.values.is_empty() && req.clear {
@@ -187,7 +187,7 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or a bad argument.
-    pub fn check(&self, req: &CheckRequest) -> anyhow::Result<Value> {
+    pub(crate) fn check(&self, req: &CheckRequest) -> anyhow::Result<Value> {
         let typed_items = &req.items;
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;

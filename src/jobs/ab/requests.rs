@@ -18,7 +18,7 @@ impl StartRequest {
     ///
     /// # Errors
     /// A bad or unknown argument, named.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         Ok(Self {
             bed_temp_c: a.num("bed")?,
             nozzle_temp_c: a.num("extruder")?,
@@ -43,7 +43,7 @@ impl MeasureRequest {
     ///
     /// # Errors
     /// No pair, a bad CLEAR, or an unknown argument.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_MEASURE PAIR=A-D1 VALUES=10.02,10.03,10.01")
         })?;
@@ -97,7 +97,7 @@ impl ApplyRequest {
     ///
     /// # Errors
     /// A bad FORCE, or an unknown argument.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         Ok(Self {
             force: a.flag("force")?,
         })
@@ -120,7 +120,7 @@ impl CheckRequest {
     ///
     /// # Errors
     /// No pair.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         let pair = a.text("pair").ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
         })?;

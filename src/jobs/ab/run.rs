@@ -189,8 +189,34 @@ impl Ab {
         }
     }
 
-    /// Reads Klipper's current XY skew factor (GET_CURRENT_SKEW answers on the console).
+    /// Reads Klipper's current XY skew factor: from the G-code and toolhead positions where
+    /// they tell it (nothing on the console), else from GET_CURRENT_SKEW, whose four lines land
+    /// on the user's console (`[skew_correction]` has no status to read), so a line before
+    /// them says why they are there (issue 26 A.7).
     pub(super) async fn current_skew(&self) -> Option<f64> {
+        let st = self
+            .core
+            .m()
+            .objects_query(json!({"gcode_move": ["position"], "toolhead": ["position"]}))
+            .await
+            .ok()?;
+        let xyz = |v: &Value| -> Option<[f64; 3]> {
+            Some([v[0].as_f64()?, v[1].as_f64()?, v[2].as_f64()?])
+        };
+        if let (Some(g), Some(t)) = (
+            xyz(&st["gcode_move"]["position"]),
+            xyz(&st["toolhead"]["position"]),
+        ) {
+            if let Some(xy) = crate::calib::skew::xy_factor_from_positions(g, t) {
+                return Some(xy);
+            }
+        }
+        self.core
+            .console(&format!(
+                "{TITLE}: asking Klipper for its skew correction (GET_CURRENT_SKEW, answered \
+                 below) to turn it off for the calibration print and back on afterwards"
+            ))
+            .await;
         let mut rx = self.core.m().events();
         self.core.m().gcode("GET_CURRENT_SKEW").await.ok()?;
         let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
@@ -335,6 +361,11 @@ impl Ab {
             "round {n}: {} pylons uploaded as {file}; {bed}",
             job.layout.pylons.len()
         );
+        // What the round changed on the printer or in the layout is said with it.
+        let said = std::iter::once(msg.clone())
+            .chain(notes.iter().cloned())
+            .collect::<Vec<_>>()
+            .join("; ");
         self.update(id, |s| {
             s.rounds.push(round);
             s.notes.extend(notes);
@@ -344,7 +375,7 @@ impl Ab {
             Ok(())
         })
         .await?;
-        self.core.console(&format!("A/B calibration {msg}")).await;
+        self.core.console(&format!("A/B calibration {said}")).await;
         Ok(())
     }
 
@@ -479,7 +510,7 @@ impl Ab {
     ///
     /// # Errors
     /// A session already running, bad arguments, or a printer that is printing.
-    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
         let d = &self.settings.defaults;
         let bed = req.bed_temp_c.unwrap_or(d.bed_temp_c);
         let nozzle = req.nozzle_temp_c.unwrap_or(d.nozzle_temp_c);

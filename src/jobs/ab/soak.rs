@@ -209,7 +209,7 @@ impl Ab {
     ///
     /// # Errors
     /// A bad CHOICE, or no soak waiting for one.
-    pub async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
+    pub(crate) async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.soak_asking => s,
             // Print now is offered from the moment the bed is in its band (issue 29).

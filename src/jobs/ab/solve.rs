@@ -7,7 +7,7 @@ impl Ab {
     ///
     /// # Errors
     /// Readings missing or inconsistent (the solver's message names the pair).
-    pub async fn solve(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn solve(&self) -> anyhow::Result<Value> {
         let s = self.measuring()?;
         let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?.clone();
         let raw = self.readings(&s)?;

@@ -9,7 +9,7 @@ impl Backlash {
     /// # Errors
     /// Nothing measured, a printer printing, neither branch (with the reason), a reply that
     /// disagrees, or a config Klipper rejects (rolled back).
-    pub async fn apply(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn apply(&self) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.state == State::Measured => s,
             _ => {
@@ -65,7 +65,9 @@ impl Backlash {
         self.settle(s.id, &values, smooth, outcome).await
     }
 
-    /// Ends an apply: done with the message, or back to measured with the reason.
+    /// Ends an apply: done with the message, or back to measured with the reason. The answer
+    /// carries the message (a macro's caller reads it on the console, the page shows it): said
+    /// here too it showed twice (issue 26 A.7).
     pub(super) async fn settle(
         &self,
         id: i64,
@@ -76,7 +78,7 @@ impl Backlash {
         match outcome {
             Ok(msg) => {
                 self.finish(id, State::Done, &msg).await?;
-                self.core.console(&format!("{TITLE}: {msg}")).await;
+                let msg = format!("{TITLE}: {msg}");
                 Ok(
                     json!({"session": id, "state": "done", "values": values, "smooth_time_s": smooth, "message": msg}),
                 )
@@ -85,9 +87,6 @@ impl Backlash {
                 let why = format!("{e:#}");
                 self.set_state(id, State::Measured, &format!("apply failed: {why}"))
                     .await?;
-                self.core
-                    .console_error(&format!("{TITLE}: apply failed: {why}"))
-                    .await;
                 Err(e)
             }
         }

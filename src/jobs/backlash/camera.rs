@@ -10,9 +10,13 @@
 //!    ([`crate::calib::camera_scale`]).
 //! 2. **Cycles**: approach the point from 1 mm below (moving +), read the nozzle; from 1 mm
 //!    above (moving −), read it. Backlash = the difference along the axis.
-//! 3. Each reading waits `camera_settle_s` after the move, then takes frames until two agree
-//!    within their uncertainty (the nozzle has stopped ringing); a frame that detection refuses
-//!    is taken again, five in a row end the measurement with the reason.
+//! 3. Each reading waits `camera_settle_s` after the move, then takes frames until three in a
+//!    row agree within their uncertainty (the nozzle has stopped ringing); a frame that
+//!    detection refuses is taken again, five in a row end the measurement with the reason.
+//!    Every frame looked at is kept for the page with what was found in it
+//!    ([`super::snapshot`]).
+//! 5. `KLIPCAL_BACKLASH_CLICK` ([`super::click`]) runs the same steps with the person's click
+//!    on the nozzle's tip in each snapshot in place of steps 3's detection.
 //! 4. The cycles go into the session like the guided flow's, analysed with the camera's noise
 //!    floor ([`crate::calib::camera_scale::camera_params`]); KLIPCAL_BACKLASH_APPLY applies
 //!    them through the same verified path.
@@ -25,6 +29,7 @@ use anyhow::Context;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
+use super::snapshot::SnapshotInfo;
 use super::{key_words, next_line, result_key, start_note, Backlash, BacklashBody, BacklashCall};
 use super::{Session, State};
 use super::{JOG_F, KIND, TITLE};
@@ -57,21 +62,30 @@ pub(super) const OP: Op<BacklashCall> = Op {
             super::CARRIAGE_ARG,
         ],
     ),
-    parse: |a| Ok(BacklashCall::Camera(CameraRequest::from_args(a)?)),
+    parse: |a| {
+        Ok(BacklashCall::Camera(CameraRequest::from_args(
+            a,
+            "KLIPCAL_BACKLASH_CAMERA",
+        )?))
+    },
 };
 
-/// `KLIPCAL_BACKLASH_CAMERA`.
+/// `KLIPCAL_BACKLASH_CAMERA`, or `KLIPCAL_BACKLASH_CLICK` (`clicks`).
 #[derive(Debug, Clone, PartialEq)]
-pub struct CameraRequest {
+pub(crate) struct CameraRequest {
     pub axis: GuideAxis,
     pub cycles: Option<usize>,
     pub carriage: Option<i64>,
+    /// The person clicks the nozzle's tip in each snapshot ([`super::click`]).
+    pub clicks: bool,
 }
 
 impl CameraRequest {
-    fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(super) fn from_args(a: &Args, macro_name: &str) -> anyhow::Result<Self> {
         let axis_text = a.text("axis").ok_or_else(|| {
-            user("KLIPCAL_BACKLASH_CAMERA: AXIS is required; expected X, Y, A or B")
+            user(format!(
+                "{macro_name}: AXIS is required; expected X, Y, A or B"
+            ))
         })?;
         let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
         if axis == GuideAxis::Z {
@@ -88,13 +102,14 @@ impl CameraRequest {
             axis,
             cycles,
             carriage: a.int("carriage")?,
+            clicks: false,
         })
     }
 }
 
 /// The chosen webcam.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Webcam {
+pub(crate) struct Webcam {
     pub name: String,
     /// The absolute snapshot URL.
     pub snapshot_url: String,
@@ -185,6 +200,29 @@ pub(crate) fn resolve_url(url: &str, moonraker_base: &str) -> String {
     format!("http://{host}/{}", url.trim_start_matches('/'))
 }
 
+/// Frames that must agree before a reading is taken. Two were not enough: a nozzle ringing
+/// after a move can be caught at the same phase twice running (frames about one period apart),
+/// and on the bench's CoreXY camera test that read A 2.1 µm high (0.0621 mm against 0.060
+/// drawn, every cycle); three frames at different phases must all agree.
+const STILL_FRAMES: usize = 3;
+
+/// The reading once the last [`STILL_FRAMES`] frames agree pairwise ([`still`]): their mean
+/// and its 1 sd, px.
+fn settled(last: &[Detection]) -> Option<([f64; 2], f64)> {
+    if last.len() < STILL_FRAMES
+        || last
+            .iter()
+            .enumerate()
+            .any(|(i, a)| last[i + 1..].iter().any(|b| !still(a, b)))
+    {
+        return None;
+    }
+    let n = last.len() as f64;
+    let mean = |k: usize| last.iter().map(|d| d.centre_px[k]).sum::<f64>() / n;
+    let var: f64 = last.iter().map(|d| d.uncertainty_px.powi(2)).sum();
+    Some(([mean(0), mean(1)], var.sqrt() / n))
+}
+
 /// Two frames of a still nozzle agree within their uncertainty (3σ of the difference, and at
 /// least 0.05 px): the ringing after a move has died out.
 pub(crate) fn still(a: &Detection, b: &Detection) -> bool {
@@ -199,7 +237,7 @@ fn along(axis: GuideAxis, d_mm: [f64; 2]) -> f64 {
 
 /// One reading: the mean of two still frames.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-pub struct Seen {
+pub(crate) struct Seen {
     pub centre_px: [f64; 2],
     pub uncertainty_px: f64,
     /// Frames taken, and refused by detection.
@@ -209,15 +247,21 @@ pub struct Seen {
 
 /// One camera cycle, as the page and the status show it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraCycle {
+pub(crate) struct CameraCycle {
     pub plus_px: [f64; 2],
     pub minus_px: [f64; 2],
+    /// Where each approach stopped along the axis, mm from the camera point's reading (+:
+    /// approached from below, moving +; −: from above).
+    #[serde(default)]
+    pub plus_mm: f64,
+    #[serde(default)]
+    pub minus_mm: f64,
     pub backlash_mm: f64,
 }
 
 /// How an axis was read through the camera.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct CameraReport {
+pub(crate) struct CameraReport {
     pub webcam: Webcam,
     pub scale: Option<CameraScale>,
     /// The nozzle at the camera point (X approached moving +), px.
@@ -231,6 +275,9 @@ pub struct CameraReport {
     pub refused_frames: usize,
     /// The last reading, px (the page marks it).
     pub last_px: Option<[f64; 2]>,
+    /// Readings clicked by the person (KLIPCAL_BACKLASH_CLICK) instead of detected: how many.
+    #[serde(default)]
+    pub clicks: usize,
 }
 
 impl CameraReport {
@@ -252,6 +299,17 @@ impl CameraReport {
             base.clone()
         }
     }
+}
+
+/// What a camera measurement runs.
+#[derive(Debug, Clone, Copy)]
+struct Run {
+    axis: GuideAxis,
+    cycles: usize,
+    point: [f64; 3],
+    carriage: Option<u32>,
+    /// Readings by the person's clicks instead of detection.
+    clicks: bool,
 }
 
 /// Why a frame gave no reading.
@@ -279,8 +337,8 @@ impl Backlash {
         choose_webcam(&list, self.settings.webcam.trim(), self.core.files().base()).map_err(user)
     }
 
-    /// One frame, fetched and searched.
-    async fn look(&self, http: &reqwest::Client, cam: &Webcam) -> anyhow::Result<Look> {
+    /// One snapshot's bytes.
+    async fn fetch(&self, http: &reqwest::Client, cam: &Webcam) -> anyhow::Result<Vec<u8>> {
         let r = http
             .get(&cam.snapshot_url)
             .send()
@@ -293,53 +351,135 @@ impl Backlash {
                 cam.name, cam.snapshot_url
             )));
         }
-        let bytes = r.bytes().await.context("reading the snapshot")?;
+        Ok(r.bytes().await.context("reading the snapshot")?.to_vec())
+    }
+
+    /// A snapshot for the person to click in (no detection): kept for the page; its number
+    /// and size.
+    pub(super) async fn snapshot_for_click(
+        &self,
+        http: &reqwest::Client,
+        cam: &Webcam,
+        id: i64,
+        what: &str,
+    ) -> anyhow::Result<(u64, [usize; 2])> {
+        let bytes = self.fetch(http, cam).await?;
         let name = cam.name.clone();
-        tokio::task::spawn_blocking(move || {
+        let jpeg = bytes.clone();
+        let (w, h) = tokio::task::spawn_blocking(move || {
+            crate::cmd::camera_render::decode_gray(&bytes)
+                .map(|(w, h, _)| (w, h))
+                .map_err(|e| user(format!("webcam '{name}': {e:#}")))
+        })
+        .await??;
+        let seq = self.frames.keep(
+            id,
+            jpeg,
+            SnapshotInfo {
+                seq: 0,
+                width: w,
+                height: h,
+                what: what.to_string(),
+                centre_px: None,
+                radius_px: None,
+                uncertainty_px: None,
+                refused: None,
+                click: false,
+                hint_px: None,
+                zoom: None,
+            },
+        );
+        Ok((seq, [w, h]))
+    }
+
+    /// One frame, fetched and searched; kept for the page as `keep` = (session, what) says.
+    async fn look(
+        &self,
+        http: &reqwest::Client,
+        cam: &Webcam,
+        keep: Option<(i64, &str)>,
+    ) -> anyhow::Result<Look> {
+        let bytes = self.fetch(http, cam).await?;
+        let name = cam.name.clone();
+        let jpeg = bytes.clone();
+        let (w, h, look) = tokio::task::spawn_blocking(move || {
             let (w, h, grey) = crate::cmd::camera_render::decode_gray(&bytes)
                 .map_err(|e| user(format!("webcam '{name}': {e:#}")))?;
-            Ok(
-                match nozzle::detect(
-                    &Gray {
-                        width: w,
-                        height: h,
-                        data: &grey,
-                    },
-                    &DetectParams::default(),
-                ) {
+            let found = nozzle::detect(
+                &Gray {
+                    width: w,
+                    height: h,
+                    data: &grey,
+                },
+                &DetectParams::default(),
+            );
+            anyhow::Ok((
+                w,
+                h,
+                match found {
                     Ok(d) => Look::Found(d),
                     Err(r) => Look::Refused(r),
                 },
-            )
+            ))
         })
-        .await?
+        .await??;
+        if let Some((session, what)) = keep {
+            let (found, refused) = match &look {
+                Look::Found(d) => (Some(d), None),
+                Look::Refused(r) => (None, Some(r.to_string())),
+            };
+            self.frames.keep(
+                session,
+                jpeg,
+                SnapshotInfo {
+                    seq: 0,
+                    width: w,
+                    height: h,
+                    what: what.to_string(),
+                    centre_px: found.map(|d| d.centre_px),
+                    radius_px: found.map(|d| d.diagnostics.radius_px),
+                    uncertainty_px: found.map(|d| d.uncertainty_px),
+                    refused,
+                    click: false,
+                    hint_px: None,
+                    zoom: None,
+                },
+            );
+        }
+        Ok(look)
     }
 
     /// The nozzle once it is still: waits out the move, then frames until two agree; a refused
     /// frame is taken again (five in a row: the reason).
-    async fn sight(&self, http: &reqwest::Client, cam: &Webcam) -> anyhow::Result<Seen> {
+    async fn sight(
+        &self,
+        http: &reqwest::Client,
+        cam: &Webcam,
+        id: i64,
+        what: &str,
+    ) -> anyhow::Result<Seen> {
         self.core.m().gcode("M400").await?;
         let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
         tokio::time::sleep(Duration::from_secs_f64(settle)).await;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
-        let mut prev: Option<Detection> = None;
-        while frames < 12 {
+        let mut last: Vec<Detection> = Vec::new();
+        while frames < 14 {
             frames += 1;
-            match self.look(http, cam).await? {
+            match self.look(http, cam, Some((id, what))).await? {
                 Look::Found(d) => {
                     in_a_row = 0;
-                    if let Some(p) = prev.as_ref().filter(|p| still(p, &d)) {
+                    last.push(d);
+                    if last.len() > STILL_FRAMES {
+                        last.remove(0);
+                    }
+                    if let Some((centre_px, uncertainty_px)) = settled(&last) {
                         return Ok(Seen {
-                            centre_px: [
-                                (p.centre_px[0] + d.centre_px[0]) / 2.0,
-                                (p.centre_px[1] + d.centre_px[1]) / 2.0,
-                            ],
-                            uncertainty_px: p.uncertainty_px.hypot(d.uncertainty_px) / 2.0,
+                            centre_px,
+                            uncertainty_px,
                             frames,
                             refused,
                         });
                     }
-                    prev = Some(d);
                 }
                 Look::Refused(r) => {
                     refused += 1;
@@ -415,8 +555,12 @@ impl Backlash {
             })?;
         let cam = self.webcam().await?;
         let http = self.http()?;
-        // The picture is checked before anything moves.
-        if let Look::Refused(r) = self.look(&http, &cam).await? {
+        // The picture is checked before anything moves (for clicks: that it comes).
+        if req.clicks {
+            let b = self.fetch(&http, &cam).await?;
+            crate::cmd::camera_render::decode_gray(&b)
+                .map_err(|e| user(format!("webcam '{}': {e:#}", cam.name)))?;
+        } else if let Look::Refused(r) = self.look(&http, &cam, None).await? {
             return Err(user(format!(
                 "webcam '{}' shows no sure nozzle: {r}",
                 cam.name
@@ -424,17 +568,14 @@ impl Backlash {
         }
         let (detection, cf) = self.detect().await?;
         let note = start_note(&detection);
-        let kin = cf["settings"]["printer"]["kinematics"]
-            .as_str()
-            .unwrap_or("")
-            .to_string();
+        let kin = cf.settings.printer.kinematics.clone();
         if axis.is_motor() && kin != "corexy" {
             return Err(user(format!(
                 "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
                 axis.name().to_uppercase()
             )));
         }
-        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let max_accel = cf.settings.printer.max_accel;
         let carriage = self
             .carriage_for(&detection, &cf, axis, req.carriage)
             .await?;
@@ -492,7 +633,8 @@ impl Backlash {
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
         };
-        let me = Arc::new(Backlash::new(self.core.clone(), self.settings.clone()));
+        let clicks = req.clicks;
+        let me = Arc::new(self.sibling());
         let fail_me = me.clone();
         let cam2 = cam.clone();
         self.core.spawn_session(
@@ -500,7 +642,16 @@ impl Backlash {
             TITLE,
             move || {
                 let (me, cam) = (me.clone(), cam2.clone());
-                async move { me.camera_run(id, axis, cycles, point, carriage, &cam).await }
+                async move {
+                    let run = Run {
+                        axis,
+                        cycles,
+                        point,
+                        carriage,
+                        clicks,
+                    };
+                    me.camera_run(id, run, &cam).await
+                }
             },
             move |why| async move {
                 let _ = fail_me
@@ -516,69 +667,69 @@ impl Backlash {
                     .await;
             },
         );
-        let msg = format!(
-            "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles, no tapping; the result \
-             follows on the console{}",
-            key_words(&key),
-            cam.name,
-            note
-        );
+        let msg = if clicks {
+            format!(
+                "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles: click the nozzle's \
+                 tip in each snapshot on klipcal's page{} ({} clicks); the result follows on the \
+                 console{}",
+                key_words(&key),
+                cam.name,
+                self.core
+                    .page()
+                    .map(|p| format!(", {p}"))
+                    .unwrap_or_default(),
+                6 + 2 * cycles,
+                note
+            )
+        } else {
+            format!(
+                "{TITLE} session {id}: {} from webcam '{}', {cycles} cycles, no tapping; the \
+                 result follows on the console{}",
+                key_words(&key),
+                cam.name,
+                note
+            )
+        };
         Ok(
             json!({"session": id, "state": "measuring", "axis": axis.name(),
                   "carriage": carriage, "webcam": cam, "message": msg}),
         )
     }
 
-    /// What compensation is active while measuring (measurements are residuals to it).
-    async fn active_values(
-        &self,
-        detection: &crate::klipper::backlash::Detection,
-        cf: &Value,
-        axis: GuideAxis,
-        carriage: Option<u32>,
-        key: &str,
-    ) -> anyhow::Result<BTreeMap<String, f64>> {
-        use crate::klipper::backlash::Branch;
-        let mut active_mm = BTreeMap::new();
-        match detection.branch {
-            Branch::Seed => {
-                let r = self.seed_values().await?;
-                active_mm.insert("x".into(), r.x_mm);
-                active_mm.insert("y".into(), r.y_mm);
-                active_mm.insert("z".into(), r.z_mm);
-                if carriage.is_some() {
-                    let own = match axis {
-                        GuideAxis::Y => r.y_mm,
-                        _ => r.x_mm,
-                    };
-                    active_mm.insert(key.to_string(), own);
-                }
-            }
-            Branch::Pr7157 { .. } => {
-                if let Some(o) = cf["settings"]["backlash"].as_object() {
-                    for (k, v) in o {
-                        if let Some(f) = v.as_f64() {
-                            active_mm.insert(k.clone(), f);
-                        }
-                    }
-                }
-            }
-            Branch::Neither => {}
-        }
-        Ok(active_mm)
-    }
-
     /// The measurement itself (the runner's steps; run again from the start after an outage).
-    async fn camera_run(
-        &self,
-        id: i64,
-        axis: GuideAxis,
-        cycles: usize,
-        point: [f64; 3],
-        carriage: Option<u32>,
-        cam: &Webcam,
-    ) -> anyhow::Result<()> {
+    async fn camera_run(&self, id: i64, run: Run, cam: &Webcam) -> anyhow::Result<()> {
+        let Run {
+            axis,
+            cycles,
+            point,
+            carriage,
+            clicks,
+        } = run;
         let http = self.http()?;
+        self.clicks.forget(id);
+        let total = 6 + 2 * cycles;
+        let mut n = 0;
+        let mut read = |what: String| {
+            n += 1;
+            let http = &http;
+            let k = n;
+            async move {
+                if clicks {
+                    let what = format!("click {k} of {total} — {what}");
+                    self.progress(
+                        id,
+                        format!(
+                            "click the nozzle's tip in the snapshot on klipcal's page ({what})"
+                        ),
+                        None,
+                    )
+                    .await;
+                    self.ask_click(http, cam, id, &what).await
+                } else {
+                    self.sight(http, cam, id, &what).await
+                }
+            }
+        };
         let key = result_key(axis, carriage);
         let approach = self.settings.approach_mm;
         let mut report = CameraReport {
@@ -591,8 +742,10 @@ impl Backlash {
             frames: 0,
             refused_frames: 0,
             last_px: None,
+            clicks: 0,
         };
         let count = |r: &mut CameraReport, s: &Seen| {
+            r.clicks += usize::from(clicks);
             r.frames += s.frames;
             r.refused_frames += s.refused;
             r.last_px = Some(s.centre_px);
@@ -613,7 +766,7 @@ impl Backlash {
             self.go(ax.point_at(point, -0.5 - approach)).await?;
             for t in [-0.5, 0.0, 0.5] {
                 self.go(ax.point_at(point, t)).await?;
-                let s = self.sight(&http, cam).await?;
+                let s = read(format!("scale: {} at {t:+.1} mm", ax.name().to_uppercase())).await?;
                 count(&mut report, &s);
                 sightings[k].push(Sighting {
                     commanded_mm: t,
@@ -635,6 +788,9 @@ impl Backlash {
             (dx[0] * unit[0] + dy[0] * unit[1]).hypot(dx[1] * unit[0] + dy[1] * unit[1]);
         report.scale = Some(scale);
         report.reference_px = Some(reference);
+        if clicks {
+            self.clicks.point_at(id, reference);
+        }
         // 2. The seed's cycles, read from the image.
         let mut got = Vec::new();
         for c in 1..=cycles {
@@ -646,11 +802,18 @@ impl Backlash {
             .await;
             self.go(axis.point_at(point, -approach)).await?;
             self.go(point).await?;
-            let plus = self.sight(&http, cam).await?;
+            let words = key_words(&key);
+            let plus = read(format!(
+                "{words} cycle {c}/{cycles}: approached from below (moving +)"
+            ))
+            .await?;
             count(&mut report, &plus);
             self.go(axis.point_at(point, approach)).await?;
             self.go(point).await?;
-            let minus = self.sight(&http, cam).await?;
+            let minus = read(format!(
+                "{words} cycle {c}/{cycles}: approached from above (moving −)"
+            ))
+            .await?;
             count(&mut report, &minus);
             let p = along(axis, scale.position_mm(plus.centre_px, reference));
             let m = along(axis, scale.position_mm(minus.centre_px, reference));
@@ -662,11 +825,18 @@ impl Backlash {
             report.cycles.push(CameraCycle {
                 plus_px: plus.centre_px,
                 minus_px: minus.centre_px,
+                plus_mm: p,
+                minus_mm: m,
                 backlash_mm: cyc.x1_mm - cyc.x2_mm,
             });
             got.push(cyc);
         }
         // 3. Into the session, as the guided flow's cycles.
+        let again = if clicks {
+            "KLIPCAL_BACKLASH_CLICK"
+        } else {
+            "KLIPCAL_BACKLASH_CAMERA"
+        };
         let s = {
             let _g = self.core.lock().await;
             let mut s: Session = self.core.load(id)?;
@@ -678,9 +848,10 @@ impl Backlash {
             s.carriage = None;
             s.state = State::Measured;
             s.progress = format!(
-                "{} measured from the camera; {}",
+                "{} measured from the camera{}; {}",
                 key_words(&key),
-                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
+                if clicks { " by your clicks" } else { "" },
+                next_line(&s.detection, again)
             );
             self.core.save(id, &s)?;
             s
@@ -690,7 +861,7 @@ impl Backlash {
             .console(&format!(
                 "{TITLE}: {}\n{}",
                 lines.join("\n"),
-                next_line(&s.detection, "KLIPCAL_BACKLASH_CAMERA")
+                next_line(&s.detection, again)
             ))
             .await;
         Ok(())
@@ -700,7 +871,7 @@ impl Backlash {
     /// how to run it again (axes measured before are kept).
     pub(super) async fn camera_interrupted(&self, s: &Session) {
         let why = "camera measurement interrupted by a klipcal restart; run \
-                   KLIPCAL_BACKLASH_CAMERA again";
+                   KLIPCAL_BACKLASH_CAMERA (or KLIPCAL_BACKLASH_CLICK) again";
         if s.cycles.is_empty() {
             let _ = self.finish(s.id, State::Failed, why).await;
         } else {

@@ -8,7 +8,7 @@ impl Backlash {
     pub(super) async fn carriage_for(
         &self,
         detection: &Detection,
-        cf: &Value,
+        cf: &ConfigFile,
         axis: GuideAxis,
         asked: Option<i64>,
     ) -> anyhow::Result<Option<u32>> {
@@ -20,10 +20,7 @@ impl Backlash {
                 None => Ok(None),
             };
         }
-        let dc_axis = cf["settings"]["dual_carriage"]["axis"]
-            .as_str()
-            .unwrap_or("x")
-            .to_ascii_lowercase();
+        let dc_axis = cf.settings.dual_carriage_axis();
         if axis.name() != dc_axis {
             return match asked {
                 Some(n) => Err(user(format!(
@@ -78,20 +75,15 @@ impl Backlash {
     pub(super) async fn park_and_select(&self, n: u32) -> anyhow::Result<()> {
         let cf = self.core.m().configfile().await?;
         let other = 1 - n.min(1);
-        let axis = cf["settings"]["dual_carriage"]["axis"]
-            .as_str()
-            .unwrap_or("x")
-            .to_ascii_lowercase();
+        let axis = cf.settings.dual_carriage_axis();
         let section = if other == 0 {
             format!("stepper_{axis}")
         } else {
             "dual_carriage".to_string()
         };
-        let park = cf["settings"][section.as_str()]["position_endstop"]
-            .as_f64()
-            .ok_or_else(|| {
-                anyhow!("[{section}] has no position_endstop to park carriage {other} at")
-            })?;
+        let park = cf.settings.position_endstop(&section).ok_or_else(|| {
+            anyhow!("[{section}] has no position_endstop to park carriage {other} at")
+        })?;
         self.select_carriage(other).await?;
         let line = GcodeCmd::new("G1")
             .axis(if axis == "y" { 'Y' } else { 'X' }, park)
@@ -147,10 +139,7 @@ impl Backlash {
         smooth_s: f64,
     ) -> anyhow::Result<Value> {
         let (_, cf) = self.detect().await?;
-        let dc_axis = cf["settings"]["dual_carriage"]["axis"]
-            .as_str()
-            .unwrap_or("x")
-            .to_ascii_lowercase();
+        let dc_axis = cf.settings.dual_carriage_axis();
         if let Some(k) = values.keys().find(|k| k.as_str() == dc_axis.as_str()) {
             return Err(user(format!(
                 "{} was measured without naming a carriage; measure it again with \

@@ -5,10 +5,46 @@
 use super::*;
 
 impl Backlash {
-    pub(super) async fn detect(&self) -> anyhow::Result<(Detection, Value)> {
+    pub(super) async fn detect(&self) -> anyhow::Result<(Detection, ConfigFile)> {
         let help = self.core.m().call("printer.gcode.help", json!({})).await?;
         let cf = self.core.m().configfile().await?;
-        Ok((kb::detect(&help, &cf["config"])?, cf))
+        Ok((kb::detect(&help, &cf.config)?, cf))
+    }
+
+    /// What compensation is active while measuring (measurements are residuals to it): the
+    /// seed's values as its command reports them (with the carriage's own under `key`), or
+    /// PR 7157's `[backlash]` numbers.
+    pub(super) async fn active_values(
+        &self,
+        detection: &Detection,
+        cf: &ConfigFile,
+        axis: GuideAxis,
+        carriage: Option<u32>,
+        key: &str,
+    ) -> anyhow::Result<BTreeMap<String, f64>> {
+        let mut active_mm = BTreeMap::new();
+        match detection.branch {
+            Branch::Seed => {
+                let r = self.seed_values().await?;
+                active_mm.insert("x".into(), r.x_mm);
+                active_mm.insert("y".into(), r.y_mm);
+                active_mm.insert("z".into(), r.z_mm);
+                if carriage.is_some() {
+                    let own = match axis {
+                        GuideAxis::Y => r.y_mm,
+                        _ => r.x_mm,
+                    };
+                    active_mm.insert(key.to_string(), own);
+                }
+            }
+            Branch::Pr7157 { .. } => {
+                if let Some(o) = &cf.settings.backlash {
+                    active_mm.extend(o.iter().map(|(k, v)| (k.clone(), *v)));
+                }
+            }
+            Branch::Neither => {}
+        }
+        Ok(active_mm)
     }
 
     /// The G-code console lines since the last call, newest last (for command replies).
@@ -176,7 +212,7 @@ impl Backlash {
     ///
     /// # Errors
     /// A measurement in progress, a printer that is printing or not homed.
-    pub async fn set_point(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn set_point(&self) -> anyhow::Result<Value> {
         // The point is what every reading of a measurement is taken against (issue 27's walk).
         if let Some(s) = self.active()? {
             if matches!(s.state, State::Measuring | State::Applying) {
@@ -216,7 +252,7 @@ impl Backlash {
     /// # Errors
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
-    pub async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
         let carriage_arg = req.carriage;
         let axis = req.axis;
         let mut params = self.settings.guide();
@@ -233,16 +269,14 @@ impl Backlash {
                 user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
             })?;
         let (detection, cf) = self.detect().await?;
-        let kin = cf["settings"]["printer"]["kinematics"]
-            .as_str()
-            .unwrap_or("");
+        let kin = cf.settings.printer.kinematics.as_str();
         if axis.is_motor() && kin != "corexy" {
             return Err(user(format!(
                 "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
                 axis.name().to_uppercase()
             )));
         }
-        let max_accel = cf["settings"]["printer"]["max_accel"].as_f64();
+        let max_accel = cf.settings.printer.max_accel;
         let carriage = self
             .carriage_for(&detection, &cf, axis, carriage_arg)
             .await?;
@@ -250,32 +284,9 @@ impl Backlash {
             self.park_and_select(n).await?;
         }
         let key = result_key(axis, carriage);
-        let mut active_mm = BTreeMap::new();
-        match detection.branch {
-            Branch::Seed => {
-                let r = self.seed_values().await?;
-                active_mm.insert("x".into(), r.x_mm);
-                active_mm.insert("y".into(), r.y_mm);
-                active_mm.insert("z".into(), r.z_mm);
-                if carriage.is_some() {
-                    let own = match axis {
-                        GuideAxis::Y => r.y_mm,
-                        _ => r.x_mm,
-                    };
-                    active_mm.insert(key.clone(), own);
-                }
-            }
-            Branch::Pr7157 { .. } => {
-                if let Some(o) = cf["settings"]["backlash"].as_object() {
-                    for (k, v) in o {
-                        if let Some(f) = v.as_f64() {
-                            active_mm.insert(k.clone(), f);
-                        }
-                    }
-                }
-            }
-            Branch::Neither => {}
-        }
+        let active_mm = self
+            .active_values(&detection, &cf, axis, carriage, &key)
+            .await?;
         let (guide, step) =
             Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
         let existing = {
@@ -343,7 +354,7 @@ impl Backlash {
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
-    pub async fn jog(&self, press: Press) -> anyhow::Result<Value> {
+    pub(crate) async fn jog(&self, press: Press) -> anyhow::Result<Value> {
         // The press and its reading are saved before the machine moves.
         let (s, step) = {
             let _g = self.core.lock().await;

@@ -9,8 +9,10 @@
 
 mod apply;
 pub mod camera;
+pub mod click;
 mod dual;
 mod guide;
+pub mod snapshot;
 
 use std::collections::BTreeMap;
 
@@ -27,12 +29,13 @@ use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, ArgSpec, Args, Op, OpSpec};
-use crate::jobs::core::{Calibration, Hold};
+use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Hold};
 use crate::jobs::core::{Envelope, SessionState};
 use crate::jobs::user;
 use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, SetBacklash};
 use crate::klipper::GcodeCmd;
+use crate::moonraker::ConfigFile;
 use crate::store::SessionRow;
 
 /// `CYCLES=`, shared by the guided and the camera measurement.
@@ -55,7 +58,7 @@ pub(super) const CARRIAGE_ARG: ArgSpec = arg(
 );
 
 /// The backlash measurement's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<BacklashCall>] = &[
+pub(crate) static OPS: &[Op<BacklashCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_set_point",
@@ -88,6 +91,8 @@ pub static OPS: &[Op<BacklashCall>] = &[
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
     camera::OP,
+    click::START_OP,
+    click::TIP_OP,
     Op {
         spec: OpSpec::remote(
             "klipcal_backlash_jog",
@@ -123,27 +128,19 @@ pub static OPS: &[Op<BacklashCall>] = &[
 
 /// A backlash call, typed at the boundary.
 #[derive(Debug, Clone, PartialEq)]
-pub enum BacklashCall {
+pub(crate) enum BacklashCall {
     /// `klipcal_backlash_set_point`.
     SetPoint,
     /// `klipcal_backlash_start`.
     Start(StartRequest),
     /// `klipcal_backlash_jog`.
     Jog(Press),
-    /// `klipcal_backlash_camera`.
+    /// `klipcal_backlash_camera` and `klipcal_backlash_click`.
     Camera(camera::CameraRequest),
+    /// `klipcal_backlash_tip`: a click in the snapshot on the page.
+    Tip(click::TipRequest),
     /// `klipcal_backlash_apply`.
     Apply,
-}
-
-impl BacklashCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
 }
 
 /// `klipcal_backlash_start` / `KLIPCAL_BACKLASH_START`.
@@ -162,7 +159,7 @@ impl StartRequest {
     ///
     /// # Errors
     /// No or a bad axis, bad cycles or carriage.
-    pub fn from_args(a: &Args) -> anyhow::Result<Self> {
+    pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         let carriage = a.int("carriage")?;
         let axis_text = a.text("axis").ok_or_else(|| {
             user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
@@ -181,9 +178,9 @@ impl StartRequest {
 }
 
 /// The store's kind.
-pub const KIND: &str = "backlash";
+pub(crate) const KIND: &str = "backlash";
 /// The store's key of the saved camera point (`{"point": [x, y, z]}`).
-pub const POINT_KEY: &str = "backlash_point";
+pub(crate) const POINT_KEY: &str = "backlash_point";
 const TITLE: &str = "backlash measurement";
 /// Jog and approach feed rate, mm/min.
 const JOG_F: f64 = 1200.0;
@@ -191,7 +188,7 @@ const JOG_F: f64 = 1200.0;
 /// A session's state.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
-pub enum State {
+pub(crate) enum State {
     /// The guided procedure runs for `axis`.
     Measuring,
     /// Every cycle of the last axis is in; another axis may start, or apply.
@@ -224,11 +221,11 @@ impl SessionState for State {
 }
 
 /// The stored session: the envelope around [`BacklashBody`].
-pub type Session = Envelope<State, BacklashBody>;
+pub(crate) type Session = Envelope<State, BacklashBody>;
 
 /// The backlash session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct BacklashBody {
+pub(crate) struct BacklashBody {
     /// The camera point (toolhead X, Y, Z).
     pub point: [f64; 3],
     /// What the printer's Klipper has.
@@ -261,7 +258,7 @@ struct PointDoc {
 
 /// A backlash session's own part of its status.
 #[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct BacklashStatus {
+pub(crate) struct BacklashStatus {
     /// The camera point (toolhead X, Y, Z).
     pub point: [f64; 3],
     /// What the printer's Klipper has.
@@ -280,18 +277,40 @@ pub struct BacklashStatus {
     pub active_mm: BTreeMap<String, f64>,
     /// Axes read through the nozzle camera: how, per result key.
     pub camera: BTreeMap<String, camera::CameraReport>,
+    /// The newest camera frame of this session (kept in memory since klipcal started), with
+    /// what the detector found in it: `GET /api/backlash/snapshot.jpg?seq=` serves it.
+    pub snapshot: Option<snapshot::SnapshotInfo>,
 }
 
 /// The backlash calibration.
-pub struct Backlash {
+pub(crate) struct Backlash {
     core: Core,
     settings: BacklashConfig,
+    /// The camera frames the page shows (shared with the measurement's task).
+    frames: std::sync::Arc<snapshot::Frames>,
+    /// The snapshot waiting for the person's click (shared likewise).
+    clicks: std::sync::Arc<click::Clicks>,
 }
 
 impl Backlash {
     /// Over the shared core, with `[backlash]`.
-    pub fn new(core: Core, settings: BacklashConfig) -> Self {
-        Self { core, settings }
+    pub(crate) fn new(core: Core, settings: BacklashConfig) -> Self {
+        Self {
+            core,
+            settings,
+            frames: std::sync::Arc::default(),
+            clicks: std::sync::Arc::default(),
+        }
+    }
+
+    /// Another handle on the same calibration (for a task that outlives the call).
+    fn sibling(&self) -> Self {
+        Self {
+            core: self.core.clone(),
+            settings: self.settings.clone(),
+            frames: self.frames.clone(),
+            clicks: self.clicks.clone(),
+        }
     }
 
     /// The camera point saved by KLIPCAL_BACKLASH_SET_POINT, if any.
@@ -442,34 +461,52 @@ fn round_um(mm: f64) -> f64 {
     (mm * 1e4).round() / 1e4
 }
 
+impl Declare for Backlash {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "a backlash measurement";
+    type State = State;
+    type Session = Session;
+    type Call = BacklashCall;
+    const OPS: &'static [Op<BacklashCall>] = OPS;
+
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
+        let results = self.results(s).unwrap_or_default();
+        let body = BacklashStatus {
+            point: s.point,
+            branch: s.detection.clone(),
+            axis: s.guide.as_ref().map(|g| g.axis.name().to_string()),
+            cycle: s.guide.as_ref().map(|g| g.cycles.len() + 1),
+            cycles: s.cycles.clone(),
+            corexy_answer: Self::corexy_answer(s, &results),
+            results,
+            active_mm: s.active_mm.clone(),
+            camera: s.camera.clone(),
+            snapshot: self.frames.newest(s.id).map(|mut f| {
+                f.click = self.clicks.waiting(s.id, f.seq);
+                if let Some((at, zoom)) = self.clicks.hint(s.id) {
+                    f.hint_px = Some(at);
+                    f.zoom = Some(zoom);
+                }
+                f
+            }),
+        };
+        SessionStatus::new(KIND, s.head(), &body)
+    }
+}
+
 impl Calibration for Backlash {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "a backlash measurement"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match BacklashCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 BacklashCall::SetPoint => self.set_point().await,
                 BacklashCall::Start(r) => self.start(&r).await,
                 BacklashCall::Jog(p) => self.jog(p).await,
                 BacklashCall::Camera(r) => self.camera(&r).await,
+                BacklashCall::Tip(r) => self.tip(&r),
                 BacklashCall::Apply => self.apply().await,
             }
         }
@@ -488,26 +525,12 @@ impl Calibration for Backlash {
         self.cancel_session(row.id, reason).boxed()
     }
 
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        let results = self.results(&s).unwrap_or_default();
-        let body = BacklashStatus {
-            point: s.point,
-            branch: s.detection.clone(),
-            axis: s.guide.as_ref().map(|g| g.axis.name().to_string()),
-            cycle: s.guide.as_ref().map(|g| g.cycles.len() + 1),
-            cycles: s.cycles.clone(),
-            corexy_answer: Self::corexy_answer(&s, &results),
-            results,
-            active_mm: s.active_mm.clone(),
-            camera: s.camera.clone(),
-        };
-        SessionStatus::new(KIND, s.head(), &body)
-    }
-
     fn held(&self, _row: &SessionRow) -> Option<Hold> {
         None
+    }
+
+    fn snapshot_jpeg(&self, seq: Option<u64>) -> Option<Vec<u8>> {
+        self.frames.jpeg(seq)
     }
 
     fn heaters_turned_off<'a>(&'a self, _row: &'a SessionRow) -> BoxFuture<'a, ()> {

@@ -2,10 +2,14 @@
 //! needs of a waiting session ([`Hold`]). The routing over the calibrations is
 //! `jobs::registry`, which lists them; the calibrations import only this.
 
+use anyhow::Context;
 use futures_util::future::BoxFuture;
+use serde::de::DeserializeOwned;
 use serde_json::Value;
 
-use super::table::OpSpec;
+use super::envelope::SessionState;
+use super::status::SessionStatus;
+use super::table::{self, Op, OpSpec};
 use crate::store::SessionRow;
 
 /// What the hold-limit watchdog needs of a waiting session.
@@ -17,18 +21,83 @@ pub struct Hold {
     pub max_s: f64,
 }
 
-/// One calibration: its remote methods, its session's resume, cancel and status.
-pub trait Calibration: Send + Sync {
+/// What a calibration declares once: its kind, its name, its states, its operations and how
+/// its stored session shows in the status. Every calibration gets [`Declared`] from it.
+pub trait Declare {
     /// The store's kind (`ab`, `mesh`, `backlash`).
-    fn kind(&self) -> &'static str;
-    /// The names of its final states (from its [`super::envelope::SessionState`]): the store
-    /// counts a session in one of them as ended.
-    fn final_states(&self) -> Vec<String>;
+    const KIND: &'static str;
     /// How a user calls it, with its article ("an A/B calibration").
-    fn title(&self) -> &'static str;
+    const TITLE: &'static str;
+    /// Its session's states.
+    type State: SessionState;
+    /// Its stored session.
+    type Session: DeserializeOwned;
+    /// Its typed calls, one per operation.
+    type Call: 'static;
     /// Its operations (see [`table`]).
+    const OPS: &'static [Op<Self::Call>];
+
+    /// Reads a call of `method` at the boundary.
+    ///
+    /// # Errors
+    /// An unknown method, or a bad or unknown argument, named.
+    fn parse_call(method: &str, args: &Value) -> anyhow::Result<Self::Call> {
+        table::parse_call(Self::OPS, method, args)
+    }
+
+    /// A session as `klipcal_status` shows it.
+    ///
+    /// # Errors
+    /// What the calibration cannot read of it.
+    fn session_status(&self, s: &Self::Session) -> anyhow::Result<SessionStatus>;
+}
+
+/// A calibration's declaration as the registry reads it through `dyn Calibration`; written
+/// once, for every [`Declare`].
+pub trait Declared {
+    /// [`Declare::KIND`].
+    fn kind(&self) -> &'static str;
+    /// The names of its final states (from its [`SessionState`]): the store counts a session in
+    /// one of them as ended.
+    fn final_states(&self) -> Vec<String>;
+    /// [`Declare::TITLE`].
+    fn title(&self) -> &'static str;
+    /// Its operations' declarations.
     fn ops(&self) -> Vec<&'static OpSpec>;
-    /// Answers the remote method of one of [`Calibration::ops`].
+    /// Its stored session as `klipcal_status` shows it.
+    ///
+    /// # Errors
+    /// A damaged document.
+    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus>;
+}
+
+impl<T: Declare> Declared for T {
+    fn kind(&self) -> &'static str {
+        T::KIND
+    }
+
+    fn final_states(&self) -> Vec<String> {
+        T::State::final_names()
+    }
+
+    fn title(&self) -> &'static str {
+        T::TITLE
+    }
+
+    fn ops(&self) -> Vec<&'static OpSpec> {
+        table::specs(T::OPS).collect()
+    }
+
+    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
+        let s: T::Session = serde_json::from_value(row.doc.clone())
+            .with_context(|| format!("reading stored session {}", row.id))?;
+        self.session_status(&s)
+    }
+}
+
+/// One calibration: its remote methods, its session's resume, cancel and hold.
+pub trait Calibration: Declared + Send + Sync {
+    /// Answers the remote method of one of [`Declared::ops`].
     fn call<'a>(&'a self, method: &'a str, args: &'a Value)
         -> BoxFuture<'a, anyhow::Result<Value>>;
     /// Picks its session up after a daemon start or reconnect.
@@ -39,15 +108,14 @@ pub trait Calibration: Send + Sync {
         row: &'a SessionRow,
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>>;
-    /// Its session as `klipcal_status` shows it.
-    ///
-    /// # Errors
-    /// A damaged document.
-    fn status(&self, row: &SessionRow) -> anyhow::Result<super::status::SessionStatus>;
     /// When its session holds heaters on while waiting on the user: since when, how long.
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.
     fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()>;
+    /// A camera frame it keeps for the page (`seq`, or the newest), JPEG.
+    fn snapshot_jpeg(&self, _seq: Option<u64>) -> Option<Vec<u8>> {
+        None
+    }
     /// Runs once the daemon is connected (e.g. a follower the settings switch on).
     fn connected(&self) -> BoxFuture<'_, ()> {
         Box::pin(async {})

@@ -13,7 +13,7 @@ use crate::moonraker::Moonraker;
 
 /// `RESPOND PREFIX=klipcal MSG="…"` for one line of text.
 #[must_use]
-pub fn respond_line(msg: &str) -> String {
+pub(crate) fn respond_line(msg: &str) -> String {
     GcodeCmd::new("RESPOND")
         .word("PREFIX", gcode_cmd::RESPOND_PREFIX)
         .text_lossy("MSG", msg)
@@ -23,7 +23,7 @@ pub fn respond_line(msg: &str) -> String {
 
 /// `RESPOND TYPE=error MSG="klipcal: …"` for one line of an error.
 #[must_use]
-pub fn error_line(msg: &str) -> String {
+pub(crate) fn error_line(msg: &str) -> String {
     GcodeCmd::new("RESPOND")
         .word("TYPE", "error")
         .text_lossy("MSG", &format!("klipcal: {msg}"))
@@ -33,7 +33,7 @@ pub fn error_line(msg: &str) -> String {
 
 /// The console script for a message: one RESPOND per line (Klipper's RESPOND is one line).
 #[must_use]
-pub fn answer_script(msg: &str, is_error: bool) -> String {
+pub(crate) fn answer_script(msg: &str, is_error: bool) -> String {
     msg.lines()
         .filter(|l| !l.trim().is_empty())
         .map(|l| {
@@ -48,7 +48,7 @@ pub fn answer_script(msg: &str, is_error: bool) -> String {
 }
 
 /// The prompt action that closes any open dialog.
-pub const PROMPT_END: &str = "RESPOND TYPE=command MSG=action:prompt_end";
+pub(crate) const PROMPT_END: &str = "RESPOND TYPE=command MSG=action:prompt_end";
 
 /// A prompt button: label, the G-code it runs, its colour (`primary`, `secondary`, `info`,
 /// `warning`, `error`).
@@ -65,7 +65,7 @@ pub struct Button {
 impl Button {
     /// A button.
     #[must_use]
-    pub fn new(label: &str, gcode: &str, style: &str) -> Self {
+    pub(crate) fn new(label: &str, gcode: &str, style: &str) -> Self {
         Self {
             label: label.into(),
             gcode: gcode.into(),
@@ -77,7 +77,7 @@ impl Button {
     /// klipcal.cfg, shows "end the session?" with Yes → `KLIPCAL_CANCEL` and Back →
     /// `_KLIPCAL_PROMPT_BACK`), so one tap beside the other buttons ends nothing.
     #[must_use]
-    pub fn cancel_asking() -> Self {
+    pub(crate) fn cancel_asking() -> Self {
         Self::new("Cancel session…", "_KLIPCAL_CANCEL_ASK", "error")
     }
 }
@@ -98,7 +98,7 @@ pub struct Prompt {
 impl Prompt {
     /// The G-code script that shows the dialog (closing any dialog open before).
     #[must_use]
-    pub fn script(&self) -> String {
+    pub(crate) fn script(&self) -> String {
         let mut actions = vec![format!("prompt_begin {}", self.title)];
         actions.extend(self.lines.iter().map(|l| format!("prompt_text {l}")));
         for b in &self.buttons {
@@ -123,7 +123,7 @@ impl Prompt {
 /// ✕, a tap outside it in Fluidd; both send `action:prompt_end`): what still waits and how to
 /// answer without the dialog (issue 26 A.1: a closed decision is never lost).
 #[must_use]
-pub fn closed_notice(p: &Prompt) -> String {
+pub(crate) fn closed_notice(p: &Prompt) -> String {
     let title = p.title.strip_prefix("klipcal: ").unwrap_or(&p.title);
     let answers: Vec<String> = p
         .buttons
@@ -150,7 +150,7 @@ pub fn closed_notice(p: &Prompt) -> String {
 
 /// A change to klipcal's dialog.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum PromptChange {
+pub(crate) enum PromptChange {
     /// Show this dialog script (it begins a new dialog, replacing any open one).
     Show(String),
     /// Close the dialog.
@@ -160,7 +160,7 @@ pub enum PromptChange {
 impl PromptChange {
     /// The console script that makes the change.
     #[must_use]
-    pub fn script(&self) -> String {
+    pub(crate) fn script(&self) -> String {
         match self {
             Self::Show(s) => s.clone(),
             Self::End => PROMPT_END.to_string(),
@@ -176,7 +176,7 @@ tokio::task_local! {
 /// first and the dialog after it, in one script (Mainsail and Fluidd show every script klipcal
 /// sends as a command line after a reload). Only the last change survives: it is the dialog's
 /// state when the call ends (a `prompt_begin` replaces whatever was open).
-pub async fn holding_prompts<F: Future>(f: F) -> (F::Output, Option<PromptChange>) {
+pub(crate) async fn holding_prompts<F: Future>(f: F) -> (F::Output, Option<PromptChange>) {
     HELD.scope(RefCell::new(None), async move {
         let out = f.await;
         let change = HELD.with(|h| h.borrow_mut().take());
@@ -187,18 +187,18 @@ pub async fn holding_prompts<F: Future>(f: F) -> (F::Output, Option<PromptChange
 
 /// Holds `change` back for the call running now; false outside a call (send it now).
 #[must_use]
-pub fn hold(change: PromptChange) -> bool {
+pub(crate) fn hold(change: PromptChange) -> bool {
     HELD.try_with(|h| *h.borrow_mut() = Some(change)).is_ok()
 }
 
 /// Drops a held change (a dialog closed at once, e.g. before a long operation).
-pub fn drop_held() {
+pub(crate) fn drop_held() {
     let _ = HELD.try_with(|h| h.borrow_mut().take());
 }
 
 /// An answer's lines, then the dialog change, as one console script.
 #[must_use]
-pub fn answer_then_prompt(answer: &str, change: Option<&PromptChange>) -> String {
+pub(crate) fn answer_then_prompt(answer: &str, change: Option<&PromptChange>) -> String {
     [
         answer.to_string(),
         change.map(PromptChange::script).unwrap_or_default(),
@@ -211,17 +211,17 @@ pub fn answer_then_prompt(answer: &str, change: Option<&PromptChange>) -> String
 
 /// Sends a console script (answers, dialog changes); a failure is logged, not raised: the
 /// console is a courtesy, the session goes on.
-pub async fn send_script(m: &Moonraker, script: &str) {
+pub(crate) async fn send_script(m: &Moonraker, script: &str) {
     send(m, script, "console script not shown").await;
 }
 
 /// Says `msg` on the console.
-pub async fn say(m: &Moonraker, msg: &str) {
+pub(crate) async fn say(m: &Moonraker, msg: &str) {
     send(m, &answer_script(msg, false), "console message not shown").await;
 }
 
 /// Says `msg` on the console as an error.
-pub async fn error(m: &Moonraker, msg: &str) {
+pub(crate) async fn error(m: &Moonraker, msg: &str) {
     send(m, &answer_script(msg, true), "console error not shown").await;
 }
 

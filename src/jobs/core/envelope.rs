@@ -70,7 +70,7 @@ pub struct Envelope<S, B> {
 
 impl<S: SessionState, B> Envelope<S, B> {
     /// A new session (id 0 until the store gives it one).
-    pub fn new(state: S, progress: impl Into<String>, body: B) -> Self {
+    pub(crate) fn new(state: S, progress: impl Into<String>, body: B) -> Self {
         Self {
             id: 0,
             state,
@@ -82,13 +82,13 @@ impl<S: SessionState, B> Envelope<S, B> {
     }
 
     /// Moves to `state`, saying what happens now.
-    pub fn set(&mut self, state: S, progress: impl Into<String>) {
+    pub(crate) fn set(&mut self, state: S, progress: impl Into<String>) {
         self.state = state;
         self.progress = progress.into();
     }
 
     /// Ends the session in `state` (final) with `reason`.
-    pub fn end(&mut self, state: S, reason: &str, progress: impl Into<String>) {
+    pub(crate) fn end(&mut self, state: S, reason: &str, progress: impl Into<String>) {
         self.state = state;
         self.reason = Some(reason.to_string());
         self.progress = progress.into();
@@ -96,7 +96,7 @@ impl<S: SessionState, B> Envelope<S, B> {
 
     /// The status's common part.
     #[must_use]
-    pub fn head(&self) -> StatusHead {
+    pub(crate) fn head(&self) -> StatusHead {
         StatusHead {
             id: self.id,
             state: self.state.name(),
@@ -146,7 +146,12 @@ impl Core {
     ///
     /// # Errors
     /// No such session, a damaged document, or a store failure.
-    pub async fn set_state<S, B>(&self, id: i64, state: S, progress: &str) -> anyhow::Result<()>
+    pub(crate) async fn set_state<S, B>(
+        &self,
+        id: i64,
+        state: S,
+        progress: &str,
+    ) -> anyhow::Result<()>
     where
         S: SessionState,
         B: Serialize + DeserializeOwned + Send,
@@ -163,7 +168,7 @@ impl Core {
     ///
     /// # Errors
     /// No such session, a damaged document, or a store failure.
-    pub async fn end_session<S, B>(
+    pub(crate) async fn end_session<S, B>(
         &self,
         id: i64,
         state: S,
@@ -184,8 +189,13 @@ impl Core {
     /// A session's runner failed: the heaters go off (once Moonraker is back), the session
     /// ends failed with `why` unless it ended already, the dialog closes when `close_prompt`,
     /// and the console says so (`"{title} failed: {why}; heaters off"`).
-    pub async fn fail_session<S, B>(&self, id: i64, title: &str, why: &str, close_prompt: bool)
-    where
+    pub(crate) async fn fail_session<S, B>(
+        &self,
+        id: i64,
+        title: &str,
+        why: &str,
+        close_prompt: bool,
+    ) where
         S: SessionState,
         B: Serialize + DeserializeOwned + Send,
     {
@@ -216,7 +226,7 @@ impl Core {
     ///
     /// # Errors
     /// No such session, a damaged document, or a store failure.
-    pub async fn cancel_session<S, B>(
+    pub(crate) async fn cancel_session<S, B>(
         &self,
         id: i64,
         reason: &str,

@@ -18,7 +18,7 @@ pub mod soak;
 pub mod status;
 pub mod table;
 
-pub use calibration::{Calibration, Hold};
+pub use calibration::{Calibration, Declare, Declared, Hold};
 pub use envelope::{Envelope, SessionState, StatusHead};
 pub use ops::{CoreCall, CORE_OPS};
 pub use session::Core;

@@ -110,7 +110,7 @@ impl CoreCall {
     ///
     /// # Errors
     /// Not a common method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
+    pub(crate) fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
         parse_call(CORE_OPS, method, args)
     }
 }

@@ -8,7 +8,7 @@ use std::time::Duration;
 
 use anyhow::{anyhow, bail, Context};
 use serde::{Deserialize, Serialize};
-use serde_json::json;
+use serde_json::{json, Value};
 
 use crate::klipper::{self, Config, MemFiles};
 use crate::moonraker::{Event, Files, Moonraker};
@@ -261,7 +261,7 @@ impl PrinterConfig {
     ///
     /// # Errors
     /// A path outside the `config` root.
-    pub fn rel(&self, path: &Path) -> anyhow::Result<String> {
+    pub(crate) fn rel(&self, path: &Path) -> anyhow::Result<String> {
         path.strip_prefix(&self.root)
             .map(|p| p.to_string_lossy().into_owned())
             .map_err(|_| {
@@ -407,7 +407,7 @@ pub async fn apply(
 /// One file of a config transaction: its path relative to the `config` root, its bytes
 /// before (`None` when the transaction creates it) and after.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct FileWrite {
+pub(crate) struct FileWrite {
     /// Relative to Moonraker's `config` root.
     pub rel: String,
     /// The bytes now; `None` for a file the transaction creates.
@@ -426,7 +426,7 @@ pub struct FileWrite {
 ///
 /// # Errors
 /// Moonraker failures, a refused config (after the rollback), or a failing rollback.
-pub async fn transact<F, Fut>(
+pub(crate) async fn transact<F, Fut>(
     m: &Moonraker,
     files: &Files,
     writes: &[FileWrite],
@@ -509,7 +509,10 @@ where
 async fn verify(m: &Moonraker, values: &[ValueSet]) -> anyhow::Result<()> {
     let cf = m.configfile().await?;
     for v in values {
-        let got = &cf["settings"][v.section.to_lowercase()][v.key.to_lowercase()];
+        let got = cf
+            .settings
+            .option(&v.section, &v.key)
+            .unwrap_or(&Value::Null);
         let want: Option<f64> = v.value.parse().ok();
         let ok = match (got.as_f64(), want) {
             (Some(g), Some(w)) => (g - w).abs() <= 1e-9 * w.abs().max(1.0),
@@ -528,7 +531,7 @@ async fn verify(m: &Moonraker, values: &[ValueSet]) -> anyhow::Result<()> {
 }
 
 /// A timestamp for backup folders (UTC, `YYYYMMDD-HHMMSS`), from the Unix time.
-pub fn stamp(unix_s: u64) -> String {
+pub(crate) fn stamp(unix_s: u64) -> String {
     let t = std::time::UNIX_EPOCH + Duration::from_secs(unix_s);
     humantime::format_rfc3339_seconds(t)
         .to_string()

@@ -29,14 +29,14 @@ use crate::store::{SessionRow, Store};
 const KLIPPY_BACK_LIMIT: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// A calibration's stored session document.
-pub trait Doc: Serialize + DeserializeOwned + Send {
+pub(crate) trait Doc: Serialize + DeserializeOwned + Send {
     /// The state's name as stored (the store's `state` column; final states end the session).
     fn state_name(&self) -> String;
 }
 
 /// Unix time now, in seconds.
 #[must_use]
-pub fn now_unix() -> f64 {
+pub(crate) fn now_unix() -> f64 {
     SystemTime::now()
         .duration_since(UNIX_EPOCH)
         .map_or(0.0, |d| d.as_secs_f64())
@@ -45,7 +45,7 @@ pub fn now_unix() -> f64 {
 /// Whether the hold limit has passed: `hold_max_s` after `since_unix` (the print's end, the
 /// capture's start, …).
 #[must_use]
-pub fn hold_expired(since_unix: Option<f64>, hold_max_s: f64, now_unix: f64) -> bool {
+pub(crate) fn hold_expired(since_unix: Option<f64>, hold_max_s: f64, now_unix: f64) -> bool {
     since_unix.is_some_and(|t| now_unix >= t + hold_max_s)
 }
 
@@ -82,7 +82,12 @@ struct Inner {
 
 impl Core {
     /// Builds the core; calibrations are registered on top of it by [`crate::jobs::Calibrations`].
-    pub fn new(m: Moonraker, files: Files, store: Store, shutdown: CancellationToken) -> Self {
+    pub(crate) fn new(
+        m: Moonraker,
+        files: Files,
+        store: Store,
+        shutdown: CancellationToken,
+    ) -> Self {
         Self {
             inner: Arc::new(Inner {
                 m,
@@ -102,17 +107,17 @@ impl Core {
     }
 
     /// Moonraker.
-    pub fn m(&self) -> &Moonraker {
+    pub(crate) fn m(&self) -> &Moonraker {
         &self.inner.m
     }
 
     /// Moonraker's file API.
-    pub fn files(&self) -> &Files {
+    pub(crate) fn files(&self) -> &Files {
         &self.inner.files
     }
 
     /// The database.
-    pub fn store(&self) -> &Store {
+    pub(crate) fn store(&self) -> &Store {
         &self.inner.store
     }
 
@@ -121,7 +126,7 @@ impl Core {
     /// Mainsail's and Fluidd's file browsers show as an image. Returns how to name it to a user
     /// (`config/klipcal/….png`, or the `.svg` when the PNG could not be made), or `None` when
     /// nothing could be saved (logged: a picture never fails a calibration).
-    pub async fn save_picture(&self, path: &str, svg: String) -> Option<String> {
+    pub(crate) async fn save_picture(&self, path: &str, svg: String) -> Option<String> {
         let png_path = path.strip_suffix(".svg").map(|stem| format!("{stem}.png"));
         let png = match &png_path {
             Some(_) => {
@@ -154,13 +159,13 @@ impl Core {
     }
 
     /// The daemon's shutdown token.
-    pub fn shutdown(&self) -> &CancellationToken {
+    pub(crate) fn shutdown(&self) -> &CancellationToken {
         &self.inner.shutdown
     }
 
     /// Starts a task shutdown waits for (see [`Core::stopped`]); it must end when the shutdown
     /// token is cancelled.
-    pub fn spawn<F>(&self, fut: F)
+    pub(crate) fn spawn<F>(&self, fut: F)
     where
         F: Future<Output = ()> + Send + 'static,
     {
@@ -169,7 +174,7 @@ impl Core {
 
     /// After shutdown: waits at most `limit` for every task the core started to end; false when
     /// some are still running then (named in the log by the caller).
-    pub async fn stopped(&self, limit: std::time::Duration) -> bool {
+    pub(crate) async fn stopped(&self, limit: std::time::Duration) -> bool {
         self.inner.tasks.close();
         tokio::time::timeout(limit, self.inner.tasks.wait())
             .await
@@ -178,34 +183,34 @@ impl Core {
 
     /// How many tasks the core has running.
     #[must_use]
-    pub fn running_tasks(&self) -> usize {
+    pub(crate) fn running_tasks(&self) -> usize {
         self.inner.tasks.len()
     }
 
     /// Notes where klipcal's page is (`http://192.168.1.23:7150/`), for the console's answers.
-    pub fn set_page(&self, address: String) {
+    pub(crate) fn set_page(&self, address: String) {
         let _ = self.inner.page.set(address);
     }
 
     /// Notes why the page is off (it could not listen), for KLIPCAL_STATUS.
-    pub fn set_page_off(&self, why: String) {
+    pub(crate) fn set_page_off(&self, why: String) {
         let _ = self.inner.page_off.set(why);
     }
 
     /// Why the page is off, when it could not start.
     #[must_use]
-    pub fn page_off(&self) -> Option<&str> {
+    pub(crate) fn page_off(&self) -> Option<&str> {
         self.inner.page_off.get().map(String::as_str)
     }
 
     /// "on klipcal's page, http://…" for the console, or `None` when the page is off.
     #[must_use]
-    pub fn page(&self) -> Option<&str> {
+    pub(crate) fn page(&self) -> Option<&str> {
         self.inner.page.get().map(String::as_str)
     }
 
     /// Names a kind for refusals ("an A/B calibration").
-    pub fn register_kind(&self, kind: &str, title: &str) {
+    pub(crate) fn register_kind(&self, kind: &str, title: &str) {
         if let Ok(mut t) = self.inner.titles.write() {
             t.insert(kind.to_string(), title.to_string());
         }
@@ -221,7 +226,7 @@ impl Core {
     }
 
     /// Takes the document lock (for a read-check-write that spans several calls).
-    pub async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
+    pub(crate) async fn lock(&self) -> tokio::sync::MutexGuard<'_, ()> {
         self.inner.lock.lock().await
     }
 
@@ -229,7 +234,7 @@ impl Core {
     ///
     /// # Errors
     /// No such session, or a document that does not read as `D`.
-    pub fn load<D: Doc>(&self, id: i64) -> anyhow::Result<D> {
+    pub(crate) fn load<D: Doc>(&self, id: i64) -> anyhow::Result<D> {
         let row = self
             .inner
             .store
@@ -242,7 +247,7 @@ impl Core {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn save<D: Doc>(&self, id: i64, doc: &D) -> anyhow::Result<()> {
+    pub(crate) fn save<D: Doc>(&self, id: i64, doc: &D) -> anyhow::Result<()> {
         self.inner
             .store
             .save_session(id, &doc.state_name(), &serde_json::to_value(doc)?)?;
@@ -253,7 +258,7 @@ impl Core {
     ///
     /// # Errors
     /// What `f` returns, or a store failure.
-    pub async fn update<D: Doc, T>(
+    pub(crate) async fn update<D: Doc, T>(
         &self,
         id: i64,
         f: impl FnOnce(&mut D) -> anyhow::Result<T>,
@@ -269,7 +274,7 @@ impl Core {
     ///
     /// # Errors
     /// A damaged database.
-    pub fn active(&self) -> anyhow::Result<Option<SessionRow>> {
+    pub(crate) fn active(&self) -> anyhow::Result<Option<SessionRow>> {
         Ok(self.inner.store.active_session()?)
     }
 
@@ -277,7 +282,7 @@ impl Core {
     ///
     /// # Errors
     /// A damaged database or document.
-    pub fn active_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
+    pub(crate) fn active_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
         match self.active()? {
             Some(row) if row.kind == kind => Ok(Some((row.id, read_doc(row)?))),
             _ => Ok(None),
@@ -288,7 +293,7 @@ impl Core {
     ///
     /// # Errors
     /// A damaged database or document.
-    pub fn latest_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
+    pub(crate) fn latest_of<D: Doc>(&self, kind: &str) -> anyhow::Result<Option<(i64, D)>> {
         match self.inner.store.latest_session_of(kind)? {
             Some(row) => Ok(Some((row.id, read_doc(row)?))),
             None => Ok(None),
@@ -299,7 +304,7 @@ impl Core {
     ///
     /// # Errors
     /// A damaged database or document.
-    pub fn latest_of_in<D: Doc>(
+    pub(crate) fn latest_of_in<D: Doc>(
         &self,
         kind: &str,
         state: &str,
@@ -314,7 +319,7 @@ impl Core {
     ///
     /// # Errors
     /// A user error naming the running session.
-    pub fn refuse_other_kind(&self, kind: &str) -> anyhow::Result<()> {
+    pub(crate) fn refuse_other_kind(&self, kind: &str) -> anyhow::Result<()> {
         match self.active()? {
             Some(row) if row.kind != kind => Err(user(format!(
                 "{} (session {}) is {}; finish it or KLIPCAL_CANCEL first",
@@ -331,7 +336,7 @@ impl Core {
     ///
     /// # Errors
     /// Another session active (named), or a store failure.
-    pub async fn create<D: Doc>(
+    pub(crate) async fn create<D: Doc>(
         &self,
         kind: &str,
         doc: &mut D,
@@ -358,7 +363,7 @@ impl Core {
 
     /// Runs a session's automatic steps in the background, replacing (cancelling) any runner
     /// still going; it stops at [`Core::stop_runner`] or shutdown.
-    pub fn spawn_runner<F>(&self, fut: F)
+    pub(crate) fn spawn_runner<F>(&self, fut: F)
     where
         F: Future<Output = ()> + Send + 'static,
     {
@@ -384,8 +389,13 @@ impl Core {
     /// ready is run again the same way once Klipper is back (a minute at most), so that the
     /// session ends with what Klipper lost rather than the refused call. Only a real failure
     /// reaches `fail`, with its message.
-    pub fn spawn_session<S, SF, F, FF>(&self, id: i64, title: &'static str, steps: S, fail: F)
-    where
+    pub(crate) fn spawn_session<S, SF, F, FF>(
+        &self,
+        id: i64,
+        title: &'static str,
+        steps: S,
+        fail: F,
+    ) where
         S: Fn() -> SF + Send + 'static,
         SF: Future<Output = anyhow::Result<()>> + Send,
         F: FnOnce(String) -> FF + Send + 'static,
@@ -447,14 +457,14 @@ impl Core {
     /// Whether `e` says Moonraker is unreachable (connection refused or lost, no reply while
     /// disconnected) rather than a real failure: the one place that tells an outage from a
     /// failure ([`crate::moonraker::Error::is_unreachable`]).
-    pub fn unreachable(&self, e: &anyhow::Error) -> bool {
+    pub(crate) fn unreachable(&self, e: &anyhow::Error) -> bool {
         e.chain()
             .filter_map(|c| c.downcast_ref::<crate::moonraker::Error>())
             .any(|me| self.inner.m.is_unreachable(me))
     }
 
     /// Why Moonraker is unreachable now (its last connect error), or `None` when connected.
-    pub fn unreachable_now(&self) -> Option<String> {
+    pub(crate) fn unreachable_now(&self) -> Option<String> {
         match self.inner.m.state() {
             crate::moonraker::ConnState::Connected { .. } => None,
             crate::moonraker::ConnState::Connecting(why) => {
@@ -466,12 +476,12 @@ impl Core {
 
     /// Waits until Moonraker is back (and Klipper ready, or a minute spent waiting for it);
     /// false at shutdown.
-    pub async fn wait_back(&self) -> bool {
+    pub(crate) async fn wait_back(&self) -> bool {
         self.inner.m.wait_back(KLIPPY_BACK_LIMIT).await
     }
 
     /// Stops the running session's automatic steps.
-    pub fn stop_runner(&self) {
+    pub(crate) fn stop_runner(&self) {
         if let Ok(mut r) = self.inner.runner.lock() {
             if let Some(t) = r.take() {
                 t.cancel();

@@ -15,7 +15,7 @@ use crate::klipper::gcode_cmd;
 
 /// What one poll saw.
 #[derive(Debug, Clone, PartialEq)]
-pub enum SoakUpdate {
+pub(crate) enum SoakUpdate {
     /// The bed is still heating towards its target.
     Heating,
     /// Heated; waiting for the power to settle. `text` is the progress in words.
@@ -46,7 +46,7 @@ pub enum SoakUpdate {
 }
 
 /// One bed soak in progress.
-pub struct BedSoak {
+pub(crate) struct BedSoak {
     detector: SoakDetector,
     start: Instant,
     target_c: f64,
@@ -64,21 +64,30 @@ pub struct BedSoak {
     /// Klipper's idle timeout must be set again to the soak's remaining time (at the first
     /// poll, and after [`BedSoak::extend`]).
     rebound: bool,
+    /// A print follows the soak (A/B): its lines offer to print now and state what that costs.
+    /// A mesh capture prints nothing and its lines say nothing of printing.
+    prints: bool,
 }
 
 /// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
 /// next look at it, and its question to the user, come well within it).
-pub const BOUND_SLACK_S: f64 = 60.0;
+pub(crate) const BOUND_SLACK_S: f64 = 60.0;
 
-/// A wait in words: minutes, or hours and minutes for a bed that needs hours.
+/// A wait in words: minutes, or hours and minutes for a bed that needs hours (where a soak
+/// before a print offers to print now, `prints`, the words say so).
 #[must_use]
-pub fn eta_words(eta_s: f64) -> String {
+pub(crate) fn eta_words(eta_s: f64, prints: bool) -> String {
     let min = (eta_s / 60.0).ceil();
     if min >= 90.0 {
         format!(
-            "{:.0} h {:.0} min (this bed needs hours: print now is offered)",
+            "{:.0} h {:.0} min{}",
             (min / 60.0).floor(),
-            min % 60.0
+            min % 60.0,
+            if prints {
+                " (this bed needs hours: print now is offered)"
+            } else {
+                ""
+            }
         )
     } else {
         format!("{min:.0} min")
@@ -145,7 +154,12 @@ impl BedSoak {
     /// Starts watching a bed heated to `target_c`; fails after `max_s` (named as the setting
     /// `max_setting` in the error).
     #[must_use]
-    pub fn new(params: SoakParams, target_c: f64, max_s: f64, max_setting: &'static str) -> Self {
+    pub(crate) fn new(
+        params: SoakParams,
+        target_c: f64,
+        max_s: f64,
+        max_setting: &'static str,
+    ) -> Self {
         Self {
             detector: SoakDetector::new(params),
             start: Instant::now(),
@@ -159,7 +173,16 @@ impl BedSoak {
             last_console_s: f64::NEG_INFINITY,
             primed: false,
             rebound: true,
+            prints: true,
         }
+    }
+
+    /// A soak no print follows (a mesh capture): its console lines and progress neither offer
+    /// to print now nor state what printing now would cost (issue 26 B.7).
+    #[must_use]
+    pub fn before_no_print(mut self) -> Self {
+        self.prints = false;
+        self
     }
 
     /// Once per soak, before the first live sample: the bed's `max_power` from Klipper's
@@ -169,7 +192,7 @@ impl BedSoak {
     async fn prime(&mut self, core: &Core) -> usize {
         self.primed = true;
         if let Ok(cf) = core.m().configfile().await {
-            if let Some(p) = cf["settings"]["heater_bed"]["max_power"].as_f64() {
+            if let Some(p) = cf.settings.heater_bed.and_then(|h| h.max_power) {
                 self.detector.set_max_power(p);
             }
         }
@@ -225,7 +248,7 @@ impl BedSoak {
     }
 
     /// Allows `extra_s` more from now (the user chose to wait).
-    pub fn extend(&mut self, extra_s: f64) {
+    pub(crate) fn extend(&mut self, extra_s: f64) {
         self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
         self.rebound = true;
     }
@@ -236,9 +259,24 @@ impl BedSoak {
     ///
     /// # Errors
     /// Moonraker failures.
-    pub async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
+    pub(crate) async fn heat(core: &Core, target_c: f64, bound_s: f64) -> anyhow::Result<()> {
         if target_c > 0.0 {
             core.hold_heaters_for(bound_s).await?;
+        }
+        // A bed already at this target (heated again after an apply so that the next round
+        // starts warm, or an unheated bed left off) is not sent its target a second time: the
+        // console showed SET_HEATER_TEMPERATURE twice (issue 26 B.7).
+        if let Ok(v) = core
+            .m()
+            .objects_query(json!({"heater_bed": ["target"]}))
+            .await
+        {
+            match v["heater_bed"]["target"].as_f64() {
+                Some(now) if (now - target_c).abs() < 0.05 => return Ok(()),
+                // No heated bed (BED=0 on a printer without one): nothing to set.
+                None if target_c <= 0.0 => return Ok(()),
+                _ => {}
+            }
         }
         core.m()
             .gcode(&gcode_cmd::set_heater_temperature("heater_bed", target_c)?)
@@ -250,7 +288,7 @@ impl BedSoak {
     ///
     /// # Errors
     /// The soak took longer than allowed (a user error naming the setting), or Moonraker failed.
-    pub async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
+    pub(crate) async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
         if !self.primed {
             let n = self.prime(core).await;
             if n > 0 {
@@ -329,10 +367,15 @@ impl BedSoak {
                     self.soaking_since_s = Some(t_s);
                     core.console(&format!(
                         "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}); KLIPCAL_SOAK_CHOICE CHOICE=print prints now",
+                         warm by at most {} ({}){}",
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
-                        self.detector.coupling().why
+                        self.detector.coupling().why,
+                        if self.prints {
+                            "; KLIPCAL_SOAK_CHOICE CHOICE=print prints now"
+                        } else {
+                            ""
+                        }
                     ))
                     .await;
                     self.last_console_s = t_s;
@@ -351,7 +394,7 @@ impl BedSoak {
                     Eta::Left(eta) => {
                         format!(
                             "bed soaking: {done:.0} % done, about {} left",
-                            eta_words(eta)
+                            eta_words(eta, self.prints)
                         )
                     }
                     Eta::Confirming => format!(
@@ -360,9 +403,14 @@ impl BedSoak {
                     ),
                     Eta::BeyondLimit(left) => format!(
                         "bed soaking: {done:.0} % done; it may not settle within {} ({} of it \
-                         left): you will be asked then whether to print or wait",
+                         left): {}",
                         self.max_setting,
-                        eta_words(left)
+                        eta_words(left, self.prints),
+                        if self.prints {
+                            "you will be asked then whether to print or wait"
+                        } else {
+                            "the capture stops then"
+                        }
                     ),
                     Eta::Unknown => format!(
                         "bed soaking: {done:.0} % done, waiting for the bed power to settle"
@@ -372,7 +420,7 @@ impl BedSoak {
                     self.last_print_now_c = print_now_c;
                 }
                 let print_now_c = self.last_print_now_c;
-                if let Some(c) = print_now_c {
+                if let Some(c) = print_now_c.filter(|_| self.prints) {
                     text.push_str(&format!(
                         "; printing now costs up to {} of surface warming (95 %)",
                         kelvin_words(c)
@@ -399,7 +447,7 @@ impl BedSoak {
 ///
 /// # Errors
 /// Moonraker unreachable, no heater_bed, or nothing to plot (the message says which).
-pub async fn soak_picture(
+pub(crate) async fn soak_picture(
     m: &crate::moonraker::Moonraker,
     params: &SoakParams,
 ) -> Result<String, String> {
@@ -416,7 +464,11 @@ pub async fn soak_picture(
 }
 
 /// Saves [`soak_picture`] under the config root; returns its name for the user.
-pub async fn save_soak_picture(core: &Core, params: &SoakParams, path: &str) -> Option<String> {
+pub(crate) async fn save_soak_picture(
+    core: &Core,
+    params: &SoakParams,
+    path: &str,
+) -> Option<String> {
     let svg = soak_picture(core.m(), params).await.ok()?;
     core.save_picture(path, svg).await
 }

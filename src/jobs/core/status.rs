@@ -23,6 +23,10 @@ pub struct SessionStatus {
     /// sit beside the head's).
     #[serde(flatten)]
     pub body: BTreeMap<String, Value>,
+    /// Lines the console's status shows under the session (the A/B readings still missing);
+    /// not in the JSON, where the body has them under its own name.
+    #[serde(skip)]
+    pub console_lines: Vec<String>,
 }
 
 impl SessionStatus {
@@ -31,7 +35,7 @@ impl SessionStatus {
     ///
     /// # Errors
     /// `body` does not serialize to a JSON object.
-    pub fn new(kind: &str, head: StatusHead, body: &impl Serialize) -> anyhow::Result<Self> {
+    pub(crate) fn new(kind: &str, head: StatusHead, body: &impl Serialize) -> anyhow::Result<Self> {
         let body = match serde_json::to_value(body)? {
             Value::Object(o) => o.into_iter().collect(),
             other => anyhow::bail!("a {kind} status is not an object: {other}"),
@@ -40,7 +44,15 @@ impl SessionStatus {
             kind: kind.to_string(),
             head,
             body,
+            console_lines: Vec::new(),
         })
+    }
+
+    /// With `lines` shown under the session on the console.
+    #[must_use]
+    pub(crate) fn with_console_lines(mut self, lines: Vec<String>) -> Self {
+        self.console_lines = lines;
+        self
     }
 
     /// A session whose kind no calibration knows: what the store says of it.
@@ -56,13 +68,14 @@ impl SessionStatus {
                 notes: Vec::new(),
             },
             body: BTreeMap::new(),
+            console_lines: Vec::new(),
         }
     }
 }
 
 /// The sessions part of the status.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct SessionsStatus {
+pub(crate) struct SessionsStatus {
     /// The active session of any kind, or else the newest one.
     pub session: Option<SessionStatus>,
     /// Per kind, its newest session, final or not.

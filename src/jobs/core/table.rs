@@ -66,7 +66,7 @@ pub enum MacroBody {
 }
 
 /// The plain remote call.
-pub const REMOTE: MacroBody = MacroBody::Remote {
+pub(crate) const REMOTE: MacroBody = MacroBody::Remote {
     before: &[],
     after: &[],
 };
@@ -95,7 +95,7 @@ pub struct OpSpec {
 impl OpSpec {
     /// An operation with a remote method, a macro and an HTTP path, every argument passed on.
     #[must_use]
-    pub const fn remote(
+    pub(crate) const fn remote(
         method: &'static str,
         macro_name: &'static str,
         http: &'static str,
@@ -116,7 +116,7 @@ impl OpSpec {
 
     /// The argument named `name`.
     #[must_use]
-    pub fn arg(&self, name: &str) -> Option<&'static ArgSpec> {
+    pub(crate) fn arg(&self, name: &str) -> Option<&'static ArgSpec> {
         self.args.iter().find(|a| a.name == name)
     }
 }
@@ -134,7 +134,11 @@ pub struct Op<C: 'static> {
 ///
 /// # Errors
 /// Not one of `ops`, an unknown or twice-given argument, or a bad value, each named.
-pub fn parse_call<C>(ops: &'static [Op<C>], method: &str, args: &Value) -> anyhow::Result<C> {
+pub(crate) fn parse_call<C>(
+    ops: &'static [Op<C>],
+    method: &str,
+    args: &Value,
+) -> anyhow::Result<C> {
     let op = ops
         .iter()
         .find(|o| o.spec.method == Some(method))
@@ -143,7 +147,7 @@ pub fn parse_call<C>(ops: &'static [Op<C>], method: &str, args: &Value) -> anyho
 }
 
 /// The declarations of `ops`.
-pub fn specs<C>(ops: &'static [Op<C>]) -> impl Iterator<Item = &'static OpSpec> {
+pub(crate) fn specs<C>(ops: &'static [Op<C>]) -> impl Iterator<Item = &'static OpSpec> {
     ops.iter().map(|o| &o.spec)
 }
 
@@ -162,7 +166,7 @@ impl Args {
     ///
     /// # Errors
     /// Not an object, an unknown argument, or one given twice.
-    pub fn parse(args: &Value, spec: &'static OpSpec) -> anyhow::Result<Self> {
+    pub(crate) fn parse(args: &Value, spec: &'static OpSpec) -> anyhow::Result<Self> {
         let command = spec.macro_name;
         let obj = match args {
             Value::Null => &serde_json::Map::new(),
@@ -219,7 +223,7 @@ impl Args {
 
     /// The raw value, when given and not empty.
     #[must_use]
-    pub fn raw(&self, key: &str) -> Option<&Value> {
+    pub(crate) fn raw(&self, key: &str) -> Option<&Value> {
         match self.map.get(key) {
             None | Some(Value::Null) => None,
             Some(Value::String(s)) if s.trim().is_empty() => None,
@@ -231,7 +235,7 @@ impl Args {
     ///
     /// # Errors
     /// Not a finite number (named with an example), or out of range (with what is expected).
-    pub fn num(&self, key: &str) -> anyhow::Result<Option<f64>> {
+    pub(crate) fn num(&self, key: &str) -> anyhow::Result<Option<f64>> {
         let a = self.spec_of(key);
         let name = key.to_uppercase();
         let bad = |shown: &str| {
@@ -263,7 +267,7 @@ impl Args {
     ///
     /// # Errors
     /// Not a whole number, or out of range.
-    pub fn int(&self, key: &str) -> anyhow::Result<Option<i64>> {
+    pub(crate) fn int(&self, key: &str) -> anyhow::Result<Option<i64>> {
         let a = self.spec_of(key);
         let name = key.to_uppercase();
         let v = match self.num(key)? {
@@ -286,7 +290,7 @@ impl Args {
 
     /// A word or text, trimmed, when given.
     #[must_use]
-    pub fn text(&self, key: &str) -> Option<String> {
+    pub(crate) fn text(&self, key: &str) -> Option<String> {
         match self.raw(key)? {
             Value::String(s) => Some(s.trim().to_string()),
             Value::Number(n) => Some(n.to_string()),
@@ -299,7 +303,7 @@ impl Args {
     ///
     /// # Errors
     /// Any other value.
-    pub fn flag(&self, key: &str) -> anyhow::Result<bool> {
+    pub(crate) fn flag(&self, key: &str) -> anyhow::Result<bool> {
         match self.raw(key) {
             None => Ok(false),
             Some(Value::Bool(b)) => Ok(*b),
@@ -321,7 +325,7 @@ impl Args {
     ///
     /// # Errors
     /// Anything else, with what is expected.
-    pub fn choice(&self, key: &str) -> anyhow::Result<Option<&'static str>> {
+    pub(crate) fn choice(&self, key: &str) -> anyhow::Result<Option<&'static str>> {
         let a = self.spec_of(key);
         let ArgKind::Choice(choices) = a.kind else {
             return Ok(None);
@@ -339,7 +343,7 @@ impl Args {
     /// Readings as typed: a JSON list gives one field each, a text its items
     /// ([`crate::calib::entry::items`]).
     #[must_use]
-    pub fn fields(&self, key: &str) -> Option<Fields> {
+    pub(crate) fn fields(&self, key: &str) -> Option<Fields> {
         match self.raw(key)? {
             Value::Array(list) => Some(Fields::List(
                 list.iter()
@@ -357,7 +361,7 @@ impl Args {
 
 /// Readings as they arrived.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Fields {
+pub(crate) enum Fields {
     /// One reading per field (the page's form, a JSON list).
     List(Vec<String>),
     /// One text of items (the console's `VALUES=`).
@@ -375,7 +379,7 @@ const UNDECLARED: ArgSpec = ArgSpec {
 
 /// An argument declaration, for the tables' brevity.
 #[must_use]
-pub const fn arg(
+pub(crate) const fn arg(
     name: &'static str,
     kind: ArgKind,
     example: &'static str,
@@ -396,7 +400,7 @@ pub const fn arg(
 /// `BED=`: a bed temperature from 0 (unheated) to 130 °C; `help` names the calibration's
 /// own default.
 #[must_use]
-pub const fn bed_arg(help: &'static str) -> ArgSpec {
+pub(crate) const fn bed_arg(help: &'static str) -> ArgSpec {
     arg(
         "bed",
         ArgKind::Number {
@@ -411,14 +415,14 @@ pub const fn bed_arg(help: &'static str) -> ArgSpec {
 }
 
 /// The line every remote macro says first: if nothing follows, the service is not running.
-pub const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
+pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
 
 /// `config/klipcal.cfg` for `ops`: one `[gcode_macro]` per operation, one
 /// `{% set … = params.X|default(…) %}` statement per argument (how Mainsail and Fluidd find a
 /// macro's fields), then the remote call with every parameter (klipcal refuses unknown ones
 /// by name) or the macro's own G-code (which refuses unknown parameters itself).
 #[must_use]
-pub fn macros_cfg(ops: &[&OpSpec]) -> String {
+pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
     let mut out = String::from(HEADER);
     for op in ops {
         out.push('\n');
@@ -494,7 +498,7 @@ pub fn macros_cfg(ops: &[&OpSpec]) -> String {
 
 /// How an argument is described in the README and the page: `60 (0–130)`, `paper\|full`.
 #[must_use]
-pub fn arg_form(a: &ArgSpec) -> String {
+pub(crate) fn arg_form(a: &ArgSpec) -> String {
     let what = match a.kind {
         ArgKind::Number { min, max } => format!("number {min}..{max}"),
         ArgKind::Whole { min, max } => format!("whole number {min}..{max}"),
@@ -514,7 +518,7 @@ pub fn arg_form(a: &ArgSpec) -> String {
 /// `<!-- /operations -->`; a test keeps the two the same): macro, remote method, HTTP path,
 /// arguments, what it does.
 #[must_use]
-pub fn markdown(ops: &[&OpSpec]) -> String {
+pub(crate) fn markdown(ops: &[&OpSpec]) -> String {
     let cell = |t: &str| t.replace('|', "\\|");
     let mut out = String::from(
         "| macro | remote method | HTTP (`POST /api/…`) | arguments | what it does |\n|---|---|---|---|---|\n",

@@ -41,13 +41,31 @@ impl Mesh {
         );
         let id = self.core.create(KIND, &mut doc, |d, id| d.id = id).await?;
         self.spawn_runner(id);
-        let msg = format!(
-            "thermal mesh capture started (session {id}): the bed heats to {} °C, then a mesh is \
-             taken each time the frame moves {} °C or every {:.0} min until it settles",
-            doc.options.bed_temp_c,
-            doc.options.step_c,
-            doc.options.interval_s / 60.0
+        let o = &doc.options;
+        let every = format!(
+            "a mesh is taken each time the frame moves {} °C or every {:.0} min until it settles",
+            o.step_c,
+            o.interval_s / 60.0
         );
+        let msg = if o.bed_temp_c > 0.0 {
+            format!(
+                "thermal mesh capture started (session {id}): the bed heats to {} °C, then {every}",
+                o.bed_temp_c
+            )
+        } else {
+            // Issue 26 A.7: with nothing heated the frame stays where it is, and the fit needs
+            // meshes at different frame temperatures; said now, not after the meshes are taken.
+            format!(
+                "thermal mesh capture started (session {id}) with BED=0: klipcal heats nothing, \
+                 so the frame does not warm unless something else heats it (a chamber heater). \
+                 Without that every mesh is taken at the same frame temperature and the capture \
+                 fails after {} meshes: it needs {} °C between the coldest and the \
+                 hottest. To warm the frame, KLIPCAL_CANCEL and KLIPCAL_MESH_CAPTURE BED=<°C>. \
+                 Otherwise {every}",
+                o.min_meshes,
+                cm::MIN_SPAN_C
+            )
+        };
         Ok(json!({"session": id, "state": "preflight", "message": msg}))
     }
 
@@ -148,7 +166,8 @@ impl Mesh {
                 s.options.bed_temp_c,
                 s.options.soak_max_s,
                 "mesh.soak_max_s",
-            );
+            )
+            .before_no_print();
             loop {
                 match soak.poll(&self.core, "thermal mesh").await? {
                     SoakUpdate::Stable { .. } => break,

@@ -78,13 +78,10 @@ impl Mesh {
             }
         };
         let cf = self.core.m().configfile().await?;
-        let probe = probe_settings(&cf["settings"]);
-        let (ox, oy) = (
-            probe["x_offset"].as_f64().unwrap_or(0.0),
-            probe["y_offset"].as_f64().unwrap_or(0.0),
-        );
+        let probe = cf.settings.probe.unwrap_or_default();
+        let (ox, oy) = (probe.x_offset, probe.y_offset);
         // bed_mesh stores each point as the probe's result less its z_offset: the same here.
-        let z_offset = probe["z_offset"].as_f64().unwrap_or(0.0);
+        let z_offset = probe.z_offset;
         let mut worst: (f64, String) = (0.0, String::new());
         let mut rows = Vec::new();
         for (ix, iy) in nodes {

@@ -33,7 +33,7 @@ impl Mesh {
         if let Some(t) = t {
             t.cancel();
             if let Ok(mut st) = self.follow_status.lock() {
-                *st = json!({"following": false, "stopped": why});
+                *st = FollowStatus::stopped(why);
             }
             self.core
                 .console(&format!("{TITLE}: following stopped ({why})"))
@@ -81,9 +81,8 @@ impl Mesh {
             ));
         }
         let cf = self.core.m().configfile().await?;
-        let bm = &cf["settings"]["bed_mesh"];
-        let fade_end = bm["fade_end"].as_f64().unwrap_or(0.0);
-        let fade_start = bm["fade_start"].as_f64().unwrap_or(1.0);
+        let bm = cf.settings.bed_mesh.unwrap_or_default();
+        let (fade_start, fade_end) = (bm.fade_start, bm.fade_end);
         if fade_end > fade_start {
             return Err(user(format!(
                 "[bed_mesh] fades the mesh out from {fade_start} to {fade_end} mm: a profile loaded mid-print \
@@ -179,11 +178,22 @@ impl Mesh {
                 Ok(temp) => {
                     let d = f.push(t, temp, busy);
                     if let Ok(mut st) = self.follow_status.lock() {
-                        *st = json!({"following": true, "frame_c": temp,
-                            "trend": f.trend(),
-                            "loaded": f.loaded().map(|(p, t)| direction_profile_name(p, t)),
-                            "offset_mm": [offset_mm.0, offset_mm.1],
-                            "residual_um": match &d { Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => Some(*residual_um), _ => None }});
+                        let residual_um = match &d {
+                            Decision::Keep { residual_um, .. }
+                            | Decision::Load { residual_um, .. } => Some(*residual_um),
+                            _ => None,
+                        };
+                        *st = FollowStatus {
+                            following: true,
+                            stopped: None,
+                            reading: Some(FollowReading {
+                                frame_c: temp,
+                                trend: f.trend(),
+                                loaded: f.loaded().map(|(p, t)| direction_profile_name(p, t)),
+                                offset_mm: [offset_mm.0, offset_mm.1],
+                                residual_um,
+                            }),
+                        };
                     }
                     d
                 }
@@ -266,7 +276,7 @@ impl Mesh {
                 Decision::Stopped { reason } => {
                     self.core.console_error(&format!("{TITLE}: {reason}")).await;
                     if let Ok(mut st) = self.follow_status.lock() {
-                        *st = json!({"following": false, "stopped": reason});
+                        *st = FollowStatus::stopped(&reason);
                     }
                     if let Ok(mut fl) = self.follow.lock() {
                         fl.take();

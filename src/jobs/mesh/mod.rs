@@ -36,14 +36,14 @@ use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
-use crate::jobs::core::{Calibration, Envelope, Hold, SessionState};
+use crate::jobs::core::table::{arg, ArgKind, MacroBody, Op, OpSpec};
+use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
 
 /// The thermal mesh's operations, each declared once (see [`crate::jobs::core::table`]).
-pub static OPS: &[Op<MeshCall>] = &[
+pub(crate) static OPS: &[Op<MeshCall>] = &[
     Op {
         spec: OpSpec::remote(
             "klipcal_mesh_capture",
@@ -169,7 +169,7 @@ pub static OPS: &[Op<MeshCall>] = &[
 
 /// A thermal mesh call, typed at the boundary.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub enum MeshCall {
+pub(crate) enum MeshCall {
     /// `klipcal_mesh_capture`, with the bed temperature when given.
     Capture {
         /// °C (0: unheated).
@@ -186,23 +186,13 @@ pub enum MeshCall {
     Check,
 }
 
-impl MeshCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    pub fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(OPS, method, args)
-    }
-}
-
 /// The store's kind.
-pub const KIND: &str = "mesh";
+pub(crate) const KIND: &str = "mesh";
 
 /// klipcal.cfg's macro that keeps the user's `BED_MESH_OFFSET` (in its variables `x`, `y`) so
 /// the follower can set it again after each load: Klipper's status does not show the offset,
 /// and `BED_MESH_PROFILE LOAD=` drops it.
-pub const OFFSET_MACRO: &str = "KLIPCAL_MESH_OFFSET";
+pub(crate) const OFFSET_MACRO: &str = "KLIPCAL_MESH_OFFSET";
 
 const TITLE: &str = "thermal mesh";
 
@@ -304,7 +294,7 @@ pub struct CoolingDoc {
 }
 
 /// The session document: the envelope around [`MeshBody`].
-pub type Session = Envelope<State, MeshBody>;
+pub(crate) type Session = Envelope<State, MeshBody>;
 
 /// The thermal mesh session's own part of its document.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -336,7 +326,7 @@ pub struct MeshBody {
 /// The profile klipcal's BED_MESH_CALIBRATE stores each capture mesh under: never the
 /// user's `default` (a SAVE_CONFIG during the capture would write a capture mesh over it),
 /// and a `klipcal_` name, so the next profile write removes it should it reach printer.cfg.
-pub const CAPTURE_PROFILE: &str = "klipcal_capture";
+pub(crate) const CAPTURE_PROFILE: &str = "klipcal_capture";
 
 /// The mesh parameters of a profile in Klipper's `bed_mesh` status (`mesh_params`).
 fn params_from_status(p: &Value) -> Option<MeshParams> {
@@ -345,24 +335,24 @@ fn params_from_status(p: &Value) -> Option<MeshParams> {
 
 /// The thermal mesh over the shared core.
 #[derive(Clone)]
-pub struct Mesh {
+pub(crate) struct Mesh {
     core: Core,
     settings: MeshConfig,
     soak: SoakParams,
     follow: Arc<Mutex<Option<CancellationToken>>>,
-    follow_status: Arc<Mutex<Value>>,
+    follow_status: Arc<Mutex<FollowStatus>>,
 }
 
 impl Mesh {
     /// The calibration over `core`.
     #[must_use]
-    pub fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
+    pub(crate) fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
         Self {
             core,
             settings,
             soak,
             follow: Arc::new(Mutex::new(None)),
-            follow_status: Arc::new(Mutex::new(json!({"following": false}))),
+            follow_status: Arc::new(Mutex::new(FollowStatus::default())),
         }
     }
 
@@ -413,58 +403,61 @@ impl Mesh {
             )
             .await
     }
-
-    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
-        let follow = self
-            .follow_status
-            .lock()
-            .map(|v| v.clone())
-            .unwrap_or(Value::Null);
-        let body = MeshStatus {
-            meshes: s.captures.len(),
-            frame_c: s
-                .captures
-                .iter()
-                .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64)
-                .collect(),
-            result: s.result.clone(),
-            follow,
-        };
-        SessionStatus::new(KIND, s.head(), &body)
-    }
 }
 
 /// A thermal mesh session's own part of its status.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
-pub struct MeshStatus {
+pub(crate) struct MeshStatus {
     /// Meshes taken.
     pub meshes: usize,
     /// Each mesh's mean frame temperature, °C.
     pub frame_c: Vec<f64>,
     /// The fit and the profiles written, once written.
     pub result: Option<ResultDoc>,
-    /// The follower: `{"following": false}`, or while following its frame temperature, trend,
-    /// loaded profile, offset and residual; `{"following": false, "stopped": why}` once stopped.
-    pub follow: Value,
+    /// The follower.
+    pub follow: FollowStatus,
 }
 
-/// The probe's section in Klipper's settings: `[probe]`, `[bltouch]`, `[smart_effector]`, an
-/// eddy probe or another module's `[… probe]` — the first with a `z_offset`.
-fn probe_settings(settings: &Value) -> Value {
-    let Some(map) = settings.as_object() else {
-        return Value::Null;
-    };
-    let is_probe = |name: &str| {
-        name == "probe"
-            || name == "bltouch"
-            || name == "smart_effector"
-            || name.starts_with("probe_eddy_current")
-            || name.ends_with(" probe")
-    };
-    map.iter()
-        .find(|(k, v)| is_probe(k) && v.get("z_offset").is_some())
-        .map(|(_, v)| v.clone())
-        .unwrap_or(Value::Null)
+/// The follower's status: `{"following": false}`, or while following its frame temperature,
+/// trend, loaded profile, offset and residual; `{"following": false, "stopped": why}` once
+/// stopped.
+#[derive(Debug, Clone, PartialEq, Serialize, Default)]
+pub(crate) struct FollowStatus {
+    /// Whether the follower runs.
+    pub following: bool,
+    /// Why it stopped, once stopped.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stopped: Option<String>,
+    /// Its last reading, while following.
+    #[serde(flatten)]
+    pub reading: Option<FollowReading>,
+}
+
+impl FollowStatus {
+    /// Stopped, and why.
+    pub(crate) fn stopped(why: &str) -> Self {
+        Self {
+            following: false,
+            stopped: Some(why.to_string()),
+            reading: None,
+        }
+    }
+}
+
+/// The follower's last reading and what it did with it.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub(crate) struct FollowReading {
+    /// The frame temperature, °C.
+    pub frame_c: f64,
+    /// Whether the frame warms or cools.
+    pub trend: Phase,
+    /// The profile loaded, once one is.
+    pub loaded: Option<String>,
+    /// The offset set again after each load (`KLIPCAL_MESH_OFFSET`), mm.
+    pub offset_mm: [f64; 2],
+    /// How far the loaded profile is from the model at this temperature, µm (none when the
+    /// reading was not used).
+    pub residual_um: Option<f64>,
 }
 
 /// Klipper's own words in a refused G-code (Moonraker's message without the wrapping).
@@ -477,14 +470,14 @@ fn klipper_message(e: &crate::moonraker::Error) -> String {
 
 /// `klipcal_<T>` with T to 0.01 °C.
 #[must_use]
-pub fn profile_name(temp_c: f64) -> String {
+pub(crate) fn profile_name(temp_c: f64) -> String {
     format!("{}{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX)
 }
 
 /// The profile of a direction: `klipcal_<T>` while heating (or for one model in every
 /// direction), `klipcal_cool_<T>` for the cooling model kept apart.
 #[must_use]
-pub fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
+pub(crate) fn direction_profile_name(phase: Phase, temp_c: f64) -> String {
     match phase {
         Phase::Heating => profile_name(temp_c),
         Phase::Cooling => format!("{}cool_{temp_c:.2}", bed_mesh::KLIPCAL_PREFIX),
@@ -508,30 +501,42 @@ pub(crate) fn profiles_words(phase: Phase, temps_c: &[f64]) -> String {
     format!("{} profiles ({list})", names.len())
 }
 
+impl Declare for Mesh {
+    const KIND: &'static str = KIND;
+    const TITLE: &'static str = "a thermal mesh capture";
+    type State = State;
+    type Session = Session;
+    type Call = MeshCall;
+    const OPS: &'static [Op<MeshCall>] = OPS;
+
+    fn session_status(&self, s: &Session) -> anyhow::Result<SessionStatus> {
+        let follow = self
+            .follow_status
+            .lock()
+            .map(|v| v.clone())
+            .unwrap_or_default();
+        let body = MeshStatus {
+            meshes: s.captures.len(),
+            frame_c: s
+                .captures
+                .iter()
+                .map(|c| c.temps_c.iter().sum::<f64>() / c.temps_c.len().max(1) as f64)
+                .collect(),
+            result: s.result.clone(),
+            follow,
+        };
+        SessionStatus::new(KIND, s.head(), &body)
+    }
+}
+
 impl Calibration for Mesh {
-    fn kind(&self) -> &'static str {
-        KIND
-    }
-
-    fn final_states(&self) -> Vec<String> {
-        State::final_names()
-    }
-
-    fn title(&self) -> &'static str {
-        "a thermal mesh capture"
-    }
-
-    fn ops(&self) -> Vec<&'static OpSpec> {
-        crate::jobs::core::table::specs(OPS).collect()
-    }
-
     fn call<'a>(
         &'a self,
         method: &'a str,
         args: &'a Value,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         async move {
-            match MeshCall::parse(method, args)? {
+            match Self::parse_call(method, args)? {
                 MeshCall::Capture { bed_c } => self.capture(bed_c).await,
                 MeshCall::Import => self.import().await,
                 MeshCall::Follow { enable } => self.follow_cmd(enable).await,
@@ -560,12 +565,6 @@ impl Calibration for Mesh {
         reason: &'a str,
     ) -> BoxFuture<'a, anyhow::Result<Value>> {
         self.cancel_session(row.id, reason).boxed()
-    }
-
-    fn status(&self, row: &SessionRow) -> anyhow::Result<SessionStatus> {
-        let s: Session = serde_json::from_value(row.doc.clone())
-            .with_context(|| format!("reading stored session {}", row.id))?;
-        self.session_status(&s)
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {

@@ -8,7 +8,7 @@ impl Core {
     ///
     /// # Errors
     /// A user error saying what the printer is doing; Moonraker failures.
-    pub async fn printer_idle(&self) -> anyhow::Result<()> {
+    pub(crate) async fn printer_idle(&self) -> anyhow::Result<()> {
         let info = self.inner.m.printer_info().await?;
         if info["state"] != "ready" {
             return Err(user(format!(
@@ -32,7 +32,7 @@ impl Core {
     }
 
     /// Whether Klipper answers ready.
-    pub async fn klipper_ready(&self) -> bool {
+    pub(crate) async fn klipper_ready(&self) -> bool {
         matches!(self.inner.m.printer_info().await, Ok(i) if i["state"] == "ready")
     }
 
@@ -41,7 +41,7 @@ impl Core {
     ///
     /// # Errors
     /// Moonraker failures.
-    pub async fn heaters_off(&self) -> anyhow::Result<()> {
+    pub(crate) async fn heaters_off(&self) -> anyhow::Result<()> {
         self.inner.m.gcode("TURN_OFF_HEATERS").await?;
         self.restore_idle_timeout().await
     }
@@ -52,7 +52,7 @@ impl Core {
     ///
     /// # Errors
     /// Klipper refusing (e.g. shut down: its heaters are off anyway), or shutdown.
-    pub async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
+    pub(crate) async fn heaters_off_once_back(&self, what: &str) -> anyhow::Result<()> {
         let mut waited = false;
         let mut klipper_waited = false;
         loop {
@@ -85,7 +85,7 @@ impl Core {
 
     async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
         let cf = self.inner.m.configfile().await?;
-        if let Some(t) = cf["settings"]["idle_timeout"]["timeout"].as_f64() {
+        if let Some(t) = cf.settings.idle_timeout.and_then(|i| i.timeout) {
             self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
         }
         Ok(())
@@ -98,7 +98,7 @@ impl Core {
     ///
     /// # Errors
     /// Moonraker failures.
-    pub async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
+    pub(crate) async fn hold_heaters_for(&self, hold_s: f64) -> anyhow::Result<()> {
         let script = format!(
             "{}\nG4 P1",
             gcode_cmd::set_idle_timeout(hold_s.max(1.0).ceil())?
@@ -112,19 +112,19 @@ impl Core {
     }
 
     /// A console message.
-    pub async fn console(&self, msg: &str) {
+    pub(crate) async fn console(&self, msg: &str) {
         console::say(&self.inner.m, msg).await;
     }
 
     /// A console error (`RESPOND TYPE=error`, coloured by Mainsail and Fluidd).
-    pub async fn console_error(&self, msg: &str) {
+    pub(crate) async fn console_error(&self, msg: &str) {
         console::error(&self.inner.m, msg).await;
     }
 
     /// Opens (or replaces) the prompt dialog. Within a call it goes to the console after the
     /// call's answer; the same dialog as the one showing is not sent again (a jog press does not
     /// repeat the whole dialog on the console).
-    pub async fn prompt(&self, p: &Prompt) {
+    pub(crate) async fn prompt(&self, p: &Prompt) {
         let script = p.script();
         {
             let mut shown = self.shown();
@@ -145,7 +145,7 @@ impl Core {
 
     /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
     /// sent when klipcal's dialog is known to be closed already.
-    pub async fn prompt_end(&self) {
+    pub(crate) async fn prompt_end(&self) {
         if !self.mark_closed() {
             return;
         }
@@ -156,7 +156,7 @@ impl Core {
 
     /// Closes klipcal's dialog now, even within a call (before a long operation, so that its
     /// buttons cannot be pressed again meanwhile).
-    pub async fn prompt_end_now(&self) {
+    pub(crate) async fn prompt_end_now(&self) {
         console::drop_held();
         if self.mark_closed() {
             console::send_script(&self.inner.m, console::PROMPT_END).await;
@@ -164,7 +164,7 @@ impl Core {
     }
 
     /// Says `msg` on the console and opens a dialog, as one console script.
-    pub async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
+    pub(crate) async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
         let script = p.script();
         let fresh = {
             let mut shown = self.shown();
@@ -190,7 +190,7 @@ impl Core {
 
     /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
     /// false when klipcal has no dialog open.
-    pub async fn prompt_again(&self) -> bool {
+    pub(crate) async fn prompt_again(&self) -> bool {
         let shown = self.shown().clone();
         let script = match shown {
             Some(Some(script)) => script,
@@ -216,7 +216,7 @@ impl Core {
 
     /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
     /// close itself, so a dialog klipcal shows next is sent whole again).
-    pub fn prompt_closed_by_user(&self) {
+    pub(crate) fn prompt_closed_by_user(&self) {
         self.mark_closed();
     }
 
@@ -255,7 +255,7 @@ impl Core {
     /// console says what still waits and how to answer (issue 26 A.1). klipcal's own helpers
     /// (Close, Back) close in Klipper and call klipcal at once; a change of klipcal's dialog
     /// within a moment of the close tells them apart. Runs until shutdown.
-    pub async fn watch_closes(self) {
+    pub(crate) async fn watch_closes(self) {
         use tokio::sync::broadcast::error::RecvError;
         let mut rx = self.inner.m.events();
         loop {

@@ -1,0 +1,360 @@
+//! Moonraker's and Klipper's answers that the jobs read, typed at the client: each is parsed
+//! once, where it arrives, and a malformed one is an [`Error::Protocol`] naming what was wrong
+//! (never a panic, never a silent default). A field Klipper may leave out has its default
+//! (`#[serde(default)]`, Klipper's own default where it has one); fields klipcal does not read
+//! are ignored.
+
+use std::collections::BTreeMap;
+
+use serde::de::DeserializeOwned;
+use serde::Deserialize;
+use serde_json::{Map, Value};
+
+use super::Error;
+
+/// Klipper's `configfile` object.
+#[derive(Debug, Clone, Default)]
+pub struct ConfigFile {
+    /// `config`: every option as written in the files, section → option → text.
+    pub config: crate::klipper::RawConfig,
+    /// `settings`: the options Klipper runs with, parsed and with its defaults.
+    pub settings: Settings,
+}
+
+/// The parts of `configfile.settings` that klipcal reads.
+#[derive(Debug, Clone, Default)]
+pub struct Settings {
+    /// `[printer]`.
+    pub printer: PrinterSettings,
+    /// `[heater_bed]`, when the printer has one.
+    pub heater_bed: Option<HeaterSettings>,
+    /// `[idle_timeout]` (Klipper always loads it; absent only in an odd answer).
+    pub idle_timeout: Option<IdleTimeoutSettings>,
+    /// `[bed_mesh]`.
+    pub bed_mesh: Option<BedMeshSettings>,
+    /// `[dual_carriage]`.
+    pub dual_carriage: Option<DualCarriageSettings>,
+    /// The probe: the first section named like a probe (`[probe]`, `[bltouch]`,
+    /// `[smart_effector]`, `[probe_eddy_current …]`, `[… probe]`) that has a `z_offset`.
+    pub probe: Option<ProbeSettings>,
+    /// `[stepper_*]` sections by name.
+    pub steppers: BTreeMap<String, StepperSettings>,
+    /// PR 7157's `[backlash]`: its numeric options (mm), by option name.
+    pub backlash: Option<BTreeMap<String, f64>>,
+    /// Every section as Klipper sent it, for the config editor's check of the values it wrote
+    /// (it reads the sections and options the user's edit names).
+    sections: BTreeMap<String, Map<String, Value>>,
+}
+
+/// `[printer]`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct PrinterSettings {
+    /// `kinematics` (`cartesian`, `corexy`, …).
+    pub kinematics: String,
+    /// `max_accel`, mm/s².
+    pub max_accel: Option<f64>,
+}
+
+/// A heater's section.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct HeaterSettings {
+    /// `max_power`, 0–1.
+    pub max_power: Option<f64>,
+}
+
+/// `[idle_timeout]`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct IdleTimeoutSettings {
+    /// `timeout`, s.
+    pub timeout: Option<f64>,
+}
+
+/// `[bed_mesh]`.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(default)]
+pub struct BedMeshSettings {
+    /// `fade_start`, mm (Klipper's default 1).
+    pub fade_start: f64,
+    /// `fade_end`, mm (Klipper's default 0: no fade).
+    pub fade_end: f64,
+}
+
+impl Default for BedMeshSettings {
+    fn default() -> Self {
+        Self {
+            fade_start: 1.0,
+            fade_end: 0.0,
+        }
+    }
+}
+
+/// `[dual_carriage]`.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct DualCarriageSettings {
+    /// `axis` as written (`x` or `y`).
+    pub axis: Option<String>,
+    /// `position_endstop`, mm.
+    pub position_endstop: Option<f64>,
+}
+
+impl DualCarriageSettings {
+    /// The axis with two carriages, lower case (`x` when not said).
+    #[must_use]
+    pub(crate) fn axis(&self) -> String {
+        self.axis.as_deref().unwrap_or("x").to_ascii_lowercase()
+    }
+}
+
+/// A probe's offsets, mm (0 where not set).
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub struct ProbeSettings {
+    /// `x_offset`.
+    pub x_offset: f64,
+    /// `y_offset`.
+    pub y_offset: f64,
+    /// `z_offset`.
+    pub z_offset: f64,
+}
+
+/// A `[stepper_*]` section.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(default)]
+pub struct StepperSettings {
+    /// `position_endstop`, mm (none with a probe as the Z endstop).
+    pub position_endstop: Option<f64>,
+}
+
+/// The raw answer: sections kept whole until each known one is parsed.
+#[derive(Deserialize)]
+struct RawConfigFile {
+    #[serde(default)]
+    config: crate::klipper::RawConfig,
+    #[serde(default)]
+    settings: BTreeMap<String, Map<String, Value>>,
+}
+
+fn is_probe(name: &str) -> bool {
+    name == "probe"
+        || name == "bltouch"
+        || name == "smart_effector"
+        || name.starts_with("probe_eddy_current")
+        || name.ends_with(" probe")
+}
+
+fn bad(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Protocol(format!("Klipper's {what} is not as expected: {e}"))
+}
+
+impl ConfigFile {
+    /// Parses Klipper's `configfile` status object (`config` and `settings`).
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming the part that is malformed: not an object, an option as
+    /// written that is not text, or a setting klipcal reads of the wrong type.
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
+        let raw: RawConfigFile =
+            serde_json::from_value(v).map_err(|e| bad("configfile object", e))?;
+        let sections = raw.settings;
+        fn section<T: DeserializeOwned>(
+            sections: &BTreeMap<String, Map<String, Value>>,
+            name: &str,
+        ) -> Result<Option<T>, Error> {
+            sections
+                .get(name)
+                .map(|m| {
+                    serde_json::from_value(Value::Object(m.clone()))
+                        .map_err(|e| bad(&format!("configfile.settings [{name}]"), e))
+                })
+                .transpose()
+        }
+        let probe = match sections
+            .iter()
+            .find(|(k, v)| is_probe(k) && v.contains_key("z_offset"))
+        {
+            Some((name, _)) => section(&sections, name)?,
+            None => None,
+        };
+        let mut steppers = BTreeMap::new();
+        for name in sections.keys().filter(|k| k.starts_with("stepper_")) {
+            if let Some(s) = section(&sections, name)? {
+                steppers.insert(name.clone(), s);
+            }
+        }
+        let backlash = sections.get("backlash").map(|o| {
+            o.iter()
+                .filter_map(|(k, v)| v.as_f64().map(|f| (k.clone(), f)))
+                .collect()
+        });
+        let settings = Settings {
+            printer: section(&sections, "printer")?.unwrap_or_default(),
+            heater_bed: section(&sections, "heater_bed")?,
+            idle_timeout: section(&sections, "idle_timeout")?,
+            bed_mesh: section(&sections, "bed_mesh")?,
+            dual_carriage: section(&sections, "dual_carriage")?,
+            probe,
+            steppers,
+            backlash,
+            sections,
+        };
+        Ok(Self {
+            config: raw.config,
+            settings,
+        })
+    }
+}
+
+impl Settings {
+    /// A setting as Klipper runs it, by section and option (either case), for checking a value
+    /// klipcal wrote into the config.
+    #[must_use]
+    pub fn option(&self, section: &str, option: &str) -> Option<&Value> {
+        self.section(section)?.get(&option.to_lowercase())
+    }
+
+    /// A whole section as Klipper runs it (either case), for messages and tests.
+    #[must_use]
+    pub fn section(&self, section: &str) -> Option<&Map<String, Value>> {
+        self.sections.get(&section.to_lowercase())
+    }
+
+    /// The axis `[dual_carriage]` moves, lower case (`x` when not said or without one).
+    #[must_use]
+    pub(crate) fn dual_carriage_axis(&self) -> String {
+        self.dual_carriage
+            .as_ref()
+            .map_or_else(|| "x".into(), DualCarriageSettings::axis)
+    }
+
+    /// `position_endstop` of a stepper section or of `[dual_carriage]`.
+    #[must_use]
+    pub(crate) fn position_endstop(&self, section: &str) -> Option<f64> {
+        if section == "dual_carriage" {
+            self.dual_carriage.as_ref()?.position_endstop
+        } else {
+            self.steppers.get(section)?.position_endstop
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn fixture(name: &str) -> Value {
+        let path = format!(
+            "{}/tests/fixtures/moonraker/{name}",
+            env!("CARGO_MANIFEST_DIR")
+        );
+        let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
+        serde_json::from_str(&text).unwrap()
+    }
+
+    #[test]
+    fn the_bench_configfile_parses_into_the_settings_jobs_read() {
+        let cf = ConfigFile::parse(fixture("configfile-corexy-pr7157.json")).unwrap();
+        let s = &cf.settings;
+        assert_eq!(s.printer.kinematics, "corexy");
+        assert_eq!(s.printer.max_accel, Some(3000.0));
+        assert_eq!(s.heater_bed.as_ref().unwrap().max_power, Some(1.0));
+        assert_eq!(s.idle_timeout.as_ref().unwrap().timeout, Some(3600.0));
+        let bm = s.bed_mesh.as_ref().unwrap();
+        assert_eq!((bm.fade_start, bm.fade_end), (1.0, 0.0));
+        assert!(s.dual_carriage.is_none());
+        assert!(s.probe.is_none(), "the plain bench has no probe");
+        assert_eq!(s.position_endstop("stepper_x"), Some(0.0));
+        assert_eq!(s.position_endstop("dual_carriage"), None);
+        let backlash = s.backlash.as_ref().unwrap();
+        assert_eq!(
+            backlash,
+            &BTreeMap::from([("a".into(), 0.0), ("b".into(), 0.0), ("z".into(), 0.0)]),
+            "the numbers of [backlash], its kinematics left out"
+        );
+        assert_eq!(
+            s.option("STEPPER_X", "Rotation_Distance"),
+            Some(&json!(40.0))
+        );
+        assert_eq!(s.option("stepper_x", "no_such"), None);
+        assert_eq!(cf.config["stepper_x"]["rotation_distance"], "40");
+        assert_eq!(cf.config["backlash"]["kinematics"], "corexy");
+    }
+
+    #[test]
+    fn the_probe_is_found_by_its_section_name_and_z_offset() {
+        let cf = ConfigFile::parse(fixture("configfile-mesh-probe.json")).unwrap();
+        assert_eq!(
+            cf.settings.probe,
+            Some(ProbeSettings {
+                x_offset: 0.0,
+                y_offset: 0.0,
+                z_offset: 1.0
+            }),
+            "[klipcal_bench probe] of the mesh bench"
+        );
+        let cf = ConfigFile::parse(json!({"settings": {
+            "bltouch": {"x_offset": -40.5, "y_offset": 12, "z_offset": 2.1},
+            "probe_unrelated": {"z_offset": 9},
+        }}))
+        .unwrap();
+        assert_eq!(
+            cf.settings.probe,
+            Some(ProbeSettings {
+                x_offset: -40.5,
+                y_offset: 12.0,
+                z_offset: 2.1
+            })
+        );
+    }
+
+    #[test]
+    fn options_klipper_leaves_out_take_their_defaults() {
+        let cf =
+            ConfigFile::parse(json!({"settings": {"bed_mesh": {}, "dual_carriage": {}}})).unwrap();
+        let s = &cf.settings;
+        assert_eq!(s.printer.kinematics, "");
+        assert_eq!(s.printer.max_accel, None);
+        let bm = s.bed_mesh.as_ref().unwrap();
+        assert_eq!((bm.fade_start, bm.fade_end), (1.0, 0.0));
+        assert_eq!(s.dual_carriage.as_ref().unwrap().axis(), "x");
+        assert!(s.heater_bed.is_none() && s.backlash.is_none() && s.probe.is_none());
+        assert!(cf.config.is_empty());
+        // An empty answer (Klipper not ready) is empty settings, not an error.
+        assert!(ConfigFile::parse(json!({})).is_ok());
+    }
+
+    #[test]
+    fn a_malformed_answer_is_an_error_naming_what_was_wrong() {
+        let cases = [
+            (json!(null), "configfile object"),
+            (json!([1, 2]), "configfile object"),
+            (
+                json!({"settings": {"printer": {"max_accel": "fast"}}}),
+                "[printer]",
+            ),
+            (
+                json!({"settings": {"bed_mesh": {"fade_end": "10"}}}),
+                "[bed_mesh]",
+            ),
+            (json!({"settings": {"printer": 3}}), "configfile object"),
+            (
+                json!({"config": {"printer": {"max_accel": 3000}}}),
+                "configfile object",
+            ),
+            (
+                json!({"settings": {"stepper_x": {"position_endstop": [0]}}}),
+                "[stepper_x]",
+            ),
+        ];
+        for (answer, named) in cases {
+            let e = ConfigFile::parse(answer.clone()).unwrap_err();
+            assert!(matches!(e, Error::Protocol(_)), "{answer}: {e}");
+            let text = e.to_string();
+            assert!(text.contains(named), "{answer}: {text}");
+        }
+    }
+}
