@@ -284,6 +284,7 @@ impl BacklashConfig {
             accel_budget_fraction: self.accel_budget_fraction,
             outlier_sigmas: self.outlier_sigmas,
             scale_rel_sd: 0.0,
+            repeat_sd_mm: 0.0,
         }
     }
 

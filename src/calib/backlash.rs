@@ -64,6 +64,10 @@ pub struct BacklashParams {
     /// so it adds `backlash · scale_rel_sd` to the uncertainty and does not average down.
     #[serde(skip)]
     pub scale_rel_sd: f64,
+    /// Per-cycle sd of a reading error that repeats in every cycle (a camera's sub-pixel
+    /// detection bias at the same two nozzle positions), mm: added without averaging down.
+    #[serde(skip)]
+    pub repeat_sd_mm: f64,
 }
 
 impl Default for BacklashParams {
@@ -77,6 +81,7 @@ impl Default for BacklashParams {
             accel_budget_fraction: 1.0,
             outlier_sigmas: 4.0,
             scale_rel_sd: 0.0,
+            repeat_sd_mm: 0.0,
         }
     }
 }
@@ -97,6 +102,7 @@ impl BacklashParams {
             self.accel_budget_fraction,
             self.outlier_sigmas,
             self.scale_rel_sd,
+            self.repeat_sd_mm,
         ];
         if fin.iter().any(|v| !v.is_finite() || *v < 0.0) {
             return bad("every setting must be a finite number ≥ 0".into());
@@ -365,7 +371,7 @@ pub fn analyse(
     let med = median(&inliers);
     // The scale's share is the same in every cycle: it does not average down.
     let var_scale = (med * params.scale_rel_sd).powi(2);
-    let uncertainty = (var_med + var_slope + var_scale).sqrt();
+    let uncertainty = (var_med + var_slope + var_scale + params.repeat_sd_mm.powi(2)).sqrt();
     if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
         return Err(Error::BacklashReadings(format!(
             "axis {axis}: X1 − X2 is {med:.4} mm, below zero beyond the noise; expected X1 \

@@ -252,6 +252,9 @@ pub(crate) fn camera_params(
             .min(3.0 * cycle_sd_mm)
             .max(cycle_sd_mm),
         scale_rel_sd: (scale_sd_px_per_mm / scale_px_per_mm).abs(),
+        // The detection's sub-pixel error at the same two positions repeats in every cycle
+        // (the bench's ±2u covered 87.5 % on a play-free axis without it).
+        repeat_sd_mm: cycle_sd_mm,
         ..base.clone()
     }
 }
@@ -332,6 +335,12 @@ mod tests {
         let p = camera_params(&BacklashParams::default(), 0.1, 80.0, 0.08);
         let res = crate::calib::backlash::analyse("x", &[c, c, c], None, &p).unwrap();
         assert!((res.backlash_mm - 0.06).abs() < 1e-3);
+        // The detection's error at the same two positions repeats in every cycle: identical
+        // cycles still carry one cycle's detection sd (√2·0.1/80 mm), not a third of it.
+        assert!(
+            res.uncertainty_mm >= std::f64::consts::SQRT_2 * 0.1 / 80.0,
+            "{res:?}"
+        );
     }
 
     #[test]
