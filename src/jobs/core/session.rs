@@ -78,9 +78,6 @@ struct Inner {
     page: std::sync::OnceLock<String>,
     /// Why the page is off when it could not start (its port taken, …).
     page_off: std::sync::OnceLock<String>,
-    /// The idle timeout klipcal set last (s) and when: the same hold asked again moments later
-    /// is not sent twice (see [`Core::hold_heaters_with`]).
-    last_hold: std::sync::Mutex<Option<(f64, std::time::Instant)>>,
 }
 
 impl Core {
@@ -105,7 +102,6 @@ impl Core {
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
                 page_off: std::sync::OnceLock::new(),
-                last_hold: std::sync::Mutex::new(None),
             }),
         }
     }

@@ -3,9 +3,6 @@
 
 use super::*;
 
-/// Within this many seconds the same idle-timeout hold is not sent again.
-const SAME_HOLD_S: f64 = 5.0;
-
 impl Core {
     /// Refuses unless Klipper is ready and no print is printing or paused.
     ///
@@ -87,7 +84,6 @@ impl Core {
     }
 
     async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
-        *self.last_hold() = None;
         let cf = self.inner.m.configfile().await?;
         if let Some(t) = cf.settings.idle_timeout.and_then(|i| i.timeout) {
             self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
@@ -107,44 +103,26 @@ impl Core {
     }
 
     /// [`Core::hold_heaters_for`], then `then` (e.g. the bed's target), in one script: one
-    /// console row, and the bound set before the heater. The same hold asked again within
-    /// [`SAME_HOLD_S`] (the bed heated, then its soak's first look) is not sent again: its
-    /// count would start at most that much later (issue 26 A.4: the console showed it twice).
+    /// console row, and the bound set before the heater. Every hold is sent, also the same
+    /// value again: each one restarts Klipper's count from now (skipping a repeat within 5 s
+    /// let the bed stay on 62 s after a 45 s hold in the fault matrix's A/B hold case).
     ///
     /// # Errors
     /// Moonraker failures.
     pub(crate) async fn hold_heaters_with(&self, hold_s: f64, then: &str) -> anyhow::Result<()> {
-        let t = hold_s.max(1.0).ceil();
-        let recent = self
-            .last_hold()
-            .is_some_and(|(was, at)| was == t && at.elapsed().as_secs_f64() < SAME_HOLD_S);
-        let mut lines = Vec::new();
-        if !recent {
-            lines.push(gcode_cmd::set_idle_timeout(t)?);
-            lines.push("G4 P1".to_string());
-        }
+        let mut lines = vec![
+            gcode_cmd::set_idle_timeout(hold_s.max(1.0).ceil())?,
+            "G4 P1".to_string(),
+        ];
         if !then.is_empty() {
             lines.push(then.to_string());
-        }
-        if lines.is_empty() {
-            return Ok(());
         }
         self.inner
             .m
             .gcode(&lines.join("\n"))
             .await
             .context("setting Klipper's idle timeout to the hold limit")?;
-        if !recent {
-            *self.last_hold() = Some((t, std::time::Instant::now()));
-        }
         Ok(())
-    }
-
-    fn last_hold(&self) -> std::sync::MutexGuard<'_, Option<(f64, std::time::Instant)>> {
-        self.inner
-            .last_hold
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// A console message.
