@@ -177,7 +177,11 @@ impl Calibrations {
         let c = self
             .by_kind(&row.kind)
             .ok_or_else(|| anyhow::anyhow!("session {} has unknown kind {}", row.id, row.kind))?;
-        c.cancel(&row, reason).await
+        let answer = c.cancel(&row, reason).await;
+        // The cancel question's dialog (opened in Klipper) closes with the answer, whatever
+        // klipcal believed shown: Fluidd kept "end the session?" open after a cancel.
+        self.core.prompt_end_any().await;
+        answer
     }
 
     /// Resumes the active session after a daemon start or a reconnect.

@@ -168,6 +168,16 @@ impl Core {
         }
     }
 
+    /// Closes whatever dialog shows, also one klipcal did not open (the cancel question comes
+    /// from `_KLIPCAL_CANCEL_ASK` in Klipper, and a front end may report klipcal's own dialog
+    /// closed as it replaces it): a cancel always ends with no dialog.
+    pub(crate) async fn prompt_end_any(&self) {
+        self.mark_closed();
+        if !console::hold(console::PromptChange::End) {
+            console::send_script(&self.inner.m, console::PROMPT_END).await;
+        }
+    }
+
     /// Closes klipcal's dialog now, even within a call (before a long operation, so that its
     /// buttons cannot be pressed again meanwhile).
     pub(crate) async fn prompt_end_now(&self) {
