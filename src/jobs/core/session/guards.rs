@@ -3,6 +3,10 @@
 
 use super::*;
 
+/// How long after a dialog's close klipcal waits for a helper's call before it takes the close
+/// for the user's (and says what still waits).
+const CLOSE_WINDOW: std::time::Duration = std::time::Duration::from_secs(5);
+
 impl Core {
     /// Refuses unless Klipper is ready and no print is printing or paused.
     ///
@@ -303,10 +307,13 @@ impl Core {
                 _ => continue,
             };
             // klipcal's helpers (_KLIPCAL_PROMPT_BACK, _KLIPCAL_PROMPT_CLOSE) close in Klipper
-            // and say "asking the klipcal service..." on the next line; a front end's ✕ or
-            // tap outside says nothing after its close. (The dialog change their call makes
-            // can reach klipcal before this close does, so the line decides, not the order.)
-            let deadline = tokio::time::Instant::now() + std::time::Duration::from_millis(1500);
+            // and call klipcal at once, which changes klipcal's dialog; a front end's ✕ or tap
+            // outside is followed by no call. The helpers no longer say "asking the klipcal
+            // service..." (issue 26 A.4), so the dialog change decides, within a window long
+            // enough for a loaded host: at 1.5 s, Back's call came late in the full suite and a
+            // dialog was reported closed by the user while it showed again. A user macro's
+            // "asking" line still marks a helper at once.
+            let deadline = tokio::time::Instant::now() + CLOSE_WINDOW;
             let mut helper = false;
             loop {
                 let ev = tokio::select! {
