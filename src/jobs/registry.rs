@@ -123,15 +123,17 @@ impl Calibrations {
         if is_core_method(method) {
             return match CoreCall::parse(method, args)? {
                 CoreCall::Cancel(reason) => self.cancel(&reason).await,
+                // The helpers only ask; klipcal closes or replaces the dialog itself, marked as
+                // its own before it is sent, so a close klipcal did not send is the user's.
                 CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
                     json!({"message": ""})
                 } else {
-                    self.core.prompt_end().await;
+                    // The cancel question (shown by Klipper) closes whatever klipcal believes.
+                    self.core.prompt_end_any().await;
                     json!({"message": "no klipcal dialog to go back to"})
                 }),
                 CoreCall::PromptClose => {
-                    // The macro closed the dialog in Klipper before asking: klipcal only notes it.
-                    self.core.prompt_closed_by_user();
+                    self.core.prompt_end_any().await;
                     Ok(json!({"message": format!(
                         "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
                          (or on klipcal's page{})",

@@ -5,12 +5,6 @@ use serde_json::Value;
 
 use super::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
 
-/// A dialog button's macro: Klipper closes the dialog first (even with klipcal gone), then asks.
-const CLOSE_THEN_ASK: MacroBody = MacroBody::Remote {
-    before: &["RESPOND TYPE=command MSG=\"action:prompt_end\""],
-    after: &[],
-};
-
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
@@ -65,29 +59,23 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
         parse: |_| Err(anyhow::anyhow!("_KLIPCAL_CANCEL_ASK runs in Klipper")),
     },
     Op {
-        spec: OpSpec {
-            body: CLOSE_THEN_ASK,
-            ..OpSpec::remote(
-                "klipcal_prompt_back",
-                "_KLIPCAL_PROMPT_BACK",
-                "prompt/back",
-                "back to klipcal's dialog (from the cancel question)",
-                &[],
-            )
-        },
+        spec: OpSpec::remote(
+            "klipcal_prompt_back",
+            "_KLIPCAL_PROMPT_BACK",
+            "prompt/back",
+            "back to klipcal's dialog (from the cancel question)",
+            &[],
+        ),
         parse: |_| Ok(CoreCall::PromptBack),
     },
     Op {
-        spec: OpSpec {
-            body: CLOSE_THEN_ASK,
-            ..OpSpec::remote(
-                "klipcal_prompt_close",
-                "_KLIPCAL_PROMPT_CLOSE",
-                "prompt/close",
-                "close klipcal's dialog (then type readings on the console)",
-                &[],
-            )
-        },
+        spec: OpSpec::remote(
+            "klipcal_prompt_close",
+            "_KLIPCAL_PROMPT_CLOSE",
+            "prompt/close",
+            "close klipcal's dialog (then type readings on the console)",
+            &[],
+        ),
         parse: |_| Ok(CoreCall::PromptClose),
     },
 ];

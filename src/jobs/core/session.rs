@@ -68,8 +68,8 @@ struct Inner {
     /// What klipcal's dialog shows, as far as klipcal knows: `None` after a start (unknown),
     /// `Some(None)` closed, `Some(Some(script))` showing that script.
     shown: std::sync::Mutex<Option<Option<String>>>,
-    /// klipcal's dialog open now (as last sent), with a count of dialog changes: a close seen
-    /// on the console is the user's when nothing changed since (see [`Core::watch_closes`]).
+    /// klipcal's dialog open now (as last sent): a close seen on the console while it is open
+    /// is the user's (see [`Core::watch_closes`]).
     open: std::sync::Mutex<Open>,
     /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
     /// shutdown waits for them.
@@ -493,8 +493,6 @@ impl Core {
 /// klipcal's dialog as the close watcher sees it.
 #[derive(Default)]
 pub(super) struct Open {
-    /// Changes of klipcal's dialog so far.
-    changes: u64,
     /// The dialog open now, as last sent.
     prompt: Option<Prompt>,
     /// The dialog the user closed without answering, until klipcal's dialog changes.

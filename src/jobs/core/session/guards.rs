@@ -3,10 +3,6 @@
 
 use super::*;
 
-/// How long after a dialog's close klipcal waits for a helper's call before it takes the close
-/// for the user's (and says what still waits).
-const CLOSE_WINDOW: std::time::Duration = std::time::Duration::from_secs(5);
-
 impl Core {
     /// Refuses unless Klipper is ready and no print is printing or paused.
     ///
@@ -233,19 +229,11 @@ impl Core {
                 None => return false,
             },
         };
-        // Shown again: a close seen before this is not a close of this dialog.
-        self.bump_open();
         let change = console::PromptChange::Show(script);
         if !console::hold(change.clone()) {
             console::send_script(&self.inner.m, &change.script()).await;
         }
         true
-    }
-
-    /// Notes that the user closed klipcal's dialog in Klipper (_KLIPCAL_PROMPT_CLOSE sends the
-    /// close itself, so a dialog klipcal shows next is sent whole again).
-    pub(crate) fn prompt_closed_by_user(&self) {
-        self.mark_closed();
     }
 
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
@@ -269,20 +257,17 @@ impl Core {
 
     fn set_open(&self, p: Option<Prompt>) {
         let mut open = self.open();
-        open.changes += 1;
         open.prompt = p;
         open.user_closed = None;
     }
 
-    fn bump_open(&self) {
-        self.open().changes += 1;
-    }
-
     /// Watches the console for a close of klipcal's dialog that klipcal did not send: the
     /// user's ✕ in Mainsail or tap outside in Fluidd (both send `action:prompt_end`). Then the
-    /// console says what still waits and how to answer (issue 26 A.1). klipcal's own helpers
-    /// (Close, Back) close in Klipper and call klipcal at once; a change of klipcal's dialog
-    /// within a moment of the close tells them apart. Runs until shutdown.
+    /// console says what still waits and how to answer (issue 26 A.1). Every close klipcal
+    /// sends is marked before it is sent, also the ones its helpers ask for
+    /// (`_KLIPCAL_PROMPT_CLOSE` and `_KLIPCAL_PROMPT_BACK` only call klipcal, which closes or
+    /// replaces the dialog), so a close seen while klipcal's dialog is marked open is the
+    /// user's: no time window decides, however loaded the host. Runs until shutdown.
     pub(crate) async fn watch_closes(self) {
         use tokio::sync::broadcast::error::RecvError;
         let mut rx = self.inner.m.events();
@@ -297,55 +282,13 @@ impl Core {
                 Err(RecvError::Closed) => return,
                 _ => continue,
             }
-            let gen = match &*self.open() {
-                Open {
-                    changes,
-                    prompt: Some(_),
-                    ..
-                } => *changes,
-                // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
-                _ => continue,
-            };
-            // klipcal's helpers (_KLIPCAL_PROMPT_BACK, _KLIPCAL_PROMPT_CLOSE) close in Klipper
-            // and call klipcal at once, which changes klipcal's dialog; a front end's ✕ or tap
-            // outside is followed by no call. The helpers no longer say "asking the klipcal
-            // service..." (issue 26 A.4), so the dialog change decides, within a window long
-            // enough for a loaded host: at 1.5 s, Back's call came late in the full suite and a
-            // dialog was reported closed by the user while it showed again. A user macro's
-            // "asking" line still marks a helper at once.
-            let deadline = tokio::time::Instant::now() + CLOSE_WINDOW;
-            let mut helper = false;
-            loop {
-                let ev = tokio::select! {
-                    () = self.inner.shutdown.cancelled() => return,
-                    () = tokio::time::sleep_until(deadline) => break,
-                    ev = rx.recv() => ev,
-                };
-                match ev {
-                    Ok(crate::moonraker::Event::GcodeResponse(l)) => {
-                        helper = l.contains("asking the klipcal service");
-                        break;
-                    }
-                    Err(RecvError::Closed) => return,
-                    _ => {}
-                }
-            }
-            if helper {
+            // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
+            let Some(p) = self.open().prompt.clone() else {
                 continue;
-            }
-            tokio::select! {
-                () = self.inner.shutdown.cancelled() => return,
-                () = tokio::time::sleep_until(deadline) => {}
-            }
-            let closed = {
-                let open = self.open();
-                (open.changes == gen).then(|| open.prompt.clone()).flatten()
             };
-            if let Some(p) = closed {
-                self.mark_closed();
-                console::say(&self.inner.m, &console::closed_notice(&p)).await;
-                self.open().user_closed = Some(p);
-            }
+            self.mark_closed();
+            console::say(&self.inner.m, &console::closed_notice(&p)).await;
+            self.open().user_closed = Some(p);
         }
     }
 
