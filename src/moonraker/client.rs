@@ -15,7 +15,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::answers::{BedMeshStatus, ConfigFile};
+use super::answers::{BedMeshStatus, ConfigFile, HeaterStatus, WebcamList};
 use super::protocol::{self, Incoming, RpcError};
 use super::Error;
 
@@ -508,6 +508,24 @@ impl Moonraker {
     pub async fn bed_mesh(&self, fields: &[&str]) -> Result<BedMeshStatus, Error> {
         let mut m = self.objects_query(json!({ "bed_mesh": fields })).await?;
         BedMeshStatus::parse(m.remove("bed_mesh").unwrap_or_else(|| json!({})))
+    }
+
+    /// A heater's or temperature sensor's status, typed: the `fields` asked for (`temperature`,
+    /// `target`, `power`); all `None` when Klipper has no object `name`.
+    ///
+    /// # Errors
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub(crate) async fn heater(&self, name: &str, fields: &[&str]) -> Result<HeaterStatus, Error> {
+        let mut m = self.objects_query(json!({ name: fields })).await?;
+        HeaterStatus::parse(name, m.remove(name).unwrap_or_else(|| json!({})))
+    }
+
+    /// Moonraker's webcams (`server.webcams.list`), typed.
+    ///
+    /// # Errors
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub(crate) async fn webcams(&self) -> Result<WebcamList, Error> {
+        WebcamList::parse(self.call("server.webcams.list", json!({})).await?)
     }
 
     /// Sends an event to Moonraker's clients (`connection.send_event`).

@@ -367,12 +367,8 @@ impl Mesh {
 
     async fn frame_temp(&self, sensor: &str) -> anyhow::Result<f64> {
         let obj = format!("temperature_sensor {sensor}");
-        let st = self
-            .core
-            .m()
-            .objects_query(json!({ obj.clone(): ["temperature"] }))
-            .await?;
-        st[&obj]["temperature"].as_f64().ok_or_else(|| {
+        let st = self.core.m().heater(&obj, &["temperature"]).await?;
+        st.temperature.ok_or_else(|| {
             user(format!(
                 "[{obj}] reports no temperature; mesh.frame_sensor names the frame thermistor"
             ))
