@@ -141,12 +141,9 @@ pub struct BedMeshStatus {
     pub profiles: BTreeMap<String, BedMeshProfileStatus>,
 }
 
-/// One profile in the `bed_mesh` status.
+/// One profile in the `bed_mesh` status (its `points` are not read).
 #[derive(Debug, Clone, Deserialize)]
 pub struct BedMeshProfileStatus {
-    /// Its points, `[row y][column x]`, mm.
-    #[serde(default)]
-    pub points: Vec<Vec<f64>>,
     /// Its parameters.
     pub mesh_params: crate::klipper::bed_mesh::MeshParams,
 }
@@ -479,7 +476,6 @@ mod tests {
         let hot = &bm.profiles["hot"];
         assert_eq!((hot.mesh_params.x_count, hot.mesh_params.y_count), (3, 3));
         assert_eq!(hot.mesh_params.max_x, 280.0);
-        assert_eq!(hot.points[0], vec![0.04, 0.02, 0.0]);
         // Only the fields asked for: the others are empty, not an error.
         let bm = BedMeshStatus::parse(json!({"profile_name": "hot"})).unwrap();
         assert_eq!(bm.profile_name.as_deref(), Some("hot"));
@@ -488,6 +484,7 @@ mod tests {
         for bad in [
             json!({"probed_matrix": [[0.1, "x"]]}),
             json!({"profiles": {"p": {"points": []}}}),
+            json!({"profiles": {"p": {"mesh_params": {"x_count": "3"}}}}),
             json!({"profile_name": 3}),
         ] {
             let e = BedMeshStatus::parse(bad.clone()).unwrap_err().to_string();

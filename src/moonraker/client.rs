@@ -419,24 +419,6 @@ impl Moonraker {
         }
     }
 
-    /// Adds objects to the subscription (kept across reconnects and Klipper restarts) and
-    /// subscribes now; returns the current status of everything subscribed.
-    ///
-    /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn subscribe(
-        &self,
-        objects: Map<String, Value>,
-    ) -> Result<Map<String, Value>, Error> {
-        {
-            let mut subs = lock(&self.shared.subscriptions);
-            for (k, v) in objects {
-                subs.insert(k, v);
-            }
-        }
-        self.resubscribe(false).await
-    }
-
     async fn resubscribe(&self, raw: bool) -> Result<Map<String, Value>, Error> {
         let objects = Value::Object(lock(&self.shared.subscriptions).clone());
         let params = json!({ "objects": objects });
@@ -474,16 +456,6 @@ impl Moonraker {
     /// As [`Moonraker::call`].
     pub async fn firmware_restart(&self) -> Result<(), Error> {
         self.call("printer.firmware_restart", Value::Null)
-            .await
-            .map(|_| ())
-    }
-
-    /// `printer.emergency_stop`.
-    ///
-    /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn emergency_stop(&self) -> Result<(), Error> {
-        self.call("printer.emergency_stop", Value::Null)
             .await
             .map(|_| ())
     }
@@ -526,19 +498,6 @@ impl Moonraker {
     /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
     pub(crate) async fn webcams(&self) -> Result<WebcamList, Error> {
         WebcamList::parse(self.call("server.webcams.list", json!({})).await?)
-    }
-
-    /// Sends an event to Moonraker's clients (`connection.send_event`).
-    ///
-    /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn send_event(&self, event: &str, data: Value) -> Result<(), Error> {
-        self.call(
-            "connection.send_event",
-            json!({ "event": event, "data": data }),
-        )
-        .await
-        .map(|_| ())
     }
 
     fn set_state(&self, s: ConnState) {
