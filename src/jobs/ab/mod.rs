@@ -269,12 +269,7 @@ impl SessionState for State {
         State::Failed,
         State::Cancelled,
     ];
-    const FAILED: Self = State::Failed;
-    const CANCELLED: Self = State::Cancelled;
-
-    fn is_final(self) -> bool {
-        matches!(self, State::Converged | State::Failed | State::Cancelled)
-    }
+    const FINAL: [Self; 3] = [State::Converged, State::Failed, State::Cancelled];
 
     fn is_automatic(self) -> bool {
         matches!(
@@ -438,7 +433,7 @@ impl Ab {
             )
             .await?;
         self.restore_skew(s.skew_before).await;
-        self.core.prompt_end().await;
+        // The dialog closes in Calibrations::cancel, after every calibration's cancel.
         Ok(answer)
     }
 }

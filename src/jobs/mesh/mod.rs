@@ -226,12 +226,7 @@ impl SessionState for State {
         State::Failed,
         State::Cancelled,
     ];
-    const FAILED: Self = State::Failed;
-    const CANCELLED: Self = State::Cancelled;
-
-    fn is_final(self) -> bool {
-        matches!(self, State::Done | State::Failed | State::Cancelled)
-    }
+    const FINAL: [Self; 3] = [State::Done, State::Failed, State::Cancelled];
 }
 
 /// One stored mesh.
