@@ -344,7 +344,8 @@ pub(crate) struct AbBody {
     pub skew_before: Option<f64>,
     /// Unix time the print finished.
     pub print_done_unix: Option<f64>,
-    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled or
+    /// failed.
     pub heaters_off: bool,
     /// The soak ran past `soak_max_s` and waits for the user's choice.
     #[serde(default)]
@@ -459,7 +460,8 @@ pub(crate) struct AbStatus {
     pub missing: Vec<String>,
     /// Every round so far.
     pub rounds: Vec<AbRoundStatus>,
-    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled or
+    /// failed.
     pub heaters_off: bool,
 }
 

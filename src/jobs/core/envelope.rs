@@ -193,13 +193,15 @@ impl Core {
 
     /// A session's runner failed: the heaters go off (once Moonraker is back), the session
     /// ends failed with `why` unless it ended already, the dialog closes when `close_prompt`,
-    /// and the console says so (`"{title} failed: {why}; heaters off"`).
+    /// and the console says so (`"{title} failed: {why}; heaters off"`). When the heaters did go
+    /// off, `heaters_off` marks it in the body (the calibrations whose status says so).
     pub(crate) async fn fail_session<S, B>(
         &self,
         id: i64,
         title: &str,
         why: &str,
         close_prompt: bool,
+        heaters_off: impl FnOnce(&mut B) + Send,
     ) where
         S: SessionState,
         B: Serialize + DeserializeOwned + Send,
@@ -215,6 +217,9 @@ impl Core {
             .update::<Envelope<S, B>, ()>(id, |s| {
                 if !s.state.is_final() {
                     s.end(S::FAILED, why, format!("failed{heaters}"));
+                }
+                if off.is_ok() {
+                    heaters_off(&mut s.body);
                 }
                 Ok(())
             })

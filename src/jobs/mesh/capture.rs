@@ -112,7 +112,7 @@ impl Mesh {
             },
             move |msg| async move {
                 me2.core
-                    .fail_session::<State, MeshBody>(id, TITLE, &msg, false)
+                    .fail_session::<State, MeshBody>(id, TITLE, &msg, false, |_| {})
                     .await;
             },
         );
