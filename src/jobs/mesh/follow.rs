@@ -28,6 +28,19 @@ impl Mesh {
         Ok((s, sel))
     }
 
+    /// Whether the user had following on (the model's session says so). Without a finished
+    /// capture, the usual start, it answers without building [`Mesh::model`]'s error: an
+    /// error captures a backtrace when RUST_BACKTRACE is set, which reads the unwind tables
+    /// into memory (0.4 MiB of the daemon's RSS, `klipcal bench footprint`).
+    pub(super) fn following_was_on(&self) -> bool {
+        let done = self
+            .core
+            .latest_of_in::<Session>(KIND, &State::Done.name())
+            .ok()
+            .flatten();
+        done.is_some_and(|(_, s)| s.following) && self.model().is_ok_and(|(s, _)| s.following)
+    }
+
     pub(super) async fn stop_following(&self, why: &str) {
         let t = self.follow.lock().ok().and_then(|mut f| f.take());
         if let Some(t) = t {

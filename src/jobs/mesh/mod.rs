@@ -578,7 +578,7 @@ impl Calibration for Mesh {
     fn connected(&self) -> BoxFuture<'_, ()> {
         async move {
             // Following switched on by the user goes on after a daemon restart, and says so.
-            let asked = self.model().is_ok_and(|(s, _)| s.following);
+            let asked = self.following_was_on();
             if self.settings.follow || asked {
                 match self.follow_cmd(true).await {
                     Ok(r) if asked => {
