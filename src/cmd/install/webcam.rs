@@ -1,10 +1,17 @@
 //! klipcal's page as an iframe "webcam" of Moonraker (`server.webcams.*`), so Mainsail ("HTML
 //! Iframe") and Fluidd ("HTTP page") show it in their webcam panels — on a phone the
 //! way to the readings form, where Mainsail's dashboard has no console. [`decide`] is pure;
-//! [`list`], [`register`] and [`remove`] talk to Moonraker's HTTP API.
+//! [`list`], [`register`] and [`remove`] talk to Moonraker's HTTP API;
+//! [`webcam_plan`] decides, asking on a terminal, what install does about it.
+
+use std::io::IsTerminal;
 
 use serde_json::json;
 
+use super::host::ask;
+use super::manifest::Manifest;
+use super::InstallArgs;
+use crate::config::Config;
 use crate::moonraker::answers::WebcamList;
 use crate::moonraker::Files;
 
@@ -101,6 +108,119 @@ pub(crate) async fn remove(files: &Files, uid: &str) -> anyhow::Result<bool> {
         .delete_api(&format!("/server/webcams/item?uid={uid}"))
         .await?;
     Ok(true)
+}
+
+/// A webcam install adds or updates.
+pub(super) struct WebcamChange {
+    /// The webcam to update (klipcal's own, from an earlier install); `None` adds one.
+    pub(super) uid: Option<String>,
+    pub(super) url: String,
+    /// The address it had.
+    pub(super) from: Option<String>,
+}
+
+impl WebcamChange {
+    pub(super) fn describe(&self) -> String {
+        match &self.from {
+            None => format!(
+                "add Moonraker webcam {} (service {}): {}",
+                NAME, SERVICE, self.url
+            ),
+            Some(from) => format!("update Moonraker webcam {}: {from} -> {}", NAME, self.url),
+        }
+    }
+
+    pub(super) fn done(&self) -> String {
+        format!(
+            "webcam   {} {} in Moonraker: klipcal's page {} shows in Mainsail (\"HTML Iframe\") \
+             and Fluidd's webcam panels",
+            NAME,
+            if self.from.is_some() {
+                "updated"
+            } else {
+                "added"
+            },
+            self.url
+        )
+    }
+}
+
+/// Whether install adds (or updates) klipcal's page as an iframe webcam: asked on a terminal,
+/// `--webcam`/`--yes` add it, `--no-webcam` skips it; needs Moonraker and the page on.
+pub(super) async fn webcam_plan(
+    a: &InstallArgs,
+    moonraker: Option<&crate::moonraker::Files>,
+    manifest: &Manifest,
+    settings: Option<&str>,
+) -> Option<WebcamChange> {
+    if a.no_webcam {
+        return None;
+    }
+    let files = moonraker?;
+    let Some(c) = settings.and_then(|t| Config::parse(t).ok()) else {
+        println!("note: klipcal.toml does not read; no webcam for klipcal's page");
+        return None;
+    };
+    if !c.http.enabled {
+        println!("note: klipcal's page is off ([http] enabled = false); no webcam for it");
+        return None;
+    }
+    let Ok(bind) = c.http.bind.parse::<std::net::SocketAddr>() else {
+        return None;
+    };
+    let url = crate::http::page_address_here(bind);
+    if !url.starts_with("http://") || url.contains(' ') {
+        println!(
+            "note: klipcal's page is at {url}, which a browser elsewhere cannot open; no webcam \
+             for it"
+        );
+        return None;
+    }
+    let list = match list(files).await {
+        Ok(l) => l,
+        Err(e) => {
+            println!("note: Moonraker's webcam list did not answer ({e:#}); no webcam added");
+            return None;
+        }
+    };
+    match decide(&list, manifest.webcam.as_deref(), &url) {
+        Decision::Nothing { .. } => None,
+        Decision::Foreign { url: theirs } => {
+            println!(
+                "note: Moonraker has a webcam named {} already ({theirs}) that klipcal did not \
+                 add: left as it is",
+                NAME
+            );
+            None
+        }
+        Decision::Update { uid, from } => Some(WebcamChange {
+            uid: Some(uid),
+            url,
+            from: Some(from),
+        }),
+        Decision::Add => {
+            let add = if a.webcam || a.yes || a.dry_run {
+                true
+            } else if std::io::stdin().is_terminal() {
+                ask(&format!(
+                    "Show klipcal's page ({url}) inside Mainsail and Fluidd, as the iframe webcam \
+                     \"{}\"?",
+                    NAME
+                ))
+            } else {
+                println!(
+                    "note: klipcal's page ({url}) can show inside Mainsail and Fluidd as an \
+                     iframe webcam: run with --webcam to add it"
+                );
+                false
+            };
+            add.then_some(WebcamChange {
+                uid: None,
+                url,
+                from: None,
+            })
+        }
+    }
 }
 
 #[cfg(test)]
