@@ -1,11 +1,14 @@
-//! The Moonraker client: protocol types (pure), the websocket actor that owns the socket,
-//! the cloneable handle every task uses, and HTTP file transfer. It knows nothing of
-//! calibrations: it carries requests, replies, notifications and agent calls.
+//! The Moonraker client: protocol types (pure, `protocol`), the websocket actor that owns the
+//! socket (`connection`), the cloneable handle every task uses (`client`) with its typed
+//! queries (`queries`, answers typed in `answers`), and HTTP file transfer (`http`). It knows
+//! nothing of calibrations: it carries requests, replies, notifications and agent calls.
 
 pub mod answers;
 mod client;
+mod connection;
 mod http;
 pub mod protocol;
+mod queries;
 
 pub use answers::ConfigFile;
 pub use client::{AgentCall, ClientOptions, ConnState, Event, Moonraker};
