@@ -818,7 +818,7 @@ mod tests {
 
     #[test]
     fn the_documented_example_parses_and_equals_the_defaults() {
-        let text = include_str!("../config/klipcal.toml");
+        let text = include_str!("../../config/klipcal.toml");
         assert_eq!(Config::parse(text).unwrap(), Config::default());
     }
 
