@@ -8,9 +8,11 @@
 //! - [`app`]: builds the daemon, owns the tasks and the shutdown token; runs each command.
 //! - [`agent`]: the remote methods macros and HTTP callers reach; `agent::dispatch` is the one
 //!   entry point behind them; answers on the console (RESPOND) or in JSON.
-//! - [`config`]: daemon settings, TOML with embedded defaults; unknown keys are errors.
+//! - [`config`]: daemon settings, TOML with embedded defaults; unknown keys are errors. One file
+//!   per section (`ab`, `mesh`, `backlash`, `http`, `daemon`), each checking its own ranges.
 //! - [`moonraker`]: the Moonraker client — protocol types (pure), the websocket actor that owns
-//!   the socket, the cloneable handle, the agent's remote methods, HTTP file transfer.
+//!   the socket (`connection`), the cloneable handle (`client`) and its typed queries
+//!   (`queries`, answers typed in `answers`), the agent's remote methods, HTTP file transfer.
 //! - [`jobs`]: the only place Moonraker I/O meets the math. `jobs::core`, the session core
 //!   every calibration shares (stored sessions, one active session, runner, printer guards,
 //!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
@@ -34,8 +36,9 @@
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
-//!   `mesh fit` / `mesh profiles`, `backlash solve`, and the benchmarks of `klipcal bench …`
-//!   (figures beside their targets).
+//!   `mesh fit` / `mesh profiles`, `backlash solve`, the benchmarks of `klipcal bench …`
+//!   (figures beside their targets), and `install`/`uninstall` (`cmd::install`: the pure
+//!   `plan`, then `files`, `manifest`, `host`, `webcam`, `uninstall`).
 
 pub mod agent;
 pub mod app;

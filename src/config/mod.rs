@@ -4,7 +4,7 @@
 //!
 //! One file per section: `daemon` (`[moonraker]`, `[log]`, `[daemon]`), `ab`, `mesh`,
 //! `backlash`, `http`; `[soak]` is `calib::soak::SoakParams`. Each section checks its own
-//! ranges; [`Config::validate`] asks each in turn and returns the first error.
+//! ranges; `Config::validate` asks each in turn and returns the first error.
 
 mod ab;
 mod backlash;
