@@ -187,7 +187,7 @@ impl Backlash {
                         "Keep jogging {axis}{sign} fine until the nozzle first looks off the mark on the far side, then press Past."
                     ),
                     format!(
-                        "Fine {} mm. The reading is halfway between Centred and Past.",
+                        "Fine {} mm. The reading is halfway between where it began to look centred and where it began to look past.",
                         g.fine_mm()
                     ),
                 ],
@@ -211,10 +211,10 @@ impl Backlash {
             title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
             lines: vec![
                 format!(
-                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back."
+                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back. Use fine jogs near the mark: Centred needs one just before it."
                 ),
                 format!(
-                    "Coarse {} mm, fine {} mm. Past the centre? Press Overshot: it starts the approach over from {} mm back.",
+                    "Coarse {} mm, fine {} mm. One fine jog took it from short to past? Press Centred, then Past. Further past, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.",
                     g.params.coarse_mm,
                     g.fine_mm(),
                     g.params.approach_mm
@@ -350,8 +350,8 @@ impl Backlash {
         let active_mm = self
             .active_values(&detection, &cf, axis, carriage, &key)
             .await?;
-        let (guide, step) =
-            Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
+        let (guide, step) = Guide::start(axis, axis.coord(point), params, dither_seed())
+            .map_err(|e| user(e.to_string()))?;
         let s = self
             .begin_axis(AxisStart {
                 progress: format!("measuring {}", axis.name()),
@@ -495,6 +495,13 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
         out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
     }
     out
+}
+
+/// A seed for the guide's dither that differs between measurements: the clock's nanoseconds.
+fn dither_seed() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
 }
 
 #[cfg(test)]
