@@ -95,6 +95,8 @@ impl GuideAxis {
 /// to look centred (plus a random fraction of the fine jog): the person starts outside the
 /// mark's zone and reaches it in a few fine jogs.
 const NEAR_MARGIN_MM: f64 = 0.01;
+/// After each Overshot in an approach the near start is this much further back.
+const OVERSHOT_MARGIN_MM: f64 = 0.03;
 
 /// Step sizes and limits of the procedure.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -288,6 +290,9 @@ pub struct Guide {
     /// jog further away, so the jog lattice falls differently on the mark every time.
     #[serde(default)]
     pub rng: u64,
+    /// Overshoots pressed in the approach in progress.
+    #[serde(default)]
+    pub approach_overshoots: usize,
 }
 
 impl Guide {
@@ -322,10 +327,11 @@ impl Guide {
             entry_jog_mm: 0.0,
             previous_mm: [None, None],
             rng: seed,
+            approach_overshoots: 0,
             params,
         };
         g.pos_mm = 0.0;
-        let moves = g.approach(None, true);
+        let moves = g.approach(None);
         let step = g.step(moves, None);
         Ok((g, step))
     }
@@ -366,10 +372,11 @@ impl Guide {
     /// Both offsets are dither: the jog lattice falls on the mark differently in every
     /// approach, so the reading's jog-step error is independent between cycles and averages
     /// down (a lattice fixed to the camera point repeats the same error in every cycle).
-    /// After an Overshot (`near` false) the person jogs from 1 mm back: starting near again
-    /// could start inside the mark's zone again. Returns the moves; the nozzle never moves
-    /// against the approach direction after the first one.
-    fn approach(&mut self, from: Option<f64>, near: bool) -> Vec<f64> {
+    /// After an Overshot the near start is another 30 µm further back for each overshoot in
+    /// this approach (the start may have been inside the person's zone), and from the fourth
+    /// the person jogs from 1 mm back. Returns the moves; the nozzle never moves against the
+    /// approach direction after the first one.
+    fn approach(&mut self, from: Option<f64>) -> Vec<f64> {
         let d = self.dir();
         let a = self.params.approach_mm;
         let far = match from {
@@ -381,11 +388,14 @@ impl Guide {
         self.last_jog_mm = 0.0;
         let k = usize::from(self.phase == Phase::Minus);
         let mut moves = vec![far];
-        if let (true, Some([reading, width])) = (near, self.previous_mm[k]) {
-            let lead = 0.5 * width.max(0.0) + NEAR_MARGIN_MM + self.fine_mm() * self.uniform();
+        let tries = self.approach_overshoots;
+        if let (true, Some([reading, width])) = (tries <= 3, self.previous_mm[k]) {
+            let lead = 0.5 * width.max(0.0)
+                + NEAR_MARGIN_MM
+                + OVERSHOT_MARGIN_MM * tries as f64
+                + self.fine_mm() * self.uniform();
             let near = reading - d * lead;
-            // Only on in the approach direction, and never nearer than the plausible limit
-            // allows Centred from.
+            // Only on in the approach direction.
             if d * (near - far) > 0.0 {
                 self.pos_mm = near;
                 moves.push(near);
@@ -449,9 +459,10 @@ impl Guide {
             }
             Press::Overshot => {
                 self.overshoots += 1;
+                self.approach_overshoots += 1;
                 self.entry_mm = None;
                 // From 1 mm back of where the nozzle is now, again in the approach direction.
-                let moves = self.approach(Some(self.pos_mm), false);
+                let moves = self.approach(Some(self.pos_mm));
                 Ok(self.step(moves, None))
             }
             Press::Centred if self.entry_mm.is_some() => Err(Error::BacklashGuide(
@@ -514,6 +525,7 @@ impl Guide {
     /// Records the approach's reading and moves on (to the other approach, the next cycle, or
     /// done).
     fn record(&mut self, reading: f64, width_mm: f64) -> Result<Step, Error> {
+        self.approach_overshoots = 0;
         self.entry_mm = None;
         self.last_jog_mm = 0.0;
         self.entry_jog_mm = 0.0;
@@ -523,7 +535,7 @@ impl Guide {
             self.pending_x1_mm = Some(reading);
             self.phase = Phase::Minus;
             // Seed step 5: 1 mm further in +.
-            let moves = self.approach(Some(self.pos_mm), true);
+            let moves = self.approach(Some(self.pos_mm));
             Ok(self.step(moves, Some(reading)))
         } else {
             let x1 = self
@@ -541,7 +553,7 @@ impl Guide {
                 return Ok(self.step(Vec::new(), Some(reading)));
             }
             self.phase = Phase::Plus;
-            let moves = self.approach(None, true);
+            let moves = self.approach(None);
             Ok(self.step(moves, Some(reading)))
         }
     }
@@ -734,6 +746,17 @@ mod tests {
         let e = g.press(Press::Centred).unwrap_err().to_string();
         assert!(e.contains("where the approach began"), "{e}");
         assert_eq!(g, before);
+        // Overshot from there: 1 mm back, then near again but 30 µm further short, so a start
+        // inside the person's zone is not repeated.
+        let [reading, width] = g.previous_mm[0].unwrap();
+        let s = g.press(Press::Overshot).unwrap();
+        assert_eq!(s.moves_mm.len(), 2, "{s:?}");
+        let short = reading - s.moves_mm[1];
+        let want = 0.5 * width + 0.01 + 0.03;
+        assert!(
+            (want..=want + g.fine_mm() + 1e-9).contains(&short),
+            "{short} {s:?}"
+        );
     }
 
     #[test]
