@@ -68,6 +68,12 @@ pub struct BacklashParams {
     /// detection bias at the same two nozzle positions), mm: added without averaging down.
     #[serde(skip)]
     pub repeat_sd_mm: f64,
+    /// The motor's microstep along the axis, mm (0: unknown or not relevant). Jog readings are
+    /// commanded positions, but the nozzle moves only when the commanded position passes half
+    /// a step, on a lattice fixed to the machine that no dither moves: each edge is known to
+    /// within a step, the same in every cycle, so `step²/6` is added without averaging down.
+    #[serde(skip)]
+    pub step_mm: f64,
 }
 
 impl Default for BacklashParams {
@@ -82,6 +88,7 @@ impl Default for BacklashParams {
             outlier_sigmas: 4.0,
             scale_rel_sd: 0.0,
             repeat_sd_mm: 0.0,
+            step_mm: 0.0,
         }
     }
 }
@@ -103,6 +110,7 @@ impl BacklashParams {
             self.outlier_sigmas,
             self.scale_rel_sd,
             self.repeat_sd_mm,
+            self.step_mm,
         ];
         if fin.iter().any(|v| !v.is_finite() || *v < 0.0) {
             return bad("every setting must be a finite number ≥ 0".into());
@@ -406,7 +414,8 @@ pub fn analyse(
     let med = median(&inliers);
     // The scale's share is the same in every cycle: it does not average down.
     let var_scale = (med * params.scale_rel_sd).powi(2);
-    let uncertainty = (var_value + var_scale + params.repeat_sd_mm.powi(2)).sqrt();
+    let var_step = params.step_mm.powi(2) / 6.0;
+    let uncertainty = (var_value + var_scale + params.repeat_sd_mm.powi(2) + var_step).sqrt();
     if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
         return Err(Error::BacklashReadings(format!(
             "axis {axis}: X1 − X2 is {med:.4} mm, below zero beyond the noise; expected X1 \
@@ -807,6 +816,16 @@ mod tests {
                 "{n} cycles at {jr} mm: ±2u covers {c:.1} %"
             );
         }
+        // The motor's microstep lattice is the same in every cycle: step²/6 is added whatever
+        // the cycles say.
+        let r0 = analyse("x", &cycles(&[0.05; 5]), None, &p).unwrap();
+        let stepped = BacklashParams {
+            step_mm: 0.0125,
+            ..p.clone()
+        };
+        let s = analyse("x", &cycles(&[0.05; 5]), None, &stepped).unwrap();
+        let want = r0.uncertainty_mm.powi(2) + 0.0125f64.powi(2) / 6.0;
+        assert!((s.uncertainty_mm.powi(2) - want).abs() < 1e-15);
         // The scale's uncertainty scales the value and is added whatever the cycles say.
         let r = analyse("x", &cycles(&[0.1; 5]), None, &p).unwrap();
         let scaled = BacklashParams {

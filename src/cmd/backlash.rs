@@ -529,8 +529,13 @@ pub(crate) fn bench(
                         + run.moves as f64 * MOVE_OVERHEAD_S
                         + run.travel_mm / JOG_MM_S;
                     let cyc = run.cycles;
+                    // The motor's microstep, as the daemon reads it from Klipper's settings.
+                    let mp = BacklashParams {
+                        step_mm: model.step_mm,
+                        ..params.clone()
+                    };
                     let est = if *cycles > 1 {
-                        match backlash::analyse("x", &cyc, None, &params) {
+                        match backlash::analyse("x", &cyc, None, &mp) {
                             Ok(r) => {
                                 t.stated += 1;
                                 if (r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm {
