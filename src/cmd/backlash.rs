@@ -475,7 +475,7 @@ pub(crate) fn bench(
     let mut all_ok = true;
     println!(
         "bench backlash: {axes} simulated axes per model and person (seed {}), true backlash \
-         uniform 0–0.15 mm; fine jog {} / {} mm alternating, coarse {} mm; time at {JOG_MM_S} \
+         uniform 0–0.15 mm; fine jog {} mm in cycles 1 and 3, {} mm in the others, coarse {} mm; time at {JOG_MM_S} \
          mm/s jogs + {MOVE_OVERHEAD_S} s per move, {PRESS_S} s per press (look and tap)",
         args.seed, base.fine_mm, base.small_fine_mm, base.coarse_mm
     );
