@@ -46,7 +46,7 @@ async fn measure(
         cycles: 3,
         ..GuideParams::default()
     };
-    let (mut g, mut step) = Guide::start(axis, axis.coord(point), params).unwrap();
+    let (mut g, mut step) = Guide::start(axis, axis.coord(point), params, rng.u64(..)).unwrap();
     let mut presses = 0;
     loop {
         for &s in &step.moves_mm {
