@@ -148,7 +148,8 @@ pub(crate) struct BedPreset {
     /// of the rest.
     pub hidden_s: Option<f64>,
     /// The stack's own charge time between thermistor and surface, s (the transient right
-    /// after the bed reaches its band).
+    /// after the bed reaches its band): its clamped time constants add up to at most
+    /// Σ C_i·R_i ≤ R·C (see [`OPEN_FRAME_TAU_MAX_S`]), so `rc_s`.
     pub charge_s: f64,
 }
 
@@ -186,7 +187,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
         StackLimits::R_BARE,
         StackLimits::C_PAD + StackLimits::C_PLATE,
         Some(0.0),
-        30.0,
     ),
     preset(
         "steel-plate",
@@ -197,7 +197,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
             StackLimits::R_STEEL
                 * (StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL),
         ),
-        60.0,
     ),
     preset(
         "bare-pad",
@@ -205,7 +204,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
         StackLimits::R_PAD + StackLimits::R_BARE,
         StackLimits::C_PAD + StackLimits::C_PLATE,
         Some(0.0),
-        240.0,
     ),
     preset(
         "steel-pad",
@@ -216,7 +214,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
             StackLimits::R_STEEL
                 * (StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL),
         ),
-        300.0,
     ),
     preset(
         "glass-plate",
@@ -224,7 +221,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
         StackLimits::R_GLASS,
         StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_GLASS,
         None,
-        600.0,
     ),
     preset(
         "glass-pad",
@@ -232,7 +228,6 @@ pub(crate) const BED_PRESETS: &[BedPreset] = &[
         StackLimits::R_PAD + StackLimits::R_GLASS,
         StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_GLASS,
         None,
-        900.0,
     ),
 ];
 
@@ -243,7 +238,6 @@ const fn preset(
     r: f64,
     c: f64,
     hidden_s: Option<f64>,
-    charge_s: f64,
 ) -> BedPreset {
     BedPreset {
         name,
@@ -251,7 +245,7 @@ const fn preset(
         g: 1.0 / (r * StackLimits::Q_MAX_W_M2),
         rc_s: r * c,
         hidden_s,
-        charge_s,
+        charge_s: r * c,
     }
 }
 
