@@ -329,6 +329,17 @@ pub(crate) struct Coupling {
 }
 
 impl Coupling {
+    /// [`Coupling::short`], and why it was not identified when it was not.
+    #[must_use]
+    pub(crate) fn short_why(&self) -> String {
+        match self.why.find("not identified") {
+            Some(i) if self.source != CouplingSource::Identified => {
+                format!("{} ({})", self.short(), &self.why[i..])
+            }
+            _ => self.short(),
+        }
+    }
+
     /// The coupling in a few words, for a status line: its value, interval and source.
     #[must_use]
     pub(crate) fn short(&self) -> String {

@@ -579,7 +579,7 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
     for (name, text) in crate::cmd::soak_families::RECORDED {
         match crate::cmd::soak_families::recorded(text) {
             Ok(run) => {
-                let (d, why, sigma) = crate::cmd::soak_families::declare(&run, &params);
+                let (d, why, sigma, coupling) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
                 let bound = information_bound(
                     run.t_reach_s,
@@ -614,6 +614,7 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
                     bound / 60.0,
                     sigma * 100.0
                 );
+                println!("      {}", coupling.short_why());
                 if args.show_failures {
                     println!("      {why}");
                 }

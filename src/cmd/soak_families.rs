@@ -41,15 +41,9 @@ pub(crate) struct Run {
 
 /// The detector's declaration on a run (with the bed's max_power), s, its explanation at that
 /// moment (or at the end of the run), and the bin noise its test used then (0 without a fit).
+/// And the coupling it used.
 #[must_use]
-pub(crate) fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
-    let (d, why, sigma, _) = declare_coupled(run, params);
-    (d, why, sigma)
-}
-
-/// [`declare`], with the coupling the detector used.
-#[must_use]
-pub(crate) fn declare_coupled(
+pub(crate) fn declare(
     run: &Run,
     params: &SoakParams,
 ) -> (Option<f64>, String, f64, crate::calib::soak::Coupling) {
@@ -631,7 +625,7 @@ pub(crate) fn evaluate(
     for k in 0..beds {
         let run = make(&mut rng);
         let moment = run.t_one_s;
-        let (declared, why, sigma, coupling) = declare_coupled(&run, params);
+        let (declared, why, sigma, coupling) = declare(&run, params);
         if coupling.source == crate::calib::soak::CouplingSource::Identified {
             r.identified += 1;
             r.covered += usize::from(coupling.low <= run.g_true && run.g_true <= coupling.high);
@@ -897,7 +891,7 @@ mod tests {
             if !beds.contains(&k) {
                 continue;
             }
-            let (declared, why, _) = declare(&run, &params);
+            let (declared, why, _, _) = declare(&run, &params);
             assert!(
                 declared.map_or(true, |d| d >= run.t_one_s),
                 "seed {seed} bed {k}: declared {declared:?} s before the 1 % moment {} s: {why}",

@@ -149,13 +149,7 @@ pub(crate) fn run_real(trace: &RealTrace, params: &SoakParams) -> RealOutcome {
         }
     }
     let fit = det.fit();
-    let c = det.coupling();
-    let coupling = match c.why.find("not identified") {
-        Some(i) if c.source != crate::calib::soak::CouplingSource::Identified => {
-            format!("{} ({})", c.short(), &c.why[i..])
-        }
-        _ => c.short(),
-    };
+    let coupling = det.coupling().short_why();
     RealOutcome {
         coupling,
         reach_s,
