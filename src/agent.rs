@@ -341,8 +341,8 @@ fn status_text(a: &StatusAnswer) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::jobs::core::envelope::StatusHead;
     use crate::jobs::core::status::SessionStatus;
-    use crate::jobs::core::StatusHead;
 
     fn answer(printer: Option<printer::Summary>) -> StatusAnswer {
         StatusAnswer {

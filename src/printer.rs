@@ -5,6 +5,7 @@
 use serde::Serialize;
 use serde_json::{json, Map, Value};
 
+use crate::moonraker::answers::HeatersStatus;
 use crate::moonraker::{self, Moonraker};
 
 /// One X/Y stepper as Klipper runs it.
@@ -90,26 +91,19 @@ fn xy(v: &Value) -> Option<[f64; 2]> {
     Some([v.get(0)?.as_f64()?, v.get(1)?.as_f64()?])
 }
 
-fn strings(v: &Value) -> Vec<String> {
-    v.as_array()
-        .map(|a| {
-            a.iter()
-                .filter_map(|s| s.as_str().map(str::to_string))
-                .collect()
-        })
-        .unwrap_or_default()
-}
-
 impl Summary {
     /// Builds the summary from `server.info`, `printer.info`, and — when Klipper is ready —
     /// `printer.objects.list`, `printer.gcode.help` and a query of [`query_objects`].
+    ///
+    /// # Errors
+    /// [`moonraker::Error::Protocol`] when Klipper's `heaters` object is malformed.
     pub(crate) fn from_answers(
         server_info: &Value,
         printer_info: Option<&Value>,
         objects: Option<&[String]>,
         gcode_help: Option<&Map<String, Value>>,
         status: Option<&Map<String, Value>>,
-    ) -> Self {
+    ) -> Result<Self, moonraker::Error> {
         let s = |v: &Value| v.as_str().unwrap_or_default().to_string();
         let klippy_state = printer_info
             .and_then(|p| p["state"].as_str())
@@ -159,8 +153,9 @@ impl Summary {
                 out.axis_max_mm = xy(&th["axis_maximum"]);
             }
             if let Some(h) = st.get("heaters") {
-                out.heaters = strings(&h["available_heaters"]);
-                out.sensors = strings(&h["available_sensors"]);
+                let h = HeatersStatus::parse(h.clone())?;
+                out.heaters = h.available_heaters;
+                out.sensors = h.available_sensors;
             }
             out.print_state = st
                 .get("print_stats")
@@ -180,7 +175,7 @@ impl Summary {
                 virtual_sdcard: has_obj("virtual_sdcard"),
             });
         }
-        out
+        Ok(out)
     }
 
     /// Why the printer cannot be calibrated now, if it cannot.
@@ -283,8 +278,8 @@ impl Summary {
 /// Asks Moonraker for everything in the summary.
 ///
 /// # Errors
-/// When Moonraker cannot be asked at all; Klipper not being ready is not an error (the summary
-/// says so).
+/// When Moonraker cannot be asked at all, or an answer read is malformed; Klipper not being
+/// ready is not an error (the summary says so).
 pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
     let server_info = m.server_info().await?;
     let printer_info = m.printer_info().await.ok();
@@ -292,13 +287,7 @@ pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
         .as_ref()
         .is_some_and(|p| p["state"].as_str() == Some("ready"));
     if !ready {
-        return Ok(Summary::from_answers(
-            &server_info,
-            printer_info.as_ref(),
-            None,
-            None,
-            None,
-        ));
+        return Summary::from_answers(&server_info, printer_info.as_ref(), None, None, None);
     }
     let objects = m.objects_list().await?;
     let help = match m.call("printer.gcode.help", Value::Null).await? {
@@ -306,13 +295,13 @@ pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
         _ => Map::new(),
     };
     let status = m.objects_query(query_objects()).await?;
-    Ok(Summary::from_answers(
+    Summary::from_answers(
         &server_info,
         printer_info.as_ref(),
         Some(&objects),
         Some(&help),
         Some(&status),
-    ))
+    )
 }
 
 #[cfg(test)]
@@ -367,7 +356,8 @@ mod tests {
             Some(&objects),
             Some(&help),
             Some(&status),
-        );
+        )
+        .unwrap();
         assert_eq!(s.kinematics.as_deref(), Some("corexy"));
         assert_eq!(s.steppers.len(), 2);
         assert_eq!(s.steppers[0].rotation_distance_mm, Some(40.0));
@@ -390,12 +380,32 @@ mod tests {
         let (server, _, _, _, _) = answers();
         let printer = json!({"state": "error", "state_message": "Option 'x' is not valid",
                              "software_version": "v0.12"});
-        let s = Summary::from_answers(&server, Some(&printer), None, None, None);
+        let s = Summary::from_answers(&server, Some(&printer), None, None, None).unwrap();
         let p = s.problem().unwrap();
         assert!(
             p.contains("error") && p.contains("Option 'x' is not valid"),
             "{p}"
         );
         assert!(s.features.is_none());
+    }
+
+    #[test]
+    fn heaters_come_from_the_typed_heaters_object_and_a_malformed_one_is_an_error() {
+        let (server, printer, objects, help, mut status) = answers();
+        let s = Summary::from_answers(
+            &server,
+            Some(&printer),
+            Some(&objects),
+            Some(&help),
+            Some(&status),
+        )
+        .unwrap();
+        assert_eq!(s.heaters, ["heater_bed", "extruder"]);
+        assert!(s.render().contains("Heaters         heater_bed, extruder"));
+        status.insert("heaters".into(), json!({"available_heaters": "heater_bed"}));
+        let e = Summary::from_answers(&server, Some(&printer), None, None, Some(&status))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("heaters object"), "{e}");
     }
 }

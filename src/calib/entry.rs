@@ -98,8 +98,9 @@ pub struct Item {
 
 /// The page's fields, one reading each: blank fields are skipped, the others keep their
 /// place (`field 2` is the second field however many before it are blank).
+#[cfg(test)]
 #[must_use]
-pub fn fields(texts: &[String]) -> Vec<Item> {
+pub(crate) fn fields(texts: &[String]) -> Vec<Item> {
     texts
         .iter()
         .enumerate()

@@ -139,12 +139,6 @@ impl Fit {
         self.points.len()
     }
 
-    /// True when the model has no points.
-    #[must_use]
-    pub fn is_empty(&self) -> bool {
-        self.points.is_empty()
-    }
-
     fn eval(&self, i: usize, t: f64) -> f64 {
         match &self.points[i] {
             PointFit::Poly(c) => {
@@ -170,13 +164,6 @@ impl Fit {
     #[must_use]
     pub(crate) fn predict_point(&self, i: usize, temp_c: f64) -> f64 {
         self.eval(i, temp_c.clamp(self.range_c.0, self.range_c.1))
-    }
-
-    /// Largest |z(a) − z(b)| over the points, µm.
-    #[must_use]
-    pub fn deviation_um(&self, a_c: f64, b_c: f64) -> f64 {
-        let (pa, pb) = (self.predict(a_c), self.predict(b_c));
-        max_abs_diff_um(&pa.points_mm, &pb.points_mm)
     }
 }
 

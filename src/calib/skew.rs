@@ -1,17 +1,20 @@
 //! PURE: XY skew — Klipper's skew_correction arithmetic (klippy/extras/skew_correction.py:
 //! `calc_skew_factor`, the `x' = x − y·xy` transform), the SET_SKEW lengths that give a wanted
-//! factor, the classic AC/BD/AD method, and the Prusa-style point fit (seed 001). No I/O.
+//! factor and Prusa's skew classes (seed 001). The skew itself is fitted by `calib::solve`;
+//! Klipper's `calc_skew_factor` and its classic AC/BD/AD method are kept for the tests, as the
+//! oracle the SET_SKEW lengths are checked against. No I/O.
 
-use nalgebra::{DMatrix, DVector, Matrix4, Vector4};
 use serde::Serialize;
 
+#[cfg(test)]
 use super::Error;
 
 /// Klipper's `calc_skew_factor(ac, bd, ad)`, line for line: the other side of the
 /// parallelogram from the diagonals, the angle between the sides, and tan(π/2 − angle).
 /// Returns `None` when the lengths do not form a parallelogram (Klipper would raise).
+#[cfg(test)]
 #[must_use]
-pub fn calc_skew_factor(ac: f64, bd: f64, ad: f64) -> Option<f64> {
+pub(crate) fn calc_skew_factor(ac: f64, bd: f64, ad: f64) -> Option<f64> {
     let side = (2.0 * ac * ac + 2.0 * bd * bd - 4.0 * ad * ad).sqrt() / 2.0;
     let cos = (ac * ac - side * side - ad * ad) / (2.0 * side * ad);
     let f = (std::f64::consts::FRAC_PI_2 - cos.acos()).tan();
@@ -79,7 +82,8 @@ pub fn xy_factor_from_positions(gcode: [f64; 3], toolhead: [f64; 3]) -> Option<f
 ///
 /// # Errors
 /// Non-positive lengths or lengths that do not form a parallelogram.
-pub fn classic_skew_factor(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<f64, Error> {
+#[cfg(test)]
+pub(crate) fn classic_skew_factor(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<f64, Error> {
     if !(ac_mm > 0.0 && bd_mm > 0.0 && ad_mm > 0.0) {
         return Err(Error::Fit(format!(
             "AC={ac_mm}, BD={bd_mm}, AD={ad_mm}: expected three positive lengths in mm"
@@ -112,125 +116,6 @@ pub(crate) fn classify_skew(angle_deg: f64) -> SkewClass {
         a if a > 0.12 => SkewClass::Mild,
         _ => SkewClass::Perfect,
     }
-}
-
-/// The Prusa-style fit: measured = shift + x·(cos a_x, sin a_x) + y·(−sin a_y, cos a_y).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
-pub struct PointFit {
-    /// Bed shift, mm.
-    pub shift_mm: [f64; 2],
-    /// Angle of the X axis from +X, degrees.
-    pub x_axis_deg: f64,
-    /// Angle of the Y axis from +Y, degrees.
-    pub y_axis_deg: f64,
-    /// Skew a_x − a_y, degrees: the axes are this much closer than 90°; equals atan of
-    /// Klipper's xy factor.
-    pub skew_deg: f64,
-    /// Klipper's xy factor tan(a_x − a_y).
-    pub xy_factor: f64,
-    /// Standard uncertainties of shift x, shift y, a_x, a_y (mm, mm, deg, deg).
-    pub uncertainty: [f64; 4],
-    /// Standard uncertainty of the skew, degrees.
-    pub skew_uncertainty_deg: f64,
-    /// RMS residual, mm.
-    pub rms_mm: f64,
-    /// Prusa's class of the skew.
-    pub class: SkewClass,
-}
-
-/// Fits shift and the two axis angles (no scaling) to 4–9 (or more) measured reference points
-/// by Gauss–Newton, as the Prusa MK2 firmware does (seed 001, "Data Processing").
-///
-/// # Errors
-/// Fewer than 4 points, mismatched lengths, non-finite values, or a degenerate set (points on a line).
-pub fn fit_points(nominal: &[[f64; 2]], measured: &[[f64; 2]]) -> Result<PointFit, Error> {
-    let n = nominal.len();
-    if n < 4 || measured.len() != n {
-        return Err(Error::Fit(format!(
-            "{n} nominal and {} measured points; expected the same number, at least 4",
-            measured.len()
-        )));
-    }
-    if nominal
-        .iter()
-        .chain(measured)
-        .flatten()
-        .any(|v| !v.is_finite())
-    {
-        return Err(Error::Fit(
-            "a point coordinate is not a finite number".into(),
-        ));
-    }
-    let model = |p: &Vector4<f64>, q: [f64; 2]| -> [f64; 2] {
-        [
-            p[0] + q[0] * p[2].cos() - q[1] * p[3].sin(),
-            p[1] + q[0] * p[2].sin() + q[1] * p[3].cos(),
-        ]
-    };
-    let mut p = Vector4::zeros();
-    for (q, m) in nominal.iter().zip(measured) {
-        p[0] += (m[0] - q[0]) / n as f64;
-        p[1] += (m[1] - q[1]) / n as f64;
-    }
-    let mut jtj = Matrix4::zeros();
-    let mut r = DVector::zeros(2 * n);
-    for _ in 0..50 {
-        let mut j = DMatrix::zeros(2 * n, 4);
-        for (i, (q, m)) in nominal.iter().zip(measured).enumerate() {
-            let f = model(&p, *q);
-            r[2 * i] = m[0] - f[0];
-            r[2 * i + 1] = m[1] - f[1];
-            j[(2 * i, 0)] = 1.0;
-            j[(2 * i + 1, 1)] = 1.0;
-            j[(2 * i, 2)] = -q[0] * p[2].sin();
-            j[(2 * i + 1, 2)] = q[0] * p[2].cos();
-            j[(2 * i, 3)] = -q[1] * p[3].cos();
-            j[(2 * i + 1, 3)] = -q[1] * p[3].sin();
-        }
-        jtj = (j.transpose() * &j).fixed_view::<4, 4>(0, 0).into_owned();
-        let jtr: Vector4<f64> = (j.transpose() * &r).fixed_rows::<4>(0).into_owned();
-        let Some(step) = jtj.cholesky().map(|c| c.solve(&jtr)) else {
-            return Err(Error::Fit(
-                "the reference points are degenerate (on one line); expected points spread over the bed".into(),
-            ));
-        };
-        p += step;
-        if step.norm() < 1e-13 {
-            break;
-        }
-    }
-    // Residuals at the final parameters.
-    let mut ss = 0.0;
-    for (q, m) in nominal.iter().zip(measured) {
-        let f = model(&p, *q);
-        ss += (m[0] - f[0]).powi(2) + (m[1] - f[1]).powi(2);
-    }
-    let _ = &r;
-    let dof = (2 * n - 4).max(1) as f64;
-    let var = ss / dof;
-    let cov = jtj
-        .try_inverse()
-        .ok_or_else(|| Error::Fit("singular normal matrix".into()))?
-        * var;
-    let skew_rad = p[2] - p[3];
-    let skew_var = cov[(2, 2)] + cov[(3, 3)] - 2.0 * cov[(2, 3)];
-    let skew_deg = skew_rad.to_degrees();
-    Ok(PointFit {
-        shift_mm: [p[0], p[1]],
-        x_axis_deg: p[2].to_degrees(),
-        y_axis_deg: p[3].to_degrees(),
-        skew_deg,
-        xy_factor: skew_rad.tan(),
-        uncertainty: [
-            cov[(0, 0)].sqrt(),
-            cov[(1, 1)].sqrt(),
-            cov[(2, 2)].sqrt().to_degrees(),
-            cov[(3, 3)].sqrt().to_degrees(),
-        ],
-        skew_uncertainty_deg: skew_var.max(0.0).sqrt().to_degrees(),
-        rms_mm: (ss / n as f64).sqrt(),
-        class: classify_skew(skew_deg),
-    })
 }
 
 #[cfg(test)]
@@ -313,50 +198,9 @@ mod tests {
     }
 
     #[test]
-    fn the_point_fit_recovers_shift_and_axis_angles_of_nine_points() {
-        // seed 001 "Data Processing": 9 points, shift + two axis angles, no scaling.
-        let nominal: Vec<[f64; 2]> = (0..9)
-            .map(|i| {
-                [
-                    37.0 + 90.0 * f64::from(i % 3),
-                    18.0 + 90.0 * f64::from(i / 3),
-                ]
-            })
-            .collect();
-        let (ax, ay) = (0.1f64.to_radians(), (-0.2f64).to_radians());
-        let noise = [0.02, -0.01, 0.0, 0.015, -0.02, 0.01, -0.005, 0.0, 0.01];
-        let measured: Vec<[f64; 2]> = nominal
-            .iter()
-            .enumerate()
-            .map(|(i, q)| {
-                [
-                    0.5 + q[0] * ax.cos() - q[1] * ay.sin() + noise[i],
-                    -0.3 + q[0] * ax.sin() + q[1] * ay.cos() - noise[8 - i],
-                ]
-            })
-            .collect();
-        let fit = fit_points(&nominal, &measured).expect("fit");
-        assert!((fit.shift_mm[0] - 0.5).abs() < 0.03 && (fit.shift_mm[1] + 0.3).abs() < 0.03);
-        assert!(
-            (fit.skew_deg - 0.3).abs() < 3.0 * fit.skew_uncertainty_deg + 1e-3,
-            "{fit:?}"
-        );
-        assert!(fit.skew_uncertainty_deg > 0.0 && fit.skew_uncertainty_deg < 0.05);
-        assert_eq!(fit.class, SkewClass::Extreme);
-        assert!((fit.xy_factor - fit.skew_deg.to_radians().tan()).abs() < 1e-15);
-    }
-
-    #[test]
     fn prusa_thresholds_classify_skew() {
         assert_eq!(classify_skew(0.1), SkewClass::Perfect);
         assert_eq!(classify_skew(-0.2), SkewClass::Mild);
         assert_eq!(classify_skew(0.3), SkewClass::Extreme);
-    }
-
-    #[test]
-    fn the_point_fit_refuses_collinear_or_too_few_points() {
-        let line: Vec<[f64; 2]> = (0..5).map(|i| [f64::from(i) * 10.0, 0.0]).collect();
-        assert!(fit_points(&line, &line).is_err());
-        assert!(fit_points(&line[..3], &line[..3]).is_err());
     }
 }

@@ -958,8 +958,9 @@ impl SoakDetector {
 
     /// The `max_power` saturation is measured against: Klipper's, when given; else 1.0 until
     /// the heat-up shows a lower cap (see [`SoakDetector::push`]).
+    #[cfg(test)]
     #[must_use]
-    pub fn max_power(&self) -> f64 {
+    pub(crate) fn max_power(&self) -> f64 {
         self.max_power
     }
 

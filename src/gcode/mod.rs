@@ -17,8 +17,6 @@ mod tests;
 
 use crate::layout::Layout;
 
-pub use plan::precision_bound;
-
 /// A generator error a user can cause (bad options, a bed too small for the layout).
 #[derive(Debug, thiserror::Error, PartialEq)]
 pub enum Error {

@@ -949,8 +949,8 @@ mod tests {
         use crate::agent::{Connection, DaemonInfo, PageInfo, StatusAnswer};
         use crate::jobs::ab::{AbRoundStatus, AbStatus};
         use crate::jobs::backlash::BacklashStatus;
+        use crate::jobs::core::envelope::StatusHead;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
-        use crate::jobs::core::StatusHead;
         use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
         let head = StatusHead {
             id: 1,

@@ -13,8 +13,8 @@ pub mod mesh;
 pub mod registry;
 
 // The core's modules at their former paths (`jobs::table`, …), for callers outside `jobs`.
-pub use self::core::{console, printer_config, session, soak, table};
+pub use self::core::{console, printer_config, soak, table};
 
 pub(crate) use self::core::user;
-pub use self::core::{is_user_error, Calibration, Core, UserError};
+pub use self::core::{is_user_error, Core};
 pub use registry::Calibrations;

@@ -237,12 +237,14 @@ impl Config {
     }
 
     /// What happened to the SAVE_CONFIG block.
-    pub fn save_config_status(&self) -> &SaveConfigStatus {
+    #[cfg(test)]
+    pub(crate) fn save_config_status(&self) -> &SaveConfigStatus {
         &self.save_config
     }
 
     /// SAVE_CONFIG options Klipper ignores because the regular config defines them.
-    pub fn shadowed_save_config(&self) -> &[ShadowedOption] {
+    #[cfg(test)]
+    pub(crate) fn shadowed_save_config(&self) -> &[ShadowedOption] {
         &self.shadowed
     }
 }
@@ -1025,7 +1027,8 @@ gcode:
         let y = cfg.option("stepper_y", "rotation_distance").unwrap();
         assert_eq!((y.value.as_str(), y.origin.first_line), ("39.5", 7));
         // and an edit keeps the lone CRs
-        let edit = super::super::set_value(&cfg, "stepper_x", "rotation_distance", "40.2").unwrap();
+        let edit =
+            super::super::edit::set_value(&cfg, "stepper_x", "rotation_distance", "40.2").unwrap();
         assert_eq!(edit.new_text, text.replacen(": 40\r", ": 40.2\r", 1));
     }
 

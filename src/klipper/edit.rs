@@ -59,7 +59,8 @@ pub struct FileEdit {
 /// [`Error::BadNewValue`] when `new_value` holds a line break, a `#`, a `;` after whitespace or
 /// at the start, or surrounding whitespace (Klipper would read it differently);
 /// [`Error::EditCheck`] if the re-parse disagrees (a bug, never expected).
-pub fn set_value(
+#[cfg(test)]
+pub(crate) fn set_value(
     config: &Config,
     section: &str,
     key: &str,

@@ -2,6 +2,7 @@
 //! nozzle, which helper sections exist), validated as klippy does. One code path serves a parsed
 //! [`Config`] and Moonraker's `configfile.config` JSON. PURE: no I/O.
 
+#[cfg(test)]
 use serde_json::Value;
 
 use super::config::Config;
@@ -37,7 +38,8 @@ pub struct Stepper {
 
 impl Stepper {
     /// Microsteps per mm of travel: full steps × microsteps × gear ratio / rotation distance.
-    pub fn steps_per_mm(&self) -> f64 {
+    #[cfg(test)]
+    pub(crate) fn steps_per_mm(&self) -> f64 {
         f64::from(self.full_steps_per_rotation) * f64::from(self.microsteps) * self.gear_ratio
             / self.rotation_distance_mm
     }
@@ -93,7 +95,8 @@ impl PrinterFacts {
     /// # Errors
     /// [`Error::Settings`] when the JSON is not an object of objects; otherwise as
     /// [`PrinterFacts::from_config`].
-    pub fn from_settings(settings: &Value) -> Result<PrinterFacts, Error> {
+    #[cfg(test)]
+    pub(crate) fn from_settings(settings: &Value) -> Result<PrinterFacts, Error> {
         let obj = settings.as_object().ok_or_else(|| {
             Error::Settings("expected a JSON object mapping section names to options".into())
         })?;
@@ -125,8 +128,10 @@ impl Source for ConfigSource<'_> {
     }
 }
 
+#[cfg(test)]
 struct JsonSource<'a>(&'a serde_json::Map<String, Value>);
 
+#[cfg(test)]
 impl Source for JsonSource<'_> {
     fn section_names(&self) -> Vec<String> {
         self.0.keys().cloned().collect()

@@ -43,7 +43,8 @@ impl MemFiles {
 
     /// Adds (or replaces) a file; returns `self` for chaining.
     #[must_use]
-    pub fn with(mut self, path: impl AsRef<Path>, text: impl Into<String>) -> Self {
+    #[cfg(test)]
+    pub(crate) fn with(mut self, path: impl AsRef<Path>, text: impl Into<String>) -> Self {
         self.insert(path, text);
         self
     }

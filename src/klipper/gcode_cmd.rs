@@ -61,7 +61,8 @@ impl GcodeCmd {
     }
 
     /// `KEY=value` for an integer.
-    pub fn int(self, key: &str, value: i64) -> GcodeCmd {
+    #[cfg(test)]
+    pub(crate) fn int(self, key: &str, value: i64) -> GcodeCmd {
         self.param(key, || Ok(value.to_string()))
     }
 
@@ -227,7 +228,8 @@ pub(crate) fn set_skew_xy(ac_mm: f64, bd_mm: f64, ad_mm: f64) -> Result<String, 
 ///
 /// # Errors
 /// [`Error::BadText`] when `msg` fails [`check_text`].
-pub fn respond(msg: &str) -> Result<String, Error> {
+#[cfg(test)]
+pub(crate) fn respond(msg: &str) -> Result<String, Error> {
     GcodeCmd::new("RESPOND")
         .word("PREFIX", RESPOND_PREFIX)
         .text("MSG", msg)

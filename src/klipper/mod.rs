@@ -32,15 +32,13 @@ pub mod start_macro;
 
 use std::path::PathBuf;
 
-pub use config::{
-    Config, ConfigOption, Origin, SaveConfigStatus, Section, ShadowedOption, SourceFile,
-};
-pub use edit::{set_value, set_values, FileEdit, ValueChange};
+pub use config::Config;
+pub use edit::set_values;
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
-pub use plan::{add_include, plan_values, PlannedFile, Protected, WritePlan};
-pub use start_macro::{find_start_macro, find_start_macro_in, StartMacro};
+pub use plan::{add_include, plan_values, Protected};
+pub use start_macro::{find_start_macro, StartMacro};
 
 /// Klipper's options as written (`configfile.config`): section → option → text.
 pub(crate) type RawConfig =

@@ -141,12 +141,9 @@ pub struct BedMeshStatus {
     pub profiles: BTreeMap<String, BedMeshProfileStatus>,
 }
 
-/// One profile in the `bed_mesh` status.
+/// One profile in the `bed_mesh` status (its `points` are not read).
 #[derive(Debug, Clone, Deserialize)]
 pub struct BedMeshProfileStatus {
-    /// Its points, `[row y][column x]`, mm.
-    #[serde(default)]
-    pub points: Vec<Vec<f64>>,
     /// Its parameters.
     pub mesh_params: crate::klipper::bed_mesh::MeshParams,
 }
@@ -158,6 +155,109 @@ impl BedMeshStatus {
     /// [`Error::Protocol`] naming what is malformed.
     pub fn parse(v: Value) -> Result<Self, Error> {
         serde_json::from_value(v).map_err(|e| bad("bed_mesh status", e))
+    }
+}
+
+/// Moonraker's `server.webcams.list` answer (the `result` of `/server/webcams/list`).
+#[derive(Debug, Clone, Default, Deserialize)]
+pub(crate) struct WebcamList {
+    /// Every webcam Moonraker knows (none when the answer has no list).
+    #[serde(default)]
+    pub webcams: Vec<WebcamEntry>,
+}
+
+/// One webcam in Moonraker's list: the fields klipcal reads.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(default)]
+pub(crate) struct WebcamEntry {
+    /// Its name.
+    #[serde(deserialize_with = "text_or_null")]
+    pub name: String,
+    /// Moonraker's id for it.
+    #[serde(deserialize_with = "text_or_null")]
+    pub uid: String,
+    /// The streamer (`mjpegstreamer-adaptive`, `iframe`, …).
+    #[serde(deserialize_with = "text_or_null")]
+    pub service: String,
+    /// Shown in the frontends (Moonraker's default: yes).
+    pub enabled: bool,
+    /// The still picture's URL, maybe relative (`/webcam/?action=snapshot`).
+    #[serde(deserialize_with = "text_or_null")]
+    pub snapshot_url: String,
+    /// The stream's URL (an iframe webcam's page).
+    #[serde(deserialize_with = "text_or_null")]
+    pub stream_url: String,
+}
+
+impl Default for WebcamEntry {
+    fn default() -> Self {
+        Self {
+            name: String::new(),
+            uid: String::new(),
+            service: String::new(),
+            enabled: true,
+            snapshot_url: String::new(),
+            stream_url: String::new(),
+        }
+    }
+}
+
+/// Text, with `null` as empty (older Moonraker sends `null` for an unset URL).
+fn text_or_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    Ok(Option::<String>::deserialize(d)?.unwrap_or_default())
+}
+
+impl WebcamList {
+    /// Parses the `server.webcams.list` answer.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming what is malformed.
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad_moonraker("webcam list", e))
+    }
+}
+
+/// Klipper's `heaters` object.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct HeatersStatus {
+    /// Every heater (`extruder`, `heater_bed`, `heater_generic …`).
+    pub available_heaters: Vec<String>,
+    /// Every temperature sensor, heaters included.
+    pub available_sensors: Vec<String>,
+}
+
+impl HeatersStatus {
+    /// Parses Klipper's `heaters` status object.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming what is malformed.
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad("heaters object", e))
+    }
+}
+
+/// A heater's or temperature sensor's status (`heater_bed`, `extruder`,
+/// `temperature_sensor …`): the fields asked for, `None` when not asked for or when Klipper has
+/// no such object.
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct HeaterStatus {
+    /// Measured, °C.
+    pub temperature: Option<f64>,
+    /// Target, °C (0: off).
+    pub target: Option<f64>,
+    /// PWM duty, 0–1.
+    pub power: Option<f64>,
+}
+
+impl HeaterStatus {
+    /// Parses the status object of the heater or sensor `name`.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming the object and what is malformed.
+    pub(crate) fn parse(name: &str, v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad(&format!("{name} status"), e))
     }
 }
 
@@ -180,6 +280,10 @@ fn is_probe(name: &str) -> bool {
 
 fn bad(what: &str, e: impl std::fmt::Display) -> Error {
     Error::Protocol(format!("Klipper's {what} is not as expected: {e}"))
+}
+
+fn bad_moonraker(what: &str, e: impl std::fmt::Display) -> Error {
+    Error::Protocol(format!("Moonraker's {what} is not as expected: {e}"))
 }
 
 impl ConfigFile {
@@ -372,7 +476,6 @@ mod tests {
         let hot = &bm.profiles["hot"];
         assert_eq!((hot.mesh_params.x_count, hot.mesh_params.y_count), (3, 3));
         assert_eq!(hot.mesh_params.max_x, 280.0);
-        assert_eq!(hot.points[0], vec![0.04, 0.02, 0.0]);
         // Only the fields asked for: the others are empty, not an error.
         let bm = BedMeshStatus::parse(json!({"profile_name": "hot"})).unwrap();
         assert_eq!(bm.profile_name.as_deref(), Some("hot"));
@@ -381,6 +484,7 @@ mod tests {
         for bad in [
             json!({"probed_matrix": [[0.1, "x"]]}),
             json!({"profiles": {"p": {"points": []}}}),
+            json!({"profiles": {"p": {"mesh_params": {"x_count": "3"}}}}),
             json!({"profile_name": 3}),
         ] {
             let e = BedMeshStatus::parse(bad.clone()).unwrap_err().to_string();
@@ -416,6 +520,90 @@ mod tests {
             assert!(matches!(e, Error::Protocol(_)), "{answer}: {e}");
             let text = e.to_string();
             assert!(text.contains(named), "{answer}: {text}");
+        }
+    }
+
+    #[test]
+    fn the_bench_webcam_list_parses_and_a_malformed_one_is_refused_by_name() {
+        let list = WebcamList::parse(fixture("webcams-list.json")["result"].clone()).unwrap();
+        assert_eq!(list.webcams.len(), 1);
+        let cam = &list.webcams[0];
+        assert_eq!(
+            (cam.name.as_str(), cam.service.as_str(), cam.enabled),
+            ("nozzle", "mjpegstreamer-adaptive", true)
+        );
+        assert_eq!(cam.snapshot_url, "http://127.0.0.1:54299/?action=snapshot");
+        assert_eq!(cam.uid, "fb09faf6-ade1-56e8-b58d-4c20f3eb5258");
+        // Fields left out: enabled (Moonraker's default), URLs empty; null URLs are empty.
+        let list =
+            WebcamList::parse(json!({"webcams": [{"name": "n", "snapshot_url": null}]})).unwrap();
+        assert!(list.webcams[0].enabled && list.webcams[0].snapshot_url.is_empty());
+        assert!(WebcamList::parse(json!({})).unwrap().webcams.is_empty());
+        for bad in [
+            json!({"webcams": {"name": "n"}}),
+            json!({"webcams": [{"name": 3}]}),
+            json!({"webcams": [{"enabled": "yes"}]}),
+            json!(null),
+            json!("webcams"),
+        ] {
+            let e = WebcamList::parse(bad.clone()).unwrap_err();
+            assert!(matches!(e, Error::Protocol(_)), "{bad}: {e}");
+            assert!(e.to_string().contains("webcam list"), "{bad}: {e}");
+        }
+    }
+
+    #[test]
+    fn the_bench_heaters_parse_and_a_malformed_one_is_refused_by_name() {
+        let h = HeatersStatus::parse(fixture("heaters-status.json")).unwrap();
+        assert_eq!(h.available_heaters, ["heater_bed", "extruder"]);
+        assert_eq!(
+            h.available_sensors,
+            ["heater_bed", "temperature_sensor frame", "extruder"]
+        );
+        let objs = fixture("heater-objects-status.json");
+        let bed = HeaterStatus::parse("heater_bed", objs["heater_bed"].clone()).unwrap();
+        assert_eq!(
+            bed,
+            HeaterStatus {
+                temperature: Some(21.99),
+                target: Some(0.0),
+                power: Some(0.0)
+            }
+        );
+        let ex = HeaterStatus::parse("extruder", objs["extruder"].clone()).unwrap();
+        assert_eq!(ex.temperature, Some(21.99));
+        let frame = HeaterStatus::parse(
+            "temperature_sensor frame",
+            objs["temperature_sensor frame"].clone(),
+        )
+        .unwrap();
+        assert_eq!((frame.temperature, frame.target), (Some(25.0), None));
+        let hot = HeaterStatus::parse("heater_bed", fixture("heater_bed-heating.json")).unwrap();
+        assert_eq!(hot.target, Some(60.0));
+        assert!(hot.power.unwrap() > 0.0 && hot.temperature.unwrap() > 59.0);
+        // An object Klipper does not have (no heated bed) is all None, not an error.
+        assert_eq!(
+            HeaterStatus::parse("heater_bed", json!({})).unwrap(),
+            HeaterStatus::default()
+        );
+        for (name, bad) in [
+            ("heater_bed", json!({"target": "60"})),
+            ("heater_bed", json!(null)),
+            ("extruder", json!({"temperature": [21.0]})),
+        ] {
+            let e = HeaterStatus::parse(name, bad.clone()).unwrap_err();
+            assert!(matches!(e, Error::Protocol(_)), "{bad}: {e}");
+            assert!(
+                e.to_string().contains(&format!("{name} status")),
+                "{bad}: {e}"
+            );
+        }
+        for bad in [
+            json!({"available_heaters": "heater_bed"}),
+            json!({"available_sensors": [1]}),
+        ] {
+            let e = HeatersStatus::parse(bad.clone()).unwrap_err();
+            assert!(e.to_string().contains("heaters object"), "{bad}: {e}");
         }
     }
 }

@@ -15,7 +15,7 @@ use tokio_tungstenite::tungstenite::Message;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
-use super::answers::{BedMeshStatus, ConfigFile};
+use super::answers::{BedMeshStatus, ConfigFile, HeaterStatus, WebcamList};
 use super::protocol::{self, Incoming, RpcError};
 use super::Error;
 
@@ -419,24 +419,6 @@ impl Moonraker {
         }
     }
 
-    /// Adds objects to the subscription (kept across reconnects and Klipper restarts) and
-    /// subscribes now; returns the current status of everything subscribed.
-    ///
-    /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn subscribe(
-        &self,
-        objects: Map<String, Value>,
-    ) -> Result<Map<String, Value>, Error> {
-        {
-            let mut subs = lock(&self.shared.subscriptions);
-            for (k, v) in objects {
-                subs.insert(k, v);
-            }
-        }
-        self.resubscribe(false).await
-    }
-
     async fn resubscribe(&self, raw: bool) -> Result<Map<String, Value>, Error> {
         let objects = Value::Object(lock(&self.shared.subscriptions).clone());
         let params = json!({ "objects": objects });
@@ -478,16 +460,6 @@ impl Moonraker {
             .map(|_| ())
     }
 
-    /// `printer.emergency_stop`.
-    ///
-    /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn emergency_stop(&self) -> Result<(), Error> {
-        self.call("printer.emergency_stop", Value::Null)
-            .await
-            .map(|_| ())
-    }
-
     /// Klipper's configfile object, typed: `config` (text as written) and the `settings` klipcal
     /// reads (parsed, with Klipper's defaults).
     ///
@@ -510,17 +482,22 @@ impl Moonraker {
         BedMeshStatus::parse(m.remove("bed_mesh").unwrap_or_else(|| json!({})))
     }
 
-    /// Sends an event to Moonraker's clients (`connection.send_event`).
+    /// A heater's or temperature sensor's status, typed: the `fields` asked for (`temperature`,
+    /// `target`, `power`); all `None` when Klipper has no object `name`.
     ///
     /// # Errors
-    /// As [`Moonraker::call`].
-    pub async fn send_event(&self, event: &str, data: Value) -> Result<(), Error> {
-        self.call(
-            "connection.send_event",
-            json!({ "event": event, "data": data }),
-        )
-        .await
-        .map(|_| ())
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub(crate) async fn heater(&self, name: &str, fields: &[&str]) -> Result<HeaterStatus, Error> {
+        let mut m = self.objects_query(json!({ name: fields })).await?;
+        HeaterStatus::parse(name, m.remove(name).unwrap_or_else(|| json!({})))
+    }
+
+    /// Moonraker's webcams (`server.webcams.list`), typed.
+    ///
+    /// # Errors
+    /// As [`Moonraker::call`]; [`Error::Protocol`] when the answer is malformed.
+    pub(crate) async fn webcams(&self) -> Result<WebcamList, Error> {
+        WebcamList::parse(self.call("server.webcams.list", json!({})).await?)
     }
 
     fn set_state(&self, s: ConnState) {

@@ -134,7 +134,8 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn in_memory() -> Result<Self, Error> {
+    #[cfg(test)]
+    pub(crate) fn in_memory() -> Result<Self, Error> {
         Self::init(Connection::open_in_memory()?)
     }
 
@@ -370,7 +371,8 @@ impl Store {
     ///
     /// # Errors
     /// SQLite failure.
-    pub fn add_reading(
+    #[cfg(test)]
+    pub(crate) fn add_reading(
         &self,
         session: i64,
         round: i64,

@@ -654,7 +654,8 @@ async fn ab_round(kind: Kind) {
     let measure = ui.both_sizes("04-measure", &measure.title).await;
     assert_eq!(measure.buttons, ["Close and type readings"], "{measure:?}");
     ui.press("Close and type readings").await;
-    ui.wait_no_dialog(Duration::from_secs(5)).await;
+    // The helper asks klipcal, which closes the dialog (a round trip through Moonraker).
+    ui.wait_no_dialog(Duration::from_secs(15)).await;
     ui.wait_row("type readings on the console", Duration::from_secs(10))
         .await;
 

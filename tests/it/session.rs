@@ -934,6 +934,7 @@ async fn a_print_cancelled_midway_ends_the_session_with_heaters_off() {
     m.gcode("CANCEL_PRINT").await.unwrap();
     let s = wait_state(&bench, "cancelled", Duration::from_secs(30)).await;
     assert!(s["reason"].as_str().unwrap().contains("cancelled"), "{s}");
+    assert_eq!(s["heaters_off"], json!(true), "{s}");
     let st = m
         .objects_query(json!({"heater_bed": ["target"], "extruder": ["target"]}))
         .await
@@ -1199,6 +1200,10 @@ async fn klipper_restarting_mid_print_fails_the_session_with_the_reason() {
     m.firmware_restart().await.unwrap();
     let s = wait_state(&bench, "failed", Duration::from_secs(60)).await;
     assert!(s["reason"].as_str().unwrap().contains("Klipper"), "{s}");
+    // klipcal turned the heaters off as the session failed, and its status says so (it said
+    // heaters_off: false while the progress said "failed; heaters off").
+    assert_eq!(s["progress"], "failed; heaters off", "{s}");
+    assert_eq!(s["heaters_off"], json!(true), "{s}");
 }
 
 #[tokio::test]

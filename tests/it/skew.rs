@@ -96,6 +96,7 @@ async fn a_session_reads_and_restores_the_skew_without_klippers_answer_on_the_co
     );
 
     // Cancelled, the session puts the user's skew back.
+    let at_cancel = crate::mainsail::history(&m).await.len();
     m.gcode("KLIPCAL_CANCEL").await.unwrap();
     crate::bench::poll(Duration::from_secs(60), || async {
         (crate::session::session(&bench).await["state"] == "cancelled").then_some(())
@@ -118,5 +119,13 @@ async fn a_session_reads_and_restores_the_skew_without_klippers_answer_on_the_co
         (restored - xy).abs() < 1e-6,
         "restored {restored}, was {xy}"
     );
+    // A cancel closes the dialog once: Calibrations::cancel closes it after the calibration's
+    // own cancel, which no longer closes it too.
+    let h = crate::mainsail::history(&m).await.split_off(at_cancel);
+    let ends = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg == "// action:prompt_end")
+        .count();
+    assert_eq!(ends, 1, "{h:#?}");
     drop(d);
 }

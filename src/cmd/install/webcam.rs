@@ -3,8 +3,9 @@
 //! way to the readings form, where Mainsail's dashboard has no console. [`decide`] is pure;
 //! [`list`], [`register`] and [`remove`] talk to Moonraker's HTTP API.
 
-use serde_json::{json, Value};
+use serde_json::json;
 
+use crate::moonraker::answers::WebcamList;
 use crate::moonraker::Files;
 
 /// The webcam's name in Moonraker, Mainsail and Fluidd.
@@ -30,21 +31,21 @@ pub(crate) enum Decision {
 
 /// Decides from Moonraker's `server.webcams.list` answer, the uid the last install recorded
 /// and the page's URL.
-pub(crate) fn decide(list: &Value, ours: Option<&str>, url: &str) -> Decision {
-    let cams = list["webcams"].as_array().cloned().unwrap_or_default();
-    let uid_of = |c: &Value| c["uid"].as_str().unwrap_or("").to_string();
-    let url_of = |c: &Value| c["stream_url"].as_str().unwrap_or("").to_string();
-    if let Some(c) = ours.and_then(|u| cams.iter().find(|c| c["uid"] == u)) {
-        if url_of(c) == url && c["service"] == SERVICE {
-            return Decision::Nothing { uid: uid_of(c) };
+pub(crate) fn decide(list: &WebcamList, ours: Option<&str>, url: &str) -> Decision {
+    let cams = &list.webcams;
+    if let Some(c) = ours.and_then(|u| cams.iter().find(|c| c.uid == u)) {
+        if c.stream_url == url && c.service == SERVICE {
+            return Decision::Nothing { uid: c.uid.clone() };
         }
         return Decision::Update {
-            uid: uid_of(c),
-            from: url_of(c),
+            uid: c.uid.clone(),
+            from: c.stream_url.clone(),
         };
     }
-    match cams.iter().find(|c| c["name"] == NAME) {
-        Some(c) => Decision::Foreign { url: url_of(c) },
+    match cams.iter().find(|c| c.name == NAME) {
+        Some(c) => Decision::Foreign {
+            url: c.stream_url.clone(),
+        },
         None => Decision::Add,
     }
 }
@@ -52,9 +53,9 @@ pub(crate) fn decide(list: &Value, ours: Option<&str>, url: &str) -> Decision {
 /// Moonraker's webcams.
 ///
 /// # Errors
-/// Moonraker did not answer or refused.
-pub(crate) async fn list(files: &Files) -> anyhow::Result<Value> {
-    Ok(files.get("/server/webcams/list").await?)
+/// Moonraker did not answer or refused, or its answer is malformed (the message names what).
+pub(crate) async fn list(files: &Files) -> anyhow::Result<WebcamList> {
+    Ok(WebcamList::parse(files.get("/server/webcams/list").await?)?)
 }
 
 /// Adds klipcal's webcam (or updates the one with `uid`) with the page's `url`; returns its uid.
@@ -92,9 +93,7 @@ pub(crate) async fn register(
 /// Moonraker did not answer or refused.
 pub(crate) async fn remove(files: &Files, uid: &str) -> anyhow::Result<bool> {
     let cams = list(files).await?;
-    let present = cams["webcams"]
-        .as_array()
-        .is_some_and(|a| a.iter().any(|c| c["uid"] == uid));
+    let present = cams.webcams.iter().any(|c| c.uid == uid);
     if !present {
         return Ok(false);
     }
@@ -107,17 +106,27 @@ pub(crate) async fn remove(files: &Files, uid: &str) -> anyhow::Result<bool> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use serde_json::Value;
 
-    fn cams(list: &[(&str, &str, &str, &str)]) -> Value {
-        json!({"webcams": list.iter().map(|(name, uid, service, url)| json!({
+    fn cams(list: &[(&str, &str, &str, &str)]) -> WebcamList {
+        parse(
+            json!({"webcams": list.iter().map(|(name, uid, service, url)| json!({
             "name": name, "uid": uid, "service": service, "stream_url": url,
-        })).collect::<Vec<_>>()})
+        })).collect::<Vec<_>>()}),
+        )
+    }
+
+    fn parse(v: Value) -> WebcamList {
+        WebcamList::parse(v).unwrap()
     }
 
     #[test]
     fn install_adds_updates_or_leaves_a_webcam_it_did_not_make() {
         let url = "http://192.168.1.23:7150/";
-        assert_eq!(decide(&json!({"webcams": []}), None, url), Decision::Add);
+        assert_eq!(
+            decide(&parse(json!({"webcams": []})), None, url),
+            Decision::Add
+        );
         assert_eq!(
             decide(
                 &cams(&[("Front", "u1", "mjpegstreamer", "/webcam/")]),
@@ -150,10 +159,10 @@ mod tests {
         );
         // Ours deleted by the user since: offered again.
         assert_eq!(
-            decide(&json!({"webcams": []}), Some("u2"), url),
+            decide(&parse(json!({"webcams": []})), Some("u2"), url),
             Decision::Add
         );
         // Moonraker's answer without a list: nothing to find.
-        assert_eq!(decide(&json!({}), Some("u2"), url), Decision::Add);
+        assert_eq!(decide(&parse(json!({})), Some("u2"), url), Decision::Add);
     }
 }

@@ -269,12 +269,7 @@ impl SessionState for State {
         State::Failed,
         State::Cancelled,
     ];
-    const FAILED: Self = State::Failed;
-    const CANCELLED: Self = State::Cancelled;
-
-    fn is_final(self) -> bool {
-        matches!(self, State::Converged | State::Failed | State::Cancelled)
-    }
+    const FINAL: [Self; 3] = [State::Converged, State::Failed, State::Cancelled];
 
     fn is_automatic(self) -> bool {
         matches!(
@@ -349,7 +344,8 @@ pub(crate) struct AbBody {
     pub skew_before: Option<f64>,
     /// Unix time the print finished.
     pub print_done_unix: Option<f64>,
-    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled or
+    /// failed.
     pub heaters_off: bool,
     /// The soak ran past `soak_max_s` and waits for the user's choice.
     #[serde(default)]
@@ -438,7 +434,7 @@ impl Ab {
             )
             .await?;
         self.restore_skew(s.skew_before).await;
-        self.core.prompt_end().await;
+        // The dialog closes in Calibrations::cancel, after every calibration's cancel.
         Ok(answer)
     }
 }
@@ -464,7 +460,8 @@ pub(crate) struct AbStatus {
     pub missing: Vec<String>,
     /// Every round so far.
     pub rounds: Vec<AbRoundStatus>,
-    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled.
+    /// klipcal turned the heaters off: the hold limit passed, or the session was cancelled or
+    /// failed.
     pub heaters_off: bool,
 }
 

@@ -72,7 +72,7 @@ impl Ab {
 
     pub(super) async fn fail(&self, id: i64, why: &str) {
         self.core
-            .fail_session::<State, AbBody>(id, TITLE, why, true)
+            .fail_session::<State, AbBody>(id, TITLE, why, true, |b| b.heaters_off = true)
             .await;
     }
 
@@ -479,8 +479,9 @@ impl Ab {
                     return Ok(());
                 }
                 "cancelled" => {
-                    let _ = self.core.heaters_off().await;
+                    let off = self.core.heaters_off().await.is_ok();
                     self.update(id, |s| {
+                        s.heaters_off |= off;
                         s.state = State::Cancelled;
                         s.reason = Some("the calibration print was cancelled".into());
                         s.progress = "cancelled".into();

@@ -41,6 +41,7 @@ use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::core::SessionState;
 use crate::jobs::user;
 use crate::klipper::GcodeCmd;
+use crate::moonraker::answers::{WebcamEntry, WebcamList};
 
 /// The camera measurement's operation, declared in the backlash table.
 /// AXIS= of the camera and the click measurement (no Z: the camera looks up at the nozzle).
@@ -122,19 +123,20 @@ pub(crate) struct Webcam {
 /// only enabled one. Web pages shown in a webcam panel (service `iframe`, such as klipcal's own
 /// page that install registers) are not cameras and are left out. The error says what to do.
 pub(crate) fn choose_webcam(
-    list: &Value,
+    list: &WebcamList,
     wanted: &str,
     moonraker_base: &str,
 ) -> Result<Webcam, String> {
-    let cams: Vec<&Value> = list["webcams"]
-        .as_array()
-        .map(|a| {
-            a.iter()
-                .filter(|c| c["enabled"] != json!(false) && c["service"] != "iframe")
-                .collect()
-        })
-        .unwrap_or_default();
-    let names: Vec<&str> = cams.iter().filter_map(|c| c["name"].as_str()).collect();
+    let cams: Vec<&WebcamEntry> = list
+        .webcams
+        .iter()
+        .filter(|c| c.enabled && c.service != "iframe")
+        .collect();
+    let names: Vec<&str> = cams
+        .iter()
+        .map(|c| c.name.as_str())
+        .filter(|n| !n.is_empty())
+        .collect();
     let cam = if wanted.is_empty() {
         match cams.as_slice() {
             [] => {
@@ -156,7 +158,7 @@ pub(crate) fn choose_webcam(
             }
         }
     } else {
-        match cams.iter().find(|c| c["name"] == wanted) {
+        match cams.iter().find(|c| c.name == wanted) {
             Some(c) => *c,
             None => {
                 return Err(format!(
@@ -171,8 +173,8 @@ pub(crate) fn choose_webcam(
             }
         }
     };
-    let name = cam["name"].as_str().unwrap_or("").to_string();
-    let url = cam["snapshot_url"].as_str().unwrap_or("").trim();
+    let name = cam.name.clone();
+    let url = cam.snapshot_url.trim();
     if url.is_empty() {
         return Err(format!(
             "webcam '{name}' has no snapshot URL; set one (ustreamer and camera-streamer serve \
@@ -341,7 +343,7 @@ impl Backlash {
         let list = self
             .core
             .m()
-            .call("server.webcams.list", json!({}))
+            .webcams()
             .await
             .context("asking Moonraker for its webcams")?;
         choose_webcam(&list, self.settings.webcam.trim(), self.core.files().base()).map_err(user)
@@ -863,20 +865,24 @@ impl Backlash {
 mod tests {
     use super::*;
 
+    fn list(v: Value) -> WebcamList {
+        WebcamList::parse(v).unwrap()
+    }
+
     #[test]
     fn the_webcam_is_the_named_one_or_the_only_one_and_refusals_say_what_to_do() {
         let base = "http://192.168.1.20:7125";
-        let one = json!({"webcams": [{"name": "nozzle", "enabled": true,
-            "snapshot_url": "/webcam/?action=snapshot"}]});
+        let one = list(json!({"webcams": [{"name": "nozzle", "enabled": true,
+            "snapshot_url": "/webcam/?action=snapshot"}]}));
         let w = choose_webcam(&one, "", base).unwrap();
         assert_eq!(w.name, "nozzle");
         assert_eq!(
             w.snapshot_url,
             "http://192.168.1.20/webcam/?action=snapshot"
         );
-        let two = json!({"webcams": [
+        let two = list(json!({"webcams": [
             {"name": "bed", "snapshot_url": "http://cam:8080/snapshot"},
-            {"name": "nozzle", "snapshot_url": "http://10.0.0.5:8081/?action=snapshot"}]});
+            {"name": "nozzle", "snapshot_url": "http://10.0.0.5:8081/?action=snapshot"}]}));
         assert_eq!(
             choose_webcam(&two, "nozzle", base).unwrap().snapshot_url,
             "http://10.0.0.5:8081/?action=snapshot"
@@ -888,23 +894,36 @@ mod tests {
         );
         let e = choose_webcam(&two, "tool", base).unwrap_err();
         assert!(e.contains("'tool'") && e.contains("bed, nozzle"), "{e}");
-        let e = choose_webcam(&json!({"webcams": []}), "", base).unwrap_err();
+        let e = choose_webcam(&list(json!({"webcams": []})), "", base).unwrap_err();
         assert!(
             e.contains("no webcam") && e.contains("KLIPCAL_BACKLASH_START"),
             "{e}"
         );
         // klipcal's own page, registered by install as an iframe "webcam", is not a camera.
-        let with_page = json!({"webcams": [
+        let with_page = list(json!({"webcams": [
             {"name": "klipcal", "service": "iframe", "snapshot_url": "", "stream_url": "http://h:7150/"},
             {"name": "nozzle", "service": "mjpegstreamer-adaptive",
-             "snapshot_url": "/webcam/?action=snapshot"}]});
+             "snapshot_url": "/webcam/?action=snapshot"}]}));
         assert_eq!(choose_webcam(&with_page, "", base).unwrap().name, "nozzle");
-        let off = json!({"webcams": [{"name": "n", "enabled": false, "snapshot_url": "/s"}]});
+        let off = list(json!({"webcams": [{"name": "n", "enabled": false, "snapshot_url": "/s"}]}));
         assert!(choose_webcam(&off, "", base).is_err());
-        let empty = json!({"webcams": [{"name": "n", "snapshot_url": ""}]});
+        let empty = list(json!({"webcams": [{"name": "n", "snapshot_url": ""}]}));
         assert!(choose_webcam(&empty, "", base)
             .unwrap_err()
             .contains("no snapshot URL"));
+        // The bench's real answer: its one camera, by its absolute URL.
+        let bench = list(
+            serde_json::from_str::<Value>(include_str!(
+                "../../../tests/fixtures/moonraker/webcams-list.json"
+            ))
+            .unwrap()["result"]
+                .clone(),
+        );
+        let w = choose_webcam(&bench, "", base).unwrap();
+        assert_eq!(
+            (w.name.as_str(), w.snapshot_url.as_str()),
+            ("nozzle", "http://127.0.0.1:54299/?action=snapshot")
+        );
         assert_eq!(
             resolve_url("webcam2/?action=snapshot", "http://[fe80::1]:7125"),
             "http://[fe80::1]/webcam2/?action=snapshot"

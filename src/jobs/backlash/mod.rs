@@ -212,12 +212,7 @@ impl SessionState for State {
         State::Failed,
         State::Cancelled,
     ];
-    const FAILED: Self = State::Failed;
-    const CANCELLED: Self = State::Cancelled;
-
-    fn is_final(self) -> bool {
-        matches!(self, State::Done | State::Failed | State::Cancelled)
-    }
+    const FINAL: [Self; 3] = [State::Done, State::Failed, State::Cancelled];
 }
 
 /// The stored session: the envelope around [`BacklashBody`].
@@ -391,18 +386,16 @@ impl Backlash {
         }
     }
 
+    /// The dialog closes in Calibrations::cancel, after every calibration's cancel.
     async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
-        let answer = self
-            .core
+        self.core
             .cancel_session::<State, BacklashBody>(
                 id,
                 reason,
                 reason,
                 format!("backlash session {id} cancelled ({reason})"),
             )
-            .await?;
-        self.core.prompt_end().await;
-        Ok(answer)
+            .await
     }
 }
 

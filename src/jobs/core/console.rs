@@ -225,16 +225,6 @@ pub(crate) async fn error(m: &Moonraker, msg: &str) {
     send(m, &answer_script(msg, true), "console error not shown").await;
 }
 
-/// Shows a prompt dialog.
-pub async fn show(m: &Moonraker, p: &Prompt) {
-    send(m, &p.script(), "prompt not shown").await;
-}
-
-/// Closes any prompt dialog.
-pub async fn end(m: &Moonraker) {
-    send(m, PROMPT_END, "prompt not closed").await;
-}
-
 async fn send(m: &Moonraker, script: &str, what: &str) {
     if script.is_empty() {
         return;

@@ -17,13 +17,18 @@ pub trait SessionState:
 {
     /// Every state, in the order a session meets them.
     const ALL: &'static [Self];
+    /// The final states, in this order: the one a session succeeds in, the one it fails in, the
+    /// one it is cancelled in.
+    const FINAL: [Self; 3];
     /// The state a failed session ends in.
-    const FAILED: Self;
+    const FAILED: Self = Self::FINAL[1];
     /// The state a cancelled session ends in.
-    const CANCELLED: Self;
+    const CANCELLED: Self = Self::FINAL[2];
 
     /// Whether the session is over.
-    fn is_final(self) -> bool;
+    fn is_final(self) -> bool {
+        Self::FINAL.contains(&self)
+    }
 
     /// Whether the daemon drives this state by itself (as opposed to waiting for the user).
     fn is_automatic(self) -> bool {
@@ -188,13 +193,15 @@ impl Core {
 
     /// A session's runner failed: the heaters go off (once Moonraker is back), the session
     /// ends failed with `why` unless it ended already, the dialog closes when `close_prompt`,
-    /// and the console says so (`"{title} failed: {why}; heaters off"`).
+    /// and the console says so (`"{title} failed: {why}; heaters off"`). When the heaters did go
+    /// off, `heaters_off` marks it in the body (the calibrations whose status says so).
     pub(crate) async fn fail_session<S, B>(
         &self,
         id: i64,
         title: &str,
         why: &str,
         close_prompt: bool,
+        heaters_off: impl FnOnce(&mut B) + Send,
     ) where
         S: SessionState,
         B: Serialize + DeserializeOwned + Send,
@@ -210,6 +217,9 @@ impl Core {
             .update::<Envelope<S, B>, ()>(id, |s| {
                 if !s.state.is_final() {
                     s.end(S::FAILED, why, format!("failed{heaters}"));
+                }
+                if off.is_ok() {
+                    heaters_off(&mut s.body);
                 }
                 Ok(())
             })
@@ -265,11 +275,7 @@ mod tests {
             St::Failed,
             St::Cancelled,
         ];
-        const FAILED: Self = St::Failed;
-        const CANCELLED: Self = St::Cancelled;
-        fn is_final(self) -> bool {
-            matches!(self, St::Done | St::Failed | St::Cancelled)
-        }
+        const FINAL: [Self; 3] = [St::Done, St::Failed, St::Cancelled];
     }
 
     #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -312,6 +318,8 @@ mod tests {
     #[test]
     fn the_final_states_and_names_come_from_the_trait() {
         assert_eq!(St::final_names(), vec!["done", "failed", "cancelled"]);
+        assert_eq!((St::FAILED, St::CANCELLED), (St::Failed, St::Cancelled));
+        assert!(!St::Running.is_final() && !St::WaitingOnUser.is_final());
         assert_eq!(St::WaitingOnUser.name(), "waiting_on_user");
         let mut s = Envelope::new(
             St::Running,

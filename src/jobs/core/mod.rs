@@ -18,8 +18,8 @@ pub mod soak;
 pub mod status;
 pub mod table;
 
-pub use calibration::{Calibration, Declare, Declared, Hold};
-pub use envelope::{Envelope, SessionState, StatusHead};
+pub use calibration::{Calibration, Declare, Hold};
+pub use envelope::{Envelope, SessionState};
 pub use ops::{CoreCall, CORE_OPS};
 pub use session::Core;
 

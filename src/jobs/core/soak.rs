@@ -263,12 +263,8 @@ impl BedSoak {
         // A bed already at this target (heated again after an apply so that the next round
         // starts warm, or an unheated bed left off) is not sent its target a second time: the
         // console showed SET_HEATER_TEMPERATURE twice (issue 26 B.7).
-        if let Ok(v) = core
-            .m()
-            .objects_query(json!({"heater_bed": ["target"]}))
-            .await
-        {
-            match v["heater_bed"]["target"].as_f64() {
+        if let Ok(bed) = core.m().heater("heater_bed", &["target"]).await {
+            match bed.target {
                 Some(now) if (now - target_c).abs() < 0.05 => {
                     if target_c > 0.0 {
                         core.hold_heaters_for(bound_s).await?;
@@ -327,12 +323,11 @@ impl BedSoak {
                 falling_pct_per_10min: self.detector.fit().and_then(|f| f.rate_pct_per_10min()),
             });
         }
-        let st = core
+        let hb = core
             .m()
-            .objects_query(json!({"heater_bed": ["temperature", "power", "target"]}))
+            .heater("heater_bed", &["temperature", "power", "target"])
             .await?;
-        let hb = &st["heater_bed"];
-        if let Some(now_c) = hb["target"].as_f64() {
+        if let Some(now_c) = hb.target {
             if self.target_c > 0.0 && (now_c - self.target_c).abs() > 0.5 {
                 // Not this soak's bed any more (e.g. Klipper restarted during an outage): a
                 // soak cannot go on from it, and printing would waste the round.
@@ -346,9 +341,9 @@ impl BedSoak {
         }
         let status = self.detector.push(
             t_s,
-            hb["power"].as_f64().unwrap_or(0.0),
-            hb["temperature"].as_f64().unwrap_or(0.0),
-            hb["target"].as_f64().unwrap_or(self.target_c),
+            hb.power.unwrap_or(0.0),
+            hb.temperature.unwrap_or(0.0),
+            hb.target.unwrap_or(self.target_c),
         );
         Ok(match status {
             SoakStatus::Stable { .. } | SoakStatus::Skipped => {

@@ -54,23 +54,6 @@ impl SessionStatus {
         self.console_lines = lines;
         self
     }
-
-    /// A session whose kind no calibration knows: what the store says of it.
-    #[must_use]
-    pub fn unknown(id: i64, kind: &str, state: &str) -> Self {
-        Self {
-            kind: kind.to_string(),
-            head: StatusHead {
-                id,
-                state: state.to_string(),
-                progress: String::new(),
-                reason: None,
-                notes: Vec::new(),
-            },
-            body: BTreeMap::new(),
-            console_lines: Vec::new(),
-        }
-    }
 }
 
 /// The sessions part of the status.

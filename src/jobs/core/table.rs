@@ -577,7 +577,8 @@ const HEADER: &str = "\
 /// (klippy/gcode.py) ends a command at `;` anywhere on the line (also inside a RESPOND
 /// message), and `#`/`*` likewise outside of a Jinja expression. `None` when the line is safe.
 #[must_use]
-pub fn gcode_line_problem(line: &str) -> Option<String> {
+#[cfg(test)]
+pub(crate) fn gcode_line_problem(line: &str) -> Option<String> {
     let t = line.trim();
     if t.starts_with("{%") || t.starts_with('{') && t.ends_with('}') {
         // Jinja statements and expressions are rendered before Klipper parses the line; their

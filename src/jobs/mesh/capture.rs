@@ -112,7 +112,7 @@ impl Mesh {
             },
             move |msg| async move {
                 me2.core
-                    .fail_session::<State, MeshBody>(id, TITLE, &msg, false)
+                    .fail_session::<State, MeshBody>(id, TITLE, &msg, false, |_| {})
                     .await;
             },
         );
@@ -384,12 +384,8 @@ impl Mesh {
         if s.options.bed_temp_c <= 0.0 {
             return Ok(());
         }
-        let st = self
-            .core
-            .m()
-            .objects_query(json!({"heater_bed": ["target"]}))
-            .await?;
-        match st["heater_bed"]["target"].as_f64() {
+        let bed = self.core.m().heater("heater_bed", &["target"]).await?;
+        match bed.target {
             Some(now_c) if (now_c - s.options.bed_temp_c).abs() > 0.5 => Err(anyhow!(
                 "the bed's target is now {now_c:.0} °C instead of the capture's {:.0} °C \
                  (Klipper restarted, or the heaters were turned off by its idle timeout or by \

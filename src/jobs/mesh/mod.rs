@@ -226,12 +226,7 @@ impl SessionState for State {
         State::Failed,
         State::Cancelled,
     ];
-    const FAILED: Self = State::Failed;
-    const CANCELLED: Self = State::Cancelled;
-
-    fn is_final(self) -> bool {
-        matches!(self, State::Done | State::Failed | State::Cancelled)
-    }
+    const FINAL: [Self; 3] = [State::Done, State::Failed, State::Cancelled];
 }
 
 /// One stored mesh.
@@ -367,12 +362,8 @@ impl Mesh {
 
     async fn frame_temp(&self, sensor: &str) -> anyhow::Result<f64> {
         let obj = format!("temperature_sensor {sensor}");
-        let st = self
-            .core
-            .m()
-            .objects_query(json!({ obj.clone(): ["temperature"] }))
-            .await?;
-        st[&obj]["temperature"].as_f64().ok_or_else(|| {
+        let st = self.core.m().heater(&obj, &["temperature"]).await?;
+        st.temperature.ok_or_else(|| {
             user(format!(
                 "[{obj}] reports no temperature; mesh.frame_sensor names the frame thermistor"
             ))
