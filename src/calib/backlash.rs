@@ -68,6 +68,12 @@ pub struct BacklashParams {
     /// detection bias at the same two nozzle positions), mm: added without averaging down.
     #[serde(skip)]
     pub repeat_sd_mm: f64,
+    /// The motor's microstep along the axis, mm (0: unknown or not relevant). Jog readings are
+    /// commanded positions, but the nozzle moves only when the commanded position passes half
+    /// a step, on a lattice fixed to the machine that no dither moves: each edge is known to
+    /// within a step, the same in every cycle, so `step²/6` is added without averaging down.
+    #[serde(skip)]
+    pub step_mm: f64,
 }
 
 impl Default for BacklashParams {
@@ -82,6 +88,7 @@ impl Default for BacklashParams {
             outlier_sigmas: 4.0,
             scale_rel_sd: 0.0,
             repeat_sd_mm: 0.0,
+            step_mm: 0.0,
         }
     }
 }
@@ -103,6 +110,7 @@ impl BacklashParams {
             self.outlier_sigmas,
             self.scale_rel_sd,
             self.repeat_sd_mm,
+            self.step_mm,
         ];
         if fin.iter().any(|v| !v.is_finite() || *v < 0.0) {
             return bad("every setting must be a finite number ≥ 0".into());
@@ -315,7 +323,17 @@ pub fn analyse(
     };
     let slope0 = jog_slope(cycles, &[]).map_or(0.0, |s| s.0);
     let e = corrected(slope0);
-    let q_sd = params.jog_resolution_mm / 6f64.sqrt();
+    // Each cycle's jog (the resolution it was read at) and the variance that jog's lattice
+    // adds to it: per approach the reading is the middle of two edges each known to within a
+    // jog (uniform, q²/12 each, at most q²/12 for their mean when the two fall alike), so at
+    // most q²/6 for X1 − X2. With the guide's dither it differs from cycle to cycle and
+    // averages down.
+    let qs: Vec<f64> = cycles
+        .iter()
+        .map(|c| c.fine_mm.unwrap_or(params.jog_resolution_mm))
+        .collect();
+    let quant = |i: usize| qs[i] * qs[i] / 6.0;
+    let q_sd = (qs.iter().map(|q| q * q).sum::<f64>() / n as f64 / 6.0).sqrt();
     let med_all = median(&e);
     let mad = median(&e.iter().map(|x| (x - med_all).abs()).collect::<Vec<_>>());
     let robust_sd = 1.4826 * mad;
@@ -328,11 +346,11 @@ pub fn analyse(
     // to a doubtful cycle kept. The jog-size slope, fitted through each jog size's median of
     // as few as two cycles, is not: it leaves out every cycle beyond the plain 4 sd.
     let beyond = |k: f64| -> Vec<usize> {
-        let limit = (params.outlier_sigmas * k * sd).max(2.0 * params.jog_resolution_mm);
+        let limit = |i: usize| (params.outlier_sigmas * k * sd).max(2.0 * qs[i]);
         if n >= 3 {
             e.iter()
                 .enumerate()
-                .filter(|(_, x)| (**x - med_all).abs() > limit)
+                .filter(|(i, x)| (**x - med_all).abs() > limit(*i))
                 .map(|(i, _)| i + 1)
                 .collect()
         } else {
@@ -342,36 +360,62 @@ pub fn analyse(
     let outliers = beyond(t975(n.saturating_sub(1)).min(20.0) / 1.96);
     let fit = jog_slope(cycles, &beyond(1.0));
     let e = corrected(fit.map_or(0.0, |s| s.0));
-    let inliers: Vec<f64> = e
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| !outliers.contains(&(i + 1)))
-        .map(|(_, x)| *x)
-        .collect();
+    let keep: Vec<usize> = (0..n).filter(|i| !outliers.contains(&(i + 1))).collect();
+    let inliers: Vec<f64> = keep.iter().map(|&i| e[i]).collect();
     let m = inliers.len() as f64;
-    // The per-cycle sd the uncertainty is stated with: the inliers' sample sd, widened by the
-    // small-sample t factor (t₀.₉₇₅ with m − 1 degrees of freedom over the normal 1.96, so
-    // that ±2u holds the truth 95 % of the time although the sd is estimated from m cycles),
-    // and never below the reading resolution's known floor. The robust (MAD) sd above only
-    // finds outliers: from 5 cycles it is too noisy to state a ± with (issue 27: ±2u covered
-    // 87.5 %).
-    let sd_u = if inliers.len() >= 2 {
-        let mean = inliers.iter().sum::<f64>() / m;
-        let s = (inliers.iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (m - 1.0)).sqrt();
-        (t975(inliers.len() - 1) / 1.96 * s).max(sd_floor)
+    // The uncertainty of the value. Each kept cycle's variance is its jog lattice's share
+    // (known: q²/6) and σ₀², what the cycles scatter beyond it (the play, the person's eye,
+    // drift, a lateness that varies), estimated from the residuals: their variance over
+    // m − p degrees of freedom (p: the value, and the jog-size slope when fitted) less the
+    // mean lattice share. σ₀² is widened by the small-sample t factor (t₀.₉₇₅ over the normal
+    // 1.96) so that ±2u holds the truth 95 % of the time although it is estimated from a few
+    // cycles; the lattice share is not estimated and is not widened. The value is a linear
+    // combination Σ aᵢ·dᵢ of the cycles (the mean, or the line's intercept at a zero jog: aᵢ =
+    // 1/m − q̄·(qᵢ − q̄)/Σ(q − q̄)²), so its variance is Σ aᵢ²·σᵢ², times the median's
+    // small-sample factor. Cycles read at the small jog weigh most in the intercept, and their
+    // own lattice share is the small one: one sd for every cycle (issue 27: ±2u covered 100 %
+    // with the big jog's share as every cycle's floor) overstated it. From fewer than three
+    // cycles σ₀ is at least the prior per-cycle sd.
+    let mean_in = inliers.iter().sum::<f64>() / m.max(1.0);
+    let p = if fit.is_some() { 2 } else { 1 };
+    let dof = keep.len().saturating_sub(p);
+    let lattice = keep.iter().map(|&i| quant(i)).sum::<f64>() / m.max(1.0);
+    // What the residuals hold of the lattice is its typical share, q²/12 (the two edges of a
+    // crossing fall independently on the lattice when the person's zone is not a whole
+    // number of jogs), not the worst case q²/6 each cycle is stated with: subtracting the
+    // worst case left σ₀ at zero too often (±2u covered 80–89 % on the bench's model 2).
+    let lattice_typ = 0.5 * lattice;
+    let mut sigma0_sq = if dof >= 1 {
+        let s2 = inliers.iter().map(|x| (x - mean_in).powi(2)).sum::<f64>() / dof as f64;
+        let t = t975(dof).min(20.0) / 1.96;
+        t * t * (s2 - lattice_typ).max(0.0)
     } else {
-        sd_floor.max(params.prior_cycle_sd_mm)
+        0.0
     };
-    // The estimate is the inliers' median (robust to a lapse the outlier test leaves in): its
-    // standard error √(median_var)·sd/√m, plus the slope's share at the mean jog.
-    let var_med = median_var(inliers.len()) * sd_u * sd_u / m;
-    let var_slope = fit.map_or(0.0, |(_, qm, sqq)| {
-        qm * qm * median_var(inliers.len()) * sd_u * sd_u / sqq
-    });
+    if keep.len() < 3 {
+        sigma0_sq = sigma0_sq.max(params.prior_cycle_sd_mm.powi(2));
+    }
+    let qk: Vec<f64> = keep.iter().map(|&i| qs[i]).collect();
+    let qbar = qk.iter().sum::<f64>() / m.max(1.0);
+    let sqq: f64 = qk.iter().map(|q| (q - qbar).powi(2)).sum();
+    let a = |q: f64| -> f64 {
+        if fit.is_some() && sqq > 0.0 {
+            1.0 / m - qbar * (q - qbar) / sqq
+        } else {
+            1.0 / m
+        }
+    };
+    let var_value = median_var(keep.len())
+        * keep
+            .iter()
+            .map(|&i| a(qs[i]).powi(2) * (sigma0_sq + quant(i)))
+            .sum::<f64>();
+    let sd_u = (sigma0_sq + lattice).sqrt();
     let med = median(&inliers);
     // The scale's share is the same in every cycle: it does not average down.
     let var_scale = (med * params.scale_rel_sd).powi(2);
-    let uncertainty = (var_med + var_slope + var_scale + params.repeat_sd_mm.powi(2)).sqrt();
+    let var_step = params.step_mm.powi(2) / 6.0;
+    let uncertainty = (var_value + var_scale + params.repeat_sd_mm.powi(2) + var_step).sqrt();
     if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
         return Err(Error::BacklashReadings(format!(
             "axis {axis}: X1 − X2 is {med:.4} mm, below zero beyond the noise; expected X1 \
@@ -408,7 +452,7 @@ pub fn analyse(
         smooth_time_s: st.smooth_time_s,
         extra_accel_mm_s2: st.extra_accel_mm_s2,
         verdict,
-        jog_share: ((q_sd * q_sd) / (sd * sd)).min(1.0),
+        jog_share: (lattice / (sd_u * sd_u)).min(1.0),
         smooth_time_raised: st.raised,
     })
 }
@@ -772,6 +816,16 @@ mod tests {
                 "{n} cycles at {jr} mm: ±2u covers {c:.1} %"
             );
         }
+        // The motor's microstep lattice is the same in every cycle: step²/6 is added whatever
+        // the cycles say.
+        let r0 = analyse("x", &cycles(&[0.05; 5]), None, &p).unwrap();
+        let stepped = BacklashParams {
+            step_mm: 0.0125,
+            ..p.clone()
+        };
+        let s = analyse("x", &cycles(&[0.05; 5]), None, &stepped).unwrap();
+        let want = r0.uncertainty_mm.powi(2) + 0.0125f64.powi(2) / 6.0;
+        assert!((s.uncertainty_mm.powi(2) - want).abs() < 1e-15);
         // The scale's uncertainty scales the value and is added whatever the cycles say.
         let r = analyse("x", &cycles(&[0.1; 5]), None, &p).unwrap();
         let scaled = BacklashParams {

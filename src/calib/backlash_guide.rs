@@ -91,6 +91,13 @@ impl GuideAxis {
     }
 }
 
+/// A later approach starts this much short of where the previous one in its direction began
+/// to look centred (plus a random fraction of the fine jog): the person starts outside the
+/// mark's zone and reaches it in a few fine jogs.
+const NEAR_MARGIN_MM: f64 = 0.01;
+/// After each Overshot in an approach the near start is this much further back.
+const OVERSHOT_MARGIN_MM: f64 = 0.03;
+
 /// Step sizes and limits of the procedure.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -272,6 +279,20 @@ pub struct Guide {
     /// The size of the jog that brought the nozzle where it is (0: a move, not a jog).
     #[serde(default)]
     pub last_jog_mm: f64,
+    /// The size of the jog before Centred in the approach in progress.
+    #[serde(default)]
+    pub entry_jog_mm: f64,
+    /// Per approach direction (+, −): the last reading and crossing width (offsets from the
+    /// camera point, mm). A later approach in that direction starts just short of it.
+    #[serde(default)]
+    pub previous_mm: [Option<[f64; 2]>; 2],
+    /// The dither's generator state (splitmix64): each approach starts a random fraction of a
+    /// jog further away, so the jog lattice falls differently on the mark every time.
+    #[serde(default)]
+    pub rng: u64,
+    /// Overshoots pressed in the approach in progress.
+    #[serde(default)]
+    pub approach_overshoots: usize,
 }
 
 impl Guide {
@@ -279,10 +300,13 @@ impl Guide {
     ///
     /// # Errors
     /// Parameters out of range ([`GuideParams::validate`]), or a non-finite origin.
+    /// `seed` starts the dither (any value; the runner passes something that differs between
+    /// measurements, such as the clock).
     pub fn start(
         axis: GuideAxis,
         origin_mm: f64,
         params: GuideParams,
+        seed: u64,
     ) -> Result<(Guide, Step), Error> {
         params.validate()?;
         if !origin_mm.is_finite() {
@@ -300,10 +324,15 @@ impl Guide {
             overshoots: 0,
             entry_mm: None,
             last_jog_mm: 0.0,
+            entry_jog_mm: 0.0,
+            previous_mm: [None, None],
+            rng: seed,
+            approach_overshoots: 0,
             params,
         };
-        g.pos_mm = -g.params.approach_mm;
-        let step = g.step(vec![g.pos_mm], None);
+        g.pos_mm = 0.0;
+        let moves = g.approach(None);
+        let step = g.step(moves, None);
         Ok((g, step))
     }
 
@@ -325,9 +354,67 @@ impl Guide {
         }
     }
 
+    /// A uniform number in [0, 1) from the dither's generator (splitmix64).
+    fn uniform(&mut self) -> f64 {
+        self.rng = self.rng.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.rng;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        (z >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// Starts the approach in the current phase: the seed's 1 mm before the camera point
+    /// (from `from`, the reading just recorded, in the + → − turn: 1 mm further in +), plus a
+    /// random fraction of the coarse jog; then, where an earlier approach in this direction
+    /// was read, on in the same direction to just short of where that one began to look
+    /// centred (by 10 µm and a random fraction of the fine jog), so the person jogs fine only.
+    /// Both offsets are dither: the jog lattice falls on the mark differently in every
+    /// approach, so the reading's jog-step error is independent between cycles and averages
+    /// down (a lattice fixed to the camera point repeats the same error in every cycle).
+    /// After an Overshot the near start is another 30 µm further back for each overshoot in
+    /// this approach (the start may have been inside the person's zone), and from the fourth
+    /// the person jogs from 1 mm back. Returns the moves; the nozzle never moves against the
+    /// approach direction after the first one.
+    fn approach(&mut self, from: Option<f64>) -> Vec<f64> {
+        let d = self.dir();
+        let a = self.params.approach_mm;
+        let far = match from {
+            Some(x) => x - d * (a + self.params.coarse_mm * self.uniform()),
+            None => -d * (a + self.params.coarse_mm * self.uniform()),
+        };
+        let far = far.clamp(-self.params.max_travel_mm, self.params.max_travel_mm);
+        self.pos_mm = far;
+        self.last_jog_mm = 0.0;
+        let k = usize::from(self.phase == Phase::Minus);
+        let mut moves = vec![far];
+        let tries = self.approach_overshoots;
+        if let (true, Some([reading, width])) = (tries <= 3, self.previous_mm[k]) {
+            let lead = 0.5 * width.max(0.0)
+                + NEAR_MARGIN_MM
+                + OVERSHOT_MARGIN_MM * tries as f64
+                + self.fine_mm() * self.uniform();
+            let near = reading - d * lead;
+            // Only on in the approach direction.
+            if d * (near - far) > 0.0 {
+                self.pos_mm = near;
+                moves.push(near);
+            }
+        }
+        moves
+    }
+
     /// The fine jog of the cycle in progress.
+    ///
+    /// Cycles 1, 3, … use `fine_mm` and the others `small_fine_mm`, with at least as many at
+    /// the small jog (5 cycles: big, small, big, small, small): the value is the line's
+    /// intercept at a zero jog, (r·m_small − m_big)/(r − 1) with r the jog ratio, in which the
+    /// small cycles weigh most, so more of them lower its variance (a single cycle uses the
+    /// big jog).
     pub fn fine_mm(&self) -> f64 {
-        if self.params.small_fine_mm > 0.0 && self.cycles.len() % 2 == 1 {
+        let (i, n) = (self.cycles.len(), self.params.cycles);
+        let big = i % 2 == 0 && (i + 1 < n || n == 1);
+        if self.params.small_fine_mm > 0.0 && !big {
             self.params.small_fine_mm
         } else {
             self.params.fine_mm
@@ -350,7 +437,6 @@ impl Guide {
                 "every cycle is recorded; start a new measurement".into(),
             ));
         }
-        let a = self.params.approach_mm;
         match press {
             Press::Coarse | Press::Fine => {
                 let jog = if press == Press::Coarse {
@@ -373,10 +459,11 @@ impl Guide {
             }
             Press::Overshot => {
                 self.overshoots += 1;
+                self.approach_overshoots += 1;
                 self.entry_mm = None;
-                self.last_jog_mm = 0.0;
-                self.pos_mm -= self.dir() * a;
-                Ok(self.step(vec![self.pos_mm], None))
+                // From 1 mm back of where the nozzle is now, again in the approach direction.
+                let moves = self.approach(Some(self.pos_mm));
+                Ok(self.step(moves, None))
             }
             Press::Centred if self.entry_mm.is_some() => Err(Error::BacklashGuide(
                 "Centred is already recorded for this approach; jog fine until the nozzle looks \
@@ -396,45 +483,60 @@ impl Guide {
                     )));
                 }
                 if self.params.crossing {
-                    self.entry_mm = Some(self.position_mm());
-                    return Ok(self.step(Vec::new(), None));
-                }
-                self.record(self.position_mm())
-            }
-            Press::Past => {
-                let entry = self.entry_mm.unwrap_or_else(|| self.position_mm());
-                if self.dir() * (self.position_mm() - entry) < 1e-9 {
-                    // Past with no jog since Centred: the nozzle already looked past when
-                    // Centred was pressed, so the mark was crossed within the last jog; a fine
-                    // jog's middle is as good a reading as a crossing's, a coarse one's is not.
+                    // Where the nozzle began to look centred lies within the jog that brought
+                    // it here: a fine one brackets it, a coarse one or none does not.
                     let q = self.last_jog_mm;
-                    if q <= 0.0 || q > self.fine_mm() + 1e-12 {
+                    if q <= 0.0 {
                         return Err(Error::BacklashGuide(
-                            "the nozzle already looked past the mark at Centred after a coarse \
-                             jog: press Overshot to approach again, with fine jogs near the mark"
+                            "the nozzle looked centred where the approach began, so where it                              began to look centred is not known: press Overshot to start the                              approach over"
                                 .into(),
                         ));
                     }
-                    return self.record(self.position_mm() - self.dir() * q / 2.0);
+                    if q > self.fine_mm() + 1e-12 {
+                        return Err(Error::BacklashGuide(
+                            "Centred right after a coarse jog: the nozzle began to look centred                              somewhere in that jog; press Overshot to approach again, with fine                              jogs near the mark"
+                                .into(),
+                        ));
+                    }
+                    self.entry_mm = Some(self.position_mm());
+                    self.entry_jog_mm = q;
+                    return Ok(self.step(Vec::new(), None));
                 }
-                // The crossing's midpoint: the person's "looks centred" zone cancels.
-                self.record(0.5 * (entry + self.position_mm()))
+                self.record(self.position_mm(), 0.0)
+            }
+            Press::Past => {
+                // Interval-censored: the nozzle began to look centred somewhere in the jog
+                // before Centred, (C − q_C, C], and began to look past somewhere in the jog
+                // before Past, (P − q_P, P] (the same jog when Past follows Centred at once).
+                // Each edge is read at its interval's middle, and the reading is halfway
+                // between the edges: the person's own "looks centred" zone cancels, and so
+                // does the half jog every first-look reading is late by.
+                let entry = self.entry_mm.unwrap_or_else(|| self.position_mm());
+                let qc = self.entry_jog_mm;
+                let qp = self.last_jog_mm;
+                let d = self.dir();
+                let c = entry - d * qc / 2.0;
+                let p = self.position_mm() - d * qp / 2.0;
+                self.record(0.5 * (c + p), d * (p - c))
             }
         }
     }
 
     /// Records the approach's reading and moves on (to the other approach, the next cycle, or
     /// done).
-    fn record(&mut self, reading: f64) -> Result<Step, Error> {
-        let a = self.params.approach_mm;
+    fn record(&mut self, reading: f64, width_mm: f64) -> Result<Step, Error> {
+        self.approach_overshoots = 0;
         self.entry_mm = None;
         self.last_jog_mm = 0.0;
+        self.entry_jog_mm = 0.0;
+        let k = usize::from(self.phase == Phase::Minus);
+        self.previous_mm[k] = Some([reading - self.origin_mm, width_mm]);
         if self.phase == Phase::Plus {
             self.pending_x1_mm = Some(reading);
             self.phase = Phase::Minus;
             // Seed step 5: 1 mm further in +.
-            self.pos_mm += a;
-            Ok(self.step(vec![self.pos_mm], Some(reading)))
+            let moves = self.approach(Some(self.pos_mm));
+            Ok(self.step(moves, Some(reading)))
         } else {
             let x1 = self
                 .pending_x1_mm
@@ -451,8 +553,8 @@ impl Guide {
                 return Ok(self.step(Vec::new(), Some(reading)));
             }
             self.phase = Phase::Plus;
-            self.pos_mm = -a;
-            Ok(self.step(vec![self.pos_mm], Some(reading)))
+            let moves = self.approach(None);
+            Ok(self.step(moves, Some(reading)))
         }
     }
 
@@ -465,6 +567,7 @@ impl Guide {
         let a = self.params.approach_mm;
         self.entry_mm = None;
         self.last_jog_mm = 0.0;
+        self.entry_jog_mm = 0.0;
         // Back to 1 mm before the centre on the approach side, but never further than the
         // current position is from it already.
         let back = if self.phase == Phase::Plus {
@@ -515,14 +618,16 @@ mod tests {
 
     #[test]
     fn the_procedure_approaches_from_minus_then_plus_and_measures_the_play() {
-        let (mut g, first) = Guide::start(GuideAxis::X, 150.0, GuideParams::default()).unwrap();
-        assert_eq!(first.moves_mm, vec![-1.0]);
+        let (mut g, first) = Guide::start(GuideAxis::X, 150.0, GuideParams::default(), 1).unwrap();
+        // The seed's 1 mm back, plus up to a coarse jog of dither.
+        assert!((-1.1..=-1.0).contains(&first.moves_mm[0]), "{first:?}");
         run(&mut g, first, 0.04);
         assert_eq!(g.cycles.len(), 5);
-        assert_eq!(g.cycles[1].fine_mm, Some(0.0025));
-        assert_eq!(g.cycles[2].fine_mm, Some(0.01));
+        // Big, small, big, small, small: at least as many small as big.
+        let q: Vec<f64> = g.cycles.iter().map(|c| c.fine_mm.unwrap()).collect();
+        assert_eq!(q, [0.01, 0.0025, 0.01, 0.0025, 0.0025]);
         for c in &g.cycles {
-            // Centred to the fine-jog resolution: X1 − X2 is 0.08 ± one jog.
+            // Each edge is read to within its jog: X1 − X2 is 0.08 within one jog.
             assert!(
                 (c.backlash_mm() - 0.08).abs() <= c.fine_mm.unwrap() + 1e-9,
                 "{c:?}"
@@ -533,52 +638,85 @@ mod tests {
     }
 
     #[test]
+    fn the_dither_moves_the_jog_lattice_between_approaches() {
+        // A person who reads exactly the crossing's jog: without dither every cycle's X1
+        // would fall on the same lattice point; with it the readings spread over the jog.
+        let (mut g, first) = Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 99).unwrap();
+        run(&mut g, first, 0.0);
+        let big: Vec<f64> = g
+            .cycles
+            .iter()
+            .filter(|c| c.fine_mm == Some(0.01))
+            .map(|c| c.x1_mm)
+            .collect();
+        assert_eq!(big.len(), 2);
+        assert!((big[0] - big[1]).abs() > 1e-6, "{big:?}");
+        let (g2, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 100).unwrap();
+        assert_ne!(
+            g2.pos_mm,
+            Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 99)
+                .unwrap()
+                .0
+                .pos_mm
+        );
+    }
+
+    #[test]
     fn jogs_move_only_in_the_approach_direction_and_overshot_backs_off_1_mm() {
-        let (mut g, _) = Guide::start(GuideAxis::Y, 10.0, GuideParams::default()).unwrap();
+        let (mut g, first) = Guide::start(GuideAxis::Y, 10.0, GuideParams::default(), 5).unwrap();
+        let s0 = first.moves_mm[0];
         let s = g.press(Press::Coarse).unwrap();
-        assert!((s.moves_mm[0] - -0.9).abs() < 1e-12);
+        assert!((s.moves_mm[0] - (s0 + 0.1)).abs() < 1e-12);
         let s = g.press(Press::Overshot).unwrap();
-        assert!((s.moves_mm[0] - -1.9).abs() < 1e-12);
+        let back = s.moves_mm[0] - (s0 + 0.1);
+        assert!((-1.1..=-1.0).contains(&back), "{s:?}");
+        assert_eq!(s.moves_mm.len(), 1);
         assert_eq!(g.overshoots, 1);
-        let mut last = -1.9;
-        for _ in 0..18 {
+        let mut last = s.moves_mm[0];
+        while g.pos_mm < -0.1 {
             let s = g.press(Press::Coarse).unwrap();
             assert!(s.moves_mm[0] > last, "a jog moved back");
             last = s.moves_mm[0];
         }
-        // Centred opens the crossing (nothing moves); Past after one fine jog records the
-        // midpoint of where the nozzle looked centred and where it looked past.
+        // Centred right after a coarse jog is refused: the edge is not bracketed.
+        let e = g.press(Press::Centred).unwrap_err().to_string();
+        assert!(e.contains("coarse jog") && e.contains("Overshot"), "{e}");
+        // Centred after a fine jog opens the crossing (nothing moves); Past after one more
+        // fine jog records halfway between the two edges, each read at its jog's middle:
+        // (C − q/2 + P − q/2)/2 = C with P = C + q.
+        g.press(Press::Fine).unwrap();
+        let c = g.position_mm();
         let s = g.press(Press::Centred).unwrap();
         assert!(s.crossing && s.moves_mm.is_empty() && s.recorded.is_none());
         assert!(g.press(Press::Centred).is_err());
-        assert!(g
-            .press(Press::Past)
-            .unwrap_err()
-            .to_string()
-            .contains("press Overshot"));
         g.press(Press::Fine).unwrap();
+        let p = g.position_mm();
         let s = g.press(Press::Past).unwrap();
-        assert!((s.recorded.unwrap() - 9.905).abs() < 1e-9, "{s:?}");
+        assert!((s.recorded.unwrap() - c).abs() < 1e-9, "{s:?}");
         assert!(!s.crossing);
-        // Seed step 5: 1 mm further in +, then jogs go −.
-        assert!((s.moves_mm[0] - 0.91).abs() < 1e-9);
+        // Seed step 5: about 1 mm further in +, then jogs go −.
+        let far = s.moves_mm[0];
+        assert!((1.0..=1.1).contains(&(far - (p - 10.0))), "{s:?}");
         let s = g.press(Press::Fine).unwrap();
-        assert!((s.moves_mm[0] - 0.90).abs() < 1e-9);
-        let s = g.press(Press::Overshot).unwrap();
-        assert!((s.moves_mm[0] - 1.90).abs() < 1e-9);
-        // Past at once after a fine jog: the mark was crossed within it, read at its middle.
-        let s = g.press(Press::Coarse).unwrap();
-        assert!((s.moves_mm[0] - 1.8).abs() < 1e-9);
-        for _ in 0..17 {
+        assert!((s.moves_mm[0] - (far - 0.01)).abs() < 1e-9);
+        // Past at once after Centred: the nozzle crossed within that fine jog, read at its
+        // middle.
+        while g.pos_mm > 0.1 {
             g.press(Press::Coarse).unwrap();
         }
         g.press(Press::Fine).unwrap();
+        let c = g.position_mm();
         g.press(Press::Centred).unwrap();
         let s = g.press(Press::Past).unwrap();
-        assert!(
-            (s.recorded.unwrap() - (10.0 + 0.09 + 0.005)).abs() < 1e-9,
-            "{s:?}"
-        );
+        assert!((s.recorded.unwrap() - (c + 0.005)).abs() < 1e-9, "{s:?}");
+        // Cycle 2's + approach: 1 mm back, then on in + to just short of where cycle 1 began
+        // to look centred (its width 0.01 / 2 + 10 µm + up to a small jog), fine jogs only.
+        assert_eq!(s.moves_mm.len(), 2, "{s:?}");
+        assert!(s.moves_mm[1] > s.moves_mm[0]);
+        let short = (g.cycles[0].x1_mm - 10.0) - s.moves_mm[1];
+        assert!((0.015..=0.0175 + 1e-9).contains(&short), "{short} {s:?}");
+        // Centred at once there (no jog since the move) is refused: the edge is not bracketed.
+        assert!(g.press(Press::Fine).is_ok());
         // Past before Centred says what comes first.
         assert!(g
             .press(Press::Past)
@@ -588,17 +726,51 @@ mod tests {
     }
 
     #[test]
-    fn centred_far_short_of_the_camera_point_is_refused() {
-        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default()).unwrap();
+    fn centred_where_the_approach_began_is_refused() {
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 3).unwrap();
+        for d in [1.0, -1.0] {
+            while d * g.pos_mm < -0.15 {
+                g.press(Press::Coarse).unwrap();
+            }
+            while d * g.pos_mm < 0.0 {
+                g.press(Press::Fine).unwrap();
+            }
+            g.press(Press::Centred).unwrap();
+            g.press(Press::Fine).unwrap();
+            g.press(Press::Past).unwrap();
+        }
+        // Cycle 2 starts just short of the mark; Centred before any jog does not bracket
+        // where the nozzle began to look centred.
+        assert_eq!(g.cycles.len(), 1);
         let before = g.clone();
         let e = g.press(Press::Centred).unwrap_err().to_string();
-        assert!(e.contains("1.000 mm short"), "{e}");
+        assert!(e.contains("where the approach began"), "{e}");
+        assert_eq!(g, before);
+        // Overshot from there: 1 mm back, then near again but 30 µm further short, so a start
+        // inside the person's zone is not repeated.
+        let [reading, width] = g.previous_mm[0].unwrap();
+        let s = g.press(Press::Overshot).unwrap();
+        assert_eq!(s.moves_mm.len(), 2, "{s:?}");
+        let short = reading - s.moves_mm[1];
+        let want = 0.5 * width + 0.01 + 0.03;
+        assert!(
+            (want..=want + g.fine_mm() + 1e-9).contains(&short),
+            "{short} {s:?}"
+        );
+    }
+
+    #[test]
+    fn centred_far_short_of_the_camera_point_is_refused() {
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 1).unwrap();
+        let before = g.clone();
+        let e = g.press(Press::Centred).unwrap_err().to_string();
+        assert!(e.contains("mm short of the camera point"), "{e}");
         assert_eq!(g, before);
     }
 
     #[test]
     fn a_jog_beyond_the_travel_limit_is_refused_and_changes_nothing() {
-        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default()).unwrap();
+        let (mut g, _) = Guide::start(GuideAxis::X, 0.0, GuideParams::default(), 1).unwrap();
         for _ in 0..40 {
             let _ = g.press(Press::Coarse);
         }
@@ -614,8 +786,10 @@ mod tests {
             plausible_mm: 1.0,
             ..GuideParams::default()
         };
-        let (mut g, _) = Guide::start(GuideAxis::A, 300.0, p).unwrap();
+        let (mut g, _) = Guide::start(GuideAxis::A, 300.0, p, 1).unwrap();
         g.press(Press::Coarse).unwrap();
+        g.press(Press::Fine).unwrap();
+        let c = g.position_mm();
         g.press(Press::Centred).unwrap();
         g.press(Press::Fine).unwrap();
         g.press(Press::Past).unwrap();
@@ -626,14 +800,18 @@ mod tests {
         // (serde_json's parse is within an ulp, not exact.)
         assert!((back.pos_mm - g.pos_mm).abs() < 1e-12);
         back.pos_mm = g.pos_mm;
+        back.entry_mm = g.entry_mm;
+        back.pending_x1_mm = g.pending_x1_mm;
+        back.previous_mm = g.previous_mm;
         assert_eq!(back, g);
+        let pos = back.pos_mm;
         let s = back.resume();
         assert_eq!(s.phase, Phase::Minus);
-        // In the − approach at 0.1 (a crossing open): restart from 1 mm further in +, the
-        // crossing closed.
-        assert!((s.moves_mm[0] - 1.1).abs() < 1e-12);
+        // In the − approach (a crossing open): restart from 1 mm further in +, the crossing
+        // closed.
+        assert!((s.moves_mm[0] - (pos.max(0.0) + 1.0)).abs() < 1e-12);
         assert!(!s.crossing && back.entry_mm.is_none());
-        assert!((back.pending_x1_mm.unwrap() - 299.105).abs() < 1e-9);
+        assert!((back.pending_x1_mm.unwrap() - c).abs() < 1e-9);
     }
 
     #[test]
@@ -659,7 +837,7 @@ mod tests {
             cycles: 0,
             ..GuideParams::default()
         };
-        assert!(Guide::start(GuideAxis::X, 0.0, p)
+        assert!(Guide::start(GuideAxis::X, 0.0, p, 1)
             .unwrap_err()
             .to_string()
             .contains("CYCLES=0"));

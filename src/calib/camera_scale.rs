@@ -15,6 +15,7 @@
 use serde::{Deserialize, Serialize};
 
 use super::backlash::{BacklashParams, Cycle};
+use super::backlash_guide::GuideAxis;
 use super::Error;
 
 /// A nozzle centre seen at a commanded axis position.
@@ -200,48 +201,96 @@ impl CameraScale {
     }
 }
 
-/// Which machine axis a backlash cycle is taken on.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Axis {
-    X,
-    Y,
+impl CameraScale {
+    /// The camera from the sightings at X's known moves and at Y's (step 1 of the camera
+    /// measurement, the daemon's and the bench's alike).
+    ///
+    /// # Errors
+    /// Either axis gives no line ([`fit_axis`]), or the two are (nearly) parallel.
+    pub(crate) fn from_sightings(x: &[Sighting], y: &[Sighting]) -> Result<CameraScale, Error> {
+        CameraScale::from_axes(fit_axis("x", x)?, fit_axis("y", y)?)
+    }
+
+    /// Image px per mm of `axis`'s coordinate (A and B move X and Y by half of it each).
+    pub(crate) fn px_per_mm_along(&self, axis: GuideAxis) -> f64 {
+        let unit = axis.point_at([0.0; 3], 1.0);
+        let (dx, dy) = (self.x.direction_px_per_mm, self.y.direction_px_per_mm);
+        (dx[0] * unit[0] + dy[0] * unit[1]).hypot(dx[1] * unit[0] + dy[1] * unit[1])
+    }
+
+    /// The scale's relative uncertainty along any axis: the larger of X's and Y's.
+    pub(crate) fn rel_sd(&self) -> f64 {
+        (self.x.scale_sd_px_per_mm / self.x.scale_px_per_mm)
+            .max(self.y.scale_sd_px_per_mm / self.y.scale_px_per_mm)
+    }
 }
 
-/// The seed's cycle from the camera: the nozzle commanded to `commanded_mm` once approached
-/// moving + (centre `plus_px`) and once moving − (`minus_px`). Each reading is the commanded
-/// position that would put the nozzle on `reference_px` (the seed's "back in the centre"), so
-/// X1 − X2 is the backlash and [`super::backlash::analyse`] takes the cycles as they are.
-pub(crate) fn cycle(
+/// One cycle of the camera measurement read from the image.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Approaches {
+    /// Where the nozzle stopped along the axis, mm from the reference: approached from below
+    /// (moving +) …
+    pub plus_mm: f64,
+    /// … and from above (moving −).
+    pub minus_mm: f64,
+    /// The seed's cycle: each reading is the commanded position (relative to the point) that
+    /// would put the nozzle on the reference, so X1 − X2 is the backlash and
+    /// [`super::backlash::analyse`] takes the cycles as they are.
+    pub cycle: Cycle,
+}
+
+/// The seed's cycle from the camera along `axis` (X, Y, or the CoreXY motors A = X + Y,
+/// B = X − Y): the nozzle commanded to the point once approached moving + (centre `plus_px`)
+/// and once moving − (`minus_px`), seen against `reference_px`.
+pub(crate) fn approaches(
     scale: &CameraScale,
-    axis: Axis,
-    commanded_mm: f64,
+    axis: GuideAxis,
     plus_px: [f64; 2],
     minus_px: [f64; 2],
     reference_px: [f64; 2],
-) -> Cycle {
-    let k = match axis {
-        Axis::X => 0,
-        Axis::Y => 1,
+) -> Approaches {
+    let along = |px: [f64; 2]| {
+        let d = scale.position_mm(px, reference_px);
+        axis.coord([d[0], d[1], 0.0])
     };
-    let p = scale.position_mm(plus_px, reference_px)[k];
-    let m = scale.position_mm(minus_px, reference_px)[k];
-    Cycle {
-        x1_mm: commanded_mm - p,
-        x2_mm: commanded_mm - m,
-        fine_mm: None,
+    let (p, m) = (along(plus_px), along(minus_px));
+    Approaches {
+        plus_mm: p,
+        minus_mm: m,
+        cycle: Cycle {
+            x1_mm: -p,
+            x2_mm: -m,
+            fine_mm: None,
+        },
     }
+}
+
+/// The statistics' settings for camera cycles along `axis` whose readings have at most
+/// `sd_px` of uncertainty each ([`camera_params`] with the scale along that axis).
+pub(crate) fn axis_params(
+    base: &BacklashParams,
+    scale: &CameraScale,
+    axis: GuideAxis,
+    sd_px: f64,
+    repeats: bool,
+) -> BacklashParams {
+    let along = scale.px_per_mm_along(axis);
+    camera_params(base, sd_px, along, scale.rel_sd() * along, repeats)
 }
 
 /// The backlash statistics' settings for camera cycles: the reading resolution becomes the
 /// camera's, so the noise floor and outlier limit of [`super::backlash::analyse`] are the
 /// detection's (per cycle sd √2·u/scale, u the detection's px sd) instead of a jog step's, and
 /// the scale's relative uncertainty (`scale_sd_px_per_mm / scale_px_per_mm`, from
-/// [`fit_axis`]) enters the stated ± in proportion to the value.
+/// [`fit_axis`]) enters the stated ± in proportion to the value. `repeats`: the readings'
+/// error repeats at the same nozzle positions (the detector's sub-pixel error does; a
+/// person's click on the tip does not, each click slips afresh).
 pub(crate) fn camera_params(
     base: &BacklashParams,
     detection_sd_px: f64,
     scale_px_per_mm: f64,
     scale_sd_px_per_mm: f64,
+    repeats: bool,
 ) -> BacklashParams {
     let cycle_sd_mm = std::f64::consts::SQRT_2 * detection_sd_px / scale_px_per_mm;
     BacklashParams {
@@ -253,8 +302,9 @@ pub(crate) fn camera_params(
             .max(cycle_sd_mm),
         scale_rel_sd: (scale_sd_px_per_mm / scale_px_per_mm).abs(),
         // The detection's sub-pixel error at the same two positions repeats in every cycle
-        // (the bench's ±2u covered 87.5 % on a play-free axis without it).
-        repeat_sd_mm: cycle_sd_mm,
+        // (the bench's ±2u covered 87.5 % on a play-free axis without it). Clicks do not: with
+        // it, ±2u covered 100 % of the click flow's errors in `klipcal bench backlash`.
+        repeat_sd_mm: if repeats { cycle_sd_mm } else { 0.0 },
         ..base.clone()
     }
 }
@@ -321,18 +371,46 @@ mod tests {
         let ax = [0.0, 80.0];
         let ay = [-80.0, 0.0];
         let mut rng = fastrand::Rng::with_seed(1);
-        let cam = CameraScale::from_axes(
-            fit_axis("x", &sightings(ax, 0.01, &mut rng)).unwrap(),
-            fit_axis("y", &sightings(ay, 0.01, &mut rng)).unwrap(),
+        let cam = CameraScale::from_sightings(
+            &sightings(ax, 0.01, &mut rng),
+            &sightings(ay, 0.01, &mut rng),
         )
         .unwrap();
         // Approached moving +, the nozzle lags 0.03 mm short; moving −, 0.03 mm past.
         let r = [320.0, 240.0];
         let plus = [r[0], r[1] - 0.03 * 80.0];
         let minus = [r[0], r[1] + 0.03 * 80.0];
-        let c = cycle(&cam, Axis::X, 100.0, plus, minus, r);
+        let a = approaches(&cam, GuideAxis::X, plus, minus, r);
+        let c = a.cycle;
         assert!((c.backlash_mm() - 0.06).abs() < 1e-3, "{c:?}");
-        let p = camera_params(&BacklashParams::default(), 0.1, 80.0, 0.08);
+        assert!(
+            (a.plus_mm + 0.03).abs() < 1e-3 && (a.minus_mm - 0.03).abs() < 1e-3,
+            "{a:?}"
+        );
+        // Along A (X + Y) the same image displacement is X's: A reads it as X's mm; along B
+        // as well (B = X − Y, Y unmoved).
+        let ab = approaches(&cam, GuideAxis::A, plus, minus, r)
+            .cycle
+            .backlash_mm();
+        assert!((ab - 0.06).abs() < 1e-3, "{ab}");
+        assert!((cam.px_per_mm_along(GuideAxis::A) - 80.0 / 2f64.sqrt()).abs() < 0.5);
+        let bb = approaches(&cam, GuideAxis::B, plus, minus, r)
+            .cycle
+            .backlash_mm();
+        assert!((bb - 0.06).abs() < 1e-3, "{bb}");
+        // A Y displacement: +Y along A, −Y along B (Y moves the image's −x here).
+        let (py, my) = ([r[0] + 2.4, r[1]], [r[0] - 2.4, r[1]]);
+        let a_y = approaches(&cam, GuideAxis::A, py, my, r)
+            .cycle
+            .backlash_mm();
+        let b_y = approaches(&cam, GuideAxis::B, py, my, r)
+            .cycle
+            .backlash_mm();
+        assert!(
+            (a_y - 0.06).abs() < 1e-3 && (b_y + 0.06).abs() < 1e-3,
+            "{a_y} {b_y}"
+        );
+        let p = camera_params(&BacklashParams::default(), 0.1, 80.0, 0.08, true);
         let res = crate::calib::backlash::analyse("x", &[c, c, c], None, &p).unwrap();
         assert!((res.backlash_mm - 0.06).abs() < 1e-3);
         // The detection's error at the same two positions repeats in every cycle: identical

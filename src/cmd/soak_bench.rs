@@ -513,6 +513,31 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
             fp(r.surface_within),
             r.median_soak_min
         );
+        let cover_ok = r.identified == 0 || r.covered as f64 >= 0.95 * r.identified as f64;
+        families_ok &= cover_ok;
+        println!(
+            "    coupling G (true: the heater–plate conductance): identified from the heat-up on \
+             {} of {} beds ({}); the true G in the reported interval on {} of them ({:.1} %)   \
+             target ≥ 95 %   {}; soak there {} (median); the G used at or below the true G on \
+             {} of {} beds",
+            r.identified,
+            r.beds,
+            if k == 2 {
+                "a step from another target is a warm start"
+            } else {
+                "a cold heat-up whose lag a bed stack can have, ≤ 5 min"
+            },
+            r.covered,
+            100.0 * r.covered as f64 / r.identified.max(1) as f64,
+            if r.identified == 0 { "not applicable".to_string() } else { pass(cover_ok).to_string() },
+            if r.median_soak_identified_min >= 1e8 {
+                "never".to_string()
+            } else {
+                format!("{:.1} min", r.median_soak_identified_min)
+            },
+            r.g_safe,
+            r.beds,
+        );
         println!(
             "    power anchor (issue 10's truth): declared before the 1 % moment {:4} ({:5.1} %)",
             r.early,
@@ -554,7 +579,7 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
     for (name, text) in crate::cmd::soak_families::RECORDED {
         match crate::cmd::soak_families::recorded(text) {
             Ok(run) => {
-                let (d, why, sigma) = crate::cmd::soak_families::declare(&run, &params);
+                let (d, why, sigma, coupling) = crate::cmd::soak_families::declare(&run, &params);
                 let m = run.t_one_s;
                 let bound = information_bound(
                     run.t_reach_s,
@@ -589,6 +614,7 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
                     bound / 60.0,
                     sigma * 100.0
                 );
+                println!("      {}", coupling.short_why());
                 if args.show_failures {
                     println!("      {why}");
                 }
@@ -786,14 +812,29 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
             let pe = early(&|r| r.with_preset);
             ok &= pe == 0;
             let ps = soak_min(&|r| r.with_preset);
+            let pid = res.iter().filter(|r| r.preset_identified).count();
+            let pcov = res
+                .iter()
+                .filter(|r| r.preset_identified && r.preset_covered)
+                .count();
+            let psafe = res.iter().filter(|r| r.preset_g_safe).count();
+            let pcov_ok = pid == 0 || pct(pcov, pid) >= 95.0;
+            ok &= pcov_ok && psafe == res.len();
             println!(
-                "      with soak.bed = \"{}\" (G 1/{:.0}, capped by the heat-up): early {pe}   \
-                 target 0   {}; soak after reaching the target {}   target ≤ 15 min   {}",
+                "      with soak.bed = \"{}\" (its weakest G 1/{:.0}; identified from the heat-up \
+                 on {pid} of {} beds, the true G in the interval on {pcov} ({:.0} %)   target ≥ 95 %   \
+                 {}; the G used at or below the true G on {psafe} of {}   target all   {}): early \
+                 {pe}   target 0   {}; soak after reaching the target {}   target ≤ 15 min   {}",
                 crate::cmd::soak_four_node::preset_name(kind),
                 1.0 / crate::calib::soak::BED_PRESETS
                     .iter()
                     .find(|b| b.name == crate::cmd::soak_four_node::preset_name(kind))
                     .map_or(f64::NAN, |b| b.g),
+                res.len(),
+                pct(pcov, pid),
+                if pid == 0 { "not applicable" } else { pass(pcov_ok) },
+                res.len(),
+                pass(psafe == res.len()),
                 pass(pe == 0),
                 words(ps),
                 if ps <= 15.0 {
@@ -856,14 +897,21 @@ fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
                     words(os),
                     if steel_open {
                         let ps = soak_min(&|r| r.open_preset);
+                        let fe = early(&|r| r.open_fixed) + early(&|r| r.open_preset_fixed);
+                        ok &= fe == 0;
                         format!(
                             "   target ≤ 15 min   {}; with soak.bed = \"{}\" too: early {op}   \
-                             target 0   {}; soak {}   target ≤ 15 min   {}",
+                             target 0   {}; soak {}   target ≤ 15 min   {}; not identified (a warm \
+                             start: the G of soak.bed, else the weakest): soak {} with soak.bed, {} \
+                             without (early {fe}   target 0   {})",
                             preset_words(os),
                             crate::cmd::soak_four_node::preset_name(kind),
                             pass(op == 0),
                             words(soak_min(&|r| r.open_preset)),
-                            preset_words(ps)
+                            preset_words(ps),
+                            words(soak_min(&|r| r.open_preset_fixed)),
+                            words(soak_min(&|r| r.open_fixed)),
+                            pass(fe == 0),
                         )
                     } else {
                         String::new()
@@ -1063,6 +1111,7 @@ fn report_real(params: &SoakParams, show_failures: bool) -> bool {
             if t.printing { ", printing" } else { "" },
             min(out.reach_s),
         );
+        println!("      {}", out.coupling);
         for v in &out.violations {
             violations += 1;
             println!("      {v}");

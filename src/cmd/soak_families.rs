@@ -34,21 +34,38 @@ pub(crate) struct Run {
     /// The surface moment (issue 29): the last time the plate, these beds' print surface, was
     /// more than 1 K from its final temperature, s; NaN where the bed has no surface truth.
     pub t_surface_s: f64,
+    /// The true coupling from the thermistor's node to the surface (the plate), full power per
+    /// K; NaN where unknown (a recorded trace).
+    pub g_true: f64,
 }
 
 /// The detector's declaration on a run (with the bed's max_power), s, its explanation at that
 /// moment (or at the end of the run), and the bin noise its test used then (0 without a fit).
+/// And the coupling it used.
 #[must_use]
-pub(crate) fn declare(run: &Run, params: &SoakParams) -> (Option<f64>, String, f64) {
+pub(crate) fn declare(
+    run: &Run,
+    params: &SoakParams,
+) -> (Option<f64>, String, f64, crate::calib::soak::Coupling) {
     let mut det = SoakDetector::new(params.clone());
     det.set_max_power(run.max_power);
     let sigma = |det: &SoakDetector| det.fit().map_or(0.0, |f| f.test_sd);
     for s in &run.samples {
         if let SoakStatus::Stable { at_s } = det.push(s[0], s[1], s[2], s[3]) {
-            return (Some(at_s), det.explanation().to_string(), sigma(&det));
+            return (
+                Some(at_s),
+                det.explanation().to_string(),
+                sigma(&det),
+                det.coupling().clone(),
+            );
         }
     }
-    (None, det.explanation().to_string(), sigma(&det))
+    (
+        None,
+        det.explanation().to_string(),
+        sigma(&det),
+        det.coupling().clone(),
+    )
 }
 
 /// The information bound: the earliest moment any test at `Z` standard errors could rule out
@@ -283,6 +300,7 @@ pub(crate) fn three_node(rng: &mut fastrand::Rng) -> Run {
         max_power: bed.max_power,
         tau_s: bed.tau_slow,
         t_surface_s: surface_moment(&clean),
+        g_true: bed.g_hp,
     }
 }
 
@@ -333,6 +351,7 @@ pub(crate) fn target_steps(rng: &mut fastrand::Rng) -> Run {
         max_power: bed.max_power,
         tau_s: bed.tau_slow,
         t_surface_s: surface_moment(&clean),
+        g_true: bed.g_hp,
     }
 }
 
@@ -419,6 +438,7 @@ pub(crate) fn bang_bang(rng: &mut fastrand::Rng) -> Run {
         max_power,
         tau_s: tau_p,
         t_surface_s: surface_moment(&clean),
+        g_true: g_hp,
     }
 }
 
@@ -508,6 +528,7 @@ pub(crate) fn recorded(text: &str) -> Result<Run, String> {
         max_power: 1.0,
         tau_s: tau,
         t_surface_s: f64::NAN,
+        g_true: f64::NAN,
     })
 }
 
@@ -550,6 +571,15 @@ pub(crate) struct FamilyReport {
     pub median_soak_min: f64,
     /// Median surface moment after reaching the target, min.
     pub median_surface_min: f64,
+    /// Beds whose coupling was identified from their heat-up, those whose true G lay in the
+    /// reported interval, and the beds whose G used was at or below the true one.
+    pub identified: usize,
+    /// See `identified`.
+    pub covered: usize,
+    /// See `identified`.
+    pub g_safe: usize,
+    /// Median soak after reaching the target over the identified beds, min.
+    pub median_soak_identified_min: f64,
     /// One line per bed that missed a target (early, later than 1.5 × + 60 s, or never):
     /// its time constant, moment, declaration and the detector's explanation.
     pub failures: Vec<String>,
@@ -581,8 +611,13 @@ pub(crate) fn evaluate(
         surface_within: 0,
         median_soak_min: f64::NAN,
         median_surface_min: f64::NAN,
+        identified: 0,
+        covered: 0,
+        g_safe: 0,
+        median_soak_identified_min: f64::NAN,
         failures: Vec::new(),
     };
+    let mut soaks_identified = Vec::new();
     let mut soaks = Vec::new();
     let mut surfaces = Vec::new();
     let mut ratios = Vec::new();
@@ -590,7 +625,13 @@ pub(crate) fn evaluate(
     for k in 0..beds {
         let run = make(&mut rng);
         let moment = run.t_one_s;
-        let (declared, why, sigma) = declare(&run, params);
+        let (declared, why, sigma, coupling) = declare(&run, params);
+        if coupling.source == crate::calib::soak::CouplingSource::Identified {
+            r.identified += 1;
+            r.covered += usize::from(coupling.low <= run.g_true && run.g_true <= coupling.high);
+            soaks_identified.push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
+        }
+        r.g_safe += usize::from(coupling.g <= run.g_true);
         let bound = information_bound(
             run.t_reach_s,
             sigma,
@@ -664,6 +705,7 @@ pub(crate) fn evaluate(
         v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
     };
     r.median_soak_min = med(soaks);
+    r.median_soak_identified_min = med(soaks_identified);
     r.median_surface_min = med(surfaces);
     ratios.sort_by(f64::total_cmp);
     if !ratios.is_empty() {
@@ -849,7 +891,7 @@ mod tests {
             if !beds.contains(&k) {
                 continue;
             }
-            let (declared, why, _) = declare(&run, &params);
+            let (declared, why, _, _) = declare(&run, &params);
             assert!(
                 declared.map_or(true, |d| d >= run.t_one_s),
                 "seed {seed} bed {k}: declared {declared:?} s before the 1 % moment {} s: {why}",

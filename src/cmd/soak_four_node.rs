@@ -702,6 +702,13 @@ pub(crate) struct BedResult {
     pub sigma: f64,
     /// klipcal's rule with `soak.bed` set to this kind's preset, when asked for.
     pub with_preset: Option<f64>,
+    /// With the preset: the coupling was identified, its interval held the true G, and the G
+    /// used was at or below it.
+    pub preset_identified: bool,
+    /// See `preset_identified`.
+    pub preset_covered: bool,
+    /// See `preset_identified`.
+    pub preset_g_safe: bool,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
     /// klipcal's rule with `soak.frame = "open"` (on an enclosed bed: the user's error),
@@ -709,6 +716,11 @@ pub(crate) struct BedResult {
     pub open: Option<f64>,
     /// See `open`.
     pub open_preset: Option<f64>,
+    /// `open` and `open_preset` with the coupling not identified (the preset's or the
+    /// weakest G, as after a warm start), when the preset is asked for.
+    pub open_fixed: Option<f64>,
+    /// See `open_fixed`.
+    pub open_preset_fixed: Option<f64>,
     /// Surface left at the `open` and `open_preset` declarations, K (0 when not early).
     pub open_left_c: f64,
     /// The bed's slowest clamped time constant, s.
@@ -820,9 +832,14 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         g_used: c.g,
         sigma: d.fit().map_or(0.0, |f| f.test_sd),
         with_preset: None,
+        preset_identified: false,
+        preset_covered: false,
+        preset_g_safe: false,
         left_c,
         open,
         open_preset: None,
+        open_fixed: None,
+        open_preset_fixed: None,
         open_left_c: left_at(open),
         slowest_s: bed.clamped_taus_s()[0],
     }
@@ -862,7 +879,12 @@ pub(crate) fn run_bed(
             bed: preset_name(kind).into(),
             ..params.clone()
         };
-        r.with_preset = detector(&samples, &with).0;
+        let (at, d) = detector(&samples, &with);
+        r.with_preset = at;
+        let c = d.coupling();
+        r.preset_identified = c.source == crate::calib::soak::CouplingSource::Identified;
+        r.preset_covered = c.low <= r.g_true && r.g_true <= c.high;
+        r.preset_g_safe = c.g <= r.g_true;
         let open = detector(
             &samples,
             &SoakParams {
@@ -872,6 +894,22 @@ pub(crate) fn run_bed(
         )
         .0;
         r.open_preset = open;
+        let fixed = |p: SoakParams| {
+            detector(
+                &samples,
+                &SoakParams {
+                    frame: "open".into(),
+                    no_identify: true,
+                    ..p
+                },
+            )
+            .0
+        };
+        r.open_preset_fixed = fixed(SoakParams {
+            bed: preset_name(kind).into(),
+            ..params.clone()
+        });
+        r.open_fixed = fixed(params.clone());
         if let Some(at) = open {
             let fin = bed.surface_final_c();
             let left = samples
@@ -939,6 +977,51 @@ mod tests {
             enclosed_max > crate::calib::soak::OPEN_FRAME_TAU_MAX_S,
             "enclosed: {enclosed_max} s"
         );
+    }
+
+    /// The presets are the weak end of their builds: every bed of this family (random, and at
+    /// every corner of the knobs) has a coupling at or above its kind's preset and a stack
+    /// time R·C within the preset's, so neither bound the identification uses is above the
+    /// true G. (Before, the presets held typical values: 1/30 for steel-pad was above the true
+    /// G of 9 of 24 open-frame beds, 1/150 above one open glass-pad bed.)
+    #[test]
+    fn every_bed_of_the_family_is_within_its_presets_physical_bounds() {
+        let mut rng = fastrand::Rng::with_seed(21);
+        for kind in Kind::all() {
+            let p = crate::calib::soak::BED_PRESETS
+                .iter()
+                .find(|b| b.name == preset_name(kind))
+                .unwrap();
+            for i in 0..400u32 {
+                let bed = if i < 16 {
+                    let f = |b: u32| f64::from((i >> b) & 1);
+                    let knobs = Knobs {
+                        coupling: f(0),
+                        plate: f(1),
+                        enclosure: f(2),
+                        noise: f(3),
+                    };
+                    FourNode::new(kind, knobs, &mut rng)
+                } else {
+                    FourNode::random(kind, &mut rng)
+                };
+                let g = bed.g_true();
+                let rc = (bed.c[0] + bed.c[1] + bed.c[2]) / bed.p_max_w / g;
+                assert!(
+                    g >= p.g,
+                    "{}: G 1/{:.0} below the preset's 1/{:.0}",
+                    kind.name(),
+                    1.0 / g,
+                    1.0 / p.g
+                );
+                assert!(
+                    rc <= p.rc_s,
+                    "{}: R·C {rc:.0} s over the preset's {:.0}",
+                    kind.name(),
+                    p.rc_s
+                );
+            }
+        }
     }
 
     #[test]

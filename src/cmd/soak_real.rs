@@ -107,6 +107,8 @@ pub(crate) struct RealOutcome {
     pub remaining_upper: Option<f64>,
     /// The bin noise the test used at the end (standard deviation, fraction of full power).
     pub test_sd: Option<f64>,
+    /// The coupling the rule used, in a few words, and why.
+    pub coupling: String,
     /// What must not happen on any bed and did: declared before the band was reached and the
     /// settling and minimum soak had passed, or while the temperature was out of the band.
     pub violations: Vec<String>,
@@ -147,7 +149,9 @@ pub(crate) fn run_real(trace: &RealTrace, params: &SoakParams) -> RealOutcome {
         }
     }
     let fit = det.fit();
+    let coupling = det.coupling().short_why();
     RealOutcome {
+        coupling,
         reach_s,
         declared_s,
         why: det.explanation().to_string(),

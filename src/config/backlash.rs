@@ -77,6 +77,7 @@ impl BacklashConfig {
             outlier_sigmas: self.outlier_sigmas,
             scale_rel_sd: 0.0,
             repeat_sd_mm: 0.0,
+            step_mm: 0.0,
         }
     }
 

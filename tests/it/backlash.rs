@@ -13,7 +13,7 @@ use klipcal::klipper::backlash::{detect, parse_reply, set_backlash_command, Bran
 use klipcal::moonraker::Moonraker;
 use serde_json::{json, Value};
 
-use crate::bench::Bench;
+use crate::bench::{extension_request, Bench, Daemon};
 
 pub fn nozzle(bench: &Bench) -> [f64; 3] {
     let path = bench.dir.path().join("comms/nozzle_true.json");
@@ -46,7 +46,7 @@ async fn measure(
         cycles: 3,
         ..GuideParams::default()
     };
-    let (mut g, mut step) = Guide::start(axis, axis.coord(point), params).unwrap();
+    let (mut g, mut step) = Guide::start(axis, axis.coord(point), params, rng.u64(..)).unwrap();
     let mut presses = 0;
     loop {
         for &s in &step.moves_mm {
@@ -253,4 +253,55 @@ async fn a_printer_with_neither_branch_is_detected_with_what_klipper_lacks() {
         (r.backlash_mm - 0.03).abs() <= 3.0 * r.uncertainty_mm + 0.002,
         "{r:?}"
     );
+}
+
+/// The daemon on `bench` with `toml`, the printer homed and the camera point saved at `point`
+/// (KLIPCAL_BACKLASH_SET_POINT); returns the daemon, a client and the mark the person sees
+/// there.
+pub async fn at_the_camera(
+    bench: &Bench,
+    toml: &str,
+    point: [f64; 3],
+) -> (
+    Daemon,
+    Moonraker,
+    tokio_util::sync::CancellationToken,
+    [f64; 3],
+) {
+    let d = Daemon::ready(bench, toml).await;
+    let (m, c) = connect(bench).await;
+    let mark = set_point(bench, &m, point).await;
+    extension_request(&bench.files(), "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    (d, m, c, mark)
+}
+
+/// KLIPCAL_BACKLASH_APPLY through the API: its answer, which must say `done` (the daemon's
+/// log on failure).
+pub async fn apply_done(bench: &Bench, d: &Daemon) -> Value {
+    let r = extension_request(&bench.files(), "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
+    assert_eq!(r["state"], "done", "{r}");
+    r
+}
+
+/// What Klipper's config holds for `keys` of `section` after an apply (and its restart): each
+/// must be there, a number.
+pub async fn config_values(m: &Moonraker, section: &str, keys: &[&str]) -> Vec<f64> {
+    let cf = m.configfile().await.unwrap();
+    keys.iter()
+        .map(|k| {
+            cf.settings
+                .option(section, k)
+                .and_then(Value::as_f64)
+                .unwrap_or_else(|| {
+                    panic!(
+                        "[{section}] {k} after apply: {:?}",
+                        cf.settings.section(section)
+                    )
+                })
+        })
+        .collect()
 }

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use serde_json::{json, Value};
 
-use crate::backlash::{connect, last_reply, reply_now, set_point};
+use crate::backlash::{apply_done, at_the_camera, config_values, last_reply, reply_now};
 use crate::bench::{assert_refused_everywhere, extension_request, free_port, poll, Bench, Daemon};
 use crate::browser::{artifact, Browser};
 
@@ -17,6 +17,31 @@ const TRUE_X_MM: f64 = 0.08;
 
 fn klipcal_bin() -> &'static str {
     env!("CARGO_BIN_EXE_klipcal")
+}
+
+/// The bench with its nozzle camera (`klipcal bench camera`, this build, drawing `camera`):
+/// `kinematics`, the compensation `module`, the drawn `play` (bench.py's --play JSON) and any
+/// `more` arguments.
+fn camera_bench(
+    kinematics: &str,
+    module: &str,
+    play: &str,
+    camera: &Value,
+    more: &[&str],
+) -> Bench {
+    let camera = camera.to_string();
+    let mut args = vec![
+        "--backlash-module",
+        module,
+        "--play",
+        play,
+        "--camera",
+        &camera,
+        "--klipcal-bin",
+        klipcal_bin(),
+    ];
+    args.extend_from_slice(more);
+    Bench::start_args(kinematics, &args)
 }
 
 /// The session in `klipcal_status` once it is no longer measuring.
@@ -39,26 +64,20 @@ async fn wait_measured(files: &klipcal::moonraker::Files, d: &Daemon) -> Value {
 async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_applies_it() {
     let camera = json!({"look": "dark_tip", "px_per_mm": 80, "rotation_deg": 23,
         "offset_px": [15, -10], "centre_mm": [100, 100], "seed": 5, "drop_every": 9});
-    let bench = Bench::start_args(
+    let bench = camera_bench(
         "cartesian",
-        &[
-            "--backlash-module",
-            "seed",
-            "--play",
-            &format!(r#"{{"x": {TRUE_X_MM}, "y": 0.05}}"#),
-            "--camera",
-            &camera.to_string(),
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
+        "seed",
+        &format!(r#"{{"x": {TRUE_X_MM}, "y": 0.05}}"#),
+        &camera,
+        &[],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n",
+        [100.0, 100.0, 0.0],
+    )
+    .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     // As a user runs it: the macro, through Klipper.
     m.gcode("KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=5")
         .await
@@ -104,10 +123,7 @@ async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_a
         "{said}"
     );
     // Applied through the verified path: SET_BACKLASH_COMPENSATION reports the value.
-    let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
-        .await
-        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
-    assert_eq!(r["state"], "done", "{r}");
+    apply_done(&bench, &d).await;
     let now = reply_now(&m).await;
     assert!(
         (now.x_mm - (b * 1e4).round() / 1e4).abs() < 1e-9,
@@ -128,13 +144,8 @@ impl Drop for OwnCamera {
 #[tokio::test]
 async fn no_webcam_or_no_sure_nozzle_is_refused_with_the_reason_on_every_road() {
     let bench = Bench::start_args("cartesian", &["--backlash-module", "seed"]);
-    let d = Daemon::ready(&bench, "").await;
+    let (d, m, _c, _) = at_the_camera(&bench, "", [100.0, 100.0, 0.0]).await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     assert_refused_everywhere(
         &bench,
         &d,
@@ -227,26 +238,20 @@ async fn no_webcam_or_no_sure_nozzle_is_refused_with_the_reason_on_every_road() 
 /// axis is being measured (it used to move the point under the readings).
 #[tokio::test]
 async fn without_a_module_the_start_says_so_and_set_point_waits_for_the_measurement() {
-    let bench = Bench::start_args(
+    let bench = camera_bench(
         "cartesian",
-        &[
-            "--backlash-module",
-            "none",
-            "--play",
-            r#"{"x": 0.06}"#,
-            "--camera",
-            r#"{"look": "ring", "seed": 8}"#,
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
+        "none",
+        r#"{"x": 0.06}"#,
+        &json!({"look": "ring", "seed": 8}),
+        &[],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.1\n").await;
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.1\n",
+        [100.0, 100.0, 0.0],
+    )
+    .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     // Guided: told at the start.
     let r = extension_request(&files, "klipcal_backlash_start", json!({"axis": "X"}))
         .await
@@ -267,7 +272,7 @@ async fn without_a_module_the_start_says_so_and_set_point_waits_for_the_measurem
     extension_request(&files, "klipcal_cancel", json!({}))
         .await
         .unwrap();
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    crate::backlash::set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
     extension_request(&files, "klipcal_backlash_set_point", json!({}))
         .await
         .unwrap();
@@ -381,26 +386,20 @@ async fn pr_7157_a_and_b_on_corexy_are_measured_from_the_camera_and_written_to_b
     const B: f64 = 0.04;
     let camera = json!({"look": "ring", "px_per_mm": 70, "rotation_deg": -12,
         "offset_px": [-20, 12], "centre_mm": [150, 150], "seed": 12});
-    let bench = Bench::start_args(
+    let bench = camera_bench(
         "corexy",
-        &[
-            "--backlash-module",
-            "pr7157",
-            "--play",
-            &format!(r#"{{"a": {A}, "b": {B}}}"#),
-            "--camera",
-            &camera.to_string(),
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
+        "pr7157",
+        &format!(r#"{{"a": {A}, "b": {B}}}"#),
+        &camera,
+        &[],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n",
+        [150.0, 150.0, 0.0],
+    )
+    .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [150.0, 150.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     camera_axis(&m, &files, &d, "AXIS=A CYCLES=4", "a", A).await;
     let s = camera_axis(&m, &files, &d, "AXIS=B CYCLES=4", "b", B).await;
     // The seed's CoreXY question, answered from the camera's A and B.
@@ -410,17 +409,13 @@ async fn pr_7157_a_and_b_on_corexy_are_measured_from_the_camera_and_written_to_b
             .is_some_and(|a| a.contains("motors A")),
         "{s}"
     );
-    let r = extension_request(&files, "klipcal_backlash_apply", json!({}))
-        .await
-        .unwrap_or_else(|e| panic!("apply: {e}\n{}", d.log_text()));
-    assert_eq!(r["state"], "done", "{r}");
-    let cf = m.configfile().await.unwrap();
-    for (k, drawn) in [("a", A), ("b", B)] {
-        let written = cf.settings.option("backlash", k).and_then(Value::as_f64);
+    let r = apply_done(&bench, &d).await;
+    let written = config_values(&m, "backlash", &["a", "b"]).await;
+    for ((k, drawn), w) in [("a", A), ("b", B)].into_iter().zip(written) {
         let want = r["values"][k].as_f64().unwrap();
         assert!(
-            written.is_some_and(|w| (w - want).abs() < 1e-6 && (w - drawn).abs() <= 0.003),
-            "[backlash] {k}: {written:?} against {want} (drawn {drawn})",
+            (w - want).abs() < 1e-6 && (w - drawn).abs() <= 0.003,
+            "[backlash] {k}: {w} against {want} (drawn {drawn})",
         );
     }
 }
@@ -434,27 +429,20 @@ async fn dual_carriage_x_of_each_carriage_and_y_are_measured_from_the_camera() {
     const Y: f64 = 0.03;
     let camera = json!({"look": "dark_tip", "px_per_mm": 90, "rotation_deg": 8,
         "offset_px": [10, 5], "centre_mm": [100, 100], "seed": 21});
-    let bench = Bench::start_args(
+    let bench = camera_bench(
         "cartesian",
-        &[
-            "--backlash-module",
-            "seed",
-            "--dual-carriage",
-            "--play",
-            &format!(r#"{{"x": {X0}, "x1": {X1}, "y": {Y}}}"#),
-            "--camera",
-            &camera.to_string(),
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
+        "seed",
+        &format!(r#"{{"x": {X0}, "x1": {X1}, "y": {Y}}}"#),
+        &camera,
+        &["--dual-carriage"],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n",
+        [100.0, 100.0, 0.0],
+    )
+    .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     camera_axis(&m, &files, &d, "AXIS=X CARRIAGE=0 CYCLES=4", "x@0", X0).await;
     camera_axis(&m, &files, &d, "AXIS=X CARRIAGE=1 CYCLES=4", "x@1", X1).await;
     let seen = std::fs::read_to_string(bench.dir.path().join("comms/nozzle_true.json")).unwrap();
@@ -517,31 +505,15 @@ const READ_FIGURE: &str = "(() => {
 async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() {
     let camera = json!({"look": "ring", "px_per_mm": 80, "rotation_deg": 15,
         "offset_px": [12, -8], "centre_mm": [100, 100], "seed": 3});
-    let bench = Bench::start_args(
-        "cartesian",
-        &[
-            "--backlash-module",
-            "seed",
-            "--play",
-            r#"{"x": 0.07}"#,
-            "--camera",
-            &camera.to_string(),
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
-    );
-    let d = Daemon::ready(
+    let bench = camera_bench("cartesian", "seed", r#"{"x": 0.07}"#, &camera, &[]);
+    let (d, m, _c, _) = at_the_camera(
         &bench,
         "[backlash]\ncamera_settle_s = 0.2\n[http]\nbind = \"127.0.0.1:0\"\n\
          trusted_clients = [\"127.0.0.1/32\"]\n",
+        [100.0, 100.0, 0.0],
     )
     .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     let base = d.page_url().await;
     // No frame yet: said, not an empty image.
     let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg"))
@@ -721,26 +693,20 @@ async fn click_flow(size: (u32, u32, bool), camera_seed: u64, click_seed: u64, s
     const CYCLES: usize = 3;
     let camera = json!({"look": "two_nozzles", "px_per_mm": 80, "rotation_deg": -20,
         "offset_px": [-10, 6], "centre_mm": [100, 100], "seed": camera_seed});
-    let bench = Bench::start_args(
+    let bench = camera_bench(
         "cartesian",
-        &[
-            "--backlash-module",
-            "seed",
-            "--play",
-            &format!(r#"{{"x": {TRUE_X}}}"#),
-            "--camera",
-            &camera.to_string(),
-            "--klipcal-bin",
-            klipcal_bin(),
-        ],
+        "seed",
+        &format!(r#"{{"x": {TRUE_X}}}"#),
+        &camera,
+        &[],
     );
-    let d = Daemon::ready(&bench, "[backlash]\ncamera_settle_s = 0.2\n").await;
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n",
+        [100.0, 100.0, 0.0],
+    )
+    .await;
     let files = bench.files();
-    let (m, _c) = connect(&bench).await;
-    set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
-    extension_request(&files, "klipcal_backlash_set_point", json!({}))
-        .await
-        .unwrap();
     // The detector cannot read this camera: the automatic measurement says why.
     let e = extension_request(&files, "klipcal_backlash_camera", json!({"axis": "X"}))
         .await

@@ -33,7 +33,7 @@ use super::snapshot::SnapshotInfo;
 use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall};
 use super::{Session, State};
 use super::{JOG_F, KIND, TITLE};
-use crate::calib::backlash::{BacklashParams, Cycle};
+use crate::calib::backlash::BacklashParams;
 use crate::calib::backlash_guide::GuideAxis;
 use crate::calib::camera_scale::{self, CameraScale, Sighting};
 use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
@@ -249,11 +249,6 @@ fn still(a: &Frame, b: &Frame) -> bool {
     (a.0[0] - b.0[0]).abs() <= lim && (a.0[1] - b.0[1]).abs() <= lim
 }
 
-/// The axis coordinate of a machine displacement (A = x + y, B = x − y).
-fn along(axis: GuideAxis, d_mm: [f64; 2]) -> f64 {
-    axis.coord([d_mm[0], d_mm[1], 0.0])
-}
-
 /// One reading: the mean of the still frames ([`settled`]).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub(crate) struct Seen {
@@ -286,8 +281,8 @@ pub(crate) struct CameraReport {
     /// The nozzle at the camera point (X approached moving +), px.
     pub reference_px: Option<[f64; 2]>,
     pub cycles: Vec<CameraCycle>,
-    /// The largest reading uncertainty, px, and the scale along the axis, px/mm: the
-    /// statistics' noise floor.
+    /// The largest uncertainty of the cycles' readings, px, and the scale along the axis,
+    /// px/mm: the statistics' noise floor.
     pub detection_sd_px: f64,
     pub axis_px_per_mm: f64,
     pub frames: usize,
@@ -304,15 +299,13 @@ impl CameraReport {
     pub(super) fn params(&self, base: &BacklashParams) -> BacklashParams {
         if self.axis_px_per_mm > 0.0 && self.detection_sd_px > 0.0 {
             // The scale's sd along the axis: the larger of X's and Y's relative sd.
-            let rel = self.scale.map_or(0.0, |c| {
-                (c.x.scale_sd_px_per_mm / c.x.scale_px_per_mm)
-                    .max(c.y.scale_sd_px_per_mm / c.y.scale_px_per_mm)
-            });
+            let rel = self.scale.map_or(0.0, |c| c.rel_sd());
             camera_scale::camera_params(
                 base,
                 self.detection_sd_px,
                 self.axis_px_per_mm,
                 rel * self.axis_px_per_mm,
+                self.clicks == 0,
             )
         } else {
             base.clone()
@@ -477,9 +470,7 @@ impl Backlash {
         id: i64,
         what: &str,
     ) -> anyhow::Result<Seen> {
-        self.core.m().gcode("M400").await?;
-        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
-        tokio::time::sleep(Duration::from_secs_f64(settle)).await;
+        self.settle_after_move().await?;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
         let mut last: Vec<Frame> = Vec::new();
         while frames < 14 {
@@ -517,6 +508,15 @@ impl Backlash {
              camera is mounted firmly, or raise [backlash] camera_settle_s",
             cam.name
         )))
+    }
+
+    /// Waits until Klipper has finished the moves (M400), then `camera_settle_s` for the
+    /// nozzle to stop ringing: before a detected reading and before a snapshot to click in.
+    pub(super) async fn settle_after_move(&self) -> anyhow::Result<()> {
+        self.core.m().gcode("M400").await?;
+        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
+        tokio::time::sleep(Duration::from_secs_f64(settle)).await;
+        Ok(())
     }
 
     async fn go(&self, p: [f64; 3]) -> anyhow::Result<()> {
@@ -730,12 +730,17 @@ impl Backlash {
             last_px: None,
             clicks: 0,
         };
-        let count = |r: &mut CameraReport, s: &Seen| {
+        // The cycles' readings set the statistics' noise floor; the scale's readings enter
+        // through the scale's uncertainty (a click on the whole-picture zoom of the scale
+        // moves is twice as coarse as one on the cycles' zoom).
+        let count = |r: &mut CameraReport, s: &Seen, cycle: bool| {
             r.clicks += usize::from(clicks);
             r.frames += s.frames;
             r.refused_frames += s.refused;
             r.last_px = Some(s.centre_px);
-            r.detection_sd_px = r.detection_sd_px.max(s.uncertainty_px);
+            if cycle {
+                r.detection_sd_px = r.detection_sd_px.max(s.uncertainty_px);
+            }
         };
         // 1. Scale and rotation: each axis at −0.5, 0, +0.5 mm, every one approached moving +.
         let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
@@ -753,7 +758,7 @@ impl Backlash {
             for t in [-0.5, 0.0, 0.5] {
                 self.go(ax.point_at(point, t)).await?;
                 let s = read(format!("scale: {} at {t:+.1} mm", ax.name().to_uppercase())).await?;
-                count(&mut report, &s);
+                count(&mut report, &s, false);
                 sightings[k].push(Sighting {
                     commanded_mm: t,
                     centre_px: s.centre_px,
@@ -762,16 +767,10 @@ impl Backlash {
             }
             self.go(point).await?;
         }
-        let scale = CameraScale::from_axes(
-            camera_scale::fit_axis("x", &sightings[0]).map_err(|e| user(e.to_string()))?,
-            camera_scale::fit_axis("y", &sightings[1]).map_err(|e| user(e.to_string()))?,
-        )
-        .map_err(|e| user(e.to_string()))?;
+        let scale = CameraScale::from_sightings(&sightings[0], &sightings[1])
+            .map_err(|e| user(e.to_string()))?;
         let reference = sightings[0][1].centre_px;
-        let unit = axis.point_at([0.0; 3], 1.0);
-        let (dx, dy) = (scale.x.direction_px_per_mm, scale.y.direction_px_per_mm);
-        report.axis_px_per_mm =
-            (dx[0] * unit[0] + dy[0] * unit[1]).hypot(dx[1] * unit[0] + dy[1] * unit[1]);
+        report.axis_px_per_mm = scale.px_per_mm_along(axis);
         report.scale = Some(scale);
         report.reference_px = Some(reference);
         if clicks {
@@ -793,29 +792,24 @@ impl Backlash {
                 "{words} cycle {c}/{cycles}: approached from below (moving +)"
             ))
             .await?;
-            count(&mut report, &plus);
+            count(&mut report, &plus, true);
             self.go(axis.point_at(point, approach)).await?;
             self.go(point).await?;
             let minus = read(format!(
                 "{words} cycle {c}/{cycles}: approached from above (moving −)"
             ))
             .await?;
-            count(&mut report, &minus);
-            let p = along(axis, scale.position_mm(plus.centre_px, reference));
-            let m = along(axis, scale.position_mm(minus.centre_px, reference));
-            let cyc = Cycle {
-                x1_mm: -p,
-                x2_mm: -m,
-                fine_mm: None,
-            };
+            count(&mut report, &minus, true);
+            let a =
+                camera_scale::approaches(&scale, axis, plus.centre_px, minus.centre_px, reference);
             report.cycles.push(CameraCycle {
                 plus_px: plus.centre_px,
                 minus_px: minus.centre_px,
-                plus_mm: p,
-                minus_mm: m,
-                backlash_mm: cyc.x1_mm - cyc.x2_mm,
+                plus_mm: a.plus_mm,
+                minus_mm: a.minus_mm,
+                backlash_mm: a.cycle.backlash_mm(),
             });
-            got.push(cyc);
+            got.push(a.cycle);
         }
         // 3. Into the session, as the guided flow's cycles.
         let again = if clicks {
@@ -975,13 +969,5 @@ mod tests {
             c[0].abs() < 1e-12 && (u - 0.03 / 2f64.sqrt()).abs() < 1e-12,
             "{c:?} {u}"
         );
-    }
-
-    #[test]
-    fn along_a_and_b_are_the_corexy_motor_coordinates() {
-        assert_eq!(along(GuideAxis::X, [0.1, 0.2]), 0.1);
-        assert_eq!(along(GuideAxis::Y, [0.1, 0.2]), 0.2);
-        assert!((along(GuideAxis::A, [0.1, 0.2]) - 0.3).abs() < 1e-12);
-        assert!((along(GuideAxis::B, [0.1, 0.2]) + 0.1).abs() < 1e-12);
     }
 }

@@ -203,9 +203,7 @@ impl Backlash {
         id: i64,
         what: &str,
     ) -> anyhow::Result<Seen> {
-        self.core.m().gcode("M400").await?;
-        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
-        tokio::time::sleep(std::time::Duration::from_secs_f64(settle)).await;
+        self.settle_after_move().await?;
         let (seq, size) = self.snapshot_for_click(http, cam, id, what).await?;
         let (tx, rx) = oneshot::channel();
         *self.clicks.lock_pending() = Some(Pending {

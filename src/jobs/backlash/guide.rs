@@ -68,6 +68,7 @@ impl Backlash {
                 carriage: a.carriage,
                 kinematics: a.kinematics,
                 camera: BTreeMap::new(),
+                step_mm: BTreeMap::new(),
             },
         );
         s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
@@ -187,7 +188,7 @@ impl Backlash {
                         "Keep jogging {axis}{sign} fine until the nozzle first looks off the mark on the far side, then press Past."
                     ),
                     format!(
-                        "Fine {} mm. The reading is halfway between Centred and Past.",
+                        "Fine {} mm. The reading is halfway between where it began to look centred and where it began to look past.",
                         g.fine_mm()
                     ),
                 ],
@@ -211,10 +212,10 @@ impl Backlash {
             title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
             lines: vec![
                 format!(
-                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back."
+                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back. Use fine jogs near the mark: Centred needs one just before it."
                 ),
                 format!(
-                    "Coarse {} mm, fine {} mm. Past the centre? Press Overshot: it starts the approach over from {} mm back.",
+                    "Coarse {} mm, fine {} mm. One fine jog took it from short to past? Press Centred, then Past. Further past, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.",
                     g.params.coarse_mm,
                     g.fine_mm(),
                     g.params.approach_mm
@@ -248,10 +249,14 @@ impl Backlash {
             .iter()
             .map(|(axis, c)| {
                 // Camera cycles are read to the camera's precision, not a jog's.
-                let p = s
-                    .camera
-                    .get(axis)
-                    .map_or(params.clone(), |r| r.params(&params));
+                // Jogged cycles carry the motor's microstep lattice.
+                let p = s.camera.get(axis).map_or_else(
+                    || crate::calib::backlash::BacklashParams {
+                        step_mm: s.step_mm.get(axis).copied().unwrap_or(0.0),
+                        ..params.clone()
+                    },
+                    |r| r.params(&params),
+                );
                 Ok((axis.clone(), analyse(axis, c, s.max_accel_mm_s2, &p)?))
             })
             .collect()
@@ -350,9 +355,10 @@ impl Backlash {
         let active_mm = self
             .active_values(&detection, &cf, axis, carriage, &key)
             .await?;
-        let (guide, step) =
-            Guide::start(axis, axis.coord(point), params).map_err(|e| user(e.to_string()))?;
-        let s = self
+        let (guide, step) = Guide::start(axis, axis.coord(point), params, dither_seed())
+            .map_err(|e| user(e.to_string()))?;
+        let micro = step_along(&cf.settings, kin, axis, carriage);
+        let mut s = self
             .begin_axis(AxisStart {
                 progress: format!("measuring {}", axis.name()),
                 point,
@@ -364,6 +370,14 @@ impl Backlash {
                 max_accel_mm_s2: max_accel,
             })
             .await?;
+        {
+            let _g = self.core.lock().await;
+            match micro {
+                Some(v) => s.step_mm.insert(key.clone(), v),
+                None => s.step_mm.remove(&key),
+            };
+            self.core.save(s.id, &s)?;
+        }
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
         let msg = format!(
@@ -497,6 +511,66 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
     out
 }
 
+/// The motor's microstep along a jogged axis, mm, from Klipper's settings (`rotation_distance
+/// / (full_steps_per_rotation · microsteps · gear_ratio)`): cartesian X, Y and Z their own
+/// stepper's; CoreXY A and B (motor directions) stepper_x's and stepper_y's, and X or Y, which
+/// both motors move, the larger over √2 (the two motors' step errors average); the dual
+/// carriage's own section for carriage 1. None where the settings do not say or the
+/// kinematics is another.
+pub(super) fn step_along(
+    settings: &crate::moonraker::answers::Settings,
+    kin: &str,
+    axis: GuideAxis,
+    carriage: Option<u32>,
+) -> Option<f64> {
+    let step = |section: &str| -> Option<f64> {
+        let sec = settings.section(section)?;
+        let num = |k: &str| sec.get(k).and_then(Value::as_f64);
+        let rd = num("rotation_distance")?;
+        let ms = num("microsteps")?;
+        let fs = num("full_steps_per_rotation").unwrap_or(200.0);
+        let gear: f64 = sec
+            .get("gear_ratio")
+            .and_then(Value::as_array)
+            .map_or(1.0, |pairs| {
+                pairs
+                    .iter()
+                    .filter_map(|p| {
+                        let p = p.as_array()?;
+                        Some(p.first()?.as_f64()? / p.get(1)?.as_f64()?)
+                    })
+                    .product()
+            });
+        let v = rd / (fs * ms * gear);
+        (v.is_finite() && v > 0.0).then_some(v)
+    };
+    let primary = |name: &str| {
+        if carriage.is_some_and(|n| n >= 1) {
+            step("dual_carriage")
+        } else {
+            step(name)
+        }
+    };
+    match (kin, axis) {
+        ("cartesian", GuideAxis::X) => primary("stepper_x"),
+        ("cartesian", GuideAxis::Y) => primary("stepper_y"),
+        ("cartesian" | "corexy", GuideAxis::Z) => step("stepper_z"),
+        ("corexy", GuideAxis::A) => step("stepper_x"),
+        ("corexy", GuideAxis::B) => step("stepper_y"),
+        ("corexy", GuideAxis::X | GuideAxis::Y) => {
+            Some(step("stepper_x")?.max(step("stepper_y")?) / std::f64::consts::SQRT_2)
+        }
+        _ => None,
+    }
+}
+
+/// A seed for the guide's dither that differs between measurements: the clock's nanoseconds.
+fn dither_seed() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -520,6 +594,7 @@ mod tests {
                 carriage: None,
                 kinematics: "cartesian".into(),
                 camera: BTreeMap::new(),
+                step_mm: BTreeMap::new(),
             },
         );
         s.id = 1;
@@ -553,6 +628,54 @@ mod tests {
         assert!(
             pr.contains("compensate") && !pr.contains("smooth_time"),
             "{pr}"
+        );
+    }
+
+    #[test]
+    fn the_microstep_along_an_axis_comes_from_klippers_settings() {
+        let cf = crate::moonraker::ConfigFile::parse(serde_json::json!({"settings": {
+            "stepper_x": {"rotation_distance": 40, "microsteps": 16,
+                          "full_steps_per_rotation": 200},
+            "stepper_y": {"rotation_distance": 40, "microsteps": 32, "gear_ratio": [[80, 20]]},
+            "stepper_z": {"rotation_distance": 8, "microsteps": 16},
+            "dual_carriage": {"rotation_distance": 40, "microsteps": 64},
+        }}))
+        .unwrap();
+        let st = &cf.settings;
+        let close = |v: Option<f64>, want: f64| v.is_some_and(|v| (v - want).abs() < 1e-12);
+        // 40 mm / (200 · 16): 12.5 µm; 40 / (200 · 32 · 4): 1.5625 µm; Z 8 / 3200: 2.5 µm.
+        assert!(close(
+            step_along(st, "cartesian", GuideAxis::X, None),
+            0.0125
+        ));
+        assert!(close(
+            step_along(st, "cartesian", GuideAxis::Y, None),
+            0.0015625
+        ));
+        assert!(close(step_along(st, "corexy", GuideAxis::Z, None), 0.0025));
+        // The dual carriage's own stepper for carriage 1, stepper_x for carriage 0.
+        assert!(close(
+            step_along(st, "cartesian", GuideAxis::X, Some(1)),
+            0.003125
+        ));
+        assert!(close(
+            step_along(st, "cartesian", GuideAxis::X, Some(0)),
+            0.0125
+        ));
+        // CoreXY: A is stepper_x's motor; X moves both, the larger step over √2.
+        assert!(close(step_along(st, "corexy", GuideAxis::A, None), 0.0125));
+        assert!(close(
+            step_along(st, "corexy", GuideAxis::X, None),
+            0.0125 / std::f64::consts::SQRT_2
+        ));
+        // Other kinematics, or a stepper the settings do not describe: unknown.
+        assert_eq!(step_along(st, "delta", GuideAxis::X, None), None);
+        let bare = crate::moonraker::ConfigFile::parse(serde_json::json!({"settings": {
+            "stepper_x": {"rotation_distance": 40}}}))
+        .unwrap();
+        assert_eq!(
+            step_along(&bare.settings, "cartesian", GuideAxis::X, None),
+            None
         );
     }
 }

@@ -243,6 +243,10 @@ pub(crate) struct BacklashBody {
     /// Axes read through the nozzle camera (KLIPCAL_BACKLASH_CAMERA): how, per result key.
     #[serde(default)]
     pub camera: BTreeMap<String, camera::CameraReport>,
+    /// Axes read by jogging: the motor's microstep along each, mm, per result key (its share
+    /// of the uncertainty does not average down). Absent where Klipper's settings do not say.
+    #[serde(default)]
+    pub step_mm: BTreeMap<String, f64>,
 }
 
 /// The saved camera point, as the store keeps it under [`POINT_KEY`].

@@ -64,6 +64,8 @@ pub(crate) struct BedSoak {
     /// Klipper's idle timeout must be set again to the soak's remaining time (at the first
     /// poll, and after [`BedSoak::extend`]).
     rebound: bool,
+    /// The coupling the rule settled on has been told on the console.
+    coupling_told: bool,
     /// A print follows the soak (A/B): its lines offer to print now and state what that costs.
     /// A mesh capture prints nothing and its lines say nothing of printing.
     prints: bool,
@@ -173,6 +175,7 @@ impl BedSoak {
             last_console_s: f64::NEG_INFINITY,
             primed: false,
             rebound: true,
+            coupling_told: false,
             prints: true,
         }
     }
@@ -418,6 +421,14 @@ impl BedSoak {
                         "bed soaking: {done:.0} % done, waiting for the bed power to settle"
                     ),
                 };
+                if self.detector.coupling_final() {
+                    if !self.coupling_told {
+                        self.coupling_told = true;
+                        core.console(&format!("{title}: {}", self.detector.coupling().why))
+                            .await;
+                    }
+                    text.push_str(&format!("; {}", self.detector.coupling().short()));
+                }
                 if print_now_c.is_some() {
                     self.last_print_now_c = print_now_c;
                 }
