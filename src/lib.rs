@@ -38,7 +38,9 @@
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
 //!   `mesh fit` / `mesh profiles`, `backlash solve`, the benchmarks of `klipcal bench …`
 //!   (figures beside their targets), and `install`/`uninstall` (`cmd::install`: the pure
-//!   `plan`, then `files`, `manifest`, `host`, `webcam`, `uninstall`).
+//!   `plan`, then `files`, `manifest`, `host`, `webcam`, `uninstall`). `cmd::backlash`: the
+//!   offline `backlash solve`/`image`, then its bench's simulated axes and people (`models`),
+//!   the guided bench (`guided`) and the camera and click bench (`camera`).
 
 pub mod agent;
 pub mod app;

@@ -1,0 +1,528 @@
+//! The camera procedure of issue 27 on rendered pictures, for `klipcal bench backlash`:
+//! detection per picture family, then the camera and click procedures as the daemon runs
+//! them (src/jobs/backlash/camera.rs) on simulated axes.
+
+use super::models::{
+    camera_time_s, click_time_s, gauss, p95, Model, PlayAxis, COVER_K, COVER_TARGET_PCT, MODELS,
+};
+use crate::calib::backlash::{self, BacklashParams};
+use crate::calib::backlash_guide::GuideAxis;
+use crate::calib::camera_scale::{self, CameraScale, Sighting};
+use crate::calib::nozzle::{self, DetectParams, Gray};
+use crate::cli::BenchBacklashArgs;
+use crate::cmd::camera_render::{self, Family};
+
+/// The snapshot size of a printer's nozzle camera, and a realistic scale for it: a USB
+/// endoscope or microscope a few cm under the nozzle sees about 8 mm across 640 px.
+const CAM_W: usize = 640;
+const CAM_H: usize = 480;
+const REALISTIC_PX_PER_MM: f64 = 80.0;
+/// Frames averaged per position in the procedure (each retaken up to 5 times on a refusal).
+const FRAMES: usize = 2;
+/// A detection off by more than this is a wrong number, not a refusal.
+const WRONG_PX: f64 = 1.0;
+
+/// One family's detection figures.
+#[derive(Debug, Default)]
+struct DetectTally {
+    errors_px: Vec<f64>,
+    centroid_errors_px: Vec<f64>,
+    covered: usize,
+    refused: usize,
+    wrong: usize,
+    n: usize,
+    reasons: std::collections::BTreeMap<String, usize>,
+}
+
+fn refusal_name(r: &nozzle::Refusal) -> String {
+    serde_json::to_value(r)
+        .ok()
+        .and_then(|v| v.get("reason").and_then(|s| s.as_str()).map(String::from))
+        .unwrap_or_default()
+}
+
+/// Detection over each rendered family: error, refusals, wrong numbers.
+fn bench_detection(n: usize, seed: u64) -> anyhow::Result<Vec<(Family, DetectTally)>> {
+    let mut rng = fastrand::Rng::with_seed(seed ^ 0x27);
+    let p = DetectParams::default();
+    let mut out = Vec::new();
+    for fam in Family::ALL {
+        let mut t = DetectTally::default();
+        for _ in 0..n {
+            let c = [
+                CAM_W as f64 / 2.0 + 150.0 * (rng.f64() - 0.5),
+                CAM_H as f64 / 2.0 + 100.0 * (rng.f64() - 0.5),
+            ];
+            let radius = 20.0 + 20.0 * rng.f64();
+            let scene = camera_render::varied_scene(fam, CAM_W, CAM_H, c, radius, &mut rng);
+            let (grey, _) = scene.render(&mut rng)?;
+            t.n += 1;
+            let got = nozzle::detect(
+                &Gray {
+                    width: CAM_W,
+                    height: CAM_H,
+                    data: &grey,
+                },
+                &p,
+            );
+            match got {
+                Err(r) => {
+                    t.refused += 1;
+                    *t.reasons.entry(refusal_name(&r)).or_default() += 1;
+                }
+                Ok(_) if fam.must_refuse() => t.wrong += 1,
+                Ok(d) => {
+                    let (ex, ey) = (d.centre_px[0] - c[0], d.centre_px[1] - c[1]);
+                    let e = ex.hypot(ey);
+                    if e > WRONG_PX {
+                        t.wrong += 1;
+                    }
+                    if ex.abs() <= 2.0 * d.uncertainty_px && ey.abs() <= 2.0 * d.uncertainty_px {
+                        t.covered += 1;
+                    }
+                    t.errors_px.push(e);
+                    let g = d.diagnostics.centroid_px;
+                    t.centroid_errors_px.push((g[0] - c[0]).hypot(g[1] - c[1]));
+                }
+            }
+        }
+        out.push((fam, t));
+    }
+    Ok(out)
+}
+
+/// How the camera procedure reads the nozzle in a snapshot.
+#[derive(Debug, Clone, Copy)]
+enum Reader {
+    /// The detector on the rendered picture ([`FRAMES`] frames averaged).
+    Detect,
+    /// The true centre: what the mechanics alone allow.
+    Perfect,
+    /// A person clicking the nozzle's tip on klipcal's page (KLIPCAL_BACKLASH_CLICK).
+    Click(Screen),
+}
+
+/// The screen the person clicks on: how large the picture shows on it and the hand's slip.
+#[derive(Debug, Clone, Copy)]
+struct Screen {
+    name: &'static str,
+    /// Picture px per CSS px before zooming: the page shows the snapshot across its column
+    /// (`width: 100%`; 980 px wide on a computer, about 940 px of picture inside the padding;
+    /// about 360 px on a 390 px wide phone).
+    picture_px_per_css: f64,
+    /// The click lands uniformly within ± this of where the person sees the tip, CSS px per
+    /// image axis: a mouse ±2 px, a finger ±4 px.
+    slip_css: f64,
+    /// What the page sends as the click's SD, CSS px (page.rs: 1 for a mouse, 3 for touch).
+    stated_css: f64,
+}
+
+const SCREENS: [Screen; 2] = [
+    Screen {
+        name: "on a computer (mouse ±2 px)",
+        picture_px_per_css: CAM_W as f64 / 940.0,
+        slip_css: 2.0,
+        stated_css: 1.0,
+    },
+    Screen {
+        name: "on a phone (finger ±4 px)",
+        picture_px_per_css: CAM_W as f64 / 360.0,
+        slip_css: 4.0,
+        stated_css: 3.0,
+    },
+];
+
+/// The camera under the nozzle: its scale, rotation, mirror and where machine (0, 0) falls.
+struct Camera {
+    /// image ← machine, px per mm, columns X and Y.
+    a: [[f64; 2]; 2],
+    origin_px: [f64; 2],
+    scene: camera_render::Scene,
+    /// The mount's slow drift, mm, a random walk per frame.
+    drift_mm: f64,
+    drift: [f64; 2],
+    reader: Reader,
+}
+
+impl Camera {
+    fn new(model: &Model, family: Family, reader: Reader, rng: &mut fastrand::Rng) -> Camera {
+        let s = 60.0 + 40.0 * rng.f64();
+        let th = std::f64::consts::TAU * rng.f64();
+        let m = if rng.bool() { -1.0 } else { 1.0 };
+        let (c, si) = (th.cos(), th.sin());
+        let origin_px = [
+            CAM_W as f64 / 2.0 + 40.0 * (rng.f64() - 0.5),
+            CAM_H as f64 / 2.0 + 30.0 * (rng.f64() - 0.5),
+        ];
+        let radius = 0.35 * s;
+        Camera {
+            a: [[s * c, s * si], [-m * s * si, m * s * c]],
+            origin_px,
+            scene: camera_render::varied_scene(family, CAM_W, CAM_H, origin_px, radius, rng),
+            drift_mm: model.drift_mm,
+            drift: [0.0, 0.0],
+            reader,
+        }
+    }
+
+    /// The nozzle at machine (x, y) mm as the reader reads it: `FRAMES` detections averaged
+    /// (each refused frame taken again, up to 5 times), or one click with the page zoomed by
+    /// `zoom`. Returns the centre, its sd, and the refusals.
+    fn look(
+        &mut self,
+        xy: [f64; 2],
+        zoom: f64,
+        rng: &mut fastrand::Rng,
+    ) -> anyhow::Result<Option<([f64; 2], f64, usize)>> {
+        let mut got = Vec::new();
+        let mut refused = 0;
+        for _ in 0..FRAMES {
+            for _ in 0..5 {
+                for d in &mut self.drift {
+                    *d += self.drift_mm * gauss(rng);
+                }
+                let (x, y) = (xy[0] + self.drift[0], xy[1] + self.drift[1]);
+                let truth = [
+                    self.origin_px[0] + self.a[0][0] * x + self.a[1][0] * y,
+                    self.origin_px[1] + self.a[0][1] * x + self.a[1][1] * y,
+                ];
+                match self.reader {
+                    Reader::Perfect => return Ok(Some((truth, 0.01, 0))),
+                    Reader::Click(sc) => {
+                        // CSS px → picture px at this zoom.
+                        let k = sc.picture_px_per_css / zoom;
+                        let mut slip = || (2.0 * rng.f64() - 1.0) * sc.slip_css * k;
+                        let at = [truth[0] + slip(), truth[1] + slip()];
+                        return Ok(Some((at, (sc.stated_css * k).max(0.05), 0)));
+                    }
+                    Reader::Detect => {}
+                }
+                self.scene.nozzles_px = vec![truth];
+                let (grey, _) = self.scene.render(rng)?;
+                match nozzle::detect(
+                    &Gray {
+                        width: CAM_W,
+                        height: CAM_H,
+                        data: &grey,
+                    },
+                    &DetectParams::default(),
+                ) {
+                    Ok(d) => {
+                        got.push(d);
+                        break;
+                    }
+                    Err(_) => refused += 1,
+                }
+            }
+        }
+        if got.len() < FRAMES {
+            return Ok(None);
+        }
+        let k = got.len() as f64;
+        let c = [
+            got.iter().map(|d| d.centre_px[0]).sum::<f64>() / k,
+            got.iter().map(|d| d.centre_px[1]).sum::<f64>() / k,
+        ];
+        let u = (got.iter().map(|d| d.uncertainty_px.powi(2)).sum::<f64>() / k / k).sqrt();
+        Ok(Some((c, u, refused)))
+    }
+}
+
+/// One camera procedure's outcome.
+struct CameraRun {
+    estimate_mm: f64,
+    uncertainty_mm: f64,
+    refused: usize,
+    /// Readings taken (clicks, for the click flow).
+    readings: usize,
+}
+
+/// The camera procedure on one axis (X) with `cycles` cycles, as the daemon runs it
+/// (src/jobs/backlash/camera.rs): scale from ±0.5 mm moves approached from below on each
+/// axis, then the seed's two approaches per cycle read from the image, through the daemon's
+/// solver ([`CameraScale::from_sightings`], [`camera_scale::approaches`],
+/// [`camera_scale::axis_params`] with the largest sd of the cycles' readings, repeating for
+/// the detector and not for clicks, [`backlash::analyse`]). None
+/// when it could not finish.
+fn camera_procedure(
+    model: &Model,
+    b_mm: f64,
+    cycles: usize,
+    family: Family,
+    reader: Reader,
+    params: &BacklashParams,
+    rng: &mut fastrand::Rng,
+) -> anyhow::Result<Option<CameraRun>> {
+    use crate::jobs::backlash::click::{ZOOM_CYCLES, ZOOM_SCALE};
+    let mut cam = Camera::new(model, family, reader, rng);
+    let mut ax = PlayAxis::new(model, b_mm, rng);
+    let mut ay = PlayAxis::new(model, 0.15 * rng.f64(), rng);
+    let (mut refused, mut readings, mut max_u) = (0, 0, 0.0f64);
+    let clicks = matches!(reader, Reader::Click(_));
+    // Scale: each axis at −0.5, 0, +0.5 mm, all approached moving + (from −1 mm).
+    let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
+    #[allow(clippy::needless_range_loop)] // k picks the axis that moves as well as its list
+    for k in 0..2 {
+        let axis = if k == 0 { &mut ax } else { &mut ay };
+        axis.move_to(-1.0, rng);
+        for t in [-0.5, 0.0, 0.5] {
+            let axis = if k == 0 { &mut ax } else { &mut ay };
+            axis.move_to(t, rng);
+            let Some((c, u, r)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_SCALE, rng)? else {
+                return Ok(None);
+            };
+            refused += r;
+            readings += 1;
+            sightings[k].push(Sighting {
+                commanded_mm: t,
+                centre_px: c,
+                uncertainty_px: u.max(0.01),
+            });
+        }
+        let axis = if k == 0 { &mut ax } else { &mut ay };
+        axis.move_to(0.0, rng);
+    }
+    let Ok(scale) = CameraScale::from_sightings(&sightings[0], &sightings[1]) else {
+        return Ok(None);
+    };
+    // The reference: where the nozzle sits at the measurement point, from the X set.
+    let reference = sightings[0][1].centre_px;
+    let mut cyc = Vec::new();
+    for _ in 0..cycles {
+        ax.move_to(-1.0, rng);
+        ax.move_to(0.0, rng);
+        let Some((plus, u1, r1)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_CYCLES, rng)? else {
+            return Ok(None);
+        };
+        ax.move_to(1.0, rng);
+        ax.move_to(0.0, rng);
+        let Some((minus, u2, r2)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_CYCLES, rng)? else {
+            return Ok(None);
+        };
+        refused += r1 + r2;
+        readings += 2;
+        max_u = max_u.max(u1.max(u2));
+        cyc.push(camera_scale::approaches(&scale, GuideAxis::X, plus, minus, reference).cycle);
+    }
+    let p = camera_scale::axis_params(params, &scale, GuideAxis::X, max_u, !clicks);
+    Ok(backlash::analyse("x", &cyc, None, &p)
+        .ok()
+        .map(|r| CameraRun {
+            estimate_mm: r.backlash_mm,
+            uncertainty_mm: r.uncertainty_mm,
+            refused,
+            readings,
+        }))
+}
+
+/// Simulated axes of the click flow (and the perfect camera) per rendered camera axis.
+const CLICK_AXES_PER_CAMERA_AXIS: usize = 5;
+
+/// One reader's figures over the simulated axes.
+#[derive(Debug, Default)]
+struct ReaderTally {
+    /// Estimate − the lost motion compensation must cancel ([`Model::lost_motion_mm`]).
+    errors: Vec<f64>,
+    /// Estimate − the play b.
+    errors_b: Vec<f64>,
+    covered: usize,
+    covered_b: usize,
+    unfinished: usize,
+    refused: usize,
+    readings: usize,
+}
+
+impl ReaderTally {
+    fn add(&mut self, r: &CameraRun, lost_mm: f64, b_mm: f64) {
+        let (e, eb) = (r.estimate_mm - lost_mm, r.estimate_mm - b_mm);
+        self.errors.push(e);
+        self.errors_b.push(eb);
+        self.covered += usize::from(e.abs() <= COVER_K * r.uncertainty_mm);
+        self.covered_b += usize::from(eb.abs() <= COVER_K * r.uncertainty_mm);
+        self.refused += r.refused;
+        self.readings += r.readings;
+    }
+
+    fn cover_pct(&self, against_b: bool) -> f64 {
+        let c = if against_b {
+            self.covered_b
+        } else {
+            self.covered
+        };
+        100.0 * c as f64 / self.errors.len().max(1) as f64
+    }
+}
+
+/// The camera's lines of `klipcal bench backlash`. Returns whether every target is met.
+pub(super) fn bench_camera(
+    args: &BenchBacklashArgs,
+    params: &BacklashParams,
+    guided: &[(&'static str, f64, f64)],
+) -> anyhow::Result<bool> {
+    let mut ok = true;
+    let mark = |b: bool| if b { "PASS" } else { "FAIL" };
+    let n = args.camera_images.max(5);
+    println!(
+        "  camera (issue 27): {n} rendered {CAM_W}×{CAM_H} pictures per family (JPEG q 60–95, \
+         blur sd 0.6–2.5 px, noise sd 1–5, uneven light); µm at {REALISTIC_PX_PER_MM} px/mm"
+    );
+    let det = bench_detection(n, args.seed)?;
+    for (fam, t) in &det {
+        if fam.must_refuse() {
+            let good = t.wrong == 0;
+            ok &= good;
+            println!(
+                "    {:<28} refused {:3}/{:<3} wrong {} (target 0) {}   reasons {:?}",
+                fam.name(),
+                t.refused,
+                t.n,
+                t.wrong,
+                mark(good),
+                t.reasons
+            );
+        } else {
+            let e95 = p95(&t.errors_px);
+            let c95 = p95(&t.centroid_errors_px);
+            let fail_pct = 100.0 * t.refused as f64 / t.n as f64;
+            let cover = 100.0 * t.covered as f64 / t.errors_px.len().max(1) as f64;
+            let good = t.wrong == 0 && e95 <= 0.3 && fail_pct <= 5.0;
+            ok &= good;
+            println!(
+                "    {:<28} p95 error {e95:.3} px = {:.1} µm (target ≤ 0.3 px) [anchor: region \
+                 centroid {c95:.3} px]   refused {fail_pct:.1} % (target ≤ 5 %) {:?}   wrong \
+                 (> {WRONG_PX} px) {} (target 0)   ±2u covers {cover:.0} %   {}",
+                fam.name(),
+                1000.0 * e95 / REALISTIC_PX_PER_MM,
+                t.reasons,
+                t.wrong,
+                mark(good)
+            );
+        }
+    }
+    let axes = args.camera_axes.max(5);
+    println!(
+        "  camera and click procedures, 5 cycles, {axes} simulated axes per model for the camera, \
+         {} for the clicks and a perfect camera (the daemon's solver): error = estimate − the lost motion between the two approaches, the value \
+         SET_BACKLASH_COMPENSATION must cancel. It is the play b, and on model 2 also the \
+         stick-slip: every stop falls short by U·{:.0} µm (U uniform 0–1) in the direction of \
+         travel, so the two approaches differ by b + {:.0} µm on average and vary cycle to \
+         cycle (play sd {:.0} µm per reversal); only that mean can be compensated",
+        CLICK_AXES_PER_CAMERA_AXIS * axes,
+        1000.0 * MODELS[1].slip_mm,
+        1000.0 * MODELS[1].slip_mm,
+        1000.0 * MODELS[1].play_sd_mm
+    );
+    for (mi, model) in MODELS.iter().enumerate() {
+        let mut rng = fastrand::Rng::with_seed(args.seed.wrapping_add(mi as u64 * 7919));
+        // Per reader: errors against the lost motion and against b, coverage of ±2u for both.
+        let readers: Vec<(String, Reader)> =
+            std::iter::once(("camera".to_string(), Reader::Detect))
+                .chain(
+                    SCREENS
+                        .iter()
+                        .map(|sc| (format!("clicks {}", sc.name), Reader::Click(*sc))),
+                )
+                .collect();
+        let mut tallies: Vec<ReaderTally> =
+            readers.iter().map(|_| ReaderTally::default()).collect();
+        let mut perfect = ReaderTally::default();
+        // The click and perfect-camera readers render nothing: they run on more axes, so
+        // their coverage is measured to about ±1.5 %; the camera on the first `axes`.
+        for i in 0..CLICK_AXES_PER_CAMERA_AXIS * axes {
+            let seed = rng.u64(..);
+            let mut axis_rng = fastrand::Rng::with_seed(seed);
+            let b = 0.15 * axis_rng.f64();
+            let lost = model.lost_motion_mm(b);
+            let fam = if i % 2 == 0 {
+                Family::Ring
+            } else {
+                Family::DarkTip
+            };
+            // The same axis (play, camera) read by each reader, and by a perfect camera: what
+            // the mechanics alone allow.
+            if let Some(r) = camera_procedure(
+                model,
+                b,
+                5,
+                fam,
+                Reader::Perfect,
+                params,
+                &mut axis_rng.clone(),
+            )? {
+                perfect.add(&r, lost, b);
+            }
+            for (k, (_, reader)) in readers.iter().enumerate() {
+                if k == 0 && i >= axes {
+                    continue;
+                }
+                let t = &mut tallies[k];
+                match camera_procedure(model, b, 5, fam, *reader, params, &mut axis_rng.clone())? {
+                    Some(r) => t.add(&r, lost, b),
+                    None => t.unfinished += 1,
+                }
+            }
+        }
+        let (g5, s1) = guided.get(mi).map_or((f64::NAN, f64::NAN), |g| (g.1, g.2));
+        for (k, ((label, reader), t)) in readers.iter().zip(&tallies).enumerate() {
+            let e95 = p95(&t.errors);
+            let target_mm = if k == 0 { 0.003 } else { 0.005 };
+            let good = e95 <= target_mm && t.unfinished == 0;
+            let cover = t.cover_pct(false);
+            let c_ok = COVER_TARGET_PCT.contains(&cover);
+            ok &= good && c_ok;
+            let n = t.errors.len().max(1) as f64;
+            let bias = t.errors.iter().sum::<f64>() / n;
+            let (presses, time_s) = match reader {
+                // A first click on the whole picture zooms in, then one click per reading.
+                Reader::Click(_) => (1.0 + t.readings as f64 / n, click_time_s(5)),
+                _ => (0.0, camera_time_s(5)),
+            };
+            let anchors = if k == 0 {
+                format!(
+                    "   [anchors, same model: a perfect camera (the mechanics alone) {:.1} µm, its \
+                     ±2u covering {:.1} % (Student's t over the cycles), guided 5 cycles {:.1} \
+                     µm and seed single pass {:.1} µm against b (worst person)]   frames \
+                     retaken {}",
+                    1000.0 * p95(&perfect.errors),
+                    perfect.cover_pct(false),
+                    1000.0 * g5,
+                    1000.0 * s1,
+                    t.refused
+                )
+            } else {
+                format!(
+                    "   [anchors: the camera {:.1} µm, a perfect camera {:.1} µm, guided 5 cycles \
+                     {:.1} µm]",
+                    1000.0 * p95(&tallies[0].errors),
+                    1000.0 * p95(&perfect.errors),
+                    1000.0 * g5
+                )
+            };
+            println!(
+                "    model {}: {label}: p95 |error| {:.1} µm (target ≤ {:.0} µm) {}   mean error \
+                 {:+.1} µm   ±2u covers {cover:.1} % (target {}–{} %) {}   presses/axis {presses:.0}   \
+                 time/axis {:.2} min   unfinished {}{anchors}",
+                mi + 1,
+                1000.0 * e95,
+                1000.0 * target_mm,
+                mark(good),
+                1000.0 * bias,
+                COVER_TARGET_PCT.start(),
+                COVER_TARGET_PCT.end(),
+                mark(c_ok),
+                time_s / 60.0,
+                t.unfinished,
+            );
+            if model.slip_mm > 0.0 || model.play_sd_mm > 0.0 {
+                println!(
+                    "      against the play b alone (information: not what compensation must \
+                     cancel): p95 |error| {:.1} µm, mean {:+.1} µm, ±2u covers {:.1} %",
+                    1000.0 * p95(&t.errors_b),
+                    1000.0 * t.errors_b.iter().sum::<f64>() / n,
+                    t.cover_pct(true)
+                );
+            }
+        }
+    }
+    Ok(ok)
+}

@@ -1,0 +1,341 @@
+//! The guided procedure of `klipcal bench backlash`: [`crate::calib::backlash_guide`] run by
+//! simulated people on simulated axes, beside the seed's single pass and the flow without the
+//! crossing; then the camera's lines ([`super::camera`]).
+
+use std::process::ExitCode;
+
+use super::camera::bench_camera;
+use super::models::{
+    gauss, p95, Model, Person, COVER_K, COVER_TARGET_PCT, GUIDED_MODELS, JOG_MM_S, MOVE_OVERHEAD_S,
+    PERSONS, PRESS_S,
+};
+use crate::calib::backlash::{self, BacklashParams};
+use crate::calib::backlash_guide::{Guide, GuideAxis, GuideParams, Phase, Press};
+use crate::cli::BenchBacklashArgs;
+use crate::config::BacklashConfig;
+
+/// One simulated run: the cycles and the presses it took.
+struct Run {
+    cycles: Vec<backlash::Cycle>,
+    presses: usize,
+    /// Machine travel, mm (for the time per axis).
+    travel_mm: f64,
+    moves: usize,
+}
+
+/// Runs one procedure on one axis; None when it did not finish.
+fn run_procedure(
+    model: &Model,
+    person: Person,
+    b_mm: f64,
+    params: GuideParams,
+    rng: &mut fastrand::Rng,
+) -> Option<Run> {
+    let coarse_mm = params.coarse_mm;
+    let (mut g, mut step) = Guide::start(GuideAxis::X, 0.0, params, rng.u64(..)).ok()?;
+    let mut nozzle = if rng.bool() { b_mm / 2.0 } else { -b_mm / 2.0 };
+    let mut motor = 0.0f64;
+    let mut last_dir = 0.0f64;
+    let mut h = b_mm / 2.0;
+    let mut mark = 0.0f64;
+    let mut extra_done = false;
+    let short_tol = 0.002 + 0.006 * rng.f64();
+    let mut late = person == Person::Late;
+    let (mut presses, mut travel, mut moves) = (0usize, 0.0f64, 0usize);
+    let mut approach = (step.phase, step.cycle);
+    for _ in 0..5000 {
+        for &m in &step.moves_mm {
+            let dir = (m - motor).signum();
+            if dir != 0.0 && dir != last_dir {
+                h = (b_mm / 2.0 + model.play_sd_mm * gauss(rng)).max(0.0);
+                last_dir = dir;
+            }
+            // Where the motor is: on its microstep lattice when it has one.
+            let at = if model.step_mm > 0.0 {
+                (m / model.step_mm).round() * model.step_mm
+            } else {
+                m
+            };
+            nozzle = nozzle.clamp(at - h, at + h);
+            if model.slip_mm > 0.0 && dir != 0.0 {
+                nozzle -= dir * model.slip_mm * rng.f64();
+                nozzle = nozzle.clamp(at - h - model.slip_mm, at + h + model.slip_mm);
+            }
+            travel += (m - motor).abs();
+            moves += 1;
+            motor = m;
+        }
+        if step.phase == Phase::Done {
+            return Some(Run {
+                cycles: g.cycles,
+                presses,
+                travel_mm: travel,
+                moves,
+            });
+        }
+        if (step.phase, step.cycle) != approach {
+            approach = (step.phase, step.cycle);
+            if person == Person::Mixed {
+                late = rng.bool();
+            }
+        }
+        mark += model.drift_mm * gauss(rng);
+        let dir = if step.phase == Phase::Plus { 1.0 } else { -1.0 };
+        let fine = g.fine_mm();
+        let tol = if late { fine / 2.0 } else { short_tol };
+        let seen = dir * (nozzle - mark) + model.eye_sd_mm * gauss(rng);
+        // A decision (Centred or Past); a late person jogs once more first.
+        let decide = |p: Press, extra_done: &mut bool| {
+            if late && !*extra_done {
+                *extra_done = true;
+                Press::Fine
+            } else {
+                *extra_done = false;
+                p
+            }
+        };
+        let press = if step.crossing {
+            if seen > tol {
+                decide(Press::Past, &mut extra_done)
+            } else {
+                Press::Fine
+            }
+        } else if seen > 1.5 * fine.max(tol) && seen > 0.004 {
+            extra_done = false;
+            Press::Overshot
+        } else if seen >= -tol || rng.f64() < model.lapse {
+            decide(Press::Centred, &mut extra_done)
+        } else if seen < -(coarse_mm + 0.02) || rng.f64() < model.misclick {
+            // Far away, or a fine jog clicked as coarse.
+            Press::Coarse
+        } else {
+            Press::Fine
+        };
+        presses += 1;
+        step = match g.press(press) {
+            Ok(s) => s,
+            // A refused "centred" still far short: the person looks again. Right after a
+            // coarse jog or none: as the message says, Overshot.
+            Err(_)
+                if press == Press::Centred
+                    && g.last_jog_mm > 0.0
+                    && g.last_jog_mm <= g.fine_mm() + 1e-12 =>
+            {
+                extra_done = false;
+                continue;
+            }
+            Err(_) => g.press(Press::Overshot).ok()?,
+        };
+    }
+    None
+}
+
+#[derive(Debug, Default)]
+struct Tally {
+    errors: Vec<f64>,
+    /// Against b alone (the stick-slip's mean left out of the truth).
+    errors_b: Vec<f64>,
+    /// Estimates whose stated ±2u (95 %) covers the true backlash, of those with a ±.
+    covered: usize,
+    stated: usize,
+    wrong: usize,
+    graded: usize,
+    unfinished: usize,
+}
+
+/// `klipcal bench backlash`: per model and per person (stops short, stops late, mixed), the
+/// guided flow's 5-cycle p95 error, the coverage of its ±2u, wrong verdicts, presses and time
+/// per axis, beside the seed's single pass and the flow without the crossing, measured in the
+/// same run. Targets at 5 cycles: p95 ≤ 5 µm (issue 27), ±2u covering 93–97 %, ≤ 5 % wrong
+/// verdicts (a verdict is wrong when the true backlash is at most `none_needed_max_mm` and it
+/// says compensate, or at least `needed_from_mm` and it says not to; in between the seed
+/// leaves the choice open).
+///
+/// # Errors
+/// None in practice.
+#[cfg(feature = "bench")]
+pub(crate) fn bench(
+    args: &BenchBacklashArgs,
+    settings: &BacklashConfig,
+) -> anyhow::Result<ExitCode> {
+    let params = settings.params();
+    let base = settings.guide();
+    let axes = args.axes.max(10);
+    let mut all_ok = true;
+    println!(
+        "bench backlash: {axes} simulated axes per model and person (seed {}), true backlash \
+         uniform 0–0.15 mm; fine jog {} mm in cycles 1 and 3, {} mm in the others, coarse {} mm; time at {JOG_MM_S} \
+         mm/s jogs + {MOVE_OVERHEAD_S} s per move, {PRESS_S} s per press (look and tap)",
+        args.seed, base.fine_mm, base.small_fine_mm, base.coarse_mm
+    );
+    println!(
+        "  verdict graded where the seed is clear: ≤ {} mm needs none, ≥ {} mm needs it; cut {} mm",
+        params.none_needed_max_mm, params.needed_from_mm, params.compensate_from_mm
+    );
+    // Per model: (name, worst guided 5-cycle p95, worst seed single-pass p95), the camera's
+    // anchors.
+    let mut guided: Vec<(&'static str, f64, f64)> = Vec::new();
+    for (mi, model) in GUIDED_MODELS.iter().enumerate() {
+        println!("  model {}: {}", mi + 1, model.name);
+        if model.slip_mm > 0.0 {
+            println!(
+                "   truth: the lost motion between the two approaches, b + the stick-slip's mean \
+                 {:.1} µm (each move stops short by slip·U whichever the direction: what \
+                 SET_BACKLASH_COMPENSATION must cancel); the error against b alone is shown too",
+                1000.0 * model.slip_mm
+            );
+        }
+        let (mut worst_g, mut worst_s) = (0.0f64, 0.0f64);
+        for person in PERSONS {
+            println!("   person who {}:", person.name());
+            let mut rng = fastrand::Rng::with_seed(args.seed ^ ((mi as u64) << 8));
+            // (label, cycles, two jog sizes and the crossing?)
+            let variants: [(&str, usize, bool); 3] = [
+                ("seed single pass (anchor)", 1, false),
+                ("without the crossing (anchor)", 5, false),
+                ("klipcal 5 cycles", 5, true),
+            ];
+            let mut tallies: Vec<Tally> = variants.iter().map(|_| Tally::default()).collect();
+            let mut cost: Vec<(usize, f64)> = vec![(0, 0.0); variants.len()];
+            for _ in 0..axes {
+                let b = 0.15 * rng.f64();
+                // What compensation must cancel: the mean lost motion between approaches (the
+                // same truth as the camera's lines).
+                let truth = model.lost_motion_mm(b);
+                for (k, (_, cycles, ours)) in variants.iter().enumerate() {
+                    let p = GuideParams {
+                        cycles: *cycles,
+                        small_fine_mm: if *cycles > 1 { base.small_fine_mm } else { 0.0 },
+                        crossing: *ours,
+                        ..base.clone()
+                    };
+                    let t = &mut tallies[k];
+                    let Some(run) = run_procedure(model, person, b, p, &mut rng) else {
+                        t.unfinished += 1;
+                        continue;
+                    };
+                    cost[k].0 += run.presses;
+                    cost[k].1 += run.presses as f64 * PRESS_S
+                        + run.moves as f64 * MOVE_OVERHEAD_S
+                        + run.travel_mm / JOG_MM_S;
+                    let cyc = run.cycles;
+                    // The motor's microstep, as the daemon reads it from Klipper's settings.
+                    let mp = BacklashParams {
+                        step_mm: model.step_mm,
+                        ..params.clone()
+                    };
+                    let est = if *cycles > 1 {
+                        match backlash::analyse("x", &cyc, None, &mp) {
+                            Ok(r) => {
+                                t.stated += 1;
+                                if (r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm {
+                                    t.covered += 1;
+                                }
+                                r.backlash_mm
+                            }
+                            Err(_) => {
+                                t.unfinished += 1;
+                                continue;
+                            }
+                        }
+                    } else {
+                        // The seed: x_backlash = abs(X2 − X1).
+                        (cyc[0].x2_mm - cyc[0].x1_mm).abs()
+                    };
+                    t.errors.push(est - truth);
+                    t.errors_b.push(est - b);
+                    let compensate = est >= params.compensate_from_mm;
+                    if truth <= params.none_needed_max_mm || truth >= params.needed_from_mm {
+                        t.graded += 1;
+                        let needed = truth >= params.needed_from_mm;
+                        if compensate != needed {
+                            t.wrong += 1;
+                        }
+                    }
+                }
+            }
+            // The camera's anchors are against b, as its own lines are.
+            worst_g = worst_g.max(p95(&tallies[2].errors_b));
+            worst_s = worst_s.max(p95(&tallies[0].errors_b));
+            for (k, ((label, _, ours), t)) in variants.iter().zip(&tallies).enumerate() {
+                let e95 = p95(&t.errors);
+                let wrong_pct = 100.0 * t.wrong as f64 / t.graded.max(1) as f64;
+                let bias = t.errors.iter().sum::<f64>() / t.errors.len().max(1) as f64;
+                let target = *ours;
+                let (e_ok, w_ok) = (e95 <= 0.005, wrong_pct <= 5.0);
+                let cover = 100.0 * t.covered as f64 / t.stated.max(1) as f64;
+                let c_ok = COVER_TARGET_PCT.contains(&cover);
+                if target {
+                    all_ok &= e_ok && w_ok && c_ok && t.unfinished == 0;
+                }
+                let mark = |ok: bool| {
+                    if !target {
+                        ""
+                    } else if ok {
+                        " PASS"
+                    } else {
+                        " FAIL"
+                    }
+                };
+                let done = (axes - t.unfinished).max(1) as f64;
+                let b_text = if model.slip_mm > 0.0 {
+                    format!(
+                        "   [against b alone: p95 {:.1} µm, mean {:+.1} µm]",
+                        1000.0 * p95(&t.errors_b),
+                        1000.0 * t.errors_b.iter().sum::<f64>() / t.errors_b.len().max(1) as f64
+                    )
+                } else {
+                    String::new()
+                };
+                let cover_text = match (t.stated, target) {
+                    (0, _) => String::new(),
+                    (_, true) => format!(
+                        "   ±2u covers {cover:4.1} % (target {}–{} %){}",
+                        COVER_TARGET_PCT.start(),
+                        COVER_TARGET_PCT.end(),
+                        mark(c_ok)
+                    ),
+                    (_, false) => format!("   ±2u covers {cover:4.1} %"),
+                };
+                println!(
+                    "    {label:<30} p95 |error| {:4.1} µm{}{}   mean error {:+4.1} µm   wrong \
+                     verdicts {wrong_pct:4.1} %{}{}   presses/axis {:5.1}   time/axis {:5.1} min   \
+                     unfinished {}{cover_text}{b_text}",
+                    1000.0 * e95,
+                    if target { " (target ≤ 5)" } else { "" },
+                    mark(e_ok),
+                    1000.0 * bias,
+                    if target { " (target ≤ 5 %)" } else { "" },
+                    mark(w_ok),
+                    cost[k].0 as f64 / done,
+                    cost[k].1 / done / 60.0,
+                    t.unfinished
+                );
+            }
+        }
+        guided.push((model.name, worst_g, worst_s));
+    }
+    all_ok &= bench_camera(args, &params, &guided)?;
+    Ok(if all_ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::cmd::backlash::models::MODELS;
+
+    #[test]
+    fn the_ideal_model_measures_the_play_within_a_fine_jog() {
+        let mut rng = fastrand::Rng::with_seed(3);
+        let p = GuideParams::default();
+        let cyc = run_procedure(&MODELS[0], Person::Short, 0.08, p, &mut rng)
+            .unwrap()
+            .cycles;
+        let r = backlash::analyse("x", &cyc, None, &BacklashParams::default()).unwrap();
+        assert!((r.backlash_mm - 0.08).abs() < 0.01, "{r:?}");
+    }
+}
