@@ -1078,7 +1078,7 @@ mod tests {
 
     #[test]
     fn every_status_key_the_page_reads_is_a_field_of_the_typed_status() {
-        let source = include_str!("page.rs");
+        let source = include_str!("mod.rs");
         let source = &source[..source.find("#[cfg(test)]").unwrap()];
         let mut read = std::collections::BTreeSet::new();
         // The Rust side: `x["key"]`, `x["a"]["key"]` (not an array literal `["a", "b"]`).
