@@ -33,6 +33,8 @@
 //!   over rounds) as SVG text, drawn with plotters.
 //! - [`http`]: the daemon's own page and JSON API (axum): the address/key/origin guard in front,
 //!   every operation through `agent::dispatch`, the same checks and messages as the macros.
+//!   `http::page`: the page's frame, one file per calibration's section (`ab`, `mesh`,
+//!   `backlash`) and its inline style and script (`assets`).
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
