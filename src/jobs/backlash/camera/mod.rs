@@ -914,7 +914,7 @@ mod tests {
         // The bench's real answer: its one camera, by its absolute URL.
         let bench = list(
             serde_json::from_str::<Value>(include_str!(
-                "../../../tests/fixtures/moonraker/webcams-list.json"
+                "../../../../tests/fixtures/moonraker/webcams-list.json"
             ))
             .unwrap()["result"]
                 .clone(),
