@@ -17,7 +17,8 @@
 //!   every calibration shares (stored sessions, one active session, runner, printer guards,
 //!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
 //!   trait, the session envelope and its `SessionState` trait, the typed status); one folder per calibration (`jobs::ab`, `jobs::mesh`: capture, import, follow,
-//!   check; `jobs::backlash`: guide, dual carriage, apply); and `jobs::registry`, the one module
+//!   check; `jobs::backlash`: guide, dual carriage, apply, the camera — its steps, `webcam`,
+//!   `frames` — and the click flow); and `jobs::registry`, the one module
 //!   that lists the calibrations (routing, status, cancel, resume, the hold watchdog). The
 //!   calibrations import the core, never the registry.
 //! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place),
