@@ -28,7 +28,9 @@
 //! - [`gcode`]: PURE. The pylon job generator (printer facts → geometry → toolpaths → G-code
 //!   text + layout).
 //! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget,
-//!   thermal soak detection, the bed-mesh fit and the frame temperature of each probe point.
+//!   thermal soak detection (`calib::soak`: settings, `stack` presets, `coupling`
+//!   identification, `detector` and its `decide` test, `nnls`), the bed-mesh fit and the frame
+//!   temperature of each probe point.
 //! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
 //! - [`plots`]: PURE. The plots people look at (bed soak with its fitted decay, convergence
 //!   over rounds) as SVG text, drawn with plotters.

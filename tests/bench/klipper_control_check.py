@@ -3,7 +3,7 @@
 heater control (klippy/extras/heaters.py Heater.temperature_callback and
 set_pwm, ControlPID; pid_calibrate.py ControlAutoTune and calc_final_pid) and
 prints the pwm Klipper sets after each reading, so `klipcal bench soak` can
-check its port of them (src/cmd/soak_four_node.rs) on the very same readings.
+check its port of them (src/cmd/soak_four_node/klipper.rs) on the very same readings.
 Needs the klippy venv:
   .bench/venv-klippy/bin/python tests/bench/klipper_control_check.py < runs.json
 

@@ -1,0 +1,390 @@
+//! PURE: the detector's likelihood-ratio test: the directions the power may still go, the
+//! non-negative fit of the decays and the decision (stable, or what is still waited for).
+
+use nalgebra::DVector;
+
+use super::super::nnls::nnls;
+use super::super::Z;
+use super::*;
+
+impl SoakDetector {
+    /// The directions the power may still go, as the sign the model sees it with: after a
+    /// heat-up (the temperature came up into the band) its surroundings only warm and the
+    /// power only falls (+1). After a step down they may be warmer than they will be (the bed
+    /// was held long at the higher target: the power rises while they cool) or still colder
+    /// (it was not: the power falls), and so may a bed first seen already in the band: both
+    /// are tested, the rise on the negated power (−1), and both must be ruled out.
+    fn directions(&self) -> &'static [f64] {
+        if self.approach_above == Some(false) {
+            &[1.0]
+        } else {
+            &[1.0, -1.0]
+        }
+    }
+
+    /// Which coefficients may take either sign: the constant and the controller's fast decays;
+    /// on a bed first seen warm also the plate's (up to a sixth of `tau_max_s`). Only from
+    /// equilibrium does a clamped RC network's power fall as a sum of decays that are all
+    /// positive; a bed heated before may start with its plate ahead of its surroundings, and
+    /// then the plate's part of the power rises while the surroundings' still falls.
+    fn free(&self) -> Vec<bool> {
+        let warm_free_s = if self.warm_start == Some(true) {
+            self.params.tau_max_s / 6.0
+        } else {
+            0.0
+        };
+        std::iter::once(true)
+            .chain(self.taus.iter().map(|tau| {
+                *tau < FREE_TAUS * grid_min_s(&self.params)
+                            // An excursion's aftermath (the controller's integral winding back
+                            // after an overshoot lifts the power) may go either way, on the
+                            // excursion's own time scale.
+                            || *tau <= self.excursion_len_s
+                            || *tau <= warm_free_s
+            }))
+            .chain([true; EXTRA_COLS])
+            .collect()
+    }
+
+    /// Least squares on `sign`·power with the decays' sign constraints; with `pin` = (g, θ),
+    /// also g·c = θ.
+    fn solve(&self, sign: f64, pin: Option<(&DVector<f64>, f64)>) -> Option<Solution> {
+        let xty = &self.xty * sign;
+        let coef = nnls(&self.xtx, &xty, &self.free(), pin)?;
+        let sse = (self.yty - 2.0 * coef.dot(&xty) + coef.dot(&(&self.xtx * &coef))).max(0.0);
+        (sse.is_finite() && coef.iter().all(|c| c.is_finite())).then_some(Solution { coef, sse })
+    }
+
+    /// Noise variance of a bin about the fit: (white, long-run, blocks behind the long-run
+    /// estimate). The long-run variance is the one the test needs (the decision rests on the
+    /// slow part of the signal): bins' residuals are averaged over blocks as long as the data
+    /// allow with at least `MIN_BLOCKS` of them, and the variance of those means is scaled back
+    /// to one bin. A PID loop suppresses slow power noise (that is lower), a wandering or
+    /// cycling heater has more of it (that is higher).
+    fn noise(&self, sign: f64, coef: &DVector<f64>) -> (f64, f64, usize) {
+        let residuals: Vec<f64> = self
+            .points
+            .iter()
+            .map(|p| sign * p.power - self.row(p).dot(coef))
+            .collect();
+        let n = residuals.len();
+        let used = coef.iter().filter(|c| **c != 0.0).count();
+        let white =
+            residuals.iter().map(|r| r * r).sum::<f64>() / (n.saturating_sub(used)).max(1) as f64;
+        let mut m = BLOCK_BINS;
+        while n / (2 * m) >= MIN_BLOCKS {
+            m *= 2;
+        }
+        let blocks: Vec<f64> = residuals
+            .chunks_exact(m)
+            .map(|c| c.iter().sum::<f64>() / m as f64)
+            .collect();
+        if blocks.len() < MIN_BLOCKS {
+            return (white, white, blocks.len());
+        }
+        let long = m as f64 * blocks.iter().map(|b| b * b).sum::<f64>() / blocks.len() as f64;
+        (white, long, blocks.len())
+    }
+
+    /// The decays' values at `t_s` (the constant's entry 0): g·c is the power still to fall.
+    fn decays_at(&self, t_s: f64) -> DVector<f64> {
+        let mut g = self.row(&Point {
+            t_s,
+            power: 0.0,
+            rate_c_s: 0.0,
+        });
+        g[0] = 0.0;
+        // Right after the band is reached the stack is still charging: the surface lags the
+        // power by its charge time, so a decay of time constant τ still holds (1 + charge/τ)
+        // times more surface warming than its power says (the first-order lag's gain on a
+        // decay, to first order); slow decays hold what ΔP / G says.
+        if self.params.fixed_remaining.is_none() {
+            let charge = self.coupling.charge_s;
+            for (k, tau) in self.taus.iter().enumerate() {
+                g[k + 1] *= 1.0 + charge / tau;
+            }
+        }
+        g
+    }
+
+    /// The likelihood-ratio test in one direction (`sign` +1: what is still to fall; −1: what
+    /// is still to rise): the best model, and how much worse the best one is that still has
+    /// `max_remaining` to go now.
+    fn test(&self, sign: f64, now_s: f64) -> Option<DirectionTest> {
+        let best = self.solve(sign, None)?;
+        let (white, long, blocks) = self.noise(sign, &best.coef);
+        // Few blocks make the one-minute scatter itself uncertain: widen it while they are few.
+        let sigma2 = long * (1.0 + 2.0 / (blocks.max(1) as f64).sqrt());
+        let g = self.decays_at(now_s);
+        let r_hat = g.dot(&best.coef);
+        let theta = self.threshold();
+        let cost = if r_hat >= theta {
+            0.0
+        } else {
+            self.solve(sign, Some((&g, theta)))
+                .map_or(0.0, |s| (s.sse - best.sse).max(0.0))
+        };
+        // The upper bound, from the cost of θ (exact for a linear model without active
+        // constraints: cost = (θ − R̂)² / var R̂).
+        let sd_r = if cost > 0.0 {
+            (theta - r_hat) * sigma2.sqrt() / cost.sqrt()
+        } else {
+            f64::INFINITY
+        };
+        let remaining = r_hat.max(0.0);
+        let remaining_upper = if r_hat >= theta {
+            r_hat
+        } else {
+            (r_hat + Z * sd_r).max(remaining)
+        };
+        // What printing now may cost at 95 % (one-sided): the spread from the cost of a pin
+        // above the best fit when θ itself is below it.
+        let sd_95 = if sd_r.is_finite() {
+            sd_r
+        } else {
+            let pin = r_hat.max(0.0) + theta;
+            self.solve(sign, Some((&g, pin)))
+                .map(|s| (s.sse - best.sse).max(0.0))
+                .filter(|c| *c > 0.0)
+                .map_or(f64::INFINITY, |c| (pin - r_hat) * sigma2.sqrt() / c.sqrt())
+        };
+        let remaining_95 = (r_hat + 1.645 * sd_95).max(remaining);
+        Some(DirectionTest {
+            sign,
+            best,
+            white,
+            sigma2,
+            remaining,
+            remaining_upper,
+            remaining_95,
+            ruled_out: cost > Z * Z * sigma2,
+        })
+    }
+
+    pub(super) fn decide(&mut self, now_s: f64, t0: f64) {
+        let p = self.params.clone();
+        let span = now_s - t0;
+        if self.points.len() < MIN_POINTS {
+            self.status = SoakStatus::Soaking {
+                progress: 0.0,
+                eta_s: None,
+                print_now_c: None,
+                reason: format!(
+                    "collecting power readings ({} of {MIN_POINTS} bins of {:.0} s)",
+                    self.points.len(),
+                    p.bin_s
+                ),
+            };
+            self.explanation = status_reason(&self.status);
+            return;
+        }
+        let tests: Option<Vec<DirectionTest>> = self
+            .directions()
+            .iter()
+            .map(|sign| self.test(*sign, now_s))
+            .collect();
+        let Some(tests) = tests else {
+            self.status = SoakStatus::Soaking {
+                progress: 0.0,
+                eta_s: None,
+                print_now_c: None,
+                reason: "power readings do not fit a decay yet".into(),
+            };
+            self.explanation = status_reason(&self.status);
+            return;
+        };
+        let ruled_out = tests.iter().all(|t| t.ruled_out);
+        // What is reported: a direction still waited for, and of those (or of all, once
+        // both are ruled out) the one that fits the data better.
+        let Some(t) = tests.into_iter().max_by(|a, b| {
+            (!a.ruled_out)
+                .cmp(&!b.ruled_out)
+                .then(b.best.sse.total_cmp(&a.best.sse))
+        }) else {
+            return;
+        };
+        let DirectionTest {
+            sign,
+            best,
+            white,
+            sigma2,
+            remaining,
+            remaining_upper,
+            remaining_95,
+            ..
+        } = t;
+        let theta = self.threshold();
+        let g = self.decays_at(now_s);
+        let contrib: Vec<(f64, f64)> = self
+            .taus
+            .iter()
+            .enumerate()
+            .map(|(k, tau)| (*tau, best.coef[k + 1] * g[k + 1]))
+            .collect();
+        let left: f64 = contrib.iter().map(|(_, c)| c.max(0.0)).sum();
+        let tau_s = if left > 0.0 {
+            contrib.iter().map(|(tau, c)| tau * c.max(0.0)).sum::<f64>() / left
+        } else {
+            // Nothing left: the τ of the largest decay fitted.
+            self.taus
+                .iter()
+                .zip(best.coef.iter().skip(1))
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .map_or(grid_min_s(&self.params), |(tau, _)| *tau)
+        };
+        let slowest = contrib.last().map_or(0.0, |(_, c)| *c);
+        let rising = sign < 0.0;
+        let (fall, falling) = if rising {
+            ("rise", "rising")
+        } else {
+            ("fall", "falling")
+        };
+        let fit = DecayFit {
+            tau_s,
+            final_power: sign * best.coef[0],
+            remaining,
+            remaining_upper,
+            amplitude: sign * best.coef.iter().skip(1).take(self.taus.len()).sum::<f64>(),
+            rising,
+            tau_unbounded: slowest > 0.5 * remaining.max(theta),
+            noise_sd: white.sqrt(),
+            test_sd: sigma2.sqrt(),
+            noise_inflation: (sigma2 / white.max(1e-18)).sqrt().max(1.0),
+            threshold: theta,
+            surface_upper_c: self.surface_c(remaining_upper),
+            surface_95_c: self.surface_c(remaining_95),
+        };
+        self.fit = Some(fit);
+        let budget = p.surface_budget_c;
+        let span_ok = span >= p.min_soak_s;
+        // A heater between off and its cap always moves a little, and so does a thermistor's
+        // reading: readings frozen for minutes are a stopped Klipper (a shutdown keeps logging
+        // its last values), not a settled bed.
+        let frozen_s = match (self.unchanged_since_s, self.reading) {
+            (Some(since), Some((power, _)))
+                if power > 0.0 && power < self.params.saturated_power * self.max_power =>
+            {
+                now_s - since
+            }
+            _ => 0.0,
+        };
+        let frozen = frozen_s >= FROZEN_S;
+        let saturated_recently = self
+            .last_saturated_s
+            .is_some_and(|t| now_s - t < p.min_soak_s);
+        // Early in a soak (or on a bed whose power wanders) the best fit can head for a power
+        // the heater cannot give; its numbers would only confuse: say so in words instead.
+        let plausible = (-0.05..=self.max_power + 0.05).contains(&fit.final_power)
+            && remaining <= self.max_power
+            && remaining_upper <= self.max_power;
+        let surface = if rising { "cool" } else { "warm" };
+        let fit_words = if plausible {
+            format!(
+                "the print surface can still {surface} by at most {:.2} K (budget {budget:.1} K); \
+                 power best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most \
+                 {:.2} % (allowed {:.2} %; power noise {:.2} %); {}; {}",
+                fit.surface_upper_c,
+                remaining * 100.0,
+                tau_s / 60.0,
+                fit.final_power * 100.0,
+                remaining_upper * 100.0,
+                theta * 100.0,
+                sigma2.sqrt() * 100.0,
+                self.coupling.why,
+                p.slowest_words()
+            )
+        } else {
+            format!(
+                "the power is still changing too much to tell where it settles (stable once less \
+                 than {:.2} % can still {fall}, the surface's budget of {budget:.1} K; power \
+                 noise {:.2} %); {}; {}",
+                theta * 100.0,
+                sigma2.sqrt() * 100.0,
+                self.coupling.why,
+                p.slowest_words()
+            )
+        };
+        if span_ok && ruled_out && !saturated_recently && !frozen {
+            self.status = SoakStatus::Stable { at_s: now_s };
+            self.explanation = format!(
+                "surface settled, power stopped {falling}: temperature within ±{:.1} °C of {:.1} \
+                 °C, soaked {:.1} min; {fit_words}",
+                p.temp_band_c,
+                self.target_c.unwrap_or(f64::NAN),
+                span / 60.0
+            );
+            return;
+        }
+        let mut waits = Vec::new();
+        if !ruled_out {
+            if plausible && fit.tau_unbounded && remaining > theta {
+                waits.push(format!(
+                    "power still {falling} steadily ({:.3} %/min); the end of the decay is not \
+                     in sight yet ({fit_words})",
+                    remaining / tau_s * 6000.0
+                ));
+            } else {
+                waits.push(format!("power may still {fall}: {fit_words}"));
+            }
+        }
+        if frozen {
+            waits.push(format!(
+                "the bed's power and temperature have not changed for {:.0} s: are Klipper and \
+                 its heater still running?",
+                frozen_s
+            ));
+        }
+        if span < p.min_soak_s {
+            waits.push(format!(
+                "minimum soak: {:.1} of {:.1} min",
+                span / 60.0,
+                p.min_soak_s / 60.0
+            ));
+        }
+        if saturated_recently {
+            waits.push(if self.max_power < 1.0 {
+                format!(
+                    "the heater was at its max_power ({:.2}) within the minimum soak",
+                    self.max_power
+                )
+            } else {
+                "the heater was at full power within the minimum soak".into()
+            });
+        }
+        // ETA: the best fit's fall to θ, and the span the test needs to rule out
+        // the slowest decay allowed: its slope θ/τ_max known to ± θ/(Z·τ_max) at this noise
+        // (n bins over a span W give the slope to ± σ·√(12/n)/W).
+        let physical = Some(if remaining > theta {
+            tau_s * (remaining / theta).ln()
+        } else {
+            0.0
+        });
+        let statistical = if ruled_out {
+            Some(0.0)
+        } else {
+            let need = (Z * p.slowest_s() * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta)
+                .powf(2.0 / 3.0);
+            Some((need - span).max(0.0).min(4.0 * p.slowest_s()))
+        };
+        let eta_s = match (physical, statistical) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (Some(a), None) if a > 0.0 => Some(a),
+            (None, Some(b)) => Some(b),
+            _ => None,
+        }
+        .map(|e| e.max(p.min_soak_s - span).max(p.bin_s));
+        // The progress a user sees never goes back within a soak (the ETA may).
+        let progress = eta_s
+            .map_or(0.0, |eta| (span / (span + eta)).clamp(0.0, 1.0))
+            .max(self.progress_floor);
+        self.progress_floor = progress;
+        let print_now_c = (plausible && fit.surface_95_c.is_finite()).then_some(fit.surface_95_c);
+        self.status = SoakStatus::Soaking {
+            progress,
+            eta_s,
+            print_now_c,
+            reason: waits.join("; "),
+        };
+        self.explanation = status_reason(&self.status);
+    }
+}

@@ -1,0 +1,170 @@
+//! PURE: the bed stacks a user names in `soak.bed` (their coupling and charge time from the
+//! materials, [`StackLimits`]) and the open-frame bound on the slowest decay.
+
+/// A bed's build, as a user names it in `soak.bed`: what its materials allow of its coupling
+/// from thermistor to print surface, and how long its stack takes to charge.
+///
+/// G = 1/(R·A·q) in full power per K, where R is the stack's resistance per m² between the
+/// thermistor and the surface, A the bed's area and q = P/A its heater's power per m²; and the
+/// bed's whole heat capacity, in full power·s/K, is C = c·A/P = c/q with c its heat capacity per
+/// m². Two bounds follow from the materials alone, per m² (see [`StackLimits`]):
+/// - the weakest coupling such a build can have: G ≥ 1/(R_max·q_max), whatever the bed;
+/// - for this bed, from its own heat-up (which gives C): G = C/(R·c) ≥ C/(R_max·c_max), the
+///   "G ≈ 1/(τ × full-power heating rate)" of issue 29 with τ = R_max·c_max the build's
+///   slowest stack time.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct BedPreset {
+    /// The name in `soak.bed`.
+    pub name: &'static str,
+    /// What it is, in words.
+    pub words: &'static str,
+    /// Coupling G from the thermistor to the surface, full power per K: the weak end of such
+    /// beds, 1/(R_max·q_max) (a weaker coupling waits longer).
+    pub g: f64,
+    /// R_max·c_max: the most the stack's resistance times the bed's heat capacity can be, s.
+    pub rc_s: f64,
+    /// What a layer behind the one a heat-up shows may add to R·c, s: a sheet on its magnet,
+    /// whose own lag is a few seconds. None where the layer behind may be as slow as the one
+    /// in front (glass over the plate) and merge with it: then the heat-up's lag tells nothing
+    /// of the rest.
+    pub hidden_s: Option<f64>,
+    /// The stack's own charge time between thermistor and surface, s (the transient right
+    /// after the bed reaches its band): its clamped time constants add up to at most
+    /// Σ C_i·R_i ≤ R·C (see [`OPEN_FRAME_TAU_MAX_S`]), so `rc_s`.
+    pub charge_s: f64,
+}
+
+/// Per-m² limits of real bed stacks, from their materials.
+pub(crate) struct StackLimits;
+
+impl StackLimits {
+    /// Heater power per m², at most: 1 W/cm² (a 250 mm bed with a 625 W mains heater).
+    pub(crate) const Q_MAX_W_M2: f64 = 10_000.0;
+    /// Heat capacity per m², J/m²K: a 1.5 mm silicone pad (1.2 g/cm³, 1.3 J/gK) ...
+    pub(crate) const C_PAD: f64 = 2_340.0;
+    /// ... a 10 mm aluminium plate (2.7 g/cm³, 0.9 J/gK) ...
+    pub(crate) const C_PLATE: f64 = 24_300.0;
+    /// ... 0.8 mm spring steel (7.85, 0.46) with PEI on a 1 mm magnet sheet (3.6, 0.9) ...
+    pub(crate) const C_STEEL: f64 = 2_890.0 + 3_240.0;
+    /// ... or 5 mm borosilicate glass (2.23, 0.83).
+    pub(crate) const C_GLASS: f64 = 9_250.0;
+    /// Resistance per m², m²K/W: the pad's thermistor through 1 mm of silicone (0.3 W/mK) ...
+    pub(crate) const R_PAD: f64 = 0.001 / 0.3;
+    /// ... a 1 mm magnet sheet at 0.4 W/mK and half 0.5 mm of steel (20 W/mK) ...
+    pub(crate) const R_STEEL: f64 = 0.001 / 0.4 + 0.000_25 / 20.0;
+    /// ... glass on clips over an air gap of up to 0.4 mm (0.03 W/mK) and half 5 mm of glass
+    /// (1.1 W/mK) ...
+    pub(crate) const R_GLASS: f64 = 0.0004 / 0.03 + 0.0025 / 1.1;
+    /// ... a bare plate's own half thickness and a 0.1 mm PEI film (0.22 W/mK).
+    pub(crate) const R_BARE: f64 = 0.0005;
+}
+
+/// The beds `soak.bed` may name, strongest coupling first. The last is the weakest coupling,
+/// assumed when the bed is neither identified nor named.
+pub(crate) const BED_PRESETS: &[BedPreset] = &[
+    preset(
+        "bare-plate",
+        "bare aluminium plate, thermistor in the plate",
+        StackLimits::R_BARE,
+        StackLimits::C_PAD + StackLimits::C_PLATE,
+        Some(0.0),
+    ),
+    preset(
+        "steel-plate",
+        "steel sheet on a magnet, thermistor in the plate",
+        StackLimits::R_STEEL,
+        StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL,
+        Some(
+            StackLimits::R_STEEL
+                * (StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL),
+        ),
+    ),
+    preset(
+        "bare-pad",
+        "bare aluminium plate, thermistor in the heater pad",
+        StackLimits::R_PAD + StackLimits::R_BARE,
+        StackLimits::C_PAD + StackLimits::C_PLATE,
+        Some(0.0),
+    ),
+    preset(
+        "steel-pad",
+        "steel sheet on a magnet, thermistor in the heater pad",
+        StackLimits::R_PAD + StackLimits::R_STEEL,
+        StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL,
+        Some(
+            StackLimits::R_STEEL
+                * (StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_STEEL),
+        ),
+    ),
+    preset(
+        "glass-plate",
+        "glass on clips, thermistor in the plate",
+        StackLimits::R_GLASS,
+        StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_GLASS,
+        None,
+    ),
+    preset(
+        "glass-pad",
+        "glass on clips, thermistor in the heater pad",
+        StackLimits::R_PAD + StackLimits::R_GLASS,
+        StackLimits::C_PAD + StackLimits::C_PLATE + StackLimits::C_GLASS,
+        None,
+    ),
+];
+
+/// A preset from its stack's limits: resistance `r` m²K/W and heat capacity `c` J/m²K.
+const fn preset(
+    name: &'static str,
+    words: &'static str,
+    r: f64,
+    c: f64,
+    hidden_s: Option<f64>,
+) -> BedPreset {
+    BedPreset {
+        name,
+        words,
+        g: 1.0 / (r * StackLimits::Q_MAX_W_M2),
+        rc_s: r * c,
+        hidden_s,
+        charge_s: r * c,
+    }
+}
+
+/// The slowest decay the rule rules out on an open frame (`soak.frame = "open"`), s: 20 min.
+///
+/// With the thermistor's node held, the bed is a network of heat capacities C_i joined by
+/// conductances to that node and to the room; its slowest time constant is at most the trace
+/// of K⁻¹C, Σ C_i R_i, where R_i is node i's resistance to ground (the held node or the room;
+/// taking the room's path away only raises it). Per m², the slowest stacks of real beds:
+/// - thermistor in a 1.5 mm silicone pad, 1 mm of silicone and 0.2 mm of adhesive (0.2 W/mK)
+///   to the plate: R = 0.006 m²K/W; a 10 mm aluminium plate (24.3 kJ/m²K): 146 s;
+/// - 1 mm magnet sheet (2.9 kJ/m²K) behind 0.2 mm of adhesive and half its 0.4 W/mK:
+///   R = 0.0083, 24 s; a 1.5 mm steel sheet (5.4 kJ/m²K) on it with 0.002 m²K/W of contact,
+///   R = 0.0115: 62 s; so 232 s (3.9 min) for steel on a magnet over a 10 mm plate;
+/// - 5 mm glass (10.5 kJ/m²K) on clips over a 0.5 mm air gap (0.03 W/mK) and half its own
+///   1 W/mK: R = 0.025, 264 s; with the plate 410 s (6.8 min);
+/// - insulation under the pad: 6 mm cork (2.4 kJ/m²K, 0.04 W/mK, its underside at 5 W/m²K):
+///   R = 0.086, 206 s; 10 mm of foam, 46 s.
+///
+/// The worst open stack (pad-sensed, 10 mm plate, 5 mm glass on a poor gap, cork) is thus at
+/// most 616 s (10.3 min) however weak its convection (h only lowers R). Beside it, the
+/// carriage or frame the bed is screwed to (a 6 mm aluminium Y plate of 250 mm, 0.9 kJ/K,
+/// cooled on both faces at 5–10 W/m²K) settles in about 12 min, through spacers that carry a
+/// few watts. Twice the stack's bound covers both: 20 min. Not covered: an enclosure, or a
+/// frame built in a box (the air warms for hours: that is what `tau_max_s` is for).
+pub(crate) const OPEN_FRAME_TAU_MAX_S: f64 = 1200.0;
+
+/// Thermal expansion that turns surface kelvin into µm per 100 mm: steel and aluminium.
+pub(crate) const UM_PER_100MM_K_STEEL: f64 = 1.2;
+/// See [`UM_PER_100MM_K_STEEL`].
+pub(crate) const UM_PER_100MM_K_ALUMINIUM: f64 = 2.3;
+
+/// Kelvin of surface warming in words with what they cost in µm/100 mm.
+#[must_use]
+pub(crate) fn kelvin_words(k: f64) -> String {
+    format!(
+        "{k:.1} K ({:.1} µm/100 mm on steel, {:.1} on aluminium)",
+        k * UM_PER_100MM_K_STEEL,
+        k * UM_PER_100MM_K_ALUMINIUM
+    )
+}
