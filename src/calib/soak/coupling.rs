@@ -40,7 +40,8 @@ pub(crate) struct Coupling {
 }
 
 impl Coupling {
-    /// [`Coupling::short`], and why it was not identified when it was not.
+    /// [`Coupling::short`], and why it was not identified when it was not (the benchmarks').
+    #[cfg(feature = "bench")]
     #[must_use]
     pub(crate) fn short_why(&self) -> String {
         match self.why.find("not identified") {

@@ -45,6 +45,7 @@ mod stack;
 #[cfg(test)]
 mod test_beds;
 
+#[cfg(feature = "bench")]
 pub(crate) use coupling::{Coupling, CouplingSource};
 pub use detector::SoakDetector;
 pub(crate) use detector::SoakStatus;
