@@ -23,6 +23,8 @@ echo "== cargo fmt --check, cargo clippy"
 # The code's shape is part of the tests: formatted, and no clippy warning.
 cargo fmt --check
 cargo clippy --all-targets --quiet -- -D warnings
+# The printer's build (scripts/release.sh: --no-default-features, no benchmarks) too.
+cargo clippy --no-default-features --lib --bins --quiet -- -D warnings
 
 echo "== cargo test"
 # Each integration test starts its own bench on free ports; four at a time fit two cores.

@@ -52,6 +52,12 @@ fn run_all_also_runs_the_documentation_examples() {
     assert!(
         calls
             .iter()
+            .any(|c| c.starts_with("clippy --no-default-features")),
+        "run-all.sh must lint the printer's build (no bench feature) too: {calls:?}"
+    );
+    assert!(
+        calls
+            .iter()
             .any(|c| c.split_whitespace().eq(["test", "--doc"])),
         "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
     );
