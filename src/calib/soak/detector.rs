@@ -6,6 +6,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
 use super::coupling::{identify_coupling, Coupling, ID_HOLD_S};
+use super::stack::{open_frame_reach, SurfaceReach};
 use super::SoakParams;
 
 mod decide;
@@ -344,6 +345,37 @@ impl SoakDetector {
     /// The coupling from thermistor to surface the rule uses now, and where it came from.
     pub(crate) fn coupling(&self) -> &Coupling {
         &self.coupling
+    }
+
+    /// On an open frame, which decays reach the print surface and how much of them.
+    pub(crate) fn reach(&self) -> Option<SurfaceReach> {
+        open_frame_reach(&self.params.frame, &self.params.bed, self.coupling.charge_s)
+    }
+
+    /// Which decays are ruled out and, on an open frame, how much of the slow ones reaches the
+    /// surface, in words.
+    pub(crate) fn slowest_words(&self) -> String {
+        let base = self.params.slowest_s();
+        let words = self.params.slowest_words();
+        match self.reach() {
+            Some(r) if r.whole_s < base => {
+                let share = if r.slow_share == 0.0 {
+                    "with the thermistor in the plate it does not reach the surface".to_string()
+                } else {
+                    format!(
+                        "with the thermistor in the pad (or soak.bed not set) at most {:.0} % \
+                         of it reaches the surface",
+                        r.slow_share * 100.0
+                    )
+                };
+                format!(
+                    "{words}; a decay slower than {:.0} min is the carriage or frame warming: \
+                     {share}",
+                    r.whole_s / 60.0
+                )
+            }
+            _ => words,
+        }
     }
 
     /// The coupling is settled for this target (identified, or fallen back and said why).
@@ -1376,6 +1408,73 @@ mod tests {
                 "{why}"
             );
         }
+    }
+
+    /// On an open frame a decay slower than the stack and the air (a carriage warming on its
+    /// mounts, 15 min here, holding 40 % of full power) draws its heat from the plate: with the
+    /// thermistor in the plate it does not reach the surface and is not waited for; in the pad
+    /// it reaches it in part and is waited for until that part is within the budget; with the
+    /// frame not known it is waited for whole.
+    #[test]
+    fn on_an_open_frame_a_slow_decay_is_weighed_by_how_much_of_it_reaches_the_surface() {
+        let bed = Synthetic {
+            heat_s: 300.0,
+            tau_s: 900.0,
+            final_power: 0.3,
+            amp: 0.4,
+            noise_sd: 0.02,
+            seed: 5,
+        };
+        let run = |bed_name: &str, frame: &str| {
+            let mut d = SoakDetector::new(SoakParams {
+                bed: bed_name.into(),
+                frame: frame.into(),
+                ..SoakParams::default()
+            });
+            let at = bed
+                .samples(6.0 * 3600.0)
+                .into_iter()
+                .find_map(|(t, p, temp)| match d.push(t, p, temp, TARGET_C) {
+                    SoakStatus::Stable { at_s } => Some(at_s),
+                    _ => None,
+                });
+            (at.expect("declared"), d)
+        };
+        let left = |at: f64| bed.amp * (-(at - bed.heat_s) / bed.tau_s).exp();
+        let (plate, d_plate) = run("steel-plate", "open");
+        let (pad, d_pad) = run("steel-pad", "open");
+        let (enclosed, d_enclosed) = run("steel-pad", "");
+        // The plate-sensed bed is declared while the slow decay still holds more than the
+        // surface's budget of power (it cannot reach the surface).
+        assert!(
+            left(plate) > 1.5 * d_plate.threshold(),
+            "plate-sensed: declared at {plate} s with {} left (allowed {})",
+            left(plate),
+            d_plate.threshold()
+        );
+        // The pad-sensed one waits until the share that reaches the surface is within it.
+        let share = d_pad.reach().expect("open frame").slow_share;
+        assert!(share > 0.3 && share < 1.0, "share {share}");
+        assert!(
+            share * left(pad) <= d_pad.threshold(),
+            "pad-sensed: declared at {pad} s with {} of the share left (allowed {})",
+            share * left(pad),
+            d_pad.threshold()
+        );
+        assert!(plate + 300.0 < pad, "plate {plate} s, pad {pad} s");
+        // An unknown frame waits for all of it.
+        assert!(d_enclosed.reach().is_none());
+        assert!(
+            left(enclosed) <= d_enclosed.threshold(),
+            "frame not known: declared at {enclosed} s with {} left",
+            left(enclosed)
+        );
+        assert!(pad < enclosed, "pad {pad} s, frame not known {enclosed} s");
+        assert!(
+            d_plate.explanation().contains("does not reach the surface"),
+            "{}",
+            d_plate.explanation()
+        );
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! PURE: the bed stacks a user names in `soak.bed` (their coupling and charge time from the
-//! materials, [`StackLimits`]) and the open-frame bound on the slowest decay.
+//! materials, [`StackLimits`]), the open-frame bound on the slowest decay and which decays
+//! reach the surface there ([`open_frame_reach`]).
 
 /// A bed's build, as a user names it in `soak.bed`: what its materials allow of its coupling
 /// from thermistor to print surface, and how long its stack takes to charge.
@@ -57,6 +58,11 @@ impl StackLimits {
     pub(crate) const R_GLASS: f64 = 0.0004 / 0.03 + 0.0025 / 1.1;
     /// ... a bare plate's own half thickness and a 0.1 mm PEI film (0.22 W/mK).
     pub(crate) const R_BARE: f64 = 0.0005;
+    /// The least a steel sheet on its magnet can add: a 1 mm magnet sheet at 1.2 W/mK and
+    /// half 0.5 mm of steel.
+    pub(crate) const R_STEEL_MIN: f64 = 0.001 / 1.2 + 0.000_25 / 20.0;
+    /// The least glass on clips can add: a 0.05 mm air gap and half 3 mm of glass.
+    pub(crate) const R_GLASS_MIN: f64 = 0.000_05 / 0.03 + 0.0015 / 1.1;
 }
 
 /// The beds `soak.bed` may name, strongest coupling first. The last is the weakest coupling,
@@ -153,6 +159,59 @@ const fn preset(
 /// few watts. Twice the stack's bound covers both: 20 min. Not covered: an enclosure, or a
 /// frame built in a box (the air warms for hours: that is what `tau_max_s` is for).
 pub(crate) const OPEN_FRAME_TAU_MAX_S: f64 = 1200.0;
+
+/// On an open frame, the air over the print surface is the room's, renewed by convection in
+/// seconds, and the small parts beside the bed (clips, the frame's nearest extrusion) follow
+/// within minutes: decays up to this long may be the air and parts the surface loses heat to,
+/// s (5 min). The bench's open frames' air and frame settle in 1–2.5 min.
+pub(crate) const OPEN_AIR_TAU_S: f64 = 300.0;
+
+/// Which decays reach the print surface on an open frame (`soak.frame = "open"`), and how much
+/// of their power.
+///
+/// With the thermistor's node held, a decay is a part of the bed or its surroundings warming
+/// towards its final temperature. Those as fast as the bed stack's own charge (at most its
+/// R·C, [`BedPreset::charge_s`]) or as the open air over it ([`OPEN_AIR_TAU_S`]) may be the
+/// stack between thermistor and surface, or the air the surface loses heat to: their power
+/// flows through the surface and it warms by ΔP / G, all of it. On an open frame, what is
+/// slower than both is the carriage or frame the bed is mounted on (see
+/// [`OPEN_FRAME_TAU_MAX_S`]), which draws its heat from the plate or the pad, not through the
+/// surface:
+/// - thermistor in the plate: the plate is held, so the carriage's warming changes the power
+///   and not the surface: weight 0;
+/// - thermistor in the pad: the plate, and the surface on it, warm by ΔP times the pad's
+///   resistance to the plate, while G counts the whole stack's: the share of ΔP / G that
+///   reaches the surface is R_pad / (R_pad + R_surface side), at most with the thickest pad
+///   ([`StackLimits::R_PAD`]) under the best-conducting surface layer the build allows
+///   (`steel-pad` 0.80, `glass-pad` 0.52, `bare-pad` or a bed not named: all of it).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct SurfaceReach {
+    /// Decays up to this long reach the surface whole, s.
+    pub whole_s: f64,
+    /// The share of a slower decay's ΔP / G that reaches the surface (0–1).
+    pub slow_share: f64,
+}
+
+/// The open frame's [`SurfaceReach`] for the build `bed` names (`soak.bed`) and a stack whose
+/// charge time is `charge_s`. None unless `frame` is "open" (in an enclosure the air over the
+/// surface warms for hours, and every decay may reach it).
+#[must_use]
+pub(crate) fn open_frame_reach(frame: &str, bed: &str, charge_s: f64) -> Option<SurfaceReach> {
+    if frame != "open" {
+        return None;
+    }
+    let pad_share = |r_surface_min: f64| StackLimits::R_PAD / (StackLimits::R_PAD + r_surface_min);
+    let slow_share = match bed {
+        "bare-plate" | "steel-plate" | "glass-plate" => 0.0,
+        "steel-pad" => pad_share(StackLimits::R_STEEL_MIN),
+        "glass-pad" => pad_share(StackLimits::R_GLASS_MIN),
+        _ => 1.0,
+    };
+    Some(SurfaceReach {
+        whole_s: charge_s.max(OPEN_AIR_TAU_S),
+        slow_share,
+    })
+}
 
 /// Thermal expansion that turns surface kelvin into µm per 100 mm: steel and aluminium.
 pub(crate) const UM_PER_100MM_K_STEEL: f64 = 1.2;

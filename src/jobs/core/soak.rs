@@ -375,7 +375,7 @@ impl BedSoak {
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
                         self.detector.coupling().why,
-                        self.detector.params().slowest_words(),
+                        self.detector.slowest_words(),
                         if self.prints {
                             "; KLIPCAL_SOAK_CHOICE CHOICE=print prints now"
                         } else {

@@ -98,10 +98,16 @@ impl SoakDetector {
         // power by its charge time, so a decay of time constant τ still holds (1 + charge/τ)
         // times more surface warming than its power says (the first-order lag's gain on a
         // decay, to first order); slow decays hold what ΔP / G says.
+        // On an open frame, decays slower than the stack and the air are the carriage's and
+        // the frame's, which reach the surface only in part (see `open_frame_reach`).
         if self.params.fixed_remaining.is_none() {
             let charge = self.coupling.charge_s;
+            let reach = self.reach();
             for (k, tau) in self.taus.iter().enumerate() {
                 g[k + 1] *= 1.0 + charge / tau;
+                if let Some(r) = reach.filter(|r| *tau > r.whole_s) {
+                    g[k + 1] *= r.slow_share;
+                }
             }
         }
         g
@@ -120,6 +126,10 @@ impl SoakDetector {
         let theta = self.threshold();
         let cost = if r_hat >= theta {
             0.0
+        } else if g.amax() == 0.0 {
+            // No decay of the model reaches the surface now (an open frame's slow decays on a
+            // plate-sensed bed): nothing left to rule out.
+            f64::INFINITY
         } else {
             self.solve(sign, Some((&g, theta)))
                 .map_or(0.0, |s| (s.sse - best.sse).max(0.0))
@@ -149,6 +159,7 @@ impl SoakDetector {
                 .map_or(f64::INFINITY, |c| (pin - r_hat) * sigma2.sqrt() / c.sqrt())
         };
         let remaining_95 = (r_hat + 1.645 * sd_95).max(remaining);
+
         Some(DirectionTest {
             sign,
             best,
@@ -291,7 +302,7 @@ impl SoakDetector {
                 theta * 100.0,
                 sigma2.sqrt() * 100.0,
                 self.coupling.why,
-                p.slowest_words()
+                self.slowest_words()
             )
         } else {
             format!(
@@ -301,7 +312,7 @@ impl SoakDetector {
                 theta * 100.0,
                 sigma2.sqrt() * 100.0,
                 self.coupling.why,
-                p.slowest_words()
+                self.slowest_words()
             )
         };
         if span_ok && ruled_out && !saturated_recently && !frozen {
