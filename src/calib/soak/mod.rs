@@ -253,6 +253,9 @@ impl SoakParams {
             "enclosed" => format!(
                 "ruling out decays up to {min} min (soak.tau_max_s; soak.frame = \"enclosed\")"
             ),
+            _ if self.tau_max_s <= OPEN_FRAME_TAU_MAX_S => {
+                format!("ruling out decays up to {min} min (soak.tau_max_s)")
+            }
             _ => format!(
                 "ruling out decays up to {min} min (soak.tau_max_s, for a plate and an \
                  enclosure; soak.frame = \"open\" shortens it to {:.0} min on an open frame)",
