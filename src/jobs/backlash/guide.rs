@@ -468,12 +468,33 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
                 "no compensation needed".to_string()
             }
         ));
+        if let Some(more) = r.more_cycles(MORE_CYCLES_TARGET_U_MM, 50) {
+            let last = out.len() - 1;
+            out[last].push_str(&match more {
+                MoreCycles::Within(n, u) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}: measuring again with CYCLES={n} would \
+                     bring it to about ± {u:.4}"
+                ),
+                MoreCycles::Short(n, u) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}: even CYCLES={n} would leave about \
+                     ± {u:.4} (the cycles scatter widely: check the camera mark and the nozzle)"
+                ),
+                MoreCycles::Never(fixed) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}, and more cycles would not bring it \
+                     within: ± {fixed:.4} of it repeats in every cycle"
+                ),
+            });
+        }
     }
     if let Some(t) = corexy {
         out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
     }
     out
 }
+
+/// The result line says what more cycles would buy when the ± is above this, mm: issue 27's
+/// 5 µm at 95 % (±2u).
+const MORE_CYCLES_TARGET_U_MM: f64 = 0.0025;
 
 /// The motor's microstep along a jogged axis, mm, from Klipper's settings (`rotation_distance
 /// / (full_steps_per_rotation · microsteps · gear_ratio)`): cartesian X, Y and Z their own
@@ -601,6 +622,32 @@ mod tests {
         assert!(
             pr.contains("compensate") && !pr.contains("smooth_time"),
             "{pr}"
+        );
+    }
+
+    #[test]
+    fn the_result_says_what_more_cycles_would_buy_only_when_the_plus_minus_is_wide() {
+        // Cycles 1 µm apart: ± within 2.5 µm, nothing offered.
+        let tight = result_text(&session(Branch::Seed, ""), &results(0.08)).join("\n");
+        assert!(!tight.contains("CYCLES="), "{tight}");
+        // Cycles 10 µm apart: ± above it, and a number of cycles that brings it within.
+        let c: Vec<Cycle> = (0..5)
+            .map(|i| Cycle {
+                x1_mm: 0.08 + 0.01 * f64::from(i % 2),
+                x2_mm: 0.0,
+                fine_mm: None,
+            })
+            .collect();
+        let r = crate::calib::backlash::analyse("x", &c, None, &BacklashParams::default()).unwrap();
+        assert!(r.uncertainty_mm > MORE_CYCLES_TARGET_U_MM, "{r:?}");
+        let wide = result_text(
+            &session(Branch::Seed, ""),
+            &BTreeMap::from([("x".to_string(), r)]),
+        )
+        .join("\n");
+        assert!(
+            wide.contains("measuring again with CYCLES=") && wide.contains("would bring it to"),
+            "{wide}"
         );
     }
 

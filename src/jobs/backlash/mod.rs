@@ -22,7 +22,9 @@ use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult, SEED_SMOOTH_TIME_S};
+use crate::calib::backlash::{
+    analyse, common_smooth_time_s, AxisResult, MoreCycles, SEED_SMOOTH_TIME_S,
+};
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
 use crate::jobs::core::console::{Button, Prompt};
