@@ -356,6 +356,8 @@ pub(crate) fn bench(
                     t.unfinished
                 );
             }
+            let seed = args.seed ^ ((mi as u64) << 8) ^ 0x10;
+            more_cycles_line(model, person, (&base, &params), seed, axes);
         }
         let b95 = p95(&bounds);
         println!(
@@ -381,6 +383,53 @@ pub(crate) fn bench(
     } else {
         ExitCode::FAILURE
     })
+}
+
+/// What more cycles buy (information, no target): the guided flow at `MORE_CYCLES` cycles on
+/// other axes of the same model and person (its own generator, so the lines above keep their
+/// figures), with its bound at that many cycles.
+fn more_cycles_line(
+    model: &Model,
+    person: Person,
+    (base, params): (&GuideParams, &BacklashParams),
+    seed: u64,
+    axes: usize,
+) {
+    const MORE_CYCLES: usize = 10;
+    let mut rng = fastrand::Rng::with_seed(seed);
+    let params = BacklashParams {
+        step_mm: model.step_mm,
+        ..params.clone()
+    };
+    let (mut errors, mut bound, mut covered, mut presses) = (Vec::new(), Vec::new(), 0, 0);
+    for _ in 0..axes {
+        let b = 0.15 * rng.f64();
+        let truth = model.lost_motion_mm(b);
+        let p = GuideParams {
+            cycles: MORE_CYCLES,
+            ..base.clone()
+        };
+        let Some(run) = run_procedure(model, person, b, p, &mut rng) else {
+            continue;
+        };
+        let Ok(r) = backlash::analyse("x", &run.cycles, None, &params) else {
+            continue;
+        };
+        presses += run.presses;
+        errors.push(r.backlash_mm - truth);
+        covered += usize::from((r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm);
+        bound.push(run.perfect.iter().sum::<f64>() / run.perfect.len().max(1) as f64 - truth);
+    }
+    let n = errors.len().max(1) as f64;
+    println!(
+        "    klipcal {MORE_CYCLES} cycles (information)  p95 |error| {:4.1} µm (bound {:.1})   ±2u \
+         covers {:4.1} %   presses/axis {:5.1}   unfinished {}",
+        1000.0 * p95(&errors),
+        1000.0 * p95(&bound),
+        100.0 * covered as f64 / n,
+        presses as f64 / n,
+        axes - errors.len()
+    );
 }
 
 #[cfg(test)]
