@@ -217,6 +217,9 @@ pub struct BenchBacklashArgs {
     /// Simulated axes per model for the camera procedure (each renders about 40 pictures).
     #[arg(long, default_value_t = 40)]
     pub camera_axes: usize,
+    /// Only the guided flow's lines (no camera pictures rendered).
+    #[arg(long)]
+    pub guided_only: bool,
 }
 
 /// `klipcal solve`

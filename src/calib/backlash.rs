@@ -1,8 +1,9 @@
 //! PURE: backlash statistics from the seed's camera procedure (shared/seeds/004): per cycle
 //! the nozzle is centred once approached moving only in + (X1) and once moving only in −
 //! (X2); the cycle's backlash is X1 − X2 (the seed's |X2 − X1|, signed so noise around zero
-//! does not bias it upward). Per axis: the median, spread, an uncertainty with the jog
-//! resolution's share, outlier cycles, the verdict and the smooth_time from an acceleration
+//! does not bias it upward). Per axis: the median (with two fine-jog sizes, the least-squares
+//! line's value at a zero jog), spread, an uncertainty with the jog resolution's share,
+//! outlier cycles, the verdict and the smooth_time from an acceleration
 //! budget. No I/O: readings arrive parsed or as text.
 
 use std::collections::BTreeMap;
@@ -71,7 +72,9 @@ pub struct BacklashParams {
     /// The motor's microstep along the axis, mm (0: unknown or not relevant). Jog readings are
     /// commanded positions, but the nozzle moves only when the commanded position passes half
     /// a step, on a lattice fixed to the machine that no dither moves: each edge is known to
-    /// within a step, the same in every cycle, so `step²/6` is added without averaging down.
+    /// within a step, the same in every cycle, so `step²/12` is added without averaging down
+    /// (the typical share of X1 − X2 whose four edges fall independently on the lattice; the
+    /// worst case, `step²/6`, made ±2u cover 98–99.6 % on the bench's microstepped axis).
     #[serde(skip)]
     pub step_mm: f64,
 }
@@ -190,7 +193,8 @@ pub(crate) fn smooth_time_for(
 /// One axis's result (the `klipcal backlash solve --json` object per axis).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct AxisResult {
-    /// Median backlash of the inlier cycles, clamped at 0, mm.
+    /// Backlash of the inlier cycles, clamped at 0, mm: their median, or with two fine-jog
+    /// sizes the least-squares line's value at a zero jog.
     pub backlash_mm: f64,
     /// Largest minus smallest backlash of the cycles kept (outliers named apart), mm.
     pub spread_mm: f64,
@@ -215,6 +219,46 @@ pub struct AxisResult {
     /// Whether smooth_time was raised above 0.005 s.
     #[serde(skip)]
     pub smooth_time_raised: bool,
+    /// The part of `uncertainty_mm` that more cycles do not reduce (a camera's scale and
+    /// repeating detection bias, the motor's microstep), mm.
+    #[serde(skip)]
+    pub fixed_mm: f64,
+}
+
+/// What more cycles would buy ([`AxisResult::more_cycles`]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum MoreCycles {
+    /// This many cycles would bring the uncertainty within the target, to about this (mm).
+    Within(usize, f64),
+    /// Even the most cycles allowed (this many) would leave about this (mm).
+    Short(usize, f64),
+    /// This much of the uncertainty repeats in every cycle and is at the target or above it
+    /// (mm): no number of cycles brings it within.
+    Never(f64),
+}
+
+impl AxisResult {
+    /// What more cycles would buy when the uncertainty is above `target_u_mm` (`None` when it
+    /// is within already). The part that averages down is taken to fall as 1/√cycles; the
+    /// small-sample t factor falls too, so the figure is a little pessimistic.
+    pub(crate) fn more_cycles(&self, target_u_mm: f64, max_cycles: usize) -> Option<MoreCycles> {
+        if self.uncertainty_mm <= target_u_mm || self.cycles == 0 {
+            return None;
+        }
+        if self.fixed_mm >= target_u_mm {
+            return Some(MoreCycles::Never(self.fixed_mm));
+        }
+        let fixed_sq = self.fixed_mm.powi(2);
+        let avg_sq = (self.uncertainty_mm.powi(2) - fixed_sq).max(0.0) * self.cycles as f64;
+        let u = |n: usize| (avg_sq / n as f64 + fixed_sq).sqrt();
+        Some(
+            (self.cycles + 1..=max_cycles)
+                .find(|&n| u(n) <= target_u_mm)
+                .map_or(MoreCycles::Short(max_cycles, u(max_cycles)), |n| {
+                    MoreCycles::Within(n, u(n))
+                }),
+        )
+    }
 }
 
 fn median(v: &[f64]) -> f64 {
@@ -371,12 +415,40 @@ pub fn analyse(
     // 1.96) so that ±2u holds the truth 95 % of the time although it is estimated from a few
     // cycles; the lattice share is not estimated and is not widened. The value is a linear
     // combination Σ aᵢ·dᵢ of the cycles (the mean, or the line's intercept at a zero jog: aᵢ =
-    // 1/m − q̄·(qᵢ − q̄)/Σ(q − q̄)²), so its variance is Σ aᵢ²·σᵢ², times the median's
-    // small-sample factor. Cycles read at the small jog weigh most in the intercept, and their
+    // 1/m − q̄·(qᵢ − q̄)/Σ(q − q̄)²), so its variance is Σ aᵢ²·σᵢ² (times the median's
+    // small-sample factor where the value is the median of one jog size's cycles). Cycles
+    // read at the small jog weigh most in the intercept, and their
     // own lattice share is the small one: one sd for every cycle (issue 27: ±2u covered 100 %
     // with the big jog's share as every cycle's floor) overstated it. From fewer than three
     // cycles σ₀ is at least the prior per-cycle sd.
+    let qk: Vec<f64> = keep.iter().map(|&i| qs[i]).collect();
+    let qbar = qk.iter().sum::<f64>() / m.max(1.0);
+    let sqq: f64 = qk.iter().map(|q| (q - qbar).powi(2)).sum();
+    // With two jog sizes the value is the least-squares line's intercept over the kept
+    // cycles (the mean of each size's cycles extrapolated to a zero jog), the linear
+    // combination the uncertainty below describes. The median through each size's one to
+    // three cycles (before: the median of the corrected cycles) threw away a third of the
+    // information at no gain in robustness, the outliers being left out already (issue 27:
+    // `klipcal bench backlash`, p95 −8 % on every model and person).
+    let linear = fit.is_some() && sqq > 0.0;
+    let a = |q: f64| -> f64 {
+        if linear {
+            1.0 / m - qbar * (q - qbar) / sqq
+        } else {
+            1.0 / m
+        }
+    };
+    let line = linear.then(|| {
+        let intercept: f64 = keep.iter().map(|&i| a(qs[i]) * d[i]).sum();
+        let slope = keep.iter().map(|&i| (qs[i] - qbar) * d[i]).sum::<f64>() / sqq;
+        (intercept, slope)
+    });
+    // The residuals: from that line, or from the mean of the corrected cycles.
     let mean_in = inliers.iter().sum::<f64>() / m.max(1.0);
+    let residuals: Vec<f64> = match line {
+        Some((c, k)) => keep.iter().map(|&i| d[i] - c - k * qs[i]).collect(),
+        None => inliers.iter().map(|x| x - mean_in).collect(),
+    };
     let p = if fit.is_some() { 2 } else { 1 };
     let dof = keep.len().saturating_sub(p);
     let lattice = keep.iter().map(|&i| quant(i)).sum::<f64>() / m.max(1.0);
@@ -385,36 +457,37 @@ pub fn analyse(
     // number of jogs), not the worst case q²/6 each cycle is stated with: subtracting the
     // worst case left σ₀ at zero too often (±2u covered 80–89 % on the bench's model 2).
     let lattice_typ = 0.5 * lattice;
+    // For the line through jogged cycles the t factor widens the whole residual variance,
+    // the jog lattice's share in it included, since the whole is what a few cycles estimate;
+    // the known typical share is taken out after (widening only what was left after taking
+    // it out let ±2u cover 91–93 % on the bench's ideal axis once the value was the line's
+    // intercept rather than a median). The camera's and the clicks' cycles keep the earlier
+    // rule: their benchmark lines cover 95–100 % with it, and widening it moved them further
+    // from 93–97 %.
     let mut sigma0_sq = if dof >= 1 {
-        let s2 = inliers.iter().map(|x| (x - mean_in).powi(2)).sum::<f64>() / dof as f64;
+        let s2 = residuals.iter().map(|x| x * x).sum::<f64>() / dof as f64;
         let t = t975(dof).min(20.0) / 1.96;
-        t * t * (s2 - lattice_typ).max(0.0)
+        if linear {
+            (t * t * s2 - lattice_typ).max(0.0)
+        } else {
+            t * t * (s2 - lattice_typ).max(0.0)
+        }
     } else {
         0.0
     };
     if keep.len() < 3 {
         sigma0_sq = sigma0_sq.max(params.prior_cycle_sd_mm.powi(2));
     }
-    let qk: Vec<f64> = keep.iter().map(|&i| qs[i]).collect();
-    let qbar = qk.iter().sum::<f64>() / m.max(1.0);
-    let sqq: f64 = qk.iter().map(|q| (q - qbar).powi(2)).sum();
-    let a = |q: f64| -> f64 {
-        if fit.is_some() && sqq > 0.0 {
-            1.0 / m - qbar * (q - qbar) / sqq
-        } else {
-            1.0 / m
-        }
-    };
-    let var_value = median_var(keep.len())
+    let var_value = if linear { 1.0 } else { median_var(keep.len()) }
         * keep
             .iter()
             .map(|&i| a(qs[i]).powi(2) * (sigma0_sq + quant(i)))
             .sum::<f64>();
     let sd_u = (sigma0_sq + lattice).sqrt();
-    let med = median(&inliers);
+    let med = line.map_or_else(|| median(&inliers), |l| l.0);
     // The scale's share is the same in every cycle: it does not average down.
     let var_scale = (med * params.scale_rel_sd).powi(2);
-    let var_step = params.step_mm.powi(2) / 6.0;
+    let var_step = params.step_mm.powi(2) / 12.0;
     let uncertainty = (var_value + var_scale + params.repeat_sd_mm.powi(2) + var_step).sqrt();
     if med < -(3.0 * uncertainty).max(2.0 * params.jog_resolution_mm) {
         return Err(Error::BacklashReadings(format!(
@@ -454,6 +527,7 @@ pub fn analyse(
         verdict,
         jog_share: (lattice / (sd_u * sd_u)).min(1.0),
         smooth_time_raised: st.raised,
+        fixed_mm: (var_scale + params.repeat_sd_mm.powi(2) + var_step).sqrt(),
     })
 }
 
@@ -647,7 +721,37 @@ mod tests {
             verdict: Verdict::Needed,
             jog_share: 0.0,
             smooth_time_raised: false,
+            fixed_mm: 0.0,
         }
+    }
+
+    #[test]
+    fn more_cycles_are_offered_only_where_they_bring_the_uncertainty_within_the_target() {
+        // ± 4 µm from 5 cycles, all of it averaging down: 4·√(5/n) ≤ 2.5 from n = 13.
+        let r = result(0.05, 0.004);
+        let Some(MoreCycles::Within(n, u)) = r.more_cycles(0.0025, 50) else {
+            panic!("{:?}", r.more_cycles(0.0025, 50));
+        };
+        assert_eq!(n, 13);
+        assert!(
+            u <= 0.0025 && 0.004 * (5.0f64 / 12.0).sqrt() > 0.0025,
+            "{u}"
+        );
+        assert!(r.more_cycles(0.005, 50).is_none());
+        // A microstep leaving ± 3 µm whatever the cycles: none would do, and it says why.
+        let stepped = AxisResult {
+            fixed_mm: 0.003,
+            ..result(0.05, 0.004)
+        };
+        assert_eq!(
+            stepped.more_cycles(0.0025, 50),
+            Some(MoreCycles::Never(0.003))
+        );
+        // Not within 50 cycles either: what 50 would leave.
+        let Some(MoreCycles::Short(50, u)) = result(0.05, 0.02).more_cycles(0.0025, 50) else {
+            panic!()
+        };
+        assert!((u - 0.02 * 0.1f64.sqrt()).abs() < 1e-12, "{u}");
     }
 
     #[test]
@@ -816,7 +920,7 @@ mod tests {
                 "{n} cycles at {jr} mm: ±2u covers {c:.1} %"
             );
         }
-        // The motor's microstep lattice is the same in every cycle: step²/6 is added whatever
+        // The motor's microstep lattice is the same in every cycle: step²/12 is added whatever
         // the cycles say.
         let r0 = analyse("x", &cycles(&[0.05; 5]), None, &p).unwrap();
         let stepped = BacklashParams {
@@ -824,7 +928,7 @@ mod tests {
             ..p.clone()
         };
         let s = analyse("x", &cycles(&[0.05; 5]), None, &stepped).unwrap();
-        let want = r0.uncertainty_mm.powi(2) + 0.0125f64.powi(2) / 6.0;
+        let want = r0.uncertainty_mm.powi(2) + 0.0125f64.powi(2) / 12.0;
         assert!((s.uncertainty_mm.powi(2) - want).abs() < 1e-15);
         // The scale's uncertainty scales the value and is added whatever the cycles say.
         let r = analyse("x", &cycles(&[0.1; 5]), None, &p).unwrap();

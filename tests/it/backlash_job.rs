@@ -123,9 +123,9 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     );
     assert_eq!(x["cycles"].as_u64(), Some(3), "{measured}");
     // The bench's stepper_x (rotation_distance 40, 16 microsteps: 12.5 µm steps, read from
-    // Klipper's settings) puts its share 12.5/√6 µm in the stated ±: a jog reading cannot
+    // Klipper's settings) puts its share 12.5/√12 µm in the stated ±: a jog reading cannot
     // resolve finer than the steps the nozzle moves in.
-    assert!(u >= 0.0125 / 6f64.sqrt() - 1e-9, "{measured}");
+    assert!(u >= 0.0125 / 12f64.sqrt() - 1e-9, "{measured}");
     // Then Y, in the same session; a reload mid-axis shows its jog dialog.
     start_axis(&bench, json!({"axis": "Y"})).await;
     let shown = crate::mainsail::after_reload(&m).await;

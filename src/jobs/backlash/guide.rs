@@ -8,13 +8,9 @@ use super::*;
 pub(super) struct AxisStart {
     pub(super) progress: String,
     pub(super) point: [f64; 3],
-    pub(super) detection: Detection,
-    pub(super) active_mm: BTreeMap<String, f64>,
     /// The guide, for the guided measurement.
     pub(super) guide: Option<Guide>,
-    pub(super) carriage: Option<u32>,
-    pub(super) kinematics: String,
-    pub(super) max_accel_mm_s2: Option<f64>,
+    pub(super) printer: AxisPrinter,
 }
 
 impl Backlash {
@@ -31,14 +27,16 @@ impl Backlash {
             let _g = self.core.lock().await;
             match self.active()? {
                 Some(mut s) if s.state == State::Measured => {
+                    let p = &a.printer;
                     s.state = State::Measuring;
                     s.progress = a.progress.clone();
                     s.guide = a.guide.clone();
                     s.point = a.point;
-                    s.detection = a.detection.clone();
-                    s.active_mm.extend(a.active_mm.clone());
-                    s.carriage = a.carriage;
-                    s.kinematics = a.kinematics.clone();
+                    s.detection = p.detection.clone();
+                    s.active_mm.extend(p.active_mm.clone());
+                    s.carriage = p.carriage;
+                    s.kinematics = p.kinematics.clone();
+                    set_step(&mut s.step_mm, p);
                     self.core.save(s.id, &s)?;
                     Some(s)
                 }
@@ -55,20 +53,23 @@ impl Backlash {
         if let Some(s) = existing {
             return Ok(s);
         }
+        let mut step_mm = BTreeMap::new();
+        set_step(&mut step_mm, &a.printer);
+        let p = a.printer;
         let mut s = Session::new(
             State::Measuring,
             a.progress,
             BacklashBody {
                 point: a.point,
-                detection: a.detection,
-                active_mm: a.active_mm,
+                detection: p.detection,
+                active_mm: p.active_mm,
                 guide: a.guide,
                 cycles: BTreeMap::new(),
-                max_accel_mm_s2: a.max_accel_mm_s2,
-                carriage: a.carriage,
-                kinematics: a.kinematics,
+                max_accel_mm_s2: p.max_accel_mm_s2,
+                carriage: p.carriage,
+                kinematics: p.kinematics,
                 camera: BTreeMap::new(),
-                step_mm: BTreeMap::new(),
+                step_mm,
             },
         );
         s.id = self.core.create(KIND, &mut s, |s, id| s.id = id).await?;
@@ -156,14 +157,7 @@ impl Backlash {
     pub(super) async fn move_along(&self, s: &Session, step: &Step) -> anyhow::Result<()> {
         let Some(g) = &s.guide else { return Ok(()) };
         for &along in &step.moves_mm {
-            let p = g.axis.point_at(s.point, along);
-            let line = GcodeCmd::new("G1")
-                .axis('X', p[0])
-                .axis('Y', p[1])
-                .axis('Z', p[2])
-                .axis('F', JOG_F)
-                .build()?;
-            self.core.m().gcode(&format!("G90\n{line}")).await?;
+            self.go(g.axis.point_at(s.point, along)).await?;
         }
         Ok(())
     }
@@ -321,7 +315,6 @@ impl Backlash {
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
     pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
-        let carriage_arg = req.carriage;
         let axis = req.axis;
         let mut params = self.settings.guide();
         if let Some(c) = req.cycles {
@@ -336,48 +329,19 @@ impl Backlash {
             .ok_or_else(|| {
                 user("no camera point saved: centre the nozzle on the camera mark, then KLIPCAL_BACKLASH_SET_POINT")
             })?;
-        let (detection, cf) = self.detect().await?;
-        let kin = cf.settings.printer.kinematics.as_str();
-        if axis.is_motor() && kin != "corexy" {
-            return Err(user(format!(
-                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
-                axis.name().to_uppercase()
-            )));
-        }
-        let max_accel = cf.settings.printer.max_accel;
-        let carriage = self
-            .carriage_for(&detection, &cf, axis, carriage_arg)
-            .await?;
-        if let Some(n) = carriage {
-            self.park_and_select(n).await?;
-        }
-        let key = result_key(axis, carriage);
-        let active_mm = self
-            .active_values(&detection, &cf, axis, carriage, &key)
-            .await?;
+        let printer = self.axis_printer(axis, req.carriage).await?;
+        let key = printer.key.clone();
+        let carriage = printer.carriage;
         let (guide, step) = Guide::start(axis, axis.coord(point), params, dither_seed())
             .map_err(|e| user(e.to_string()))?;
-        let micro = step_along(&cf.settings, kin, axis, carriage);
-        let mut s = self
+        let s = self
             .begin_axis(AxisStart {
                 progress: format!("measuring {}", axis.name()),
                 point,
-                detection,
-                active_mm,
                 guide: Some(guide),
-                carriage,
-                kinematics: kin.to_string(),
-                max_accel_mm_s2: max_accel,
+                printer,
             })
             .await?;
-        {
-            let _g = self.core.lock().await;
-            match micro {
-                Some(v) => s.step_mm.insert(key.clone(), v),
-                None => s.step_mm.remove(&key),
-            };
-            self.core.save(s.id, &s)?;
-        }
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
         let msg = format!(
@@ -504,12 +468,33 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
                 "no compensation needed".to_string()
             }
         ));
+        if let Some(more) = r.more_cycles(MORE_CYCLES_TARGET_U_MM, 50) {
+            let last = out.len() - 1;
+            out[last].push_str(&match more {
+                MoreCycles::Within(n, u) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}: measuring again with CYCLES={n} would \
+                     bring it to about ± {u:.4}"
+                ),
+                MoreCycles::Short(n, u) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}: even CYCLES={n} would leave about \
+                     ± {u:.4} (the cycles scatter widely: check the camera mark and the nozzle)"
+                ),
+                MoreCycles::Never(fixed) => format!(
+                    "; ± above {MORE_CYCLES_TARGET_U_MM}, and more cycles would not bring it \
+                     within: ± {fixed:.4} of it repeats in every cycle"
+                ),
+            });
+        }
     }
     if let Some(t) = corexy {
         out.push(format!("CoreXY, x_backlash = y_backlash? {t}"));
     }
     out
 }
+
+/// The result line says what more cycles would buy when the ± is above this, mm: issue 27's
+/// 5 µm at 95 % (±2u).
+const MORE_CYCLES_TARGET_U_MM: f64 = 0.0025;
 
 /// The motor's microstep along a jogged axis, mm, from Klipper's settings (`rotation_distance
 /// / (full_steps_per_rotation · microsteps · gear_ratio)`): cartesian X, Y and Z their own
@@ -562,6 +547,15 @@ pub(super) fn step_along(
         }
         _ => None,
     }
+}
+
+/// The microstep along the axis into the session's map (removed where the settings do not
+/// say: a value from an earlier measurement of the key must not stay).
+fn set_step(step_mm: &mut BTreeMap<String, f64>, p: &AxisPrinter) {
+    match p.step_mm {
+        Some(v) => step_mm.insert(p.key.clone(), v),
+        None => step_mm.remove(&p.key),
+    };
 }
 
 /// A seed for the guide's dither that differs between measurements: the clock's nanoseconds.
@@ -628,6 +622,32 @@ mod tests {
         assert!(
             pr.contains("compensate") && !pr.contains("smooth_time"),
             "{pr}"
+        );
+    }
+
+    #[test]
+    fn the_result_says_what_more_cycles_would_buy_only_when_the_plus_minus_is_wide() {
+        // Cycles 1 µm apart: ± within 2.5 µm, nothing offered.
+        let tight = result_text(&session(Branch::Seed, ""), &results(0.08)).join("\n");
+        assert!(!tight.contains("CYCLES="), "{tight}");
+        // Cycles 10 µm apart: ± above it, and a number of cycles that brings it within.
+        let c: Vec<Cycle> = (0..5)
+            .map(|i| Cycle {
+                x1_mm: 0.08 + 0.01 * f64::from(i % 2),
+                x2_mm: 0.0,
+                fine_mm: None,
+            })
+            .collect();
+        let r = crate::calib::backlash::analyse("x", &c, None, &BacklashParams::default()).unwrap();
+        assert!(r.uncertainty_mm > MORE_CYCLES_TARGET_U_MM, "{r:?}");
+        let wide = result_text(
+            &session(Branch::Seed, ""),
+            &BTreeMap::from([("x".to_string(), r)]),
+        )
+        .join("\n");
+        assert!(
+            wide.contains("measuring again with CYCLES=") && wide.contains("would bring it to"),
+            "{wide}"
         );
     }
 

@@ -22,7 +22,9 @@ use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
-use crate::calib::backlash::{analyse, common_smooth_time_s, AxisResult, SEED_SMOOTH_TIME_S};
+use crate::calib::backlash::{
+    analyse, common_smooth_time_s, AxisResult, MoreCycles, SEED_SMOOTH_TIME_S,
+};
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
 use crate::jobs::core::console::{Button, Prompt};
@@ -400,6 +402,79 @@ impl Backlash {
                 format!("backlash session {id} cancelled ({reason})"),
             )
             .await
+    }
+}
+
+/// What both starts, guided and camera, read from the printer for one axis
+/// ([`Backlash::axis_printer`]).
+pub(super) struct AxisPrinter {
+    pub(super) detection: Detection,
+    pub(super) kinematics: String,
+    pub(super) max_accel_mm_s2: Option<f64>,
+    /// The dual carriage measured (selected and parked by the start), if the axis has two.
+    pub(super) carriage: Option<u32>,
+    /// Where the axis's cycles are kept ([`result_key`]).
+    pub(super) key: String,
+    /// The compensation active while measuring ([`Backlash::active_values`]).
+    pub(super) active_mm: BTreeMap<String, f64>,
+    /// The motor's microstep along the axis from Klipper's settings ([`guide::step_along`]).
+    pub(super) step_mm: Option<f64>,
+}
+
+impl Backlash {
+    /// Moves the toolhead to `p` (absolute X Y Z, mm) at the jog speed.
+    pub(super) async fn go(&self, p: [f64; 3]) -> anyhow::Result<()> {
+        let line = GcodeCmd::new("G1")
+            .axis('X', p[0])
+            .axis('Y', p[1])
+            .axis('Z', p[2])
+            .axis('F', JOG_F)
+            .build()?;
+        self.core.m().gcode(&format!("G90\n{line}")).await?;
+        Ok(())
+    }
+
+    /// The printer side of starting an axis, shared by the guided and the camera start: the
+    /// compensation module and branch, A/B refused off CoreXY, max_accel, the carriage
+    /// (CARRIAGE or the active one; parked and selected here), the compensation active now
+    /// and the microstep along the axis.
+    ///
+    /// # Errors
+    /// A/B on a printer that is not CoreXY, a CARRIAGE the printer does not have, or
+    /// Moonraker's and Klipper's errors.
+    pub(super) async fn axis_printer(
+        &self,
+        axis: GuideAxis,
+        asked_carriage: Option<i64>,
+    ) -> anyhow::Result<AxisPrinter> {
+        let (detection, cf) = self.detect().await?;
+        let kinematics = cf.settings.printer.kinematics.clone();
+        if axis.is_motor() && kinematics != "corexy" {
+            return Err(user(format!(
+                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kinematics}",
+                axis.name().to_uppercase()
+            )));
+        }
+        let carriage = self
+            .carriage_for(&detection, &cf, axis, asked_carriage)
+            .await?;
+        if let Some(n) = carriage {
+            self.park_and_select(n).await?;
+        }
+        let key = result_key(axis, carriage);
+        let active_mm = self
+            .active_values(&detection, &cf, axis, carriage, &key)
+            .await?;
+        let step_mm = guide::step_along(&cf.settings, &kinematics, axis, carriage);
+        Ok(AxisPrinter {
+            detection,
+            kinematics,
+            max_accel_mm_s2: cf.settings.printer.max_accel,
+            carriage,
+            key,
+            active_mm,
+            step_mm,
+        })
     }
 }
 

@@ -32,14 +32,13 @@ use serde_json::{json, Value};
 
 use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall};
 use super::{Session, State};
-use super::{JOG_F, KIND, TITLE};
+use super::{KIND, TITLE};
 use crate::calib::backlash::BacklashParams;
 use crate::calib::backlash_guide::GuideAxis;
 use crate::calib::camera_scale::{self, CameraScale, Sighting};
 use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::core::SessionState;
 use crate::jobs::user;
-use crate::klipper::GcodeCmd;
 
 use frames::Look;
 pub(crate) use frames::Seen;
@@ -182,17 +181,6 @@ struct Run {
 }
 
 impl Backlash {
-    async fn go(&self, p: [f64; 3]) -> anyhow::Result<()> {
-        let line = GcodeCmd::new("G1")
-            .axis('X', p[0])
-            .axis('Y', p[1])
-            .axis('Z', p[2])
-            .axis('F', JOG_F)
-            .build()?;
-        self.core.m().gcode(&format!("G90\n{line}")).await?;
-        Ok(())
-    }
-
     async fn progress(&self, id: i64, text: String, report: Option<(&str, &CameraReport)>) {
         let _ = self
             .core
@@ -248,37 +236,16 @@ impl Backlash {
                 cam.name
             )));
         }
-        let (detection, cf) = self.detect().await?;
-        let note = start_note(&detection);
-        let kin = cf.settings.printer.kinematics.clone();
-        if axis.is_motor() && kin != "corexy" {
-            return Err(user(format!(
-                "AXIS={} is a CoreXY motor direction; this printer's kinematics is {kin}",
-                axis.name().to_uppercase()
-            )));
-        }
-        let max_accel = cf.settings.printer.max_accel;
-        let carriage = self
-            .carriage_for(&detection, &cf, axis, req.carriage)
-            .await?;
-        if let Some(n) = carriage {
-            self.park_and_select(n).await?;
-        }
-        let key = result_key(axis, carriage);
-        let active_mm = self
-            .active_values(&detection, &cf, axis, carriage, &key)
-            .await?;
+        let printer = self.axis_printer(axis, req.carriage).await?;
+        let note = start_note(&printer.detection);
+        let (carriage, key) = (printer.carriage, printer.key.clone());
         let progress = format!("camera: measuring {}", key_words(&key));
         let id = self
             .begin_axis(super::guide::AxisStart {
                 progress,
                 point,
-                detection,
-                active_mm,
                 guide: None,
-                carriage,
-                kinematics: kin,
-                max_accel_mm_s2: max_accel,
+                printer,
             })
             .await?
             .id;
