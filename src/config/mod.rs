@@ -83,6 +83,9 @@ pub struct Config {
     /// Keys of earlier versions found in the file and ignored (for a warning at start).
     #[serde(skip)]
     pub retired_keys: Vec<String>,
+    /// The file the settings were read from (none: the embedded defaults, or text parsed).
+    #[serde(skip)]
+    pub(crate) path: Option<PathBuf>,
 }
 
 /// The conventional path, `~/printer_data/config/klipcal.toml`.
@@ -119,10 +122,15 @@ impl Config {
             path: path.clone(),
             cause,
         })?;
-        Self::parse(&text).map_err(|e| match e {
-            Error::Parse { message, .. } => Error::Parse { path, message },
+        let mut cfg = Self::parse(&text).map_err(|e| match e {
+            Error::Parse { message, .. } => Error::Parse {
+                path: path.clone(),
+                message,
+            },
             other => other,
-        })
+        })?;
+        cfg.path = Some(path);
+        Ok(cfg)
     }
 
     /// Parses and validates TOML text.

@@ -13,6 +13,7 @@ use serde_json::{json, Value};
 use tracing::{info, warn};
 
 use crate::jobs::core::session::{hold_expired, now_unix, Core};
+use crate::jobs::core::soak::SoakSettings;
 use crate::jobs::core::status::SessionsStatus;
 use crate::jobs::core::table::{self, OpSpec};
 use crate::jobs::core::{Calibration, CoreCall, CORE_OPS};
@@ -72,7 +73,7 @@ impl Calibrations {
                 core.clone(),
                 super::ab::AbSettings {
                     defaults: config.ab.clone(),
-                    soak: config.soak.clone(),
+                    soak: SoakSettings::of(config),
                 },
             )),
             Arc::new(super::backlash::Backlash::new(
@@ -82,7 +83,7 @@ impl Calibrations {
             Arc::new(super::mesh::Mesh::new(
                 core.clone(),
                 config.mesh.clone(),
-                config.soak.clone(),
+                SoakSettings::of(config),
             )),
         ];
         for c in &list {

@@ -101,6 +101,14 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     let files = bench.files();
     let before = steppers_cfg(&bench);
 
+    // The running daemon's settings file is edited (as in Mainsail's file editor): the soak
+    // reads `[soak]` again when it starts, no restart ([soak] is the file's last section).
+    let cfg = bench.dir.path().join("klipcal.toml");
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    assert!(text.trim_end().ends_with("bed = \"bare-plate\""), "{text}");
+    text.push_str("frame = \"open\"\n");
+    std::fs::write(&cfg, text).unwrap();
+
     let r = extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
         .await
         .unwrap();
@@ -134,12 +142,21 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     };
     // (Worded for the surface rule of issue 29.)
     let started_at = at("the bed is at 60 °C, waiting until its print surface can warm by at most");
-    // It says which slowest decay it rules out, and why (this bench's tau_max_s = 30 s, frame
-    // unset).
+    // It says which slowest decay it rules out, and why (this bench's tau_max_s = 30 s, and
+    // soak.frame = "open" from the file as edited after the start).
     assert!(
-        console[started_at].contains("ruling out decays up to 0.5 min (soak.tau_max_s)"),
+        console[started_at].contains(
+            "ruling out decays up to 0.5 min (soak.tau_max_s, already below the open frame's 20 min)"
+        ),
         "{}",
         console[started_at]
+    );
+    // Both soak.bed and soak.frame are set now: no line asks for them.
+    assert!(
+        !console
+            .iter()
+            .any(|l| l.contains("not set in klipcal.toml")),
+        "{console:#?}"
     );
     // And which coupling G it uses and why (issue 29 rule 2): this bench's soak.bed, the
     // identification still to come from the heat-up (it takes the first 8 min at the target).
@@ -1419,6 +1436,19 @@ async fn print_now_is_offered_with_its_cost_from_the_band_on_through_the_macro_a
     assert!(
         progress.contains(" K (") && progress.contains("µm/100 mm on steel"),
         "{progress}"
+    );
+    // soak.frame is not set in this bench's settings: the soak's start says what it assumes
+    // instead and how to name it.
+    let console: Vec<String> = crate::mainsail::history(&m)
+        .await
+        .into_iter()
+        .map(|(_, msg)| msg)
+        .collect();
+    assert!(
+        console.iter().any(|l| l
+            .contains("soak.frame not set in klipcal.toml, so this soak assumes an enclosure")
+            && l.contains("next soak, no restart")),
+        "{console:#?}"
     );
     // The page's API says the same (and keeps saying it: the cost does not flicker off).
     let http = reqwest::Client::new();

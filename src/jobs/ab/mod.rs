@@ -28,14 +28,13 @@ use tracing::{info, warn};
 
 use crate::calib::entry;
 use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
-use crate::calib::soak::SoakParams;
 use crate::calib::solve::{solve, MotionFacts, Solution, SolveOptions, StepperFacts};
 use crate::config::AbConfig;
 use crate::gcode::{self, LayoutKind};
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
-use crate::jobs::core::soak::{BedSoak, SoakUpdate};
+use crate::jobs::core::soak::{BedSoak, SoakSettings, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
 use crate::jobs::core::table::{arg, ArgKind, Args, Fields, Op, OpSpec};
 use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
@@ -368,8 +367,8 @@ pub(crate) struct AbBody {
 pub(crate) struct AbSettings {
     /// `[ab]`: defaults of a session's options.
     pub defaults: AbConfig,
-    /// `[soak]`: the bed soak detector.
-    pub soak: SoakParams,
+    /// `[soak]`: the bed soak detector (read again when a soak starts).
+    pub soak: SoakSettings,
 }
 
 /// The A/B calibration over the shared core.

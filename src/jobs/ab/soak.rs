@@ -7,8 +7,12 @@ impl Ab {
     pub(super) async fn soak(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         let hold_s = s.options.hold_max_s;
+        let (params, unread) = self.settings.soak.now();
+        if let Some(why) = unread {
+            self.core.console(&format!("A/B calibration: {why}")).await;
+        }
         let mut soak = BedSoak::new(
-            self.settings.soak.clone(),
+            params.clone(),
             s.options.bed_temp_c,
             s.options.soak_max_s,
             "ab.soak_max_s",
@@ -78,18 +82,14 @@ impl Ab {
                         .await?;
                     }
                     // A plot of a soak that did not happen (an unheated bed) says nothing.
-                    let heated = s.options.bed_temp_c > self.settings.soak.skip_below_c;
+                    let heated = s.options.bed_temp_c > params.skip_below_c;
                     let n = s.rounds.len();
                     let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
                     let plot = if heated {
-                        crate::jobs::core::soak::save_soak_picture(
-                            &self.core,
-                            &self.settings.soak,
-                            &path,
-                        )
-                        .await
-                        .map(|p| format!("; plot: {p}"))
-                        .unwrap_or_default()
+                        crate::jobs::core::soak::save_soak_picture(&self.core, &params, &path)
+                            .await
+                            .map(|p| format!("; plot: {p}"))
+                            .unwrap_or_default()
                     } else {
                         String::new()
                     };

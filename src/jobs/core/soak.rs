@@ -13,6 +13,74 @@ use super::user;
 use crate::calib::soak::{kelvin_words, SoakDetector, SoakParams, SoakStatus};
 use crate::klipper::gcode_cmd;
 
+/// The `[soak]` settings a soak starts with: as klipcal.toml says when the soak starts, so an
+/// edit (in Mainsail's or Fluidd's file editor, say) applies to the next soak without a
+/// restart; as klipcal started when the file no longer loads.
+#[derive(Debug, Clone, Default)]
+pub(crate) struct SoakSettings {
+    /// `[soak]` as klipcal started with it.
+    pub started: SoakParams,
+    /// The settings file klipcal read (none: the embedded defaults).
+    pub path: Option<std::path::PathBuf>,
+}
+
+impl SoakSettings {
+    /// `[soak]` and the file it came from, from the loaded settings.
+    #[must_use]
+    pub(crate) fn of(config: &crate::config::Config) -> Self {
+        Self {
+            started: config.soak.clone(),
+            path: config.path.clone(),
+        }
+    }
+
+    /// `[soak]` as the file says now, or as klipcal started with why not (the file no longer
+    /// reads or a value is out of range: the whole file is refused, not half of it).
+    pub(crate) fn now(&self) -> (SoakParams, Option<String>) {
+        let Some(path) = &self.path else {
+            return (self.started.clone(), None);
+        };
+        match crate::config::Config::load(Some(path)) {
+            Ok(c) => (c.soak, None),
+            Err(e) => (
+                self.started.clone(),
+                Some(format!(
+                    "{e}; this soak uses the [soak] settings klipcal started with"
+                )),
+            ),
+        }
+    }
+}
+
+/// What the start of a soak says when `soak.bed` or `soak.frame` is not set: what klipcal
+/// assumes instead, what naming them buys, and that the next soak reads them.
+#[must_use]
+pub(crate) fn unset_build_words(p: &SoakParams) -> Option<String> {
+    let unset: Vec<&str> = [
+        ("soak.bed", p.bed.is_empty()),
+        ("soak.frame", p.frame.is_empty()),
+    ]
+    .into_iter()
+    .filter_map(|(k, unset)| unset.then_some(k))
+    .collect();
+    if unset.is_empty() {
+        return None;
+    }
+    Some(format!(
+        "{} not set in klipcal.toml, so this soak assumes {}; naming {} ([soak] bed = \
+         \"steel-pad\", frame = \"open\", …; README: How the bed soak is judged) is read by the \
+         next soak, no restart: on an open-frame steel bed it shortens the soak from about an \
+         hour to about 20 min",
+        unset.join(" and "),
+        match (p.bed.is_empty(), p.frame.is_empty()) {
+            (true, true) => "the weakest bed (glass on clips) and an enclosure",
+            (true, false) => "the weakest bed (glass on clips)",
+            _ => "an enclosure",
+        },
+        if unset.len() == 2 { "yours" } else { "it" }
+    ))
+}
+
 /// What one poll saw.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum SoakUpdate {
@@ -383,6 +451,9 @@ impl BedSoak {
                         }
                     ))
                     .await;
+                    if let Some(words) = unset_build_words(self.detector.params()) {
+                        core.console(&format!("{title}: {words}")).await;
+                    }
                     self.last_console_s = t_s;
                 }
                 // 100 % is said when the bed is stable, not while it is being confirmed.
@@ -522,5 +593,67 @@ mod eta_tests {
             assert_eq!(e.update(t, Some(40.0), 3600.0), Eta::Confirming);
         }
         assert_eq!(e.update(200.0, None, 3600.0), Eta::Unknown);
+    }
+}
+
+#[cfg(test)]
+mod settings_tests {
+    use super::{unset_build_words, SoakParams, SoakSettings};
+
+    /// A soak reads `[soak]` from the file as it is when the soak starts; a file that no
+    /// longer loads is refused whole and the settings klipcal started with are used, saying why.
+    #[test]
+    fn a_soak_reads_the_settings_file_again_and_keeps_the_started_ones_when_it_is_broken() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("klipcal.toml");
+        std::fs::write(&path, "[soak]\nbed = \"steel-pad\"\n").unwrap();
+        let config = crate::config::Config::load(Some(&path)).unwrap();
+        let settings = SoakSettings::of(&config);
+        assert_eq!(settings.now(), (config.soak.clone(), None));
+        std::fs::write(&path, "[soak]\nbed = \"steel-pad\"\nframe = \"open\"\n").unwrap();
+        let (now, why) = settings.now();
+        assert_eq!(
+            (now.bed.as_str(), now.frame.as_str(), why),
+            ("steel-pad", "open", None)
+        );
+        // One value out of range: the whole file is refused, not half of it.
+        std::fs::write(&path, "[soak]\nframe = \"open\"\nbin_s = 0\n").unwrap();
+        let (now, why) = settings.now();
+        assert_eq!(now, config.soak);
+        let why = why.expect("why the file was not used");
+        assert!(
+            why.contains("bin_s") && why.contains("klipcal started with"),
+            "{why}"
+        );
+        // No file (the embedded defaults): nothing to read again.
+        let none = SoakSettings::of(&crate::config::Config::default());
+        assert_eq!(none.now(), (SoakParams::default(), None));
+    }
+
+    #[test]
+    fn an_unset_bed_or_frame_is_named_with_what_is_assumed_instead() {
+        let both = unset_build_words(&SoakParams::default()).unwrap();
+        assert!(
+            both.starts_with("soak.bed and soak.frame not set in klipcal.toml")
+                && both.contains("the weakest bed (glass on clips) and an enclosure"),
+            "{both}"
+        );
+        let frame = unset_build_words(&SoakParams {
+            bed: "steel-pad".into(),
+            ..SoakParams::default()
+        })
+        .unwrap();
+        assert!(
+            frame.starts_with("soak.frame not set") && frame.contains("assumes an enclosure"),
+            "{frame}"
+        );
+        assert_eq!(
+            unset_build_words(&SoakParams {
+                bed: "steel-pad".into(),
+                frame: "open".into(),
+                ..SoakParams::default()
+            }),
+            None
+        );
     }
 }

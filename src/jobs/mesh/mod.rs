@@ -30,11 +30,10 @@ use tracing::{info, warn};
 use crate::calib::mesh::{self as cm, Capture, Phase};
 pub use crate::calib::mesh_capture::point_temps;
 use crate::calib::mesh_follow::{Branch, Decision, Follower};
-use crate::calib::soak::SoakParams;
 use crate::config::MeshConfig;
 use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
-use crate::jobs::core::soak::{BedSoak, SoakUpdate};
+use crate::jobs::core::soak::{BedSoak, SoakSettings, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
 use crate::jobs::core::table::{arg, ArgKind, MacroBody, Op, OpSpec};
 use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
@@ -328,7 +327,7 @@ pub(crate) const CAPTURE_PROFILE: &str = "klipcal_capture";
 pub(crate) struct Mesh {
     core: Core,
     settings: MeshConfig,
-    soak: SoakParams,
+    soak: SoakSettings,
     follow: Arc<Mutex<Option<CancellationToken>>>,
     follow_status: Arc<Mutex<FollowStatus>>,
 }
@@ -336,7 +335,7 @@ pub(crate) struct Mesh {
 impl Mesh {
     /// The calibration over `core`.
     #[must_use]
-    pub(crate) fn new(core: Core, settings: MeshConfig, soak: SoakParams) -> Self {
+    pub(crate) fn new(core: Core, settings: MeshConfig, soak: SoakSettings) -> Self {
         Self {
             core,
             settings,
