@@ -49,6 +49,8 @@ mod test_beds;
 pub(crate) use coupling::{Coupling, CouplingSource};
 pub use detector::SoakDetector;
 pub(crate) use detector::SoakStatus;
+#[cfg(feature = "bench")]
+pub(crate) use stack::open_frame_reach;
 pub(crate) use stack::{kelvin_words, BED_PRESETS, OPEN_FRAME_TAU_MAX_S};
 
 /// Thresholds of the soak detector. Every field has a default (see [`SoakParams::default`]),

@@ -136,6 +136,49 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             )
         };
         let (bound_true, bound_used) = (bound_min(&|r| r.g_true), bound_min(&|r| r.g_used));
+        // The same bound for the open frame's rule with the preset: the decays up to the stack's
+        // and the air's time whole, the slower ones up to the open frame's bound at their share
+        // (see `open_frame_reach`), whichever a test needs longer for.
+        let open_bound = open.then(|| {
+            let with = SoakParams {
+                bed: crate::cmd::soak_four_node::preset_name(kind).into(),
+                frame: "open".into(),
+                ..params.clone()
+            };
+            let charge = crate::calib::soak::BED_PRESETS
+                .iter()
+                .find(|b| b.name == with.bed)
+                .map_or(0.0, |b| b.charge_s);
+            let reach = crate::calib::soak::open_frame_reach(&with.frame, &with.bed, charge);
+            median(
+                res.iter()
+                    .map(|r| {
+                        let from = r.reach_s + params.settle_s;
+                        let theta = budget * r.preset_g_used;
+                        let mut at = from + params.min_soak_s;
+                        if let Some(reach) = reach {
+                            at = at.max(information_bound(
+                                from,
+                                r.sigma,
+                                reach.whole_s,
+                                theta,
+                                &with,
+                            ));
+                            if reach.slow_share > 0.0 {
+                                at = at.max(information_bound(
+                                    from,
+                                    r.sigma,
+                                    with.slowest_s(),
+                                    theta / reach.slow_share,
+                                    &with,
+                                ));
+                            }
+                        }
+                        (at - r.reach_s) / 60.0
+                    })
+                    .collect(),
+            )
+        });
         let soak = soak_min(&rule);
         println!("    {} ({} beds; surface within {budget:.1} K after {:.1} min past reaching the target, median):", kind.name(), res.len(), surf);
         println!(
@@ -278,7 +321,8 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                         };
                         format!(
                             "{}; with soak.bed = \"{}\" too: early {op}   target 0   {}; soak \
-                             {}{}; not identified (a warm start: the G of soak.bed, else the \
+                             {}{} (information bound of this rule {:.1} min, klipcal {:.1} min \
+                             past it); not identified (a warm start: the G of soak.bed, else the \
                              weakest): soak {} with soak.bed, {} without (early {fe}   target 0   \
                              {})",
                             target(os),
@@ -286,6 +330,8 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                             pass(op == 0),
                             words(ps),
                             target(ps),
+                            open_bound.unwrap_or(f64::NAN),
+                            ps - open_bound.unwrap_or(f64::NAN),
                             words(soak_min(&|r| r.open_preset_fixed)),
                             words(soak_min(&|r| r.open_fixed)),
                             pass(fe == 0),

@@ -45,6 +45,8 @@ pub(crate) struct BedResult {
     pub preset_covered: bool,
     /// See `preset_identified`.
     pub preset_g_safe: bool,
+    /// With the preset: the G the rule used, full power per K (NaN without the preset run).
+    pub preset_g_used: f64,
     /// Surface left at klipcal's declaration, K.
     pub left_c: f64,
     /// klipcal's rule with `soak.frame = "open"` (on an enclosed bed: the user's error),
@@ -171,6 +173,7 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         preset_identified: false,
         preset_covered: false,
         preset_g_safe: false,
+        preset_g_used: f64::NAN,
         left_c,
         open,
         open_preset: None,
@@ -221,6 +224,7 @@ pub(crate) fn run_bed(
         r.preset_identified = c.source == crate::calib::soak::CouplingSource::Identified;
         r.preset_covered = c.low <= r.g_true && r.g_true <= c.high;
         r.preset_g_safe = c.g <= r.g_true;
+        r.preset_g_used = c.g;
         let open = detector(
             &samples,
             &SoakParams {
