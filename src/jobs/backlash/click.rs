@@ -6,6 +6,13 @@
 //! click as `_KLIPCAL_BACKLASH_TIP X= Y= FRAME= SD=` (`POST /api/backlash/tip`). The clicks go
 //! through the same statistics and apply path: 6 + 2 per cycle clicks (16 for 5 cycles) against
 //! the guided jog flow's ~250–300 presses.
+//!
+//! The click only *locates* the nozzle: the first click's snapshot is the reference, and every
+//! later click is refined by registering its snapshot against it
+//! ([`crate::calib::nozzle::ClickReader`]), so the offsets come from the pictures to a few
+//! hundredths of a pixel. A click the pictures cannot refine (no clear match, or one farther
+//! from the click than its stated precision allows) is kept as clicked, with its own ±, and
+//! the console and the status say which and why.
 
 use std::sync::Mutex;
 
@@ -13,7 +20,8 @@ use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
 use super::camera::{CameraRequest, Seen, Webcam};
-use super::{Backlash, BacklashCall};
+use super::{Backlash, BacklashCall, TITLE};
+use crate::calib::nozzle::{ClickReader, Gray};
 use crate::jobs::core::table::{arg, ArgKind, Args, Op, OpSpec};
 use crate::jobs::user;
 
@@ -144,6 +152,8 @@ pub(crate) struct Clicks {
     pending: Mutex<Option<Pending>>,
     last: Mutex<Option<(i64, [f64; 2])>>,
     point: Mutex<Option<(i64, [f64; 2])>>,
+    /// The session's reference snapshot and how its clicks are read.
+    reader: Mutex<Option<(i64, ClickReader)>>,
 }
 
 impl Clicks {
@@ -167,7 +177,7 @@ impl Clicks {
             .or_else(|| of(&self.last).map(|p| (p, ZOOM_SCALE)))
     }
 
-    /// A new measurement of `session` starts: no zoom yet.
+    /// A new measurement of `session` starts: no zoom yet, no reference snapshot.
     pub(crate) fn forget(&self, session: i64) {
         for m in [&self.last, &self.point] {
             let mut g = m.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
@@ -175,6 +185,21 @@ impl Clicks {
                 *g = None;
             }
         }
+        *self
+            .reader
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = None;
+    }
+
+    /// `session`'s click reader (a new one, whose first click will be the reference, if none).
+    fn take_reader(&self, session: i64) -> ClickReader {
+        self.reader
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .take()
+            .filter(|(s, _)| *s == session)
+            .map(|(_, r)| r)
+            .unwrap_or_default()
     }
 
     /// The camera point is at `at_px` in `session`'s pictures.
@@ -204,7 +229,7 @@ impl Backlash {
         what: &str,
     ) -> anyhow::Result<Seen> {
         self.settle_after_move().await?;
-        let (seq, size) = self.snapshot_for_click(http, cam, id, what).await?;
+        let (seq, size, grey) = self.snapshot_for_click(http, cam, id, what).await?;
         let (tx, rx) = oneshot::channel();
         *self.clicks.lock_pending() = Some(Pending {
             session: id,
@@ -220,11 +245,43 @@ impl Backlash {
             .last
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner) = Some((id, at_px));
+        // The click refined from the pictures (or kept, with the reason).
+        let mut reader = self.clicks.take_reader(id);
+        let (reader, r) = tokio::task::spawn_blocking(move || {
+            let r = reader.read(
+                &Gray {
+                    width: size[0],
+                    height: size[1],
+                    data: &grey,
+                },
+                at_px,
+                sd_px,
+            );
+            (reader, r)
+        })
+        .await?;
+        *self
+            .clicks
+            .reader
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some((id, reader));
+        let kept = r.kept.as_ref().map(|why| {
+            format!(
+                "{what}: click kept as clicked, ±{:.2} px: it could not be refined from the \
+                 pictures: {why}",
+                r.sd_px
+            )
+        });
+        if let Some(k) = &kept {
+            self.core.console(&format!("{TITLE}: {k}")).await;
+        }
         Ok(Seen {
-            centre_px: at_px,
-            uncertainty_px: sd_px,
+            centre_px: r.at_px,
+            uncertainty_px: r.sd_px,
             frames: 1,
             refused: 0,
+            refined: r.refined,
+            kept,
         })
     }
 
