@@ -181,7 +181,7 @@ impl Backlash {
         id: i64,
         what: &str,
     ) -> anyhow::Result<Seen> {
-        self.settle_after_move().await?;
+        self.settle_after_move(0.0).await?;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
         let mut last: Vec<Frame> = Vec::new();
         while frames < 14 {
@@ -223,11 +223,15 @@ impl Backlash {
         )))
     }
 
-    /// Waits until Klipper has finished the moves (M400), then `camera_settle_s` for the
-    /// nozzle to stop ringing: before a detected reading and before a snapshot to click in.
-    pub(in crate::jobs::backlash) async fn settle_after_move(&self) -> anyhow::Result<()> {
+    /// Waits until Klipper has finished the moves (M400), then `camera_settle_s` (at least
+    /// `min_s`) for the nozzle to stop ringing: before a detected reading and before a
+    /// snapshot to click in.
+    pub(in crate::jobs::backlash) async fn settle_after_move(
+        &self,
+        min_s: f64,
+    ) -> anyhow::Result<()> {
         self.core.m().gcode("M400").await?;
-        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
+        let settle = self.settings.camera_settle_s.max(min_s).clamp(0.0, 10.0);
         tokio::time::sleep(Duration::from_secs_f64(settle)).await;
         Ok(())
     }
