@@ -897,4 +897,53 @@ mod tests {
             "{e}"
         );
     }
+
+    /// The click flow's reader: the first click is the reference (its own small sd), a later
+    /// one is refined; one the pictures contradict is kept as clicked with the two clicks'
+    /// sd and the reason; when the first click finds nothing, every click is kept with its own.
+    #[test]
+    fn the_reader_keeps_a_click_it_cannot_refine_and_says_why() {
+        let mut cam = Cam::new(Family::DarkTip, 9);
+        let c0 = [150.0, 110.0];
+        let mut rd = ClickReader::default();
+        let g0 = cam.frame(c0);
+        let first = rd.read(&gray(&g0), [151.0, 109.5], 1.0);
+        assert!(
+            !first.refined && first.kept.is_none() && first.sd_px < 0.2,
+            "{first:?}"
+        );
+        assert_eq!(first.at_px, [151.0, 109.5]);
+        let g = cam.frame([160.3, 110.0]);
+        let r = rd.read(&gray(&g), [161.0, 111.0], 1.0);
+        assert!(r.refined && r.kept.is_none(), "{r:?}");
+        assert!(
+            (r.at_px[0] - 161.3).abs() < 0.2 && (r.at_px[1] - 109.5).abs() < 0.2,
+            "{r:?}"
+        );
+        // Clicked 9 px from where the pictures put it, at ±0.5 px: kept, and said why.
+        let g = cam.frame([140.0, 110.0]);
+        let r = rd.read(&gray(&g), [149.0, 110.0], 0.5);
+        assert!(!r.refined && r.at_px == [149.0, 110.0], "{r:?}");
+        assert!((r.sd_px - 0.5f64.hypot(1.0)).abs() < 1e-12, "{r:?}");
+        assert!(
+            matches!(r.kept, Some(ClickRefusal::OffClick { .. })),
+            "{r:?}"
+        );
+        // Nothing under the first click: every click as clicked, each with its own sd.
+        let mut rd = ClickReader::default();
+        let r = rd.read(&gray(&g0), [30.0, 30.0], 1.0);
+        assert!(
+            matches!(r.kept, Some(ClickRefusal::NothingAtClick { .. })),
+            "{r:?}"
+        );
+        let r = rd.read(&gray(&g), [140.5, 110.0], 2.0);
+        assert!(
+            !r.refined && r.sd_px == 2.0 && r.at_px == [140.5, 110.0],
+            "{r:?}"
+        );
+        assert!(
+            matches!(r.kept, Some(ClickRefusal::NothingAtClick { .. })),
+            "{r:?}"
+        );
+    }
 }

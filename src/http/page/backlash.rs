@@ -303,5 +303,22 @@ mod tests {
         st["session"]["snapshot"]["centre_px"] = Value::Null;
         st["session"]["snapshot"]["refused"] = json!("two candidates");
         assert!(render(&st, None).contains("X cycle 1/5 &lt;b&gt;: no reading, two candidates"));
+        // The click flow: how many clicks the pictures refined, and each one kept with why.
+        assert!(!render(&st, None).contains("clicks refined"));
+        st["session"]["camera"]["x"]["clicks"] = json!(14);
+        st["session"]["camera"]["x"]["refined"] = json!(12);
+        st["session"]["camera"]["x"]["kept"] =
+            json!(["X cycle 2/4: click kept as clicked, ±1.90 px: <two> places match"]);
+        let page = render(&st, None);
+        assert!(
+            page.contains(
+                "12 of 14 clicks refined from the pictures against the first (the \
+                           reference); 1 kept as clicked"
+            ),
+            "{page}"
+        );
+        assert!(page.contains(
+            "<li>X cycle 2/4: click kept as clicked, ±1.90 px: &lt;two&gt; places match</li>"
+        ));
     }
 }
