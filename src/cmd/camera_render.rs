@@ -80,7 +80,7 @@ fn gauss(rng: &mut fastrand::Rng) -> f64 {
 impl Scene {
     /// The nozzle's intensity offset from the background at distance (dx, dy) from its centre.
     fn nozzle(&self, dx: f64, dy: f64) -> f64 {
-        let r = dx.hypot(dy);
+        let r = (dx * dx + dy * dy).sqrt();
         let (rr, s, c) = (self.radius_px, self.blur_px.max(0.3), self.contrast);
         let shade = 1.0 + self.shading * dx / rr;
         match self.look {
@@ -111,7 +111,7 @@ impl Scene {
                 let mut v = self.lit(fx, fy);
                 for c in &self.nozzles_px {
                     let (dx, dy) = (fx - c[0], fy - c[1]);
-                    let r = dx.hypot(dy);
+                    let r = (dx * dx + dy * dy).sqrt();
                     if r > self.radius_px + edge_band + 1.0 {
                         continue;
                     }

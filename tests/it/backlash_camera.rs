@@ -852,3 +852,93 @@ async fn click_flow(size: (u32, u32, bool), camera_seed: u64, click_seed: u64, s
     assert_eq!(cycles, json!(want));
     b.screenshot(&artifact(shot)).await;
 }
+
+/// The clicks only locate the nozzle; the offsets are measured from the pictures: clicks
+/// posted off by up to 6 px on each axis (75 µm at 80 px/mm, as a finger on a phone) give the
+/// drawn play within its stated ± and within 3 µm, every click after the first refined against
+/// it. Taken as clicked, the same clicks read it tens of µm off with a ± of tens of µm.
+#[tokio::test]
+async fn clicks_posted_off_by_pixels_are_refined_from_the_pictures() {
+    const TRUE_X: f64 = 0.07;
+    const CYCLES: usize = 4;
+    let camera = json!({"look": "two_nozzles", "px_per_mm": 80, "rotation_deg": 35,
+        "offset_px": [8, -12], "centre_mm": [100, 100], "seed": 11});
+    let bench = camera_bench(
+        "cartesian",
+        "seed",
+        &format!(r#"{{"x": {TRUE_X}}}"#),
+        &camera,
+        &[],
+    );
+    // The click flow takes its snapshot at least 1 s after the move, whatever the settle
+    // (the bench's 10 µm ring is gone by then).
+    let (d, m, _c, _) = at_the_camera(
+        &bench,
+        "[backlash]\ncamera_settle_s = 0.2\n",
+        [100.0, 100.0, 0.0],
+    )
+    .await;
+    let files = bench.files();
+    m.gcode(&format!("KLIPCAL_BACKLASH_CLICK AXIS=X CYCLES={CYCLES}"))
+        .await
+        .unwrap();
+    let mut rng = fastrand::Rng::with_seed(31);
+    let (mut done_seq, mut posted) = (0u64, 0);
+    let s = loop {
+        let st = extension_request(&files, "klipcal_status", json!({}))
+            .await
+            .unwrap();
+        let s = st["session"].clone();
+        if s["kind"] == "backlash" && s["state"] != "measuring" {
+            break s;
+        }
+        let snap = &s["snapshot"];
+        let seq = snap["seq"].as_u64().unwrap_or(0);
+        if snap["click"] != json!(true) || seq <= done_seq {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            continue;
+        }
+        let truth = crate::backlash::nozzle(&bench);
+        let drawn = drawn_px(&camera, [truth[0], truth[1]]);
+        let off = [12.0 * rng.f64() - 6.0, 12.0 * rng.f64() - 6.0];
+        extension_request(
+            &files,
+            "klipcal_backlash_tip",
+            json!({"x": drawn[0] + off[0], "y": drawn[1] + off[1], "frame": seq, "sd": 3.5}),
+        )
+        .await
+        .unwrap();
+        done_seq = seq;
+        posted += 1;
+        assert!(
+            posted <= 6 + 2 * CYCLES,
+            "more snapshots than readings: {s}"
+        );
+    };
+    assert_eq!(s["state"], "measured", "{s}\n{}", d.log_text());
+    let r = &s["results"]["x"];
+    let got = r["backlash_mm"].as_f64().unwrap();
+    let u = r["uncertainty_mm"].as_f64().unwrap();
+    let cam = &s["camera"]["x"];
+    eprintln!(
+        "clicks off by up to 6 px: {got:.4} mm ± {u:.4}, drawn {TRUE_X}, error {:+.1} µm; \
+         refined {} of {}, kept {}",
+        (got - TRUE_X) * 1e3,
+        cam["refined"],
+        cam["clicks"],
+        cam["kept"]
+    );
+    assert_eq!(cam["clicks"], json!(6 + 2 * CYCLES), "{cam}");
+    // Every click after the first (the reference) refined from the pictures, none kept.
+    assert_eq!(cam["refined"], json!(5 + 2 * CYCLES), "{cam}");
+    assert_eq!(cam["kept"], json!([]), "{cam}");
+    assert!(
+        (got - TRUE_X).abs() <= 2.0 * u,
+        "measured {got} ± {u}, drawn {TRUE_X}: {s}"
+    );
+    assert!(
+        (got - TRUE_X).abs() <= 0.003,
+        "measured {got}, drawn {TRUE_X}"
+    );
+    assert!(u <= 0.003, "± {u} mm");
+}

@@ -47,7 +47,12 @@ impl Background {
     /// Robust fit on a grid of samples: least squares, then again on the samples within 2.5
     /// robust sd of the fit, four times. Returns the fit and the inliers' noise sd.
     pub(super) fn fit(img: &Gray<'_>) -> (Background, f64) {
-        let step = (img.width.max(img.height) / 160).max(1);
+        Self::fit_across(img, 160)
+    }
+
+    /// [`Background::fit`] on a grid of about `across` samples along the picture's longer side.
+    pub(super) fn fit_across(img: &Gray<'_>, across: usize) -> (Background, f64) {
+        let step = (img.width.max(img.height) / across.max(1)).max(1);
         let mut samples = Vec::new();
         for y in (0..img.height).step_by(step) {
             for x in (0..img.width).step_by(step) {

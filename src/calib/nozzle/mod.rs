@@ -24,7 +24,9 @@
 //!    over the limit are refused rather than returned.
 //!
 //! This file holds the types and [`detect`], the method's steps in order; the background and
-//! the candidates are in `background`, the sub-pixel centre in `centre`.
+//! the candidates are in `background`, the sub-pixel centre in `centre`. A person's click on
+//! the nozzle, in a picture the detector cannot read, is refined from the pictures in
+//! `register` ([`Reference`]).
 
 use serde::Serialize;
 
@@ -33,6 +35,9 @@ use centre::{edge_circle, radial_centre};
 
 mod background;
 mod centre;
+mod register;
+
+pub(crate) use register::ClickReader;
 
 /// A grey image borrowed from its decoder: row-major, one byte per pixel.
 #[derive(Debug, Clone, Copy)]

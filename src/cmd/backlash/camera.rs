@@ -8,7 +8,7 @@ use super::models::{
 use crate::calib::backlash::{self, BacklashParams};
 use crate::calib::backlash_guide::GuideAxis;
 use crate::calib::camera_scale::{self, CameraScale, Sighting};
-use crate::calib::nozzle::{self, DetectParams, Gray};
+use crate::calib::nozzle::{self, ClickReader, DetectParams, Gray};
 use crate::cli::BenchBacklashArgs;
 use crate::cmd::camera_render::{self, Family};
 
@@ -34,7 +34,8 @@ struct DetectTally {
     reasons: std::collections::BTreeMap<String, usize>,
 }
 
-fn refusal_name(r: &nozzle::Refusal) -> String {
+/// A refusal's `reason` tag (the detector's or the click refinement's).
+fn refusal_name(r: &impl serde::Serialize) -> String {
     serde_json::to_value(r)
         .ok()
         .and_then(|v| v.get("reason").and_then(|s| s.as_str()).map(String::from))
@@ -98,8 +99,12 @@ enum Reader {
     Detect,
     /// The true centre: what the mechanics alone allow.
     Perfect,
-    /// A person clicking the nozzle's tip on klipcal's page (KLIPCAL_BACKLASH_CLICK).
+    /// A person clicking the nozzle's tip on klipcal's page (KLIPCAL_BACKLASH_CLICK), each
+    /// click refined from the rendered picture as the daemon does.
     Click(Screen),
+    /// The same clicks taken as clicked, nothing rendered (the anchor: the flow before the
+    /// refinement).
+    RawClick(Screen),
 }
 
 /// The screen the person clicks on: how large the picture shows on it and the hand's slip.
@@ -142,6 +147,19 @@ struct Camera {
     drift_mm: f64,
     drift: [f64; 2],
     reader: Reader,
+    /// The click reader's own draws: its pictures' noise and the hand's slips, apart from the
+    /// mechanics' so that both screens see the same axis and the same pictures.
+    render_rng: fastrand::Rng,
+    click_rng: fastrand::Rng,
+    /// The daemon's click reading (src/jobs/backlash/click.rs): the first click the reference,
+    /// the others refined against it or kept.
+    clicks: ClickReader,
+    /// The pictures clicked so far on this axis (true centre, grey), shared with the other
+    /// screen's run of the same axis.
+    frames: Vec<([f64; 2], std::rc::Rc<Vec<u8>>)>,
+    seen: usize,
+    refined: usize,
+    kept: std::collections::BTreeMap<String, usize>,
 }
 
 impl Camera {
@@ -155,6 +173,9 @@ impl Camera {
             CAM_H as f64 / 2.0 + 30.0 * (rng.f64() - 0.5),
         ];
         let radius = 0.35 * s;
+        // The click reader's draws are seeded from the axis's state without taking from it,
+        // so the detector and the perfect camera see the same axis as before they existed.
+        let seed = rng.get_seed();
         Camera {
             a: [[s * c, s * si], [-m * s * si, m * s * c]],
             origin_px,
@@ -162,7 +183,42 @@ impl Camera {
             drift_mm: model.drift_mm,
             drift: [0.0, 0.0],
             reader,
+            render_rng: fastrand::Rng::with_seed(seed ^ 0x5eed_0001),
+            click_rng: fastrand::Rng::with_seed(seed ^ 0x5eed_0002),
+            clicks: ClickReader::default(),
+            frames: Vec::new(),
+            seen: 0,
+            refined: 0,
+            kept: std::collections::BTreeMap::new(),
         }
+    }
+
+    /// The scene with the nozzle (and a second one, keeping its distance) at `truth`.
+    fn place(&mut self, truth: [f64; 2]) {
+        if let Some(first) = self.scene.nozzles_px.first().copied() {
+            let d = [truth[0] - first[0], truth[1] - first[1]];
+            for c in &mut self.scene.nozzles_px {
+                c[0] += d[0];
+                c[1] += d[1];
+            }
+        }
+    }
+
+    /// The picture a click is made in: rendered, or the other screen's of the same reading.
+    fn click_picture(&mut self, truth: [f64; 2]) -> anyhow::Result<std::rc::Rc<Vec<u8>>> {
+        let k = self.seen;
+        self.seen += 1;
+        if let Some((t, g)) = self.frames.get(k) {
+            if *t == truth {
+                return Ok(g.clone());
+            }
+        }
+        self.place(truth);
+        let (grey, _) = self.scene.render(&mut self.render_rng)?;
+        let g = std::rc::Rc::new(grey);
+        self.frames.truncate(k);
+        self.frames.push((truth, g.clone()));
+        Ok(g)
     }
 
     /// The nozzle at machine (x, y) mm as the reader reads it: `FRAMES` detections averaged
@@ -188,16 +244,39 @@ impl Camera {
                 ];
                 match self.reader {
                     Reader::Perfect => return Ok(Some((truth, 0.01, 0))),
-                    Reader::Click(sc) => {
-                        // CSS px → picture px at this zoom.
+                    Reader::RawClick(sc) => {
                         let k = sc.picture_px_per_css / zoom;
-                        let mut slip = || (2.0 * rng.f64() - 1.0) * sc.slip_css * k;
+                        let cr = &mut self.click_rng;
+                        let mut slip = || (2.0 * cr.f64() - 1.0) * sc.slip_css * k;
                         let at = [truth[0] + slip(), truth[1] + slip()];
                         return Ok(Some((at, (sc.stated_css * k).max(0.05), 0)));
                     }
+                    Reader::Click(sc) => {
+                        // CSS px → picture px at this zoom; the click read as the daemon
+                        // reads it, in the rendered picture.
+                        let k = sc.picture_px_per_css / zoom;
+                        let cr = &mut self.click_rng;
+                        let mut slip = || (2.0 * cr.f64() - 1.0) * sc.slip_css * k;
+                        let at = [truth[0] + slip(), truth[1] + slip()];
+                        let grey = self.click_picture(truth)?;
+                        let r = self.clicks.read(
+                            &Gray {
+                                width: CAM_W,
+                                height: CAM_H,
+                                data: &grey,
+                            },
+                            at,
+                            (sc.stated_css * k).max(0.05),
+                        );
+                        self.refined += usize::from(r.refined);
+                        if let Some(why) = &r.kept {
+                            *self.kept.entry(refusal_name(why)).or_default() += 1;
+                        }
+                        return Ok(Some((r.at_px, r.sd_px, 0)));
+                    }
                     Reader::Detect => {}
                 }
-                self.scene.nozzles_px = vec![truth];
+                self.place(truth);
                 let (grey, _) = self.scene.render(rng)?;
                 match nozzle::detect(
                     &Gray {
@@ -235,6 +314,9 @@ struct CameraRun {
     refused: usize,
     /// Readings taken (clicks, for the click flow).
     readings: usize,
+    /// Clicks refined from the pictures, and kept as clicked (by reason).
+    refined: usize,
+    kept: std::collections::BTreeMap<String, usize>,
 }
 
 /// The camera procedure on one axis (X) with `cycles` cycles, as the daemon runs it
@@ -244,6 +326,7 @@ struct CameraRun {
 /// [`camera_scale::axis_params`] with the largest sd of the cycles' readings, repeating for
 /// the detector and not for clicks, [`backlash::analyse`]). None
 /// when it could not finish.
+#[allow(clippy::too_many_arguments)] // the axis, its camera and the pictures shared by readers
 fn camera_procedure(
     model: &Model,
     b_mm: f64,
@@ -252,13 +335,32 @@ fn camera_procedure(
     reader: Reader,
     params: &BacklashParams,
     rng: &mut fastrand::Rng,
+    frames: &mut Vec<([f64; 2], std::rc::Rc<Vec<u8>>)>,
+) -> anyhow::Result<Option<CameraRun>> {
+    let mut cam = Camera::new(model, family, reader, rng);
+    cam.frames = std::mem::take(frames);
+    let out = camera_run(&mut cam, model, b_mm, cycles, reader, params, rng);
+    *frames = std::mem::take(&mut cam.frames);
+    out
+}
+
+/// [`camera_procedure`]'s steps on its camera.
+fn camera_run(
+    cam: &mut Camera,
+    model: &Model,
+    b_mm: f64,
+    cycles: usize,
+    reader: Reader,
+    params: &BacklashParams,
+    rng: &mut fastrand::Rng,
 ) -> anyhow::Result<Option<CameraRun>> {
     use crate::jobs::backlash::click::{ZOOM_CYCLES, ZOOM_SCALE};
-    let mut cam = Camera::new(model, family, reader, rng);
     let mut ax = PlayAxis::new(model, b_mm, rng);
     let mut ay = PlayAxis::new(model, 0.15 * rng.f64(), rng);
     let (mut refused, mut readings, mut max_u) = (0, 0, 0.0f64);
-    let clicks = matches!(reader, Reader::Click(_));
+    // Clicks as clicked slip afresh each time; the detector's and the registration's
+    // sub-pixel errors repeat at the same nozzle positions.
+    let repeats = !matches!(reader, Reader::RawClick(_));
     // Scale: each axis at −0.5, 0, +0.5 mm, all approached moving + (from −1 mm).
     let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
     #[allow(clippy::needless_range_loop)] // k picks the axis that moves as well as its list
@@ -304,7 +406,7 @@ fn camera_procedure(
         max_u = max_u.max(u1.max(u2));
         cyc.push(camera_scale::approaches(&scale, GuideAxis::X, plus, minus, reference).cycle);
     }
-    let p = camera_scale::axis_params(params, &scale, GuideAxis::X, max_u, !clicks);
+    let p = camera_scale::axis_params(params, &scale, GuideAxis::X, max_u, repeats);
     Ok(backlash::analyse("x", &cyc, None, &p)
         .ok()
         .map(|r| CameraRun {
@@ -312,11 +414,21 @@ fn camera_procedure(
             uncertainty_mm: r.uncertainty_mm,
             refused,
             readings,
+            refined: cam.refined,
+            kept: cam.kept.clone(),
         }))
 }
 
-/// Simulated axes of the click flow (and the perfect camera) per rendered camera axis.
+/// Simulated axes of the clicks taken as clicked and the perfect camera (nothing rendered) per
+/// camera axis.
 const CLICK_AXES_PER_CAMERA_AXIS: usize = 5;
+
+/// The clicks refined from rendered pictures (16 per axis, shared by both screens) run on this
+/// share of the camera's axes: 30 of 40 add about 11 s of the bench's 73 s (user time on the
+/// bench host, 2026-11-27); 40 added 15 s.
+fn rendered_click_axes(camera_axes: usize) -> usize {
+    (3 * camera_axes).div_ceil(4)
+}
 
 /// One reader's figures over the simulated axes.
 #[derive(Debug, Default)]
@@ -330,6 +442,8 @@ struct ReaderTally {
     unfinished: usize,
     refused: usize,
     readings: usize,
+    refined: usize,
+    kept: std::collections::BTreeMap<String, usize>,
 }
 
 impl ReaderTally {
@@ -341,6 +455,10 @@ impl ReaderTally {
         self.covered_b += usize::from(eb.abs() <= COVER_K * r.uncertainty_mm);
         self.refused += r.refused;
         self.readings += r.readings;
+        self.refined += r.refined;
+        for (k, v) in &r.kept {
+            *self.kept.entry(k.clone()).or_default() += v;
+        }
     }
 
     fn cover_pct(&self, against_b: bool) -> f64 {
@@ -402,11 +520,14 @@ pub(super) fn bench_camera(
     let axes = args.camera_axes.max(5);
     println!(
         "  camera and click procedures, 5 cycles, {axes} simulated axes per model for the camera, \
-         {} for the clicks and a perfect camera (the daemon's solver): error = estimate − the lost motion between the two approaches, the value \
+         {} for the clicks refined from the rendered pictures (both screens clicking in the \
+         same pictures), {} for the clicks taken as clicked and a perfect camera (the daemon's \
+         solver): error = estimate − the lost motion between the two approaches, the value \
          SET_BACKLASH_COMPENSATION must cancel. It is the play b, and on model 2 also the \
          stick-slip: every stop falls short by U·{:.0} µm (U uniform 0–1) in the direction of \
          travel, so the two approaches differ by b + {:.0} µm on average and vary cycle to \
          cycle (play sd {:.0} µm per reversal); only that mean can be compensated",
+        rendered_click_axes(axes),
         CLICK_AXES_PER_CAMERA_AXIS * axes,
         1000.0 * MODELS[1].slip_mm,
         1000.0 * MODELS[1].slip_mm,
@@ -417,17 +538,22 @@ pub(super) fn bench_camera(
         // Per reader: errors against the lost motion and against b, coverage of ±2u for both.
         let readers: Vec<(String, Reader)> =
             std::iter::once(("camera".to_string(), Reader::Detect))
-                .chain(
-                    SCREENS
-                        .iter()
-                        .map(|sc| (format!("clicks {}", sc.name), Reader::Click(*sc))),
-                )
+                .chain(SCREENS.iter().flat_map(|sc| {
+                    [
+                        (format!("clicks {}", sc.name), Reader::Click(*sc)),
+                        (
+                            format!("clicks {} as clicked (anchor)", sc.name),
+                            Reader::RawClick(*sc),
+                        ),
+                    ]
+                }))
                 .collect();
         let mut tallies: Vec<ReaderTally> =
             readers.iter().map(|_| ReaderTally::default()).collect();
         let mut perfect = ReaderTally::default();
-        // The click and perfect-camera readers render nothing: they run on more axes, so
-        // their coverage is measured to about ±1.5 %; the camera on the first `axes`.
+        // The camera runs on the first `axes`, the clicks refined from rendered pictures (shared
+        // by both screens) on the first `rendered_click_axes`, the clicks as clicked and the
+        // perfect camera (nothing rendered) on CLICK_AXES_PER_CAMERA_AXIS times as many.
         for i in 0..CLICK_AXES_PER_CAMERA_AXIS * axes {
             let seed = rng.u64(..);
             let mut axis_rng = fastrand::Rng::with_seed(seed);
@@ -438,8 +564,12 @@ pub(super) fn bench_camera(
             } else {
                 Family::DarkTip
             };
+            // The click flow is for cameras the detector cannot read: a third of its axes
+            // show two nozzles.
+            let click_fam = [Family::Ring, Family::DarkTip, Family::TwoNozzles][i % 3];
             // The same axis (play, camera) read by each reader, and by a perfect camera: what
             // the mechanics alone allow.
+            let mut frames = Vec::new();
             if let Some(r) = camera_procedure(
                 model,
                 b,
@@ -448,15 +578,35 @@ pub(super) fn bench_camera(
                 Reader::Perfect,
                 params,
                 &mut axis_rng.clone(),
+                &mut frames,
             )? {
                 perfect.add(&r, lost, b);
             }
             for (k, (_, reader)) in readers.iter().enumerate() {
-                if k == 0 && i >= axes {
+                let limit = match reader {
+                    Reader::Detect => axes,
+                    Reader::Click(_) => rendered_click_axes(axes),
+                    _ => usize::MAX,
+                };
+                if i >= limit {
                     continue;
                 }
+                let f = if matches!(reader, Reader::Detect) {
+                    fam
+                } else {
+                    click_fam
+                };
                 let t = &mut tallies[k];
-                match camera_procedure(model, b, 5, fam, *reader, params, &mut axis_rng.clone())? {
+                match camera_procedure(
+                    model,
+                    b,
+                    5,
+                    f,
+                    *reader,
+                    params,
+                    &mut axis_rng.clone(),
+                    &mut frames,
+                )? {
                     Some(r) => t.add(&r, lost, b),
                     None => t.unfinished += 1,
                 }
@@ -465,6 +615,18 @@ pub(super) fn bench_camera(
         let (g5, s1) = guided.get(mi).map_or((f64::NAN, f64::NAN), |g| (g.1, g.2));
         for (k, ((label, reader), t)) in readers.iter().zip(&tallies).enumerate() {
             let e95 = p95(&t.errors);
+            if let Reader::RawClick(_) = reader {
+                let n = t.errors.len().max(1) as f64;
+                println!(
+                    "      [anchor: the same clicks taken as clicked, as before the refinement: \
+                     p95 |error| {:.1} µm, mean {:+.1} µm, ±2u covers {:.1} %, unfinished {}]",
+                    1000.0 * e95,
+                    1000.0 * t.errors.iter().sum::<f64>() / n,
+                    t.cover_pct(false),
+                    t.unfinished
+                );
+                continue;
+            }
             let target_mm = if k == 0 { 0.003 } else { 0.005 };
             let good = e95 <= target_mm && t.unfinished == 0;
             let cover = t.cover_pct(false);
@@ -474,7 +636,9 @@ pub(super) fn bench_camera(
             let bias = t.errors.iter().sum::<f64>() / n;
             let (presses, time_s) = match reader {
                 // A first click on the whole picture zooms in, then one click per reading.
-                Reader::Click(_) => (1.0 + t.readings as f64 / n, click_time_s(5)),
+                Reader::Click(_) | Reader::RawClick(_) => {
+                    (1.0 + t.readings as f64 / n, click_time_s(5))
+                }
                 _ => (0.0, camera_time_s(5)),
             };
             let anchors = if k == 0 {
@@ -520,6 +684,19 @@ pub(super) fn bench_camera(
                     1000.0 * p95(&t.errors_b),
                     1000.0 * t.errors_b.iter().sum::<f64>() / n,
                     t.cover_pct(true)
+                );
+            }
+            if let Reader::Click(_) = reader {
+                let kept: usize = t.kept.values().sum();
+                println!(
+                    "      refinement from the pictures (a third of the axes show two nozzles): \
+                     {} of {} clicks refined, {} kept as clicked with the reason ({:.2} %) {:?}; \
+                     each axis's first click is the reference",
+                    t.refined,
+                    t.readings,
+                    kept,
+                    100.0 * kept as f64 / t.readings.max(1) as f64,
+                    t.kept
                 );
             }
         }

@@ -159,6 +159,33 @@ fn snapshot_figure(h: &mut String, s: &Value) {
     );
 }
 
+/// For the click flow: how many clicks were refined from the pictures, and each one kept as
+/// clicked with the reason.
+fn clicks_refined(rep: &Value) -> String {
+    let clicks = rep["clicks"].as_u64().unwrap_or(0);
+    if clicks == 0 {
+        return String::new();
+    }
+    let kept: Vec<String> = rep["kept"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(Value::as_str)
+        .map(|k| format!("<li>{}</li>", esc(k)))
+        .collect();
+    format!(
+        "<p class=\"refined\">{} of {clicks} clicks refined from the pictures against the first \
+         (the reference); {} kept as clicked</p>{}",
+        text(&rep["refined"]),
+        kept.len(),
+        if kept.is_empty() {
+            String::new()
+        } else {
+            format!("<ul class=\"kept\">{}</ul>", kept.join(""))
+        }
+    )
+}
+
 /// One axis read through the camera: each cycle's approach positions and backlash, then the
 /// median and spread the result gives.
 fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
@@ -166,7 +193,7 @@ fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
     let _ = write!(
         h,
         "<div class=\"scroll camera\" data-key=\"{}\"><p><b>{}</b> from webcam '{}': \
-         {} px/mm, rotation {}°, {} frames ({} refused and taken again)</p>\
+         {} px/mm, rotation {}°, {} frames ({} refused and taken again)</p>{}\
          <table><tr><th>cycle</th><th>from below mm</th><th>from above mm</th><th>backlash mm</th></tr>",
         esc(key),
         esc(&key.to_uppercase()),
@@ -180,7 +207,8 @@ fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
             .map(|v| format!("{v:.1}"))
             .unwrap_or_default(),
         text(&rep["frames"]),
-        text(&rep["refused_frames"])
+        text(&rep["refused_frames"]),
+        clicks_refined(rep)
     );
     let outliers: Vec<u64> = result["outliers"]
         .as_array()
@@ -275,5 +303,22 @@ mod tests {
         st["session"]["snapshot"]["centre_px"] = Value::Null;
         st["session"]["snapshot"]["refused"] = json!("two candidates");
         assert!(render(&st, None).contains("X cycle 1/5 &lt;b&gt;: no reading, two candidates"));
+        // The click flow: how many clicks the pictures refined, and each one kept with why.
+        assert!(!render(&st, None).contains("clicks refined"));
+        st["session"]["camera"]["x"]["clicks"] = json!(14);
+        st["session"]["camera"]["x"]["refined"] = json!(12);
+        st["session"]["camera"]["x"]["kept"] =
+            json!(["X cycle 2/4: click kept as clicked, ±1.90 px: <two> places match"]);
+        let page = render(&st, None);
+        assert!(
+            page.contains(
+                "12 of 14 clicks refined from the pictures against the first (the \
+                           reference); 1 kept as clicked"
+            ),
+            "{page}"
+        );
+        assert!(page.contains(
+            "<li>X cycle 2/4: click kept as clicked, ±1.90 px: &lt;two&gt; places match</li>"
+        ));
     }
 }

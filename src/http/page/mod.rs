@@ -347,6 +347,8 @@ mod tests {
             refused_frames: 0,
             last_px: None,
             clicks: 0,
+            refined: 0,
+            kept: Vec::new(),
         }
     }
 

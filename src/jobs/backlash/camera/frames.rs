@@ -56,13 +56,19 @@ fn still(a: &Frame, b: &Frame) -> bool {
 }
 
 /// One reading: the mean of the still frames ([`settled`]).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub(crate) struct Seen {
     pub centre_px: [f64; 2],
     pub uncertainty_px: f64,
     /// Frames taken, and refused by detection.
     pub frames: usize,
     pub refused: usize,
+    /// A click refined from the pictures ([`crate::calib::nozzle::ClickReader`]).
+    #[serde(default)]
+    pub refined: bool,
+    /// Why a click was kept as it was, if it was.
+    #[serde(default)]
+    pub kept: Option<String>,
 }
 
 /// Why a frame gave no reading.
@@ -72,21 +78,20 @@ pub(super) enum Look {
 }
 
 impl Backlash {
-    /// A snapshot for the person to click in (no detection): kept for the page; its number
-    /// and size.
+    /// A snapshot for the person to click in (no detection): kept for the page; its number,
+    /// size and grey pixels (the click is refined from them).
     pub(in crate::jobs::backlash) async fn snapshot_for_click(
         &self,
         http: &reqwest::Client,
         cam: &Webcam,
         id: i64,
         what: &str,
-    ) -> anyhow::Result<(u64, [usize; 2])> {
+    ) -> anyhow::Result<(u64, [usize; 2], Vec<u8>)> {
         let bytes = self.fetch(http, cam).await?;
         let name = cam.name.clone();
         let jpeg = bytes.clone();
-        let (w, h) = tokio::task::spawn_blocking(move || {
+        let (w, h, grey) = tokio::task::spawn_blocking(move || {
             crate::cmd::camera_render::decode_gray(&bytes)
-                .map(|(w, h, _)| (w, h))
                 .map_err(|e| user(format!("webcam '{name}': {e:#}")))
         })
         .await??;
@@ -107,7 +112,7 @@ impl Backlash {
                 zoom: None,
             },
         );
-        Ok((seq, [w, h]))
+        Ok((seq, [w, h], grey))
     }
 
     /// One frame, fetched and searched; kept for the page as `keep` = (session, what) says.
@@ -176,7 +181,7 @@ impl Backlash {
         id: i64,
         what: &str,
     ) -> anyhow::Result<Seen> {
-        self.settle_after_move().await?;
+        self.settle_after_move(0.0).await?;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
         let mut last: Vec<Frame> = Vec::new();
         while frames < 14 {
@@ -194,6 +199,8 @@ impl Backlash {
                             uncertainty_px,
                             frames,
                             refused,
+                            refined: false,
+                            kept: None,
                         });
                     }
                 }
@@ -216,11 +223,15 @@ impl Backlash {
         )))
     }
 
-    /// Waits until Klipper has finished the moves (M400), then `camera_settle_s` for the
-    /// nozzle to stop ringing: before a detected reading and before a snapshot to click in.
-    pub(in crate::jobs::backlash) async fn settle_after_move(&self) -> anyhow::Result<()> {
+    /// Waits until Klipper has finished the moves (M400), then `camera_settle_s` (at least
+    /// `min_s`) for the nozzle to stop ringing: before a detected reading and before a
+    /// snapshot to click in.
+    pub(in crate::jobs::backlash) async fn settle_after_move(
+        &self,
+        min_s: f64,
+    ) -> anyhow::Result<()> {
         self.core.m().gcode("M400").await?;
-        let settle = self.settings.camera_settle_s.clamp(0.0, 10.0);
+        let settle = self.settings.camera_settle_s.max(min_s).clamp(0.0, 10.0);
         tokio::time::sleep(Duration::from_secs_f64(settle)).await;
         Ok(())
     }

@@ -148,6 +148,12 @@ pub(crate) struct CameraReport {
     /// Readings clicked by the person (KLIPCAL_BACKLASH_CLICK) instead of detected: how many.
     #[serde(default)]
     pub clicks: usize,
+    /// Of those, refined from the pictures against the first one (the reference) …
+    #[serde(default)]
+    pub refined: usize,
+    /// … and kept as clicked: which and why.
+    #[serde(default)]
+    pub kept: Vec<String>,
 }
 
 impl CameraReport {
@@ -161,7 +167,9 @@ impl CameraReport {
                 self.detection_sd_px,
                 self.axis_px_per_mm,
                 rel * self.axis_px_per_mm,
-                self.clicks == 0,
+                // The detector's and the registration's sub-pixel errors repeat at the same
+                // nozzle positions; clicks as clicked slip afresh.
+                self.clicks == 0 || self.refined > 0,
             )
         } else {
             base.clone()
@@ -359,12 +367,16 @@ impl Backlash {
             refused_frames: 0,
             last_px: None,
             clicks: 0,
+            refined: 0,
+            kept: Vec::new(),
         };
         // The cycles' readings set the statistics' noise floor; the scale's readings enter
         // through the scale's uncertainty (a click on the whole-picture zoom of the scale
         // moves is twice as coarse as one on the cycles' zoom).
         let count = |r: &mut CameraReport, s: &Seen, cycle: bool| {
             r.clicks += usize::from(clicks);
+            r.refined += usize::from(s.refined);
+            r.kept.extend(s.kept.clone());
             r.frames += s.frames;
             r.refused_frames += s.refused;
             r.last_px = Some(s.centre_px);
