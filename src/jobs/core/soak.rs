@@ -437,13 +437,18 @@ impl BedSoak {
             } => {
                 if self.soaking_since_s.is_none() {
                     self.soaking_since_s = Some(t_s);
+                    // One row: what is assumed for an unset soak.bed or soak.frame goes on
+                    // the same line (a console filter keeps or hides it with the rest).
                     core.console(&format!(
                         "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}; {}){}",
+                         warm by at most {} ({}; {}){}{}",
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
                         self.detector.coupling().why,
                         self.detector.slowest_words(),
+                        unset_build_words(self.detector.params())
+                            .map(|w| format!("; {w}"))
+                            .unwrap_or_default(),
                         if self.prints {
                             "; KLIPCAL_SOAK_CHOICE CHOICE=print prints now"
                         } else {
@@ -451,9 +456,6 @@ impl BedSoak {
                         }
                     ))
                     .await;
-                    if let Some(words) = unset_build_words(self.detector.params()) {
-                        core.console(&format!("{title}: {words}")).await;
-                    }
                     self.last_console_s = t_s;
                 }
                 // 100 % is said when the bed is stable, not while it is being confirmed.
