@@ -361,12 +361,16 @@ impl SoakDetector {
             Some(r) if r.whole_s < base => {
                 let share = if r.slow_share == 0.0 {
                     "with the thermistor in the plate it does not reach the surface".to_string()
-                } else {
+                } else if r.slow_share < 1.0 {
                     format!(
-                        "with the thermistor in the pad (or soak.bed not set) at most {:.0} % \
-                         of it reaches the surface",
+                        "with the thermistor in the pad at most {:.0} % of it reaches the \
+                         surface",
                         r.slow_share * 100.0
                     )
+                } else {
+                    "all of it may reach the surface (soak.bed not set, or a bare plate over a \
+                     pad)"
+                        .to_string()
                 };
                 format!(
                     "{words}; a decay slower than {:.0} min is the carriage or frame warming: \

@@ -7,10 +7,11 @@ impl Ab {
     pub(super) async fn soak(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         let hold_s = s.options.hold_max_s;
-        let (params, unread) = self.settings.soak.now();
-        if let Some(why) = unread {
-            self.core.console(&format!("A/B calibration: {why}")).await;
-        }
+        let params = self
+            .settings
+            .soak
+            .for_soak(&self.core, "A/B calibration")
+            .await;
         let mut soak = BedSoak::new(
             params.clone(),
             s.options.bed_temp_c,

@@ -50,6 +50,16 @@ impl SoakSettings {
             ),
         }
     }
+
+    /// [`SoakSettings::now`] for a soak starting now, saying on the console (as `title`) why
+    /// the file was not used when it was not.
+    pub(crate) async fn for_soak(&self, core: &Core, title: &str) -> SoakParams {
+        let (params, unread) = self.now();
+        if let Some(why) = unread {
+            core.console(&format!("{title}: {why}")).await;
+        }
+        params
+    }
 }
 
 /// What the start of a soak says when `soak.bed` or `soak.frame` is not set: what klipcal

@@ -159,10 +159,7 @@ impl Mesh {
             // The bed was heated before this state was stored; if its target is no longer
             // the capture's (Klipper restarted, an emergency stop), the soak ends saying so
             // rather than heating it again behind the user's back.
-            let (params, unread) = self.soak.now();
-            if let Some(why) = unread {
-                self.core.console(&format!("thermal mesh: {why}")).await;
-            }
+            let params = self.soak.for_soak(&self.core, "thermal mesh").await;
             let mut soak = BedSoak::new(
                 params,
                 s.options.bed_temp_c,

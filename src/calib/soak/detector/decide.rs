@@ -159,7 +159,6 @@ impl SoakDetector {
                 .map_or(f64::INFINITY, |c| (pin - r_hat) * sigma2.sqrt() / c.sqrt())
         };
         let remaining_95 = (r_hat + 1.645 * sd_95).max(remaining);
-
         Some(DirectionTest {
             sign,
             best,
