@@ -171,21 +171,26 @@ impl SoakDetector {
         })
     }
 
+    /// Soaking, with no fit to tell progress or a wait from yet: `reason`.
+    fn soaking_without_a_fit(&mut self, reason: String) {
+        self.status = SoakStatus::Soaking {
+            progress: 0.0,
+            eta_s: None,
+            print_now_c: None,
+            reason,
+        };
+        self.explanation = status_reason(&self.status);
+    }
+
     pub(super) fn decide(&mut self, now_s: f64, t0: f64) {
         let p = self.params.clone();
         let span = now_s - t0;
         if self.points.len() < MIN_POINTS {
-            self.status = SoakStatus::Soaking {
-                progress: 0.0,
-                eta_s: None,
-                print_now_c: None,
-                reason: format!(
-                    "collecting power readings ({} of {MIN_POINTS} bins of {:.0} s)",
-                    self.points.len(),
-                    p.bin_s
-                ),
-            };
-            self.explanation = status_reason(&self.status);
+            self.soaking_without_a_fit(format!(
+                "collecting power readings ({} of {MIN_POINTS} bins of {:.0} s)",
+                self.points.len(),
+                p.bin_s
+            ));
             return;
         }
         let tests: Option<Vec<DirectionTest>> = self
@@ -194,13 +199,7 @@ impl SoakDetector {
             .map(|sign| self.test(*sign, now_s))
             .collect();
         let Some(tests) = tests else {
-            self.status = SoakStatus::Soaking {
-                progress: 0.0,
-                eta_s: None,
-                print_now_c: None,
-                reason: "power readings do not fit a decay yet".into(),
-            };
-            self.explanation = status_reason(&self.status);
+            self.soaking_without_a_fit("power readings do not fit a decay yet".into());
             return;
         };
         let ruled_out = tests.iter().all(|t| t.ruled_out);
