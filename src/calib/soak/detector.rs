@@ -103,6 +103,11 @@ fn grid_min_s(p: &SoakParams) -> f64 {
 /// Decays faster than this many times the grid's fastest may be negative (the controller's
 /// undershoot); slower ones are the plate's and its surroundings' and only decay.
 const FREE_TAUS: f64 = 2.5;
+/// The most a decay may hold at the start of the soak, either way, in `max_power`: the power
+/// stays within 0..max_power, so what is still to fall or rise of it is at most max_power,
+/// and a controller's swing (a free decay) no more; twice that, as the grid's neighbouring
+/// decays share a true one between them.
+const DECAY_BOUND: f64 = 2.0;
 /// Columns after the decays: the temperature's rate of change (heat into the bed's own
 /// capacity, either sign).
 const EXTRA_COLS: usize = 1;
@@ -1479,6 +1484,52 @@ mod tests {
             "{}",
             d_plate.explanation()
         );
+    }
+
+    /// A decay holds at most `DECAY_BOUND` × max_power at the start of the soak (the power
+    /// stays within 0..max_power): on an open frame with the thermistor in the plate only
+    /// decays up to 5 min reach the surface, and one of those still holding the budget's power
+    /// 17.5 min into the soak would have held more than that at its start. So even power far
+    /// too noisy for the statistics to tell anything is declared by then: the bounds rule out
+    /// what the heater cannot give.
+    #[test]
+    fn what_the_heater_cannot_give_is_ruled_out_whatever_the_noise() {
+        let bed = Synthetic {
+            heat_s: 300.0,
+            tau_s: 600.0,
+            final_power: 0.3,
+            amp: 0.0,
+            noise_sd: 0.5,
+            seed: 9,
+        };
+        let mut d = SoakDetector::new(SoakParams {
+            bed: "steel-plate".into(),
+            frame: "open".into(),
+            no_identify: true,
+            ..SoakParams::default()
+        });
+        d.set_max_power(1.0);
+        let at = bed
+            .samples(3.0 * 3600.0)
+            .into_iter()
+            .find_map(|(t, p, temp)| match d.push(t, p, temp, TARGET_C) {
+                SoakStatus::Stable { at_s } => Some(at_s),
+                _ => None,
+            })
+            .expect("declared");
+        let fit = d.fit().expect("a fit");
+        // The noise alone would keep the test from ruling the budget out for hours.
+        assert!(fit.test_sd > 2.0 * d.threshold(), "{fit:?}");
+        // The soak starts 180 s after the band (reached at 300 s); by 1050 s more, a 5-min
+        // decay (and the grid's 4-min one) holding the budget now would have held more than
+        // twice full power at that start.
+        let start = bed.heat_s + d.params().settle_s;
+        assert!(
+            at <= start + 1050.0,
+            "declared at {at} s: {}",
+            d.explanation()
+        );
+        assert!(at >= start + d.params().min_soak_s, "declared at {at} s");
     }
 
     #[test]

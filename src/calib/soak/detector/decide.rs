@@ -3,7 +3,7 @@
 
 use nalgebra::DVector;
 
-use super::super::nnls::nnls;
+use super::super::nnls::{bounded_ls, BoundedLsError};
 use super::super::Z;
 use super::*;
 
@@ -46,13 +46,37 @@ impl SoakDetector {
             .collect()
     }
 
-    /// Least squares on `sign`·power with the decays' sign constraints; with `pin` = (g, θ),
-    /// also g·c = θ.
-    fn solve(&self, sign: f64, pin: Option<(&DVector<f64>, f64)>) -> Option<Solution> {
+    /// Each coefficient's bounds: the constant and the temperature's rate free; a decay at
+    /// most `DECAY_BOUND` times `max_power` either way, and not below 0 unless it is free
+    /// (see [`SoakDetector::free`]).
+    fn bounds(&self) -> Vec<(f64, f64)> {
+        let u = DECAY_BOUND * self.max_power;
+        let free = self.free();
+        (0..free.len())
+            .map(|i| {
+                if i == 0 || i > self.taus.len() {
+                    (f64::NEG_INFINITY, f64::INFINITY)
+                } else if free[i] {
+                    (-u, u)
+                } else {
+                    (0.0, u)
+                }
+            })
+            .collect()
+    }
+
+    /// Least squares on `sign`·power with the decays' bounds; with `pin` = (g, θ), also
+    /// g·c = θ. `Err(true)` when no decays within their bounds meet the pin.
+    fn solve(&self, sign: f64, pin: Option<(&DVector<f64>, f64)>) -> Result<Solution, bool> {
         let xty = &self.xty * sign;
-        let coef = nnls(&self.xtx, &xty, &self.free(), pin)?;
+        let coef = bounded_ls(&self.xtx, &xty, &self.bounds(), pin)
+            .map_err(|e| e == BoundedLsError::PinOutOfBounds)?;
         let sse = (self.yty - 2.0 * coef.dot(&xty) + coef.dot(&(&self.xtx * &coef))).max(0.0);
-        (sse.is_finite() && coef.iter().all(|c| c.is_finite())).then_some(Solution { coef, sse })
+        if sse.is_finite() && coef.iter().all(|c| c.is_finite()) {
+            Ok(Solution { coef, sse })
+        } else {
+            Err(false)
+        }
     }
 
     /// Noise variance of a bin about the fit: (white, long-run, blocks behind the long-run
@@ -117,7 +141,7 @@ impl SoakDetector {
     /// is still to rise): the best model, and how much worse the best one is that still has
     /// `max_remaining` to go now.
     fn test(&self, sign: f64, now_s: f64) -> Option<DirectionTest> {
-        let best = self.solve(sign, None)?;
+        let best = self.solve(sign, None).ok()?;
         let (white, long, blocks) = self.noise(sign, &best.coef);
         // Few blocks make the one-minute scatter itself uncertain: widen it while they are few.
         let sigma2 = long * (1.0 + 2.0 / (blocks.max(1) as f64).sqrt());
@@ -131,8 +155,12 @@ impl SoakDetector {
             // plate-sensed bed): nothing left to rule out.
             f64::INFINITY
         } else {
-            self.solve(sign, Some((&g, theta)))
-                .map_or(0.0, |s| (s.sse - best.sse).max(0.0))
+            match self.solve(sign, Some((&g, theta))) {
+                Ok(s) => (s.sse - best.sse).max(0.0),
+                // No decay within its bounds can still hold θ now: ruled out by the bounds.
+                Err(true) => f64::INFINITY,
+                Err(false) => 0.0,
+            }
         };
         // The upper bound, from the cost of θ (exact for a linear model without active
         // constraints: cost = (θ − R̂)² / var R̂).
@@ -154,6 +182,7 @@ impl SoakDetector {
         } else {
             let pin = r_hat.max(0.0) + theta;
             self.solve(sign, Some((&g, pin)))
+                .ok()
                 .map(|s| (s.sse - best.sse).max(0.0))
                 .filter(|c| *c > 0.0)
                 .map_or(f64::INFINITY, |c| (pin - r_hat) * sigma2.sqrt() / c.sqrt())
