@@ -1532,6 +1532,59 @@ mod tests {
         assert!(at >= start + d.params().min_soak_s, "declared at {at} s");
     }
 
+    /// A small overshoot (under `OVERSHOOT_C`, so no excursion is counted) that the
+    /// controller recovers from slowly dips the power, which then rises back while the surface's
+    /// own decay still falls: the sum looks flat for a while. The rise must not hide the fall.
+    #[test]
+    fn a_slow_recovery_from_a_small_overshoot_does_not_hide_the_surface_decay() {
+        let mut rng = fastrand::Rng::with_seed(21);
+        for dip in [0.05, 0.1, 0.2, 0.3] {
+            for dip_tau in [90.0, 120.0, 150.0, 200.0, 300.0] {
+                for amp in [0.1, 0.3, 0.6] {
+                    let mut d = SoakDetector::new(SoakParams {
+                        bed: "steel-plate".into(),
+                        frame: "open".into(),
+                        no_identify: true,
+                        ..SoakParams::default()
+                    });
+                    d.set_max_power(1.0);
+                    let heat = 300.0;
+                    let mut at = None;
+                    for i in 0..=7200 {
+                        let t = f64::from(i);
+                        let (p, temp) = if t < heat {
+                            (1.0, 25.0 + (TARGET_C - 25.0) * t / heat)
+                        } else {
+                            let u = t - heat;
+                            let clean =
+                                0.25 + amp * (-u / 240.0).exp() - dip * (-u / dip_tau).exp();
+                            let over = 0.45 * (-u / dip_tau).exp();
+                            let g = rng.f64() - 0.5;
+                            (
+                                (clean + 0.05 * g).clamp(0.0, 1.0),
+                                TARGET_C + over + 0.02 * g,
+                            )
+                        };
+                        if let SoakStatus::Stable { at_s } = d.push(t, p, temp, TARGET_C) {
+                            at = Some(at_s);
+                            break;
+                        }
+                    }
+                    let at = at.expect("declared");
+                    // What the surface's decay still held, weighted as the rule weighs it.
+                    let tau: f64 = 240.0;
+                    let left =
+                        amp * (-(at - heat) / tau).exp() * (1.0 + d.coupling().charge_s / tau);
+                    assert!(
+                        left <= d.threshold(),
+                        "dip {dip} τ {dip_tau} amp {amp}: declared at {at} s with {left} left (allowed {})",
+                        d.threshold()
+                    );
+                }
+            }
+        }
+    }
+
     #[test]
     fn print_now_states_its_cost_from_the_band_on() {
         let bed = two_node_bed(1.0 / 30.0, 0.4, 6.0, 0.002, 0.012, 0.05, 3600.0, 3);
