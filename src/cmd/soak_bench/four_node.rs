@@ -136,10 +136,24 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             )
         };
         let (bound_true, bound_used) = (bound_min(&|r| r.g_true), bound_min(&|r| r.g_used));
+        let bound_within = res
+            .iter()
+            .filter(|r| {
+                let at = information_bound(
+                    r.reach_s + params.settle_s,
+                    r.sigma,
+                    params.tau_max_s,
+                    budget * r.g_used,
+                    params,
+                )
+                .max(r.reach_s + params.settle_s + params.min_soak_s);
+                at <= 1.5 * r.moment_s + 300.0
+            })
+            .count();
         // The same bound for the open frame's rule with the preset: the decays up to the stack's
         // and the air's time whole, the slower ones up to the open frame's bound at their share
         // (see `open_frame_reach`), whichever a test needs longer for.
-        let open_bound = open.then(|| {
+        let open_bound_at = open.then(|| {
             let with = SoakParams {
                 bed: crate::cmd::soak_four_node::preset_name(kind).into(),
                 frame: "open".into(),
@@ -150,33 +164,45 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                 .find(|b| b.name == with.bed)
                 .map_or(0.0, |b| b.charge_s);
             let reach = crate::calib::soak::open_frame_reach(&with.frame, &with.bed, charge);
-            median(
+            move |r: &BedResult| {
+                let from = r.reach_s + params.settle_s;
+                let theta = budget * r.preset_g_used;
+                let mut at = from + params.min_soak_s;
+                if let Some(reach) = reach {
+                    at = at.max(information_bound(
+                        from,
+                        r.sigma,
+                        reach.whole_s,
+                        theta,
+                        &with,
+                    ));
+                    if reach.slow_share > 0.0 {
+                        at = at.max(information_bound(
+                            from,
+                            r.sigma,
+                            with.slowest_s(),
+                            theta / reach.slow_share,
+                            &with,
+                        ));
+                    }
+                }
+                at
+            }
+        });
+        let open_bound = open_bound_at
+            .as_ref()
+            .map(|at| median(res.iter().map(|r| (at(r) - r.reach_s) / 60.0).collect()));
+        // Where even the information bound falls outside the window of "within 1.5 × the
+        // surface moment + 5 min", no detector of this rule can be within it.
+        let window = |r: &BedResult, at: f64| at >= r.moment_s && at <= 1.5 * r.moment_s + 300.0;
+        let open_window = open_bound_at.as_ref().map(|at| {
+            (
                 res.iter()
-                    .map(|r| {
-                        let from = r.reach_s + params.settle_s;
-                        let theta = budget * r.preset_g_used;
-                        let mut at = from + params.min_soak_s;
-                        if let Some(reach) = reach {
-                            at = at.max(information_bound(
-                                from,
-                                r.sigma,
-                                reach.whole_s,
-                                theta,
-                                &with,
-                            ));
-                            if reach.slow_share > 0.0 {
-                                at = at.max(information_bound(
-                                    from,
-                                    r.sigma,
-                                    with.slowest_s(),
-                                    theta / reach.slow_share,
-                                    &with,
-                                ));
-                            }
-                        }
-                        (at - r.reach_s) / 60.0
-                    })
-                    .collect(),
+                    .filter(|r| r.open_preset.is_some_and(|d| window(r, d)))
+                    .count(),
+                res.iter()
+                    .filter(|r| window(r, at(r).max(r.moment_s)))
+                    .count(),
             )
         });
         let soak = soak_min(&rule);
@@ -206,8 +232,9 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             soak - bound_used
         );
         println!(
-            "      within 1.5 × surface moment + 5 min: {within_all} of {} beds ({:.0} %); where G \
-             is identified: {}",
+            "      within 1.5 × surface moment + 5 min: {within_all} of {} beds ({:.0} %); the \
+             information bound of the rule (G used) within it on {bound_within} (no test of this \
+             rule can be within it where the bound is not); where G is identified: {}",
             res.len(),
             pct(within_all, res.len()),
             if ident.is_empty() {
@@ -319,10 +346,12 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                                 String::new()
                             }
                         };
+                        let (win, win_bound) = open_window.unwrap_or((0, 0));
                         format!(
                             "{}; with soak.bed = \"{}\" too: early {op}   target 0   {}; soak \
                              {}{} (information bound of this rule {:.1} min, klipcal {:.1} min \
-                             past it); not identified (a warm start: the G of soak.bed, else the \
+                             past it; within 1.5 × surface moment + 5 min on {win} of {} beds, \
+                             the information bound itself on {win_bound}); not identified (a warm start: the G of soak.bed, else the \
                              weakest): soak {} with soak.bed, {} without (early {fe}   target 0   \
                              {})",
                             target(os),
@@ -332,6 +361,7 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                             target(ps),
                             open_bound.unwrap_or(f64::NAN),
                             ps - open_bound.unwrap_or(f64::NAN),
+                            res.len(),
                             words(soak_min(&|r| r.open_preset_fixed)),
                             words(soak_min(&|r| r.open_fixed)),
                             pass(fe == 0),
