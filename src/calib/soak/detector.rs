@@ -1492,6 +1492,19 @@ mod tests {
     /// 17.5 min into the soak would have held more than that at its start. So even power far
     /// too noisy for the statistics to tell anything is declared by then: the bounds rule out
     /// what the heater cannot give.
+    /// A detector for an open frame with `soak.bed = "steel-plate"`, its coupling the preset's
+    /// (not identified) and `max_power` 1.
+    fn open_plate_sensed_steel() -> SoakDetector {
+        let mut d = SoakDetector::new(SoakParams {
+            bed: "steel-plate".into(),
+            frame: "open".into(),
+            no_identify: true,
+            ..SoakParams::default()
+        });
+        d.set_max_power(1.0);
+        d
+    }
+
     #[test]
     fn what_the_heater_cannot_give_is_ruled_out_whatever_the_noise() {
         let bed = Synthetic {
@@ -1502,13 +1515,7 @@ mod tests {
             noise_sd: 0.5,
             seed: 9,
         };
-        let mut d = SoakDetector::new(SoakParams {
-            bed: "steel-plate".into(),
-            frame: "open".into(),
-            no_identify: true,
-            ..SoakParams::default()
-        });
-        d.set_max_power(1.0);
+        let mut d = open_plate_sensed_steel();
         let at = bed
             .samples(3.0 * 3600.0)
             .into_iter()
@@ -1541,13 +1548,7 @@ mod tests {
         for dip in [0.05, 0.1, 0.2, 0.3] {
             for dip_tau in [90.0, 120.0, 150.0, 200.0, 300.0] {
                 for amp in [0.1, 0.3, 0.6] {
-                    let mut d = SoakDetector::new(SoakParams {
-                        bed: "steel-plate".into(),
-                        frame: "open".into(),
-                        no_identify: true,
-                        ..SoakParams::default()
-                    });
-                    d.set_max_power(1.0);
+                    let mut d = open_plate_sensed_steel();
                     let heat = 300.0;
                     let mut at = None;
                     for i in 0..=7200 {
