@@ -440,10 +440,15 @@ fn camera_run(
 /// (normal, `play_sd` each) and stop short by slip·U (U uniform 0–1, the two approaches'
 /// together a triangle on 0–2·slip): X1 − X2 = b + slip + that scatter, a location family in
 /// the lost motion whose density is the normal of variance 2·play_sd² + reading² convolved
-/// with the triangle. I = ∫ f′²/f, by quadrature. Nothing else the flow can see carries the
-/// lost motion: each reversal draws the play afresh and only the two stops at the point are
-/// read against each other, the turnarounds ±1 mm away being as far from the point as the
-/// scale's own error allows (1 mm of it is several µm).
+/// with the triangle. I = ∫ f′²/f, by quadrature.
+///
+/// The bound is over the cycles' readings. The turnarounds ±1 mm away add nothing: no
+/// reversal separates them from the next reading at the point (they share its play), and
+/// their distance from it is known only to the scale's error (1 mm of it is µm). The scale's
+/// readings add about one cycle: X's three sightings share one reversal's play (moving +
+/// from −1 mm), and X stays parked from above while Y's are taken; but they are 10–30 frames
+/// from the cycles, over which the mount drifts, so at most √(5/6) of this bound (about
+/// 2.65 µm for model 2's 2.9) with no drift, less with it; the solver does not use them.
 pub(super) fn cycle_fisher_info(model: &Model, reading_sd_um: f64) -> f64 {
     let sd = (2.0 * (1000.0 * model.play_sd_mm).powi(2) + reading_sd_um.powi(2))
         .sqrt()
