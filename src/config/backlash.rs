@@ -78,6 +78,7 @@ impl BacklashConfig {
             scale_rel_sd: 0.0,
             repeat_sd_mm: 0.0,
             step_mm: 0.0,
+            mean_of_cycles: false,
         }
     }
 

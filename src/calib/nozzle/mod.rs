@@ -37,7 +37,7 @@ mod background;
 mod centre;
 mod register;
 
-pub(crate) use register::ClickReader;
+pub(crate) use register::{ClickReader, ClickReading};
 
 /// A grey image borrowed from its decoder: row-major, one byte per pixel.
 #[derive(Debug, Clone, Copy)]

@@ -187,7 +187,7 @@ fn clicks_refined(rep: &Value) -> String {
 }
 
 /// One axis read through the camera: each cycle's approach positions and backlash, then the
-/// median and spread the result gives.
+/// mean (camera cycles are averaged) and spread the result gives.
 fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
     let scale = &rep["scale"];
     let _ = write!(
@@ -235,7 +235,7 @@ fn camera_cycles(h: &mut String, key: &str, rep: &Value, result: &Value) {
     if result.is_object() {
         let _ = write!(
             h,
-            "<tr class=\"median\"><th colspan=\"3\">median ± uncertainty</th><td>{} ± {}</td></tr>\
+            "<tr class=\"median\"><th colspan=\"3\">mean ± uncertainty</th><td>{} ± {}</td></tr>\
              <tr class=\"spread\"><th colspan=\"3\">spread (largest − smallest kept)</th><td>{}</td></tr>",
             f4(&result["backlash_mm"]),
             f4(&result["uncertainty_mm"]),

@@ -8,7 +8,9 @@ use serde::{Deserialize, Serialize};
 use super::super::snapshot::SnapshotInfo;
 use super::super::Backlash;
 use super::Webcam;
-use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
+use crate::calib::nozzle::{
+    self, ClickReader, ClickReading, DetectParams, Detection, Gray, Refusal,
+};
 use crate::jobs::user;
 
 /// Frames that must agree before a reading is taken. Two were not enough: a nozzle ringing
@@ -73,9 +75,17 @@ pub(crate) struct Seen {
 
 /// Why a frame gave no reading.
 pub(super) enum Look {
-    Found(Detection),
+    /// The nozzle found, and with a [`Registration`] the frame read against its first frame.
+    Found(Detection, Option<ClickReading>),
     Refused(Refusal),
 }
+
+/// The measurement's frames read against its first one ([`ClickReader::read_detected`]):
+/// the detector finds the nozzle in each frame on its own, with a sub-pixel error that depends
+/// on where it falls on the pixel grid; registered against the first frame, the shift between
+/// two pictures of the same nozzle is measured to a few hundredths of a pixel. Shared with the
+/// blocking task that reads each frame.
+pub(super) type Registration = std::sync::Arc<std::sync::Mutex<ClickReader>>;
 
 impl Backlash {
     /// A snapshot for the person to click in (no detection): kept for the page; its number,
@@ -121,7 +131,9 @@ impl Backlash {
         http: &reqwest::Client,
         cam: &Webcam,
         keep: Option<(i64, &str)>,
+        reg: Option<&Registration>,
     ) -> anyhow::Result<Look> {
+        let reg = reg.cloned();
         let bytes = self.fetch(http, cam).await?;
         let name = cam.name.clone();
         let jpeg = bytes.clone();
@@ -140,7 +152,22 @@ impl Backlash {
                 w,
                 h,
                 match found {
-                    Ok(d) => Look::Found(d),
+                    Ok(d) => {
+                        let r = reg.map(|reg| {
+                            reg.lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                                .read_detected(
+                                    &Gray {
+                                        width: w,
+                                        height: h,
+                                        data: &grey,
+                                    },
+                                    d.centre_px,
+                                    d.uncertainty_px,
+                                )
+                        });
+                        Look::Found(d, r)
+                    }
                     Err(r) => Look::Refused(r),
                 },
             ))
@@ -148,7 +175,7 @@ impl Backlash {
         .await??;
         if let Some((session, what)) = keep {
             let (found, refused) = match &look {
-                Look::Found(d) => (Some(d), None),
+                Look::Found(d, _) => (Some(d), None),
                 Look::Refused(r) => (None, Some(r.to_string())),
             };
             self.frames.keep(
@@ -173,34 +200,48 @@ impl Backlash {
     }
 
     /// The nozzle once it is still: waits out the move, then frames until three agree
-    /// ([`settled`]); a refused frame is taken again (five in a row: the reason).
+    /// ([`settled`]); a refused frame is taken again (five in a row: the reason). Each frame is
+    /// read against the measurement's first through `reg`; one the registration refuses is
+    /// kept as detected, and said so.
     pub(super) async fn sight(
         &self,
         http: &reqwest::Client,
         cam: &Webcam,
         id: i64,
         what: &str,
+        reg: &Registration,
     ) -> anyhow::Result<Seen> {
         self.settle_after_move(0.0).await?;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
         let mut last: Vec<Frame> = Vec::new();
+        let mut kept: Vec<Option<String>> = Vec::new();
         while frames < 14 {
             frames += 1;
-            match self.look(http, cam, Some((id, what))).await? {
-                Look::Found(d) => {
+            match self.look(http, cam, Some((id, what)), Some(reg)).await? {
+                Look::Found(d, r) => {
                     in_a_row = 0;
-                    last.push((d.centre_px, d.uncertainty_px));
+                    let (at, sd, why) = r.map_or((d.centre_px, d.uncertainty_px, None), |r| {
+                        (r.at_px, r.sd_px, r.kept.map(|k| k.to_string()))
+                    });
+                    last.push((at, sd));
+                    kept.push(why);
+                    if kept.len() > STILL_FRAMES {
+                        kept.remove(0);
+                    }
                     if last.len() > STILL_FRAMES {
                         last.remove(0);
                     }
                     if let Some((centre_px, uncertainty_px)) = settled(&last) {
+                        // The frames read: registered, or one kept as detected (the reason).
+                        let read = &kept[kept.len() - (STILL_FRAMES - 1)..];
+                        let why = read.iter().flatten().next().cloned();
                         return Ok(Seen {
                             centre_px,
                             uncertainty_px,
                             frames,
                             refused,
-                            refined: false,
-                            kept: None,
+                            refined: why.is_none(),
+                            kept: why,
                         });
                     }
                 }

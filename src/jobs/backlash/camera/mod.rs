@@ -238,7 +238,7 @@ impl Backlash {
             let b = self.fetch(&http, &cam).await?;
             crate::cmd::camera_render::decode_gray(&b)
                 .map_err(|e| user(format!("webcam '{}': {e:#}", cam.name)))?;
-        } else if let Look::Refused(r) = self.look(&http, &cam, None).await? {
+        } else if let Look::Refused(r) = self.look(&http, &cam, None, None).await? {
             return Err(user(format!(
                 "webcam '{}' shows no sure nozzle: {r}",
                 cam.name
@@ -333,9 +333,11 @@ impl Backlash {
         self.clicks.forget(id);
         let total = 6 + 2 * cycles;
         let mut n = 0;
+        // Every frame of this measurement read against its first.
+        let reg: frames::Registration = Default::default();
         let mut read = |what: String| {
             n += 1;
-            let http = &http;
+            let (http, reg) = (&http, &reg);
             let k = n;
             async move {
                 if clicks {
@@ -350,7 +352,7 @@ impl Backlash {
                     .await;
                     self.ask_click(http, cam, id, &what).await
                 } else {
-                    self.sight(http, cam, id, &what).await
+                    self.sight(http, cam, id, &what, reg).await
                 }
             }
         };
