@@ -28,6 +28,14 @@ struct Run {
     moves: usize,
 }
 
+/// What one look shows the simulated person.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Seen {
+    Short,
+    Centred,
+    Past,
+}
+
 /// Runs one procedure on one axis; None when it did not finish.
 fn run_procedure(
     model: &Model,
@@ -43,7 +51,8 @@ fn run_procedure(
     let mut last_dir = 0.0f64;
     let mut h = b_mm / 2.0;
     let mut mark = 0.0f64;
-    let mut extra_done = false;
+    // What the previous look of this approach showed (a late person answers it).
+    let mut shown = Seen::Short;
     let short_tol = 0.002 + 0.006 * rng.f64();
     let mut late = person == Person::Late;
     let (mut presses, mut travel, mut moves) = (0usize, 0.0f64, 0usize);
@@ -94,27 +103,40 @@ fn run_procedure(
         let fine = g.fine_mm();
         let tol = if late { fine / 2.0 } else { short_tol };
         let seen = dir * (nozzle - mark) + model.eye_sd_mm * gauss(rng);
-        // A decision (Centred or Past); a late person jogs once more first.
-        let decide = |p: Press, extra_done: &mut bool| {
-            if late && !*extra_done {
-                *extra_done = true;
-                Press::Fine
-            } else {
-                *extra_done = false;
-                p
-            }
+        // What this look shows the person: short of their "looks centred" zone, in it, or
+        // past it. The first look after a move that is not a jog has no previous one.
+        let now = if seen < -tol {
+            Seen::Short
+        } else if seen <= tol {
+            Seen::Centred
+        } else {
+            Seen::Past
+        };
+        if g.last_jog_mm == 0.0 && !step.crossing {
+            shown = now;
+        }
+        // A late person reacts a jog late: each answer is what the previous look showed.
+        let answer = if late {
+            std::mem::replace(&mut shown, now)
+        } else {
+            now
         };
         let press = if step.crossing {
-            if seen > tol {
-                decide(Press::Past, &mut extra_done)
-            } else {
-                Press::Fine
+            match answer {
+                Seen::Short => Press::Short,
+                Seen::Centred => Press::Centred,
+                Seen::Past => Press::Past,
             }
-        } else if seen > 1.5 * fine.max(tol) && seen > 0.004 {
-            extra_done = false;
+        } else if seen > 1.5 * fine.max(tol) && seen > 0.004 && g.last_jog_mm > fine + 1e-12 {
+            // Far past after a coarse jog; after a fine one it is Past (the mark is crossed
+            // within that jog).
             Press::Overshot
-        } else if seen >= -tol || rng.f64() < model.lapse {
-            decide(Press::Centred, &mut extra_done)
+        } else if answer == Seen::Past && g.params.crossing {
+            // Through the whole mark in one fine jog.
+            Press::Past
+        } else if answer != Seen::Short || rng.f64() < model.lapse {
+            // Centred (without the crossing: at or past the mark), or a lapse.
+            Press::Centred
         } else if seen < -(coarse_mm + 0.02) || rng.f64() < model.misclick {
             // Far away, or a fine jog clicked as coarse.
             Press::Coarse
@@ -128,11 +150,10 @@ fn run_procedure(
             // A refused "centred" still far short: the person looks again. Right after a
             // coarse jog or none: as the message says, Overshot.
             Err(_)
-                if press == Press::Centred
+                if matches!(press, Press::Centred | Press::Past)
                     && g.last_jog_mm > 0.0
                     && g.last_jog_mm <= g.fine_mm() + 1e-12 =>
             {
-                extra_done = false;
                 continue;
             }
             Err(_) => g.press(Press::Overshot).ok()?,
