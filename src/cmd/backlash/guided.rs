@@ -192,7 +192,8 @@ struct Tally {
 /// `klipcal bench backlash`: per model and per person (stops short, stops late, mixed), the
 /// guided flow's 5-cycle p95 error, the coverage of its ±2u, wrong verdicts, presses and time
 /// per axis, beside the seed's single pass, the flow without the crossing and the model's
-/// bound (the same runs read by a perfect eye, [`Run::perfect`]), measured in the same run;
+/// bound (the same runs read by a perfect eye, [`Run::perfect`], as their mean and through the
+/// flow's zero-jog line), measured in the same run;
 /// `--guided-only` leaves out the camera's lines. Targets at 5 cycles: p95 ≤ 5 µm (issue 27),
 /// ±2u covering 93–97 %, ≤ 5 % wrong verdicts (a verdict is wrong when the true backlash is at
 /// most `none_needed_max_mm` and it says compensate, or at least `needed_from_mm` and it says
