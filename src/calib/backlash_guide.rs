@@ -212,16 +212,20 @@ pub enum Phase {
 pub enum Press {
     /// One coarse jog in the approach direction.
     Coarse,
-    /// One fine jog in the approach direction.
+    /// One fine jog in the approach direction (in the crossing: it still looks centred here).
     Fine,
-    /// The nozzle is centred: record this position.
+    /// The nozzle looks centred here: opens the crossing (after a fine jog) or answers in it;
+    /// one fine jog on. Without the crossing ([`GuideParams::crossing`] off): records this
+    /// position.
     Centred,
-    /// Went past the centre: re-approach from 1 mm back.
+    /// Went past the centre after a coarse jog (or centred where the approach began):
+    /// re-approach from 1 mm back.
     Overshot,
-    /// After Centred: the nozzle looks off the mark on the far side here. One fine jog on;
-    /// the second Past in a row ends the crossing.
+    /// The nozzle looks off the mark on the far side here: opens the crossing when one fine
+    /// jog took it through the whole mark, or answers in it. One fine jog on; the second Past
+    /// in a row ends the crossing.
     Past,
-    /// After Centred: the nozzle looks short of the mark again here (one fine jog on).
+    /// The nozzle looks short of the mark (again, in the crossing) here: one fine jog on.
     Short,
 }
 
