@@ -71,7 +71,9 @@ impl BacklashConfig {
             none_needed_max_mm: self.none_needed_max_mm,
             needed_from_mm: self.needed_from_mm,
             compensate_from_mm: self.compensate_from_mm,
-            jog_resolution_mm: self.fine_mm,
+            // The resolution of cycles that do not say their jog (a readings file: the
+            // seed's own jogs, 0.01 mm), not the guided flow's big fine jog.
+            jog_resolution_mm: crate::calib::backlash::BacklashParams::default().jog_resolution_mm,
             prior_cycle_sd_mm: self.prior_cycle_sd_mm,
             accel_budget_fraction: self.accel_budget_fraction,
             outlier_sigmas: self.outlier_sigmas,

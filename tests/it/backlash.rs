@@ -60,7 +60,8 @@ async fn measure(
         let seen = dir * (axis.coord(nozzle(bench)) - axis.coord(mark)) + noise;
         let fine = g.fine_mm();
         let press = if step.crossing {
-            // Centred pressed: through the mark until it looks past, then Past.
+            // Centred pressed: at each fine jog still centred (Fine) until it looks past, then
+            // Past twice.
             if seen > fine / 2.0 {
                 Press::Past
             } else {

@@ -19,7 +19,8 @@ const TRUE_X_MM: f64 = 0.08;
 const TRUE_Y_MM: f64 = 0.05;
 
 /// One press as a person at the camera would choose it: Centred where the nozzle first looks
-/// centred (within 3 µm), then fine jogs until it looks past by 3 µm, then Past.
+/// centred (within 3 µm), then at each fine jog Fine (still centred) until it looks past by
+/// 3 µm, then Past twice.
 fn choose(seen_mm: f64, crossing: bool) -> &'static str {
     if crossing {
         if seen_mm > 0.003 {
@@ -139,8 +140,9 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
     // A jog press does not repeat the dialog on the console (issue 9 item 23): one dialog per
-    // approach and one per crossing (after Centred: Fine, Past) — 4 per cycle, 3 cycles, the
-    // first shown by the start — not one per press.
+    // approach, one per crossing (after Centred: Short, Centred, Past) and one for the second
+    // look after the first Past — 6 per cycle, 3 cycles, the first shown by the start — not
+    // one per press.
     let h = crate::mainsail::history(&m).await;
     let dialogs = h
         .iter()
@@ -151,7 +153,7 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         })
         .count();
     assert!(
-        (1..=12).contains(&dialogs),
+        (1..=18).contains(&dialogs),
         "{dialogs} jog dialogs for Y: {h:#?}"
     );
     assert!(
@@ -600,7 +602,7 @@ async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_ar
         (
             "jog",
             json!({"press": "sideways"}),
-            "PRESS=sideways: expected coarse, fine, centred, past or overshot",
+            "PRESS=sideways: expected coarse, fine, centred, past, short or overshot",
             Some("_KLIPCAL_BACKLASH_JOG PRESS=sideways"),
         ),
         (

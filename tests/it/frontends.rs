@@ -885,17 +885,19 @@ async fn backlash_axis(kind: Kind) {
         if presses <= UI_PRESSES {
             if let Some(d) = ui.dialog().await {
                 minus = d.title.contains('−');
-                crossing = d.buttons.iter().any(|b| b == "Past");
+                crossing = d.buttons.iter().any(|b| b == "Short");
             }
         }
         let dir = if minus { -1.0 } else { 1.0 };
         let seen = dir * (crate::backlash::nozzle(&bench)[0] - mark[0]);
         let want = if crossing {
-            // After Centred: fine through the mark until it looks past, then Past.
+            // After Centred: at each fine jog what it looks like, until Past twice.
             if seen > 0.003 {
                 "past"
+            } else if seen < -0.003 {
+                "short"
             } else {
-                "fine"
+                "centred"
             }
         } else if seen >= -0.003 {
             "centred"

@@ -113,8 +113,9 @@ pub(super) enum Person {
     /// Calls it centred as soon as the nozzle looks within a few µm (2–8 µm, drawn per axis),
     /// whatever the jog: stops short.
     Short,
-    /// Calls it at the nearest jog, then presses one more fine jog before every decision:
-    /// stops late.
+    /// Calls it at the nearest jog (a zone of ±half a jog) and reacts a jog late: every answer
+    /// is what the previous look showed (in the flow before, whose only answers were Centred
+    /// and Past, that was one more fine jog before each): stops late.
     Late,
     /// Either, drawn per approach.
     Mixed,

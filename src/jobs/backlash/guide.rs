@@ -173,25 +173,29 @@ impl Backlash {
         };
         let axis = g.axis.name().to_uppercase();
         if step.crossing {
-            // After Centred: through the mark to where it first looks off it (issue 27: the
-            // midpoint cancels a person's own idea of "centred").
+            // After Centred: each press says what the nozzle looks like there and jogs fine
+            // on (issue 27: every answer is counted, so an early or late "looks centred" of a
+            // noisy eye is not where the reading stops).
+            let first = if step.past_once {
+                "Past once: look again after that jog. Still past? Press Past again to end the approach; otherwise say what you see."
+                    .to_string()
+            } else {
+                format!(
+                    "At each fine jog {axis}{sign}, say what the nozzle looks like now: Short (of the mark), Centred, or Past. Past twice in a row ends the approach."
+                )
+            };
             return Prompt {
                 title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
                 lines: vec![
+                    first,
                     format!(
-                        "Keep jogging {axis}{sign} fine until the nozzle first looks off the mark on the far side, then press Past."
-                    ),
-                    format!(
-                        "Fine {} mm. The reading is halfway between where it began to look centred and where it began to look past.",
+                        "Fine {} mm. Every answer counts: the reading is halfway between where it stops looking short and where it starts looking past, so answer each look as it comes, even if it looks short again.",
                         g.fine_mm()
                     ),
                 ],
                 buttons: vec![
-                    Button::new(
-                        &format!("Fine {axis}{sign}"),
-                        "_KLIPCAL_BACKLASH_JOG PRESS=fine",
-                        "secondary",
-                    ),
+                    Button::new("Short", "_KLIPCAL_BACKLASH_JOG PRESS=short", "secondary"),
+                    Button::new("Centred", "_KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
                     Button::new("Past", "_KLIPCAL_BACKLASH_JOG PRESS=past", "primary"),
                     Button::new(
                         "Overshot - start over",
@@ -206,10 +210,10 @@ impl Backlash {
             title: title_for(&axis, dir, s.carriage, step.cycle, g.params.cycles),
             lines: vec![
                 format!(
-                    "Jog {axis}{sign} until the nozzle first looks centred on the camera mark, then press Centred; never back. Use fine jogs near the mark: Centred needs one just before it."
+                    "Jog {axis}{sign} toward the camera mark, never back; fine jogs near it. At the first fine jog where the nozzle no longer looks short of the mark, say what you see: Centred, or Past if that one jog took it through the whole mark."
                 ),
                 format!(
-                    "Coarse {} mm, fine {} mm. One fine jog took it from short to past? Press Centred, then Past. Further past, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.",
+                    "Coarse {} mm, fine {} mm. Past the mark after a coarse jog, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.",
                     g.params.coarse_mm,
                     g.fine_mm(),
                     g.params.approach_mm
@@ -227,6 +231,7 @@ impl Backlash {
                     "secondary",
                 ),
                 Button::new("Centred", "_KLIPCAL_BACKLASH_JOG PRESS=centred", "primary"),
+                Button::new("Past", "_KLIPCAL_BACKLASH_JOG PRESS=past", "primary"),
                 Button::new(
                     "Overshot - start over",
                     "_KLIPCAL_BACKLASH_JOG PRESS=overshot",
@@ -356,7 +361,7 @@ impl Backlash {
         )
     }
 
-    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|past|overshot`.
+    /// `klipcal_backlash_jog PRESS=coarse|fine|centred|past|short|overshot`.
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
@@ -429,6 +434,7 @@ impl Backlash {
         Ok(
             json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
                   "phase": format!("{:?}", step.phase), "crossing": step.crossing,
+                  "past_once": step.past_once,
                   "cycle": step.cycle, "message": message}),
         )
     }

@@ -100,14 +100,14 @@ pub(crate) static OPS: &[Op<BacklashCall>] = &[
             "klipcal_backlash_jog",
             "_KLIPCAL_BACKLASH_JOG",
             "backlash/jog",
-            "backlash prompt button, PRESS=coarse, fine, centred, past or overshot (moves only in the approach direction; the reading is halfway between centred and past)",
+            "backlash prompt button, PRESS=coarse, fine, centred, past, short or overshot (moves only in the approach direction; from Centred on each press says what the nozzle looks like, until Past twice)",
             &[arg(
                 "press",
                 ArgKind::Text,
                 "fine",
-                "coarse, fine, centred, past or overshot",
+                "coarse, fine, centred, past, short or overshot",
                 "",
-                "coarse, fine, centred, past or overshot",
+                "coarse, fine, centred, past, short or overshot",
             )],
         ),
         parse: |a| {
