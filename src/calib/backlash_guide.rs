@@ -685,6 +685,51 @@ impl Guide {
     }
 }
 
+/// What one look shows a simulated person (the bench's people and the tests'): short of their
+/// "looks centred" zone, in it, or past it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) enum Seen {
+    Short,
+    Centred,
+    Past,
+}
+
+/// A simulated person's eye: the answer they give to each look.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Eye {
+    /// The look a late person answers next (the previous one).
+    shown: Seen,
+}
+
+impl Eye {
+    /// An eye whose first late answer is `shown`.
+    pub(crate) fn new(shown: Seen) -> Self {
+        Eye { shown }
+    }
+
+    /// The answer to a look that shows the nozzle `seen` mm from the mark in the approach
+    /// direction (+: past it), with a "looks centred" zone of ±`tol`. A `late` person answers
+    /// what the previous look showed (reacts a jog late); `fresh` is the first look after a
+    /// move that is not a jog, which has no previous one.
+    pub(crate) fn answer(&mut self, seen: f64, tol: f64, late: bool, fresh: bool) -> Seen {
+        let now = if seen < -tol {
+            Seen::Short
+        } else if seen <= tol {
+            Seen::Centred
+        } else {
+            Seen::Past
+        };
+        if fresh {
+            self.shown = now;
+        }
+        if late {
+            std::mem::replace(&mut self.shown, now)
+        } else {
+            now
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -720,14 +765,6 @@ mod tests {
         }
     }
 
-    /// What one look shows a person: short of their "looks centred" zone, in it, or past it.
-    #[derive(Debug, Clone, Copy, PartialEq)]
-    enum Seen {
-        Short,
-        Centred,
-        Past,
-    }
-
     /// The structural tests' sizes: a 10 µm big fine jog (the default is 20 µm).
     fn p01() -> GuideParams {
         GuideParams {
@@ -757,7 +794,7 @@ mod tests {
         let mut out = Vec::new();
         let mut step = first;
         let mut nozzle = 0.0f64;
-        let mut shown = Seen::Centred;
+        let mut look = Eye::new(Seen::Centred);
         let mut first_past: Option<f64> = None;
         loop {
             for m in &step.moves_mm {
@@ -768,22 +805,7 @@ mod tests {
             }
             let d = if step.phase == Phase::Plus { 1.0 } else { -1.0 };
             let seen = d * nozzle + eye * gauss(rng);
-            let now = if seen < -tol {
-                Seen::Short
-            } else if seen <= tol {
-                Seen::Centred
-            } else {
-                Seen::Past
-            };
-            // The first look after a move that is not a jog has no previous one.
-            if g.last_jog_mm == 0.0 && !step.crossing {
-                shown = now;
-            }
-            let answer = if late {
-                std::mem::replace(&mut shown, now)
-            } else {
-                now
-            };
+            let answer = look.answer(seen, tol, late, g.last_jog_mm == 0.0 && !step.crossing);
             let press = match (step.crossing, answer) {
                 (true, Seen::Short) => Press::Short,
                 (true, Seen::Centred) | (false, Seen::Centred) => Press::Centred,

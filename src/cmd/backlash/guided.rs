@@ -10,7 +10,7 @@ use super::models::{
     PERSONS, PRESS_S,
 };
 use crate::calib::backlash::{self, BacklashParams};
-use crate::calib::backlash_guide::{Guide, GuideAxis, GuideParams, Phase, Press};
+use crate::calib::backlash_guide::{Eye, Guide, GuideAxis, GuideParams, Phase, Press, Seen};
 use crate::cli::BenchBacklashArgs;
 use crate::config::BacklashConfig;
 
@@ -26,14 +26,6 @@ struct Run {
     /// Machine travel, mm (for the time per axis).
     travel_mm: f64,
     moves: usize,
-}
-
-/// What one look shows the simulated person.
-#[derive(Debug, Clone, Copy, PartialEq)]
-enum Seen {
-    Short,
-    Centred,
-    Past,
 }
 
 /// Runs one procedure on one axis; None when it did not finish.
@@ -52,7 +44,7 @@ fn run_procedure(
     let mut h = b_mm / 2.0;
     let mut mark = 0.0f64;
     // What the previous look of this approach showed (a late person answers it).
-    let mut shown = Seen::Short;
+    let mut look = Eye::new(Seen::Short);
     let short_tol = 0.002 + 0.006 * rng.f64();
     let mut late = person == Person::Late;
     let (mut presses, mut travel, mut moves) = (0usize, 0.0f64, 0usize);
@@ -103,24 +95,8 @@ fn run_procedure(
         let fine = g.fine_mm();
         let tol = if late { fine / 2.0 } else { short_tol };
         let seen = dir * (nozzle - mark) + model.eye_sd_mm * gauss(rng);
-        // What this look shows the person: short of their "looks centred" zone, in it, or
-        // past it. The first look after a move that is not a jog has no previous one.
-        let now = if seen < -tol {
-            Seen::Short
-        } else if seen <= tol {
-            Seen::Centred
-        } else {
-            Seen::Past
-        };
-        if g.last_jog_mm == 0.0 && !step.crossing {
-            shown = now;
-        }
-        // A late person reacts a jog late: each answer is what the previous look showed.
-        let answer = if late {
-            std::mem::replace(&mut shown, now)
-        } else {
-            now
-        };
+        // What the person answers to this look (a late one: what the previous look showed).
+        let answer = look.answer(seen, tol, late, g.last_jog_mm == 0.0 && !step.crossing);
         let press = if step.crossing {
             match answer {
                 Seen::Short => Press::Short,
