@@ -483,7 +483,28 @@ pub fn analyse(
     // crossing fall independently on the lattice when the person's zone is not a whole
     // number of jogs), not the worst case q²/6 each cycle is stated with: subtracting the
     // worst case left σ₀ at zero too often (±2u covered 80–89 % on the bench's model 2).
-    let lattice_typ = 0.5 * lattice;
+    // Each residual holds its own cycle's share less what the fit took up (its leverage
+    // hᵢ: 1/m for the mean; 1/m + (qᵢ − q̄)²/Σ(q − q̄)² for the line), so the residuals'
+    // expected sum of squares is Σ(1 − hᵢ)(σ₀² + Lᵢ) and the lattice's share of s² is
+    // Σ(1 − hᵢ)Lᵢ/dof. For the mean that is the mean share; for the line through two jog
+    // sizes the few big-jog cycles' share is mostly absorbed by the line (a big-jog pair
+    // leaves half of it), and subtracting the mean share took out more than was there,
+    // leaving σ₀ at zero too often (issue 27: ±2u covered 84 % on model 2 with a 40 µm jog).
+    let lattice_typ = if dof >= 1 {
+        keep.iter()
+            .map(|&i| {
+                let h = if linear {
+                    1.0 / m + (qs[i] - qbar).powi(2) / sqq
+                } else {
+                    1.0 / m
+                };
+                (1.0 - h) * quant(i) / 2.0
+            })
+            .sum::<f64>()
+            / dof as f64
+    } else {
+        0.5 * lattice
+    };
     // For the line through jogged cycles the t factor widens the whole residual variance,
     // the jog lattice's share in it included, since the whole is what a few cycles estimate;
     // the known typical share is taken out after (widening only what was left after taking
