@@ -692,3 +692,98 @@ async fn apply_from_the_macro(m: &Moonraker, needle: &str) -> (Vec<String>, Vec<
     let all = rows(crate::mainsail::history(m).await);
     (with(&all), all)
 }
+
+/// The toolhead's commanded X, once it is within 1e-4 mm of `want` (None after 15 s).
+async fn toolhead_x_reaches(m: &Moonraker, want: impl Fn(f64) -> bool) -> Option<f64> {
+    crate::bench::poll(Duration::from_secs(15), || async {
+        let st = m
+            .objects_query(json!({"toolhead": ["position"]}))
+            .await
+            .ok()?;
+        let x = st["toolhead"]["position"][0].as_f64()?;
+        want(x).then_some(x)
+    })
+    .await
+}
+
+/// Types `_KLIPCAL_BACKLASH_JOG PRESS={press}` and waits for the toolhead's X to be `by` on
+/// from `from`: the new X.
+async fn typed_jog(m: &Moonraker, press: &str, from: f64, by: f64) -> f64 {
+    m.gcode(&format!("_KLIPCAL_BACKLASH_JOG PRESS={press}"))
+        .await
+        .unwrap();
+    toolhead_x_reaches(m, |x| (x - (from + by)).abs() < 1e-4)
+        .await
+        .unwrap_or_else(|| panic!("PRESS={press} from {from}: not moved by {by}"))
+}
+
+/// The jog dialog's buttons are macros: typed as Klipper runs them (`printer/gcode/script`),
+/// each moves the nozzle by what it says, a refused one moves nothing and says why on the
+/// console, and Short in the crossing is counted in the reading (issue 27: the ladder's near
+/// edge moves one fine jog per Short, so the X1 recorded is the entry + q with one Short,
+/// + q/2 without).
+#[tokio::test]
+async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_the_reading() {
+    let bench = Bench::start_args(
+        "cartesian",
+        &["--backlash-module", "seed", "--play", r#"{"x": 0.05}"#],
+    );
+    let point = [100.0, 100.0, 0.0];
+    let (d, m, _c, _mark) = at_the_camera(&bench, point).await;
+    m.gcode("KLIPCAL_BACKLASH_START AXIS=X").await.unwrap();
+    // The approach starts 1 mm back plus up to one coarse jog of dither.
+    let mut x = toolhead_x_reaches(&m, |x| (point[0] - 1.1..=point[0] - 1.0).contains(&x))
+        .await
+        .unwrap_or_else(|| panic!("no approach start\n{}", d.log_text()));
+    for _ in 0..8 {
+        x = typed_jog(&m, "coarse", x, 0.1).await;
+    }
+    x = typed_jog(&m, "fine", x, 0.02).await;
+    // Centred opens the crossing and jogs one fine step on.
+    let entry = x;
+    x = typed_jog(&m, "centred", x, 0.02).await;
+    // In the crossing a coarse jog is refused: nothing moves and the console says why.
+    let from = crate::mainsail::history(&m).await.len();
+    m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=coarse").await.unwrap();
+    let said = crate::bench::poll(Duration::from_secs(15), || async {
+        crate::mainsail::history(&m)
+            .await
+            .into_iter()
+            .skip(from)
+            .find(|(_, t)| t.contains("only fine jogs"))
+    })
+    .await;
+    assert!(said.is_some(), "no refusal of PRESS=coarse in the crossing");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(toolhead_x_reaches(&m, |now| (now - x).abs() < 1e-9)
+        .await
+        .is_some());
+    // Short, then Past twice: the reading.
+    x = typed_jog(&m, "short", x, 0.02).await;
+    x = typed_jog(&m, "past", x, 0.02).await;
+    let from = crate::mainsail::history(&m).await.len();
+    m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=past").await.unwrap();
+    let recorded = crate::bench::poll(Duration::from_secs(15), || async {
+        crate::mainsail::history(&m)
+            .await
+            .into_iter()
+            .skip(from)
+            .find_map(|(_, t)| {
+                let (head, _) = t.split_once(" mm recorded")?;
+                head.rsplit(' ').next()?.parse::<f64>().ok()
+            })
+    })
+    .await
+    .unwrap_or_else(|| panic!("no reading recorded\n{}", d.log_text()));
+    // Entry C at the big jog q: near edge C − q/2 + q (one Short), far edge C − q/2 + 2q (two
+    // positions not called Past), midpoint C + q.
+    assert!(
+        (recorded - (entry + 0.02)).abs() < 1e-4,
+        "recorded {recorded}, entry {entry} (Short not counted: {})",
+        entry + 0.01
+    );
+    // Seed step 5: from there 1 mm further in +.
+    toolhead_x_reaches(&m, |now| now > x + 0.9)
+        .await
+        .unwrap_or_else(|| panic!("no turn after the reading\n{}", d.log_text()));
+}
