@@ -136,7 +136,7 @@ impl Default for GuideParams {
             cycles: 5,
             approach_mm: 1.0,
             coarse_mm: 0.1,
-            fine_mm: 0.02,
+            fine_mm: 0.04,
             small_fine_mm: 0.0025,
             max_travel_mm: 3.0,
             plausible_mm: 0.3,
@@ -765,7 +765,7 @@ mod tests {
         }
     }
 
-    /// The structural tests' sizes: a 10 µm big fine jog (the default is 20 µm).
+    /// The structural tests' sizes: a 10 µm big fine jog (the default is 40 µm).
     fn p01() -> GuideParams {
         GuideParams {
             fine_mm: 0.01,
@@ -900,7 +900,7 @@ mod tests {
                 "tol {tol}: per approach {reading:+.2} µm (first changes {first:+.2}), \
                  estimate {mean:+.2} µm (before {before:+.2}), p95 {p95:.2} µm, ±2u {cover} %"
             );
-            assert!(first < -0.4 && before < -1.0, "{all}");
+            assert!(first < -0.2 && before < -1.0, "{all}");
             assert!(reading.abs() < 0.25 && mean.abs() < 0.5, "{all}");
             assert!(p95 < 5.0 && (92.0..=98.0).contains(&cover), "{all}");
         }
@@ -917,8 +917,10 @@ mod tests {
             "per approach {reading:+.2} µm, estimate {mean:+.2} µm (before {before:+.2}), \
              p95 {p95:.2} µm, ±2u {cover} %"
         );
-        // One jog late: cycles at 20 µm (2 of 5) and 2.5 µm (3 of 5), 9.5 µm on average.
-        assert!((reading - 9.5).abs() < 0.5, "{all}");
+        // One jog late: cycles at the big jog (2 of 5) and the small one (3 of 5).
+        let p = GuideParams::default();
+        let jog = 1000.0 * (2.0 * p.fine_mm + 3.0 * p.small_fine_mm) / 5.0;
+        assert!((reading - jog).abs() < 0.5, "{all}");
         assert!(mean.abs() < 1.0, "{all}");
         assert!(p95 < 5.0 && (92.0..=99.0).contains(&cover), "{all}");
     }

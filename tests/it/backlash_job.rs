@@ -735,13 +735,15 @@ async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_th
     let mut x = toolhead_x_reaches(&m, |x| (point[0] - 1.1..=point[0] - 1.0).contains(&x))
         .await
         .unwrap_or_else(|| panic!("no approach start\n{}", d.log_text()));
+    // The first cycle's fine jog is the big one (the daemon's default).
+    let q = klipcal::calib::backlash_guide::GuideParams::default().fine_mm;
     for _ in 0..8 {
         x = typed_jog(&m, "coarse", x, 0.1).await;
     }
-    x = typed_jog(&m, "fine", x, 0.02).await;
+    x = typed_jog(&m, "fine", x, q).await;
     // Centred opens the crossing and jogs one fine step on.
     let entry = x;
-    x = typed_jog(&m, "centred", x, 0.02).await;
+    x = typed_jog(&m, "centred", x, q).await;
     // In the crossing a coarse jog is refused: nothing moves and the console says why.
     let from = crate::mainsail::history(&m).await.len();
     m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=coarse").await.unwrap();
@@ -759,8 +761,8 @@ async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_th
         .await
         .is_some());
     // Short, then Past twice: the reading.
-    x = typed_jog(&m, "short", x, 0.02).await;
-    x = typed_jog(&m, "past", x, 0.02).await;
+    x = typed_jog(&m, "short", x, q).await;
+    x = typed_jog(&m, "past", x, q).await;
     let from = crate::mainsail::history(&m).await.len();
     m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=past").await.unwrap();
     let recorded = crate::bench::poll(Duration::from_secs(15), || async {
@@ -778,9 +780,9 @@ async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_th
     // Entry C at the big jog q: near edge C − q/2 + q (one Short), far edge C − q/2 + 2q (two
     // positions not called Past), midpoint C + q.
     assert!(
-        (recorded - (entry + 0.02)).abs() < 1e-4,
+        (recorded - (entry + q)).abs() < 1e-4,
         "recorded {recorded}, entry {entry} (Short not counted: {})",
-        entry + 0.01
+        entry + q / 2.0
     );
     // Seed step 5: from there 1 mm further in +.
     toolhead_x_reaches(&m, |now| now > x + 0.9)

@@ -389,13 +389,16 @@ pub(crate) fn bench(
             }
         );
         let l95 = p95(&lines);
+        let ratio = base.fine_mm / base.small_fine_mm;
         println!(
             "   bound through the zero-jog line on model {}: p95 {:.1} µm: the same perfect eye's \
              cycles read as the flow reads its own (the line through the two jog sizes at a zero \
-             jog, which removes a person's lateness and weighs the small-jog cycles by 4/3 and \
-             the big ones by −1/3 here): {}",
+             jog, which removes a person's lateness and weighs the small-jog cycles by {:.2} and \
+             the big ones by −{:.2} here, the jogs' ratio r giving r/(r − 1) and 1/(r − 1)): {}",
             mi + 1,
             1000.0 * l95,
+            ratio / (ratio - 1.0),
+            1.0 / (ratio - 1.0),
             if l95 > 0.005 {
                 "above 5 µm, so with the lateness removed the target is out of reach at 5 cycles \
                  on this model whatever the eye"
