@@ -717,6 +717,24 @@ async fn typed_jog(m: &Moonraker, press: &str, from: f64, by: f64) -> f64 {
         .unwrap_or_else(|| panic!("PRESS={press} from {from}: not moved by {by}"))
 }
 
+/// Types `line` and waits up to 15 s for a console row after it that `pick` takes.
+async fn typed_and_said<T>(
+    m: &Moonraker,
+    line: &str,
+    pick: impl Fn(&str) -> Option<T>,
+) -> Option<T> {
+    let from = crate::mainsail::history(m).await.len();
+    m.gcode(line).await.unwrap();
+    crate::bench::poll(Duration::from_secs(15), || async {
+        crate::mainsail::history(m)
+            .await
+            .into_iter()
+            .skip(from)
+            .find_map(|(_, t)| pick(&t))
+    })
+    .await
+}
+
 /// The jog dialog's buttons are macros: typed as Klipper runs them (`printer/gcode/script`),
 /// each moves the nozzle by what it says, a refused one moves nothing and says why on the
 /// console, and Short in the crossing is counted in the reading (issue 27: the ladder's near
@@ -745,14 +763,8 @@ async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_th
     let entry = x;
     x = typed_jog(&m, "centred", x, q).await;
     // In the crossing a coarse jog is refused: nothing moves and the console says why.
-    let from = crate::mainsail::history(&m).await.len();
-    m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=coarse").await.unwrap();
-    let said = crate::bench::poll(Duration::from_secs(15), || async {
-        crate::mainsail::history(&m)
-            .await
-            .into_iter()
-            .skip(from)
-            .find(|(_, t)| t.contains("only fine jogs"))
+    let said = typed_and_said(&m, "_KLIPCAL_BACKLASH_JOG PRESS=coarse", |t| {
+        t.contains("only fine jogs").then_some(())
     })
     .await;
     assert!(said.is_some(), "no refusal of PRESS=coarse in the crossing");
@@ -763,17 +775,9 @@ async fn the_jog_buttons_typed_as_macros_move_as_they_say_and_short_counts_in_th
     // Short, then Past twice: the reading.
     x = typed_jog(&m, "short", x, q).await;
     x = typed_jog(&m, "past", x, q).await;
-    let from = crate::mainsail::history(&m).await.len();
-    m.gcode("_KLIPCAL_BACKLASH_JOG PRESS=past").await.unwrap();
-    let recorded = crate::bench::poll(Duration::from_secs(15), || async {
-        crate::mainsail::history(&m)
-            .await
-            .into_iter()
-            .skip(from)
-            .find_map(|(_, t)| {
-                let (head, _) = t.split_once(" mm recorded")?;
-                head.rsplit(' ').next()?.parse::<f64>().ok()
-            })
+    let recorded = typed_and_said(&m, "_KLIPCAL_BACKLASH_JOG PRESS=past", |t| {
+        let (head, _) = t.split_once(" mm recorded")?;
+        head.rsplit(' ').next()?.parse::<f64>().ok()
     })
     .await
     .unwrap_or_else(|| panic!("no reading recorded\n{}", d.log_text()));
