@@ -770,11 +770,29 @@ async fn ab_round(kind: Kind) {
         ),
     };
     assert_eq!(ui.b.eval(&save).await, json!(true));
-    tokio::time::sleep(Duration::from_secs(1)).await;
+    // The front end writes its settings to Moonraker's database without waiting for the
+    // answer: reloading before the write lands loads the console without the filter (a CI
+    // run on a loaded machine did, with a fixed 1 s wait). Reload once Moonraker holds it.
+    let (m, _c) = crate::backlash::connect(&bench).await;
+    let namespace = match kind {
+        Kind::Mainsail => "mainsail",
+        Kind::Fluidd => "fluidd",
+    };
+    let stored = poll(Duration::from_secs(20), || async {
+        let v = m
+            .call("server.database.get_item", json!({"namespace": namespace}))
+            .await
+            .ok()?;
+        v.to_string().contains(&filter).then_some(())
+    })
+    .await;
+    assert!(
+        stored.is_some(),
+        "{}: the console filter never reached Moonraker's database",
+        kind.name()
+    );
     ui.b.open(&fe.url).await;
     ui.wait_ready().await;
-    tokio::time::sleep(Duration::from_secs(2)).await;
-    let filtered = ui.rows().await;
     let noise = |rows: &[(String, String)]| {
         rows.iter()
             .filter(|(_, m)| {
@@ -784,6 +802,17 @@ async fn ab_round(kind: Kind) {
             })
             .count()
     };
+    // The console is rebuilt from Moonraker's store after the page loads its settings: wait
+    // for it to settle, at most 20 s.
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let mut filtered = ui.rows().await;
+    for _ in 0..18 {
+        if noise(&filtered) == 0 {
+            break;
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        filtered = ui.rows().await;
+    }
     println!(
         "{}: after a reload {} rows ({} dialog/RESPOND/asking rows); with README's filter {} rows ({})",
         kind.name(),
