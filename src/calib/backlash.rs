@@ -548,11 +548,10 @@ pub fn analyse(
     // 1/ν). The known lattice share is not widened. Over lattice-dominated to
     // scatter-dominated cycles (0.5–8 µm, big jog 20 or 40 µm) ±2u then covers 93.8–95.9 %; with
     // three degrees of freedom and the small cycles' lattice widened too it covered 92–99 %.
+    let typical = |i: usize| quant(i) / 2.0;
     let mut sigma0_sq = if dof >= 1 {
-        let s2 = residuals.iter().map(|x| x * x).sum::<f64>() / dof as f64;
-        let t = t975(dof).min(20.0) / 1.96;
         if linear {
-            let typ: Vec<f64> = keep.iter().map(|&i| quant(i) / 2.0).collect();
+            let typ: Vec<f64> = keep.iter().map(|&i| typical(i)).collect();
             let s = scatter_beyond(&residuals, &typ, dof);
             let least = typ.iter().copied().fold(f64::INFINITY, f64::min);
             let nu: f64 = keep
@@ -566,6 +565,8 @@ pub fn analyse(
             let t = t975_between(nu).min(20.0) / 1.96;
             t * t * s
         } else {
+            let s2 = residuals.iter().map(|x| x * x).sum::<f64>() / dof as f64;
+            let t = t975(dof).min(20.0) / 1.96;
             t * t * (s2 - lattice_typ).max(0.0)
         }
     } else {
@@ -578,10 +579,10 @@ pub fn analyse(
     // same dithered lattice, their errors correlated by 1 − 6f(1 − f) with f the fractional
     // part of the zone's width in jogs: q²/6 for X1 − X2 when f is 0, q²/12 on average over
     // a width that varies by more than a jog. With two jog sizes the small-jog cycles carry
-    // the value (8/7 against −1/7 for 20 and 2.5 µm), and their jog is a fraction of the eye's
+    // the value (16/15 against −1/15 for 40 and 2.5 µm), and their jog is a fraction of the eye's
     // scatter: the average, q²/12 (the worst case, q²/6, left ±2u covering 98 % on the
     // bench's ideal axis). One jog size keeps the worst case.
-    let stated = |i: usize| if linear { quant(i) / 2.0 } else { quant(i) };
+    let stated = |i: usize| if linear { typical(i) } else { quant(i) };
     let var_value = if linear || params.mean_of_cycles {
         1.0
     } else {
