@@ -10,7 +10,7 @@ use std::time::Duration;
 use klipcal::calib::backlash::{analyse, BacklashParams};
 use klipcal::calib::backlash_guide::{Guide, GuideAxis, GuideParams, Phase, Press};
 use klipcal::klipper::backlash::{detect, parse_reply, set_backlash_command, Branch, SetBacklash};
-use klipcal::moonraker::Moonraker;
+use klipcal::moonraker::{Files, Moonraker};
 use serde_json::{json, Value};
 
 use crate::bench::{extension_request, Bench, Daemon};
@@ -305,4 +305,19 @@ pub async fn config_values(m: &Moonraker, section: &str, keys: &[&str]) -> Vec<f
                 })
         })
         .collect()
+}
+
+/// Presses `button` in the jog dialog (the remote method its macro calls). A refusal that says
+/// the way on ("press Overshot": the nozzle looked centred where the approach began, or right
+/// after a coarse jog) is followed as a person would; any other refusal fails the test.
+pub async fn press_jog(files: &Files, d: &Daemon, button: &str) -> Value {
+    match extension_request(files, "klipcal_backlash_jog", json!({"press": button})).await {
+        Ok(r) => r,
+        Err(e) if e.contains("press Overshot") => {
+            extension_request(files, "klipcal_backlash_jog", json!({"press": "overshot"}))
+                .await
+                .unwrap_or_else(|e| panic!("press overshot: {e}\n{}", d.log_text()))
+        }
+        Err(e) => panic!("press {button}: {e}\n{}", d.log_text()),
+    }
 }

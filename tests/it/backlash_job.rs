@@ -9,10 +9,10 @@
 use std::time::Duration;
 
 use klipcal::calib::backlash_guide::GuideAxis;
-use klipcal::moonraker::{Files, Moonraker};
+use klipcal::moonraker::Moonraker;
 use serde_json::{json, Value};
 
-use crate::backlash::{connect, nozzle, set_point};
+use crate::backlash::{connect, nozzle, press_jog, set_point};
 use crate::bench::{extension_request, Bench, Daemon};
 
 const TRUE_X_MM: f64 = 0.08;
@@ -34,21 +34,6 @@ fn choose(seen_mm: f64, crossing: bool) -> &'static str {
         "coarse"
     } else {
         "fine"
-    }
-}
-
-/// Presses `button` in the jog dialog (the remote method its macro calls). A refusal that says
-/// the way on ("press Overshot": the nozzle looked centred where the approach began, or right
-/// after a coarse jog) is followed as a person would; any other refusal fails the test.
-async fn press(files: &Files, d: &Daemon, button: &str) -> Value {
-    match extension_request(files, "klipcal_backlash_jog", json!({"press": button})).await {
-        Ok(r) => r,
-        Err(e) if e.contains("press Overshot") => {
-            extension_request(files, "klipcal_backlash_jog", json!({"press": "overshot"}))
-                .await
-                .unwrap_or_else(|e| panic!("press overshot: {e}\n{}", d.log_text()))
-        }
-        Err(e) => panic!("press {button}: {e}\n{}", d.log_text()),
     }
 }
 
@@ -103,7 +88,7 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         let dir = if phase == "Plus" { 1.0 } else { -1.0 };
         let noise = (rng.f64() * 2.0 - 1.0) * 0.0015;
         let seen = dir * (nozzle(&bench)[0] - mark[0]) + noise;
-        let r = press(&files, &d, choose(seen, crossing)).await;
+        let r = press_jog(&files, &d, choose(seen, crossing)).await;
         presses += 1;
         assert!(presses < 400, "the procedure does not converge");
         if r["state"] == "measured" {
@@ -266,7 +251,7 @@ async fn play_axis(
         let dir = if phase == "Plus" { 1.0 } else { -1.0 };
         let noise = (rng.f64() * 2.0 - 1.0) * 0.0015;
         let seen = dir * (axis.coord(nozzle(bench)) - axis.coord(mark)) + noise;
-        let r = press(&files, d, choose(seen, crossing)).await;
+        let r = press_jog(&files, d, choose(seen, crossing)).await;
         if r["state"] == "measured" {
             return r;
         }

@@ -941,13 +941,7 @@ async fn backlash_axis(kind: Kind) {
             // The rest as the existing backlash tests press (the remote method): the whole axis
             // pressed in the browser takes ~130 presses and 4 min, too long for CI; its rows
             // are counted below from the presses made here.
-            let r = extension_request(
-                &bench.files(),
-                "klipcal_backlash_jog",
-                json!({ "press": want }),
-            )
-            .await
-            .unwrap();
+            let r = crate::backlash::press_jog(&bench.files(), &d, want).await;
             minus = r["phase"] == "Minus";
             crossing = r["crossing"] == true;
             tokio::time::sleep(Duration::from_millis(50)).await;
