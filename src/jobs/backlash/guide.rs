@@ -498,10 +498,6 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
     out
 }
 
-/// The result line says what more cycles would buy when the ± is above this, mm: issue 27's
-/// 5 µm at 95 % (±2u).
-const MORE_CYCLES_TARGET_U_MM: f64 = 0.0025;
-
 /// The motor's microstep along a jogged axis, mm, from Klipper's settings (`rotation_distance
 /// / (full_steps_per_rotation · microsteps · gear_ratio)`): cartesian X, Y and Z their own
 /// stepper's; CoreXY A and B (motor directions) stepper_x's and stepper_y's, and X or Y, which

@@ -23,7 +23,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::calib::backlash::{
-    analyse, common_smooth_time_s, AxisResult, MoreCycles, SEED_SMOOTH_TIME_S,
+    analyse, common_smooth_time_s, AxisResult, MoreCycles, MORE_CYCLES_TARGET_U_MM,
+    SEED_SMOOTH_TIME_S,
 };
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
