@@ -3,8 +3,8 @@
 //! them (src/jobs/backlash/camera.rs) on simulated axes.
 
 use super::models::{
-    camera_time_s, click_time_s, gauss, p95, Model, PlayAxis, COVER_K, COVER_TARGET_PCT,
-    GUIDED_MODELS, MODELS,
+    camera_time_s, click_time_s, coverage, gauss, p95, Model, PlayAxis, COVER_K, GUIDED_MODELS,
+    MODELS,
 };
 use crate::calib::backlash::{self, BacklashParams};
 use crate::calib::backlash_guide::GuideAxis;
@@ -750,8 +750,7 @@ pub(super) fn bench_camera(
             }
             let target_mm = if k == 0 { 0.003 } else { 0.005 };
             let good = e95 <= target_mm && t.unfinished == 0;
-            let cover = t.cover_pct(false);
-            let c_ok = COVER_TARGET_PCT.contains(&cover);
+            let (c_ok, c_text) = coverage(t.covered, t.errors.len());
             ok &= good && c_ok;
             let n = t.errors.len().max(1) as f64;
             let bias = t.errors.iter().sum::<f64>() / n;
@@ -788,16 +787,13 @@ pub(super) fn bench_camera(
             };
             println!(
                 "    model {}: {label}: p95 |error| {:.1} µm (target ≤ {:.0} µm) {}   mean error \
-                 {:+.1} µm   ±2u covers {cover:.1} % (target {}–{} %) {}   presses/axis {presses:.0}   \
+                 {:+.1} µm   {c_text}   presses/axis {presses:.0}   \
                  time/axis {:.2} min   unfinished {}{anchors}",
                 mi + 1,
                 1000.0 * e95,
                 1000.0 * target_mm,
                 mark(good),
                 1000.0 * bias,
-                COVER_TARGET_PCT.start(),
-                COVER_TARGET_PCT.end(),
-                mark(c_ok),
                 time_s / 60.0,
                 t.unfinished,
             );

@@ -6,10 +6,10 @@ use std::process::ExitCode;
 
 use super::camera::bench_camera;
 use super::models::{
-    gauss, p95, Model, Person, COVER_K, COVER_TARGET_PCT, GUIDED_MODELS, JOG_MM_S, MOVE_OVERHEAD_S,
+    coverage, gauss, p95, Model, Person, COVER_K, GUIDED_MODELS, JOG_MM_S, MOVE_OVERHEAD_S,
     PERSONS, PRESS_S,
 };
-use crate::calib::backlash::{self, BacklashParams};
+use crate::calib::backlash::{self, BacklashParams, MORE_CYCLES_TARGET_U_MM};
 use crate::calib::backlash_guide::{Eye, Guide, GuideAxis, GuideParams, Phase, Press, Seen};
 use crate::cli::BenchBacklashArgs;
 use crate::config::BacklashConfig;
@@ -163,6 +163,9 @@ struct Tally {
     wrong: usize,
     graded: usize,
     unfinished: usize,
+    /// Per stated answer: its error, its u and whether it offered more cycles (its ± above
+    /// [`MORE_CYCLES_TARGET_U_MM`], as the daemon's result line says).
+    offered: Vec<(f64, f64, bool)>,
 }
 
 /// `klipcal bench backlash`: per model and per person (stops short, stops late, mixed), the
@@ -270,6 +273,12 @@ pub(crate) fn bench(
                                 if (r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm {
                                     t.covered += 1;
                                 }
+                                let more = r.more_cycles(MORE_CYCLES_TARGET_U_MM, 50);
+                                t.offered.push((
+                                    r.backlash_mm - truth,
+                                    r.uncertainty_mm,
+                                    more.is_some(),
+                                ));
                                 r.backlash_mm
                             }
                             Err(_) => {
@@ -303,7 +312,7 @@ pub(crate) fn bench(
                 let target = *ours;
                 let (e_ok, w_ok) = (e95 <= 0.005, wrong_pct <= 5.0);
                 let cover = 100.0 * t.covered as f64 / t.stated.max(1) as f64;
-                let c_ok = COVER_TARGET_PCT.contains(&cover);
+                let (c_ok, c_text) = coverage(t.covered, t.stated);
                 if target {
                     all_ok &= e_ok && w_ok && c_ok && t.unfinished == 0;
                 }
@@ -328,12 +337,7 @@ pub(crate) fn bench(
                 };
                 let cover_text = match (t.stated, target) {
                     (0, _) => String::new(),
-                    (_, true) => format!(
-                        "   ±2u covers {cover:4.1} % (target {}–{} %){}",
-                        COVER_TARGET_PCT.start(),
-                        COVER_TARGET_PCT.end(),
-                        mark(c_ok)
-                    ),
+                    (_, true) => format!("   {c_text}"),
                     (_, false) => format!("   ±2u covers {cover:4.1} %"),
                 };
                 let (b95, l95) = (p95(&t.bound), p95(&t.bound_line));
@@ -370,6 +374,9 @@ pub(crate) fn bench(
                     cost[k].1 / done / 60.0,
                     t.unfinished
                 );
+                if target && !t.offered.is_empty() {
+                    offered_line(&t.offered);
+                }
             }
             let seed = args.seed ^ ((mi as u64) << 8) ^ 0x10;
             more_cycles_line(model, person, (&base, &params), seed, axes);
@@ -416,6 +423,40 @@ pub(crate) fn bench(
     } else {
         ExitCode::FAILURE
     })
+}
+
+/// What the answer told the person (information): its stated u (median and 90th percentile)
+/// beside the rms error, how often the ± was above [`MORE_CYCLES_TARGET_U_MM`] so that the
+/// result line offered more cycles, how many of the answers off by more than the 5 µm target
+/// did so, and the p95 of those that did not: an answer that does not ask for more cycles is
+/// one the person takes as within 5 µm.
+fn offered_line(offered: &[(f64, f64, bool)]) {
+    let n = offered.len();
+    let mut us: Vec<f64> = offered.iter().map(|o| o.1).collect();
+    us.sort_by(f64::total_cmp);
+    let rms = (offered.iter().map(|o| o.0 * o.0).sum::<f64>() / n as f64).sqrt();
+    let asked = offered.iter().filter(|o| o.2).count();
+    let off: Vec<bool> = offered
+        .iter()
+        .filter(|o| o.0.abs() > 0.005)
+        .map(|o| o.2)
+        .collect();
+    let quiet: Vec<f64> = offered.iter().filter(|o| !o.2).map(|o| o.0).collect();
+    println!(
+        "      stated u: median {:.1} µm, 90 % below {:.1} µm, against an rms error of {:.1} µm; \
+         the answer offers more cycles (± above {:.1} µm) on {:.1} % of the axes, on {} of \
+         the {} off by more than 5 µm; those that did not: p95 |error| {:.1} µm over {} \
+         (information)",
+        1000.0 * us[n / 2],
+        1000.0 * us[n * 9 / 10],
+        1000.0 * rms,
+        1000.0 * MORE_CYCLES_TARGET_U_MM,
+        100.0 * asked as f64 / n as f64,
+        off.iter().filter(|more| **more).count(),
+        off.len(),
+        1000.0 * p95(&quiet),
+        quiet.len()
+    );
 }
 
 /// The flow's value from per-cycle backlash values `d` read at fine jogs `qs`: with two or
