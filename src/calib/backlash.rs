@@ -1102,6 +1102,24 @@ mod tests {
         assert!((s.uncertainty_mm.powi(2) - r.uncertainty_mm.powi(2) - 1e-6).abs() < 1e-12);
     }
 
+    /// One simulated guided cycle of a true 0.06 mm read at jog `q`: shifted by `shift_mm` (a
+    /// person's lateness), a normal scatter of `sd_mm`, and each approach's two edges falling
+    /// on its dithered jog lattice (uniform within a jog each).
+    fn simulated_cycle(rng: &mut fastrand::Rng, q: f64, shift_mm: f64, sd_mm: f64) -> Cycle {
+        let u = 1.0 - rng.f64();
+        let g = (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * rng.f64()).cos();
+        let lattice: Vec<f64> = (0..4).map(|_| rng.f64() - 0.5).collect();
+        let d = 0.06
+            + shift_mm
+            + sd_mm * g
+            + q * (lattice[0] + lattice[1] - lattice[2] - lattice[3]) / 2.0;
+        Cycle {
+            x1_mm: 100.0 + d / 2.0,
+            x2_mm: 100.0 - d / 2.0,
+            fine_mm: Some(q),
+        }
+    }
+
     #[test]
     fn with_two_jog_sizes_the_stated_uncertainty_covers_about_95_percent_of_the_time() {
         // The guide's 5 cycles: the big jog (20 or 40 µm) in cycles 1 and 3, the small one
@@ -1116,10 +1134,6 @@ mod tests {
             ..BacklashParams::default()
         };
         let mut rng = fastrand::Rng::with_seed(29);
-        let g = |rng: &mut fastrand::Rng| {
-            let u = 1.0 - rng.f64();
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * rng.f64()).cos()
-        };
         for (big, sd) in [(0.02, 0.003), (0.04, 0.003), (0.04, 0.0015), (0.04, 0.005)] {
             let trials = 4000;
             let mut hit = 0;
@@ -1127,18 +1141,7 @@ mod tests {
                 let late = 2.0 * rng.f64();
                 let cycles: Vec<Cycle> = [big, 0.0025, big, 0.0025, 0.0025]
                     .iter()
-                    .map(|&q| {
-                        let lattice: Vec<f64> = (0..4).map(|_| rng.f64() - 0.5).collect();
-                        let d = 0.06
-                            + 2.0 * late * q
-                            + sd * g(&mut rng)
-                            + q * (lattice[0] + lattice[1] - lattice[2] - lattice[3]) / 2.0;
-                        Cycle {
-                            x1_mm: 100.0 + d / 2.0,
-                            x2_mm: 100.0 - d / 2.0,
-                            fine_mm: Some(q),
-                        }
-                    })
+                    .map(|&q| simulated_cycle(&mut rng, q, 2.0 * late * q, sd))
                     .collect();
                 let r = analyse("x", &cycles, None, &p).unwrap();
                 if (r.backlash_mm - 0.06).abs() <= 2.0 * r.uncertainty_mm {
@@ -1166,10 +1169,6 @@ mod tests {
             ..BacklashParams::default()
         };
         let mut rng = fastrand::Rng::with_seed(31);
-        let g = |rng: &mut fastrand::Rng| {
-            let u = 1.0 - rng.f64();
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * rng.f64()).cos()
-        };
         let trials = 3000;
         let (mut hit, mut sq, mut us) = (0, 0.0, Vec::new());
         for _ in 0..trials {
@@ -1177,16 +1176,7 @@ mod tests {
                 .iter()
                 .map(|&q| {
                     let late = f64::from(u8::from(rng.bool()) + u8::from(rng.bool()));
-                    let lattice: Vec<f64> = (0..4).map(|_| rng.f64() - 0.5).collect();
-                    let d = 0.06
-                        + late * q
-                        + 0.002 * g(&mut rng)
-                        + q * (lattice[0] + lattice[1] - lattice[2] - lattice[3]) / 2.0;
-                    Cycle {
-                        x1_mm: 100.0 + d / 2.0,
-                        x2_mm: 100.0 - d / 2.0,
-                        fine_mm: Some(q),
-                    }
+                    simulated_cycle(&mut rng, q, late * q, 0.002)
                 })
                 .collect();
             let r = analyse("x", &cycles, None, &p).unwrap();
