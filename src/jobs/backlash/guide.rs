@@ -487,7 +487,22 @@ pub(super) fn result_text(s: &Session, results: &BTreeMap<String, AxisResult>) -
                 ),
                 MoreCycles::Never(fixed) => format!(
                     "; ± above {MORE_CYCLES_TARGET_U_MM}, and more cycles would not bring it \
-                     within: ± {fixed:.4} of it repeats in every cycle"
+                     within: ± {fixed:.4} of it repeats in every cycle{}",
+                    match s.step_mm.get(axis) {
+                        // Jogged cycles whose repeating part is mostly the motor's microstep:
+                        // the pictures read the nozzle itself, wherever the motor stops.
+                        Some(&step)
+                            if !s.camera.contains_key(axis)
+                                && step / 12f64.sqrt() >= 0.8 * fixed =>
+                        {
+                            format!(
+                                " (every jog lands on the motor's {step:.4} mm microstep; \
+                                 KLIPCAL_BACKLASH_CAMERA, or KLIPCAL_BACKLASH_CLICK on \
+                                 snapshots, reads the nozzle itself)"
+                            )
+                        }
+                        _ => String::new(),
+                    }
                 ),
             });
         }
@@ -650,6 +665,42 @@ mod tests {
         assert!(
             wide.contains("measuring again with CYCLES=") && wide.contains("would bring it to"),
             "{wide}"
+        );
+    }
+
+    #[test]
+    fn a_coarse_microstep_that_keeps_the_plus_minus_wide_names_the_picture_flows() {
+        // 16 microsteps on a 40 mm pulley: 12.5 µm, of which q/√12 = 3.6 µm repeats in every
+        // jogged cycle, above the 2.5 µm the more-cycles offer aims at.
+        let step = 0.0125;
+        let c: Vec<Cycle> = (0..5)
+            .map(|i| Cycle {
+                x1_mm: 0.08 + 0.0005 * f64::from(i % 2),
+                x2_mm: 0.0,
+                fine_mm: None,
+            })
+            .collect();
+        let p = BacklashParams {
+            step_mm: step,
+            ..BacklashParams::default()
+        };
+        let r = crate::calib::backlash::analyse("x", &c, None, &p).unwrap();
+        let one = |r: &AxisResult| BTreeMap::from([("x".to_string(), r.clone())]);
+        let mut s = session(Branch::Seed, "");
+        s.step_mm.insert("x".into(), step);
+        let text = result_text(&s, &one(&r)).join("\n");
+        assert!(
+            text.contains("would not bring it within")
+                && text.contains("0.0125 mm microstep")
+                && text.contains("KLIPCAL_BACKLASH_CLICK"),
+            "{text}"
+        );
+        // Without the microstep known the repeating part is not put down to it.
+        s.step_mm.clear();
+        let text = result_text(&s, &one(&r)).join("\n");
+        assert!(
+            text.contains("would not bring it within") && !text.contains("microstep"),
+            "{text}"
         );
     }
 
