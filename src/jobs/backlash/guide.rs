@@ -612,14 +612,19 @@ mod tests {
         s
     }
 
-    fn results(b: f64) -> BTreeMap<String, AxisResult> {
-        let c: Vec<Cycle> = (0..5)
+    /// Five cycles of `b` mm, every other one `spread` mm more.
+    fn alternating(b: f64, spread: f64) -> Vec<Cycle> {
+        (0..5)
             .map(|i| Cycle {
-                x1_mm: b + 0.001 * f64::from(i % 2),
+                x1_mm: b + spread * f64::from(i % 2),
                 x2_mm: 0.0,
                 fine_mm: None,
             })
-            .collect();
+            .collect()
+    }
+
+    fn results(b: f64) -> BTreeMap<String, AxisResult> {
+        let c = alternating(b, 0.001);
         let r = crate::calib::backlash::analyse("x", &c, Some(3000.0), &BacklashParams::default())
             .unwrap();
         assert!(r.compensate);
@@ -648,13 +653,7 @@ mod tests {
         let tight = result_text(&session(Branch::Seed, ""), &results(0.08)).join("\n");
         assert!(!tight.contains("CYCLES="), "{tight}");
         // Cycles 10 µm apart: ± above it, and a number of cycles that brings it within.
-        let c: Vec<Cycle> = (0..5)
-            .map(|i| Cycle {
-                x1_mm: 0.08 + 0.01 * f64::from(i % 2),
-                x2_mm: 0.0,
-                fine_mm: None,
-            })
-            .collect();
+        let c = alternating(0.08, 0.01);
         let r = crate::calib::backlash::analyse("x", &c, None, &BacklashParams::default()).unwrap();
         assert!(r.uncertainty_mm > MORE_CYCLES_TARGET_U_MM, "{r:?}");
         let wide = result_text(
@@ -673,13 +672,7 @@ mod tests {
         // 16 microsteps on a 40 mm pulley: 12.5 µm, of which q/√12 = 3.6 µm repeats in every
         // jogged cycle, above the 2.5 µm the more-cycles offer aims at.
         let step = 0.0125;
-        let c: Vec<Cycle> = (0..5)
-            .map(|i| Cycle {
-                x1_mm: 0.08 + 0.0005 * f64::from(i % 2),
-                x2_mm: 0.0,
-                fine_mm: None,
-            })
-            .collect();
+        let c = alternating(0.08, 0.0005);
         let p = BacklashParams {
             step_mm: step,
             ..BacklashParams::default()
