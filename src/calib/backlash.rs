@@ -392,6 +392,12 @@ fn t975_between(nu: f64) -> f64 {
     t975(lo as usize) + (t975(hi as usize) - t975(lo as usize)) * x
 }
 
+/// A fine jog as a whole number of nm, so that cycles read at the same jog group together
+/// (the jog-size line's medians, the uncertainty's degrees of freedom per size).
+fn jog_key(q: f64) -> u64 {
+    (q * 1e6).round() as u64
+}
+
 /// With inlier cycles at two or more fine-jog sizes: the slope of cycle backlash over the jog
 /// (a line through each size's median, weighted by its count), the count-weighted mean jog and
 /// Σw(q − q̄)². A stopping bias proportional to the jog (k jogs late in each approach adds
@@ -403,10 +409,7 @@ fn jog_slope(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64, f64)> {
             continue;
         }
         let q = c.fine_mm.filter(|q| q.is_finite() && *q > 0.0)?;
-        groups
-            .entry((q * 1e6).round() as u64)
-            .or_default()
-            .push(c.backlash_mm());
+        groups.entry(jog_key(q)).or_default().push(c.backlash_mm());
     }
     if groups.len() < 2 {
         return None;
@@ -598,7 +601,7 @@ pub fn analyse(
         // degrees of freedom.
         let mut sizes: BTreeMap<u64, (f64, f64)> = BTreeMap::new();
         for (j, &i) in keep.iter().enumerate() {
-            let e = sizes.entry((qs[i] * 1e6).round() as u64).or_default();
+            let e = sizes.entry(jog_key(qs[i])).or_default();
             e.0 += a(qs[i]).powi(2) * est[j];
             e.1 += 1.0 - lev[j];
         }
