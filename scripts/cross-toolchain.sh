@@ -189,10 +189,10 @@ cross_build() {
         [[ ${#extra[@]} -gt 0 ]] && export RUSTC_BOOTSTRAP=1
         timer=()
         [[ -n "${CROSS_TIME_FILE:-}" ]] && timer=(/usr/bin/time -f '%e %U %S %M' -o "$CROSS_TIME_FILE")
-        # The printer's binary carries no benchmarks nor their fixtures (feature `bench`, on by
-        # default in a checkout): what is tested under qemu is what ships.
-        "${timer[@]}" /usr/bin/cargo build --locked --profile "$profile" --target "$triple" --bin klipcal \
-            --no-default-features "${extra[@]}" --quiet 1>&2
+        # The printer's binary: the daemon alone (no benchmark crate, no simulator): what is
+        # tested under qemu is what ships.
+        "${timer[@]}" /usr/bin/cargo build --locked --profile "$profile" --target "$triple" -p klipcal \
+            --bin klipcal "${extra[@]}" --quiet 1>&2
     ) || return 1
     local pdir="$profile"
     [[ "$profile" == dev ]] && pdir=debug

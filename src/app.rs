@@ -9,7 +9,7 @@ use serde_json::{Map, Value};
 use tokio_util::sync::CancellationToken;
 use tracing::info;
 
-use crate::cli::{BenchCommand, Cli, Command};
+use crate::cli::{BenchPassArgs, Cli, Command};
 use crate::config::Config;
 use crate::moonraker::{ClientOptions, ConnState, Moonraker};
 
@@ -18,6 +18,7 @@ use crate::moonraker::{ClientOptions, ConnState, Moonraker};
 /// # Errors
 /// Bad settings, or a command that failed; the message says why.
 pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
+    let cli_config = cli.config.clone();
     let mut config = Config::load(cli.config.as_deref()).context("loading settings")?;
     // install/uninstall read a printer's Moonraker from its own folder unless told.
     let explicit_url = cli.moonraker.clone();
@@ -43,7 +44,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         .context("starting the async runtime")?;
     match cli.command {
         Command::Serve => rt.block_on(serve(config)),
-        Command::Bench(b) => bench(b, &config, &rt),
+        Command::Bench(b) => bench(&b, cli_config.as_deref()),
         Command::Check(args) => rt.block_on(check(config, args.json)),
         Command::Install(a) => rt.block_on(crate::cmd::install::install(
             &a,
@@ -81,34 +82,27 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
     }
 }
 
-/// `klipcal bench …`: the benchmarks, from a source checkout (the `bench` feature).
-#[cfg(feature = "bench")]
-fn bench(
-    b: BenchCommand,
-    config: &Config,
-    rt: &tokio::runtime::Runtime,
-) -> anyhow::Result<ExitCode> {
-    match b {
-        BenchCommand::Footprint(a) => rt.block_on(crate::cmd::bench::footprint(&a)),
-        BenchCommand::Metrology(args) => crate::cmd::bench::metrology(&args),
-        BenchCommand::Soak(a) => crate::cmd::soak_bench::bench(&a, &config.soak),
-        BenchCommand::Mesh(a) => crate::cmd::mesh::bench(&a),
-        BenchCommand::Backlash(a) => crate::cmd::backlash::bench(&a, &config.backlash),
-        BenchCommand::Camera(a) => rt.block_on(crate::cmd::bench_camera::serve(&a)),
+/// `klipcal bench …`: the benchmarks live in their own binary, `klipcal-bench`, built beside
+/// this one from a source checkout (`cargo build --workspace`); the printer's build has none.
+fn bench(b: &BenchPassArgs, config: Option<&std::path::Path>) -> anyhow::Result<ExitCode> {
+    let exe = std::env::current_exe().context("locating the klipcal binary")?;
+    let bench = exe.with_file_name("klipcal-bench");
+    if !bench.is_file() {
+        anyhow::bail!(
+            "no klipcal-bench beside {}: the benchmarks and their simulators are not part of the \
+             printer's build; from a source checkout run `cargo run -p klipcal-bench --release -- \
+             …` (or `cargo build --workspace` first)",
+            exe.display()
+        );
     }
-}
-
-/// The printer's binary is built without the benchmarks' simulators and fixtures.
-#[cfg(not(feature = "bench"))]
-fn bench(
-    _b: BenchCommand,
-    _config: &Config,
-    _rt: &tokio::runtime::Runtime,
-) -> anyhow::Result<ExitCode> {
-    anyhow::bail!(
-        "this klipcal is the printer's build, without the benchmarks and their simulators; run \
-         them from a source checkout: cargo run --release -- bench …"
-    )
+    let mut cmd = std::process::Command::new(&bench);
+    if let Some(path) = config {
+        cmd.arg("--config").arg(path);
+    }
+    // exec: the bench runs as this process (a bench.py that stops `klipcal bench camera` stops
+    // the camera, not a parent that leaves it behind).
+    let err = std::os::unix::process::CommandExt::exec(cmd.args(&b.args));
+    Err(anyhow::Error::new(err).context(format!("running {}", bench.display())))
 }
 
 fn init_tracing(level: &str) {

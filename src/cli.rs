@@ -28,9 +28,10 @@ pub enum Command {
     Check(CheckArgs),
     /// Offline: solve rotation distances and skew from a pylon layout and caliper readings.
     Solve(SolveArgs),
-    /// Benchmarks: print measured figures beside their targets.
-    #[command(subcommand)]
-    Bench(BenchCommand),
+    /// Benchmarks, from a source checkout: runs `klipcal-bench …` (the benchmarks' own binary,
+    /// built beside this one; the printer's build does not carry it).
+    #[command(disable_help_flag = true)]
+    Bench(BenchPassArgs),
     /// Generate the pylon calibration print (G-code, layout.json, optional SVG preview) offline.
     Pylons(Box<PylonsArgs>),
     /// Offline: replay a recorded bed trace through the thermal soak detector and print when
@@ -49,6 +50,14 @@ pub enum Command {
     /// Offline backlash commands (seed 004).
     #[command(subcommand)]
     Backlash(BacklashCommand),
+}
+
+/// `klipcal bench …`: everything after `bench` goes to `klipcal-bench` unchanged.
+#[derive(Debug, Args)]
+pub struct BenchPassArgs {
+    /// The benchmark and its options (`klipcal-bench --help` lists them).
+    #[arg(trailing_var_arg = true, allow_hyphen_values = true, num_args = 0..)]
+    pub args: Vec<std::ffi::OsString>,
 }
 
 /// `klipcal macros`
@@ -103,66 +112,12 @@ pub struct MeshProfilesArgs {
     pub json: bool,
 }
 
-/// `klipcal bench mesh`
-#[derive(Debug, Args)]
-pub struct BenchMeshArgs {
-    /// Seed of the probe and sensor noise.
-    #[arg(long, default_value_t = 2)]
-    pub seed: u64,
-    /// Probe noise, one σ, µm.
-    #[arg(long, default_value_t = 1.0)]
-    pub noise_um: f64,
-    /// Hours of heating (then as many of cooling).
-    #[arg(long, default_value_t = 2.0)]
-    pub hours: f64,
-    /// A mesh each time the frame moved by this, °C.
-    #[arg(long, default_value_t = 1.0)]
-    pub step_c: f64,
-    /// Profile tolerance, µm.
-    #[arg(long, default_value_t = 5.0)]
-    pub tolerance_um: f64,
-}
-
 /// `klipcal check`
 #[derive(Debug, Args)]
 pub struct CheckArgs {
     /// Print the summary as one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
-}
-
-/// `klipcal bench …`
-#[derive(Debug, Subcommand)]
-pub enum BenchCommand {
-    /// Resident memory and CPU of a running daemon beside Moonraker's and klippy's.
-    Footprint(FootprintArgs),
-    /// Closed-loop calibration accuracy on simulated machines, against the paper and the bound.
-    Metrology(MetrologyArgs),
-    /// The thermal soak detector on simulated beds, against the 1 % moment and a fixed preheat.
-    Soak(BenchSoakArgs),
-    /// Thermal bed-mesh compensation on simulated gantries, against VGB's two-mesh method.
-    Mesh(BenchMeshArgs),
-    /// The guided backlash procedure on simulated axes and people, beside the seed's single pass.
-    Backlash(BenchBacklashArgs),
-    /// The bench's nozzle camera: an HTTP snapshot server (`/?action=snapshot`, `/snapshot`)
-    /// drawing the simulated nozzle (tests/bench/bench.py --camera starts it).
-    Camera(BenchCameraArgs),
-}
-
-/// `klipcal bench camera`
-#[derive(Debug, Args)]
-pub struct BenchCameraArgs {
-    /// The bench's simulated nozzle (`[klipcal_backlash_sim] state_file`).
-    #[arg(long, value_name = "PATH")]
-    pub state_file: PathBuf,
-    /// Loopback port to serve on.
-    #[arg(long)]
-    pub port: u16,
-    /// The camera as JSON: look (ring, dark_tip, empty, two_nozzles, saturated, flat), width,
-    /// height, px_per_mm, rotation_deg, mirror, centre_mm, offset_px, radius_px, seed, ring_mm,
-    /// ring_tau_s, drop_every.
-    #[arg(long, default_value = "{}")]
-    pub spec: String,
 }
 
 /// `klipcal backlash …`
@@ -200,26 +155,6 @@ pub struct BacklashSolveArgs {
     /// Print one JSON object per axis instead of text.
     #[arg(long)]
     pub json: bool,
-}
-
-/// `klipcal bench backlash`
-#[derive(Debug, Args)]
-pub struct BenchBacklashArgs {
-    /// Simulated axes per model and person.
-    #[arg(long, default_value_t = 1000)]
-    pub axes: usize,
-    /// RNG seed.
-    #[arg(long, default_value_t = 4)]
-    pub seed: u64,
-    /// Rendered camera pictures per image family (detection figures).
-    #[arg(long, default_value_t = 100)]
-    pub camera_images: usize,
-    /// Simulated axes per model for the camera procedure (each renders about 40 pictures).
-    #[arg(long, default_value_t = 40)]
-    pub camera_axes: usize,
-    /// Only the guided flow's lines (no camera pictures rendered).
-    #[arg(long)]
-    pub guided_only: bool,
 }
 
 /// `klipcal solve`
@@ -265,48 +200,6 @@ pub enum ShearToArg {
     Motors,
     /// Klipper's skew_correction takes the shear; A and B get one common scale.
     KlipperSkew,
-}
-
-/// `klipcal bench metrology`
-#[derive(Debug, Args)]
-pub struct MetrologyArgs {
-    /// Random machines per scenario.
-    #[arg(long, default_value_t = 1000)]
-    pub machines: usize,
-    /// RNG seed.
-    #[arg(long, default_value_t = 4)]
-    pub seed: u64,
-    /// Print limit of the convergence loop.
-    #[arg(long, default_value_t = 8)]
-    pub max_prints: usize,
-}
-
-/// `klipcal bench footprint`
-#[derive(Debug, Args)]
-pub struct FootprintArgs {
-    /// PID of the klipcal daemon to measure.
-    #[arg(long)]
-    pub klipcal_pid: u32,
-    /// PID of Moonraker.
-    #[arg(long)]
-    pub moonraker_pid: u32,
-    /// PID of klippy.
-    #[arg(long)]
-    pub klippy_pid: u32,
-    /// Seconds to measure.
-    #[arg(long, default_value_t = 60.0)]
-    pub seconds: f64,
-    /// The daemon's binary, for its size.
-    #[arg(long, value_name = "PATH")]
-    pub binary: Option<PathBuf>,
-    /// Milliseconds from the daemon's start to "connected to Moonraker" (measured by the
-    /// caller, e.g. tests/bench-footprint.sh).
-    #[arg(long, value_name = "MS")]
-    pub startup_ms: Option<f64>,
-    /// The daemon's page (`http://127.0.0.1:7150`): polled while measuring as an open page
-    /// does (status every 3 s, the soak plot every 15 s).
-    #[arg(long, value_name = "URL")]
-    pub page_url: Option<String>,
 }
 
 /// `klipcal pylons`
@@ -385,18 +278,4 @@ pub struct SoakDetectArgs {
     /// instead of text.
     #[arg(long)]
     pub json: bool,
-}
-
-/// `klipcal bench soak`
-#[derive(Debug, Args)]
-pub struct BenchSoakArgs {
-    /// Number of random simulated beds.
-    #[arg(long, default_value_t = 400)]
-    pub beds: usize,
-    /// Seed of the random beds (the same seed gives the same beds).
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
-    /// Also print every bed that failed a target, with the detector's explanation.
-    #[arg(long)]
-    pub show_failures: bool,
 }

@@ -21,19 +21,13 @@
 //!   `frames` — and the click flow); and `jobs::registry`, the one module
 //!   that lists the calibrations (routing, status, cancel, resume, the hold watchdog). The
 //!   calibrations import the core, never the registry.
-//! - [`klipper`]: PURE. Klipper config text (parse, includes, edit one value in place),
-//!   G-code command text built from typed values, never from pasted user text, and the bed's
-//!   history read from klippy.log text. Files reach it through the `klipper::Files` trait;
-//!   [`fsio`] is the small std::fs implementation.
-//! - [`gcode`]: PURE. The pylon job generator (printer facts → geometry → toolpaths → G-code
-//!   text + layout).
-//! - [`calib`]: PURE. The math: statistics, differential scale, geometry fit, error budget,
-//!   thermal soak detection (`calib::soak`: settings, `stack` presets, `coupling`
-//!   identification, `detector` and its `decide` test, `nnls`), the bed-mesh fit and the frame
-//!   temperature of each probe point.
-//! - [`layout`]: PURE. The `layout.json` types shared by the pylon generator and the solver.
-//! - [`plots`]: PURE. The plots people look at (bed soak with its fitted decay, convergence
-//!   over rounds) as SVG text, drawn with plotters.
+//! - [`calib`], [`gcode`], [`klipper`], [`layout`], [`plots`]: PURE, the `klipcal-core` crate
+//!   (crates/klipcal-core), re-exported here under the paths the daemon has always used. Its
+//!   dependencies have no I/O crate (a test walks Cargo.lock): the calibration math (statistics,
+//!   differential scale, geometry fit, error budget, bed soak, thermal mesh, backlash, the nozzle
+//!   in a picture), the pylon G-code, Klipper's config text and G-code command text built from
+//!   typed values, the plots. Files reach it through the `klipper::Files` trait; [`fsio`] is
+//!   the small std::fs implementation.
 //! - [`http`]: the daemon's own page and JSON API (axum): the address/key/origin guard in front,
 //!   every operation through `agent::dispatch`, the same checks and messages as the macros.
 //!   `http::page`: the page's frame, one file per calibration's section (`ab`, `mesh`,
@@ -41,25 +35,23 @@
 //! - [`printer`]: the printer summary (`check`, `klipcal_status`) built from Moonraker answers.
 //! - [`store`]: sessions and readings in an embedded SQLite database, written before each step acts.
 //! - [`cmd`]: the offline commands, each a thin shell: `pylons`, `solve`, `soak-detect`,
-//!   `mesh fit` / `mesh profiles`, `backlash solve`, the benchmarks of `klipcal bench …`
-//!   (figures beside their targets), and `install`/`uninstall` (`cmd::install`: the pure
-//!   `plan`, then `files`, `manifest`, `host`, `webcam`, `uninstall`). `cmd::backlash`: the
-//!   offline `backlash solve`/`image`, then its bench's simulated axes and people (`models`),
-//!   the guided bench (`guided`) and the camera and click bench (`camera`).
+//!   `mesh fit` / `mesh profiles`, `backlash solve` / `image`, and `install`/`uninstall`
+//!   (`cmd::install`: the pure `plan`, then `files`, `manifest`, `host`, `webcam`,
+//!   `uninstall`). The benchmarks and every simulator are in their own crate
+//!   (crates/klipcal-bench, binary `klipcal-bench`; `klipcal bench …` runs it from a checkout).
 
 pub mod agent;
 pub mod app;
-pub mod calib;
 pub mod cli;
 pub mod cmd;
 pub mod config;
 pub mod fsio;
-pub mod gcode;
 pub mod http;
 pub mod jobs;
-pub mod klipper;
-pub mod layout;
 pub mod moonraker;
-pub mod plots;
 pub mod printer;
 pub mod store;
+
+// The pure core, its own crate (`crates/klipcal-core`), under the paths the daemon has always
+// used.
+pub use klipcal_core::{calib, gcode, klipper, layout, plots};

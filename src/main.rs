@@ -5,7 +5,7 @@ use clap::Parser;
 
 fn main() -> std::process::ExitCode {
     let cli = klipcal::cli::Cli::parse();
-    // Rust ignores SIGPIPE, so printing to a reader that has gone (`klipcal bench soak | head`)
+    // Rust ignores SIGPIPE, so printing to a reader that has gone (`klipcal-bench soak | head`)
     // panics; a one-shot command ends quietly there instead. The daemon keeps ignoring it (a
     // closed log or child pipe must not end it).
     #[cfg(unix)]

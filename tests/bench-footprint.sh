@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Footprint benchmark: starts a bench (real Moonraker + klippy + thermal plant) and the printer's
-# release daemon (built as release.sh builds it: --no-default-features, no benchmarks) connected and subscribed to it, then `klipcal bench footprint` samples for SECONDS
+# release daemon (built as release.sh builds it: the daemon alone, no benchmarks) connected and subscribed to it, then `klipcal bench footprint` samples for SECONDS
 # (default 60) and prints klipcal's RSS and CPU beside Moonraker's and klippy's RSS.
 # Targets: klipcal RSS <= 1/10 of Moonraker's with the page open; CPU < 0.5 % of one core on
 # average; release binary <= 20 MiB; start to "connected to Moonraker" <= 2 s.
@@ -9,8 +9,8 @@ cd "$(dirname "${BASH_SOURCE[0]}")/.."
 seconds="${1:-60}"
 bash tests/bench/setup.sh >/dev/null
 # The daemon measured is the printer's binary; the measuring tool is the checkout's own build.
-cargo build --release --quiet --no-default-features --target-dir target/printer
-cargo build --quiet
+cargo build --release --quiet -p klipcal --target-dir target/printer
+cargo build --workspace --quiet
 printer_bin=target/printer/release/klipcal
 run="$(mktemp -d /tmp/kc-fp-XXXXXX)"
 cleanup() {

@@ -10,7 +10,7 @@ use crate::cli::SoakDetectArgs;
 
 /// One line of a bed trace.
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub(crate) struct TraceSample {
+pub struct TraceSample {
     /// Time of the sample.
     pub t_s: f64,
     /// Heater power, fraction of full power (0..1).
@@ -26,7 +26,7 @@ const EXPECTED: &str = "expected `t_s,power,temp_c,target_c` (numbers; power 0..
 
 /// A bed trace that cannot be used.
 #[derive(Debug, thiserror::Error)]
-pub(crate) enum TraceError {
+pub enum TraceError {
     /// The file could not be read.
     #[error("cannot read trace {path}")]
     Read {
@@ -54,7 +54,7 @@ pub(crate) enum TraceError {
 ///
 /// # Errors
 /// The first bad line, named by number, with what was wrong and what is expected.
-pub(crate) fn parse_trace(text: &str) -> Result<Vec<TraceSample>, TraceError> {
+pub fn parse_trace(text: &str) -> Result<Vec<TraceSample>, TraceError> {
     let mut out: Vec<TraceSample> = Vec::new();
     let mut seen_line = false;
     for (i, raw) in text.lines().enumerate() {
@@ -200,7 +200,7 @@ pub(crate) fn detect(args: &SoakDetectArgs, params: &SoakParams) -> anyhow::Resu
 
 /// One hold of the bed at a heated target in a klippy.log, as the detector judged it.
 #[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub(crate) struct LogHold {
+pub struct LogHold {
     /// Klipper's eventtime when the target was set, s.
     pub from_eventtime_s: f64,
     /// The target before, °C.
@@ -218,7 +218,7 @@ pub(crate) struct LogHold {
 /// Every hold of the bed at a heated target in one start of Klipper, judged by a detector
 /// that sees the whole history (as the daemon would), with `max_power` when the log gives it.
 #[must_use]
-pub(crate) fn log_holds(
+pub fn log_holds(
     stats: &[crate::klipper::klippy_log::BedStat],
     max_power: Option<f64>,
     params: &SoakParams,

@@ -264,7 +264,7 @@ pub(crate) fn format_solution(s: &Solution) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::calib::bench_metrology::simulated_layout;
+    use crate::calib::sim::simulated_layout;
 
     const STEPPERS: &str = "[stepper_x]\nstep_pin: PB0\ndir_pin: PB1\nenable_pin: !PB2\nmicrosteps: 64\nrotation_distance: 40\nfull_steps_per_rotation: 400\nendstop_pin: PB3\nposition_endstop: 300\nposition_max: 300\n[stepper_y]\nstep_pin: PC0\ndir_pin: PC1\nenable_pin: !PC2\nmicrosteps: 32\nrotation_distance: 40\nendstop_pin: PC3\nposition_endstop: 300\nposition_max: 300\n";
 

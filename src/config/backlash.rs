@@ -66,7 +66,7 @@ impl Default for BacklashConfig {
 
 impl BacklashConfig {
     /// The statistics' settings.
-    pub(crate) fn params(&self) -> crate::calib::backlash::BacklashParams {
+    pub fn params(&self) -> crate::calib::backlash::BacklashParams {
         crate::calib::backlash::BacklashParams {
             none_needed_max_mm: self.none_needed_max_mm,
             needed_from_mm: self.needed_from_mm,
@@ -85,7 +85,7 @@ impl BacklashConfig {
     }
 
     /// The guided procedure's settings.
-    pub(crate) fn guide(&self) -> crate::calib::backlash_guide::GuideParams {
+    pub fn guide(&self) -> crate::calib::backlash_guide::GuideParams {
         crate::calib::backlash_guide::GuideParams {
             cycles: self.cycles,
             approach_mm: self.approach_mm,

@@ -107,7 +107,7 @@ impl Config {
     ///
     /// # Errors
     /// An unreadable file, bad TOML, an unknown key or a value out of range.
-    pub(crate) fn load(explicit: Option<&Path>) -> Result<Self, Error> {
+    pub fn load(explicit: Option<&Path>) -> Result<Self, Error> {
         let path = match explicit {
             Some(p) => p.to_path_buf(),
             None => {

@@ -46,19 +46,21 @@ fn run_all_also_runs_the_documentation_examples() {
     let calls = std::fs::read_to_string(&log).unwrap();
     let calls: Vec<&str> = calls.lines().collect();
     assert!(
-        calls.iter().any(|c| c.starts_with("test --all-targets")),
+        calls
+            .iter()
+            .any(|c| c.starts_with("test --workspace --all-targets")),
         "{calls:?}"
     );
     assert!(
         calls
             .iter()
-            .any(|c| c.starts_with("clippy --no-default-features")),
-        "run-all.sh must lint the printer's build (no bench feature) too: {calls:?}"
+            .any(|c| c.starts_with("clippy -p klipcal --lib --bins")),
+        "run-all.sh must lint the printer's build (the daemon alone) too: {calls:?}"
     );
     assert!(
         calls
             .iter()
-            .any(|c| c.split_whitespace().eq(["test", "--doc"])),
+            .any(|c| c.split_whitespace().eq(["test", "--workspace", "--doc"])),
         "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
     );
     assert_eq!(

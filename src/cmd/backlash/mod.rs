@@ -1,17 +1,7 @@
 //! The backlash commands: `klipcal backlash solve` (a readings file through
-//! [`crate::calib::backlash`]) and `klipcal bench backlash` (the guided procedure of
-//! [`crate::calib::backlash_guide`] on simulated axes and simulated people, beside the seed's
-//! single pass). Owns the simulators; holds no statistics of its own.
-//!
-//! `klipcal backlash image FILE` finds the nozzle in a user's own camera picture through
-//! [`crate::calib::nozzle`]; the benchmark adds the camera procedure of issue 27 (detection on
-//! rendered pictures, pixels → mm from known moves, the seed's cycles from the image).
-//!
-//! This file holds the offline commands; the benchmark's simulated axes and people are in
-//! `models`, the guided bench in `guided`, the camera and click bench in `camera`.
-// Their benchmark's simulators are unused in the printer's build (no `bench` feature), where
-// the linker drops them; `bench` is only built from a source checkout.
-#![cfg_attr(not(feature = "bench"), allow(dead_code, unused_imports))]
+//! [`crate::calib::backlash`]) and `klipcal backlash image FILE` (the nozzle in a user's own
+//! camera picture through [`crate::calib::nozzle`]). Holds no statistics of its own; the
+//! benchmark with its simulated axes and people is `klipcal-bench backlash`.
 
 use std::path::Path;
 use std::process::ExitCode;
@@ -21,15 +11,7 @@ use anyhow::Context;
 use crate::calib::backlash::{self, AxisResult, BacklashParams, Verdict};
 use crate::calib::nozzle::{self, DetectParams, Gray};
 use crate::cli::{BacklashImageArgs, BacklashSolveArgs};
-use crate::cmd::camera_render;
 use crate::config::BacklashConfig;
-
-mod camera;
-mod guided;
-mod models;
-
-#[cfg(feature = "bench")]
-pub(crate) use guided::bench;
 
 /// `klipcal backlash solve --readings FILE [--max-accel MM_S2] [--json]`.
 ///
@@ -61,8 +43,8 @@ pub(crate) fn solve(
 pub(crate) fn image(args: &BacklashImageArgs) -> anyhow::Result<ExitCode> {
     let bytes = std::fs::read(&args.file)
         .with_context(|| format!("cannot read picture {}", args.file.display()))?;
-    let (w, h, grey) = camera_render::decode_gray(&bytes)
-        .with_context(|| format!("picture {}", args.file.display()))?;
+    let (w, h, grey) =
+        nozzle::decode_gray(&bytes).with_context(|| format!("picture {}", args.file.display()))?;
     let found = nozzle::detect(
         &Gray {
             width: w,

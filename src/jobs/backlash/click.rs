@@ -149,8 +149,8 @@ pub(crate) const CLICK_SETTLE_S: f64 = 1.0;
 /// The page's zoom on a snapshot before the camera point's place in the picture is known (the
 /// ±0.5 mm scale moves, 40 px apart at 80 px/mm, stay in view) and after it (the cycles' two
 /// approaches differ by the backlash only: the finger's slip is half as large in the picture).
-pub(crate) const ZOOM_SCALE: f64 = 4.0;
-pub(crate) const ZOOM_CYCLES: f64 = 8.0;
+pub const ZOOM_SCALE: f64 = 4.0;
+pub const ZOOM_CYCLES: f64 = 8.0;
 
 /// The one snapshot waiting for a click, if any, the last click and the camera point's place
 /// in the picture (where the page zooms).

@@ -101,7 +101,7 @@ impl Backlash {
         let name = cam.name.clone();
         let jpeg = bytes.clone();
         let (w, h, grey) = tokio::task::spawn_blocking(move || {
-            crate::cmd::camera_render::decode_gray(&bytes)
+            crate::calib::nozzle::decode_gray(&bytes)
                 .map_err(|e| user(format!("webcam '{name}': {e:#}")))
         })
         .await??;
@@ -138,7 +138,7 @@ impl Backlash {
         let name = cam.name.clone();
         let jpeg = bytes.clone();
         let (w, h, look) = tokio::task::spawn_blocking(move || {
-            let (w, h, grey) = crate::cmd::camera_render::decode_gray(&bytes)
+            let (w, h, grey) = crate::calib::nozzle::decode_gray(&bytes)
                 .map_err(|e| user(format!("webcam '{name}': {e:#}")))?;
             let found = nozzle::detect(
                 &Gray {

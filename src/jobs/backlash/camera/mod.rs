@@ -236,7 +236,7 @@ impl Backlash {
         // The picture is checked before anything moves (for clicks: that it comes).
         if req.clicks {
             let b = self.fetch(&http, &cam).await?;
-            crate::cmd::camera_render::decode_gray(&b)
+            crate::calib::nozzle::decode_gray(&b)
                 .map_err(|e| user(format!("webcam '{}': {e:#}", cam.name)))?;
         } else if let Look::Refused(r) = self.look(&http, &cam, None, None).await? {
             return Err(user(format!(
