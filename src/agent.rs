@@ -371,6 +371,7 @@ mod tests {
             progress: progress.into(),
             reason: reason.map(str::to_string),
             notes: vec![],
+            finished: false,
         };
         SessionStatus::new("ab", head, &json!({})).unwrap()
     }

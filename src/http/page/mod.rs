@@ -125,9 +125,9 @@ pub(crate) fn render(status: &Value, diagram_svg: Option<&str>) -> String {
         );
     }
     h.push_str("<p id=\"opmsg\" class=\"msg\"></p>");
-    let active = session["state"]
-        .as_str()
-        .is_some_and(|s| !matches!(s, "converged" | "failed" | "cancelled"));
+    // Each calibration's own final states decide (`StatusHead::finished`): a mesh or backlash
+    // session ends in `done`, an A/B one in `converged`.
+    let active = session["state"].is_string() && session["finished"] != Value::Bool(true);
     if session.is_null() || !active {
         start_form(&mut h);
     }
@@ -367,6 +367,7 @@ mod tests {
             progress: String::new(),
             reason: None,
             notes: vec![],
+            finished: false,
         };
         let ab = AbStatus {
             pairs: Some(vec![crate::layout::Pair {
@@ -483,6 +484,37 @@ mod tests {
         let mut keys = std::collections::BTreeSet::new();
         keys_of(&serde_json::to_value(answer).unwrap(), &mut keys);
         keys
+    }
+
+    /// The page of a status whose session is a fresh envelope of `kind` in `state`, built the
+    /// way the agent builds it (the envelope's head, the status struct, JSON).
+    fn page_in<S: crate::jobs::core::envelope::SessionState>(kind: &str, state: S) -> String {
+        use crate::jobs::core::envelope::Envelope;
+        use crate::jobs::core::status::SessionStatus;
+        let head = Envelope::new(state, "", ()).head();
+        let session = SessionStatus::new(kind, head, &serde_json::json!({})).unwrap();
+        render(
+            &serde_json::json!({"ok": true, "session": session, "last": {}}),
+            None,
+        )
+    }
+
+    #[test]
+    fn a_finished_session_of_every_kind_shows_as_finished() {
+        use crate::jobs::{ab, backlash, mesh};
+        let finished = [
+            page_in("mesh", mesh::State::Done),
+            page_in("backlash", backlash::State::Done),
+            page_in("ab", ab::State::Converged),
+            page_in("mesh", mesh::State::Failed),
+        ];
+        for page in finished {
+            assert!(page.contains("Start an A/B calibration"), "{page}");
+            assert!(!page.contains("Cancel session</button>"), "{page}");
+        }
+        let running = page_in("mesh", mesh::State::Capturing);
+        assert!(running.contains("Cancel session</button>"), "{running}");
+        assert!(!running.contains("Start an A/B calibration"), "{running}");
     }
 
     #[test]

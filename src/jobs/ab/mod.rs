@@ -411,7 +411,11 @@ impl Ab {
     async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
         let s = self.load(id)?;
         if s.state == State::Printing {
-            let _ = self.core.m().gcode("CANCEL_PRINT").await;
+            if let Err(e) = self.core.m().gcode("CANCEL_PRINT").await {
+                self.core
+                    .safety_failed("A/B session cancelled", "CANCEL_PRINT", &e.to_string())
+                    .await;
+            }
         }
         // The status says the heaters are off when they are (issue 26 B.7: the cancel said so
         // while `heaters_off` stayed false).

@@ -31,7 +31,9 @@ impl Ab {
                 }
                 Err(e) => {
                     warn!(error = %e, "no preheat for the next round");
-                    let _ = self.core.heaters_off().await;
+                    self.core
+                        .heaters_off_reported("no preheat for the next round")
+                        .await;
                 }
             }
         }

@@ -108,6 +108,7 @@ impl<S: SessionState, B> Envelope<S, B> {
             progress: self.progress.clone(),
             reason: self.reason.clone(),
             notes: self.notes.clone(),
+            finished: self.state.is_final(),
         }
     }
 }
@@ -144,6 +145,11 @@ pub struct StatusHead {
     pub reason: Option<String>,
     /// Things the user should know.
     pub notes: Vec<String>,
+    /// The state is one of the calibration's final states (`converged`, `done`, `failed`,
+    /// `cancelled`: each calibration declares its own): the page, the console and the API
+    /// read this, never a list of state names of their own.
+    #[serde(default)]
+    pub finished: bool,
 }
 
 impl Core {

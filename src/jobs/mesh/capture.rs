@@ -359,7 +359,9 @@ impl Mesh {
         loop {
             let s: Session = self.core.load(id)?;
             if let Some(why) = capture_done(&s.captures, now_unix(), started, &o) {
-                let _ = self.core.heaters_off().await;
+                self.core
+                    .heaters_off_reported("mesh capture complete")
+                    .await;
                 self.put_back_user_mesh(&s, true).await;
                 let msg = format!("{TITLE}: capture complete, {why}; heaters off; fitting");
                 self.core.console(&msg).await;

@@ -371,7 +371,9 @@ impl Mesh {
 
     async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
         self.core.stop_runner();
-        let _ = self.core.heaters_off().await;
+        self.core
+            .heaters_off_reported("mesh session cancelled")
+            .await;
         // A BED_MESH_CALIBRATE still probing holds Klipper's G-code queue: the user's mesh goes
         // back once it ends, without holding up the answer.
         if let Ok(s) = self.core.load::<Session>(id) {

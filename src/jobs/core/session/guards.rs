@@ -46,6 +46,30 @@ impl Core {
         self.restore_idle_timeout().await
     }
 
+    /// [`Core::heaters_off`] on a safety path (a cancel, a capture's end, a failed preheat):
+    /// a failure is logged and said on the console, never dropped. True when they went off.
+    pub(crate) async fn heaters_off_reported(&self, what: &str) -> bool {
+        match self.heaters_off().await {
+            Ok(()) => true,
+            Err(e) => {
+                self.safety_failed(what, "TURN_OFF_HEATERS", &format!("{e:#}"))
+                    .await;
+                false
+            }
+        }
+    }
+
+    /// A safety command (`TURN_OFF_HEATERS`, `CANCEL_PRINT`) that failed: logged as an error and
+    /// said on the console in red with what to do (the console may be unreachable too; the
+    /// log keeps it then).
+    pub(crate) async fn safety_failed(&self, what: &str, command: &str, e: &str) {
+        tracing::error!(error = %e, "{what}: {command} failed");
+        self.console_error(&format!(
+            "{what}: {command} failed ({e}); run {command} yourself"
+        ))
+        .await;
+    }
+
     /// [`Core::heaters_off`], waiting out a Moonraker outage however long it lasts (a failed or
     /// cancelled session's heaters go off once Moonraker is back). Says on the console that the
     /// heaters are off, after `what` ("A/B calibration failed: …").
