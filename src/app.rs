@@ -70,10 +70,11 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Backlash(crate::cli::BacklashCommand::Image(a)) => crate::cmd::backlash::image(&a),
         Command::Macros(a) => {
             if a.readme {
-                print!(
-                    "{}",
-                    crate::jobs::table::markdown(&crate::jobs::registry::all_ops())
-                );
+                let table = crate::jobs::table::markdown(&crate::jobs::registry::all_ops());
+                match &a.write {
+                    Some(path) => crate::cmd::write_operations_table(path, &table)?,
+                    None => print!("{table}"),
+                }
             } else {
                 print!("{}", crate::jobs::registry::macros_cfg());
             }

@@ -47,7 +47,7 @@ pub enum Command {
     Uninstall(crate::cmd::install::UninstallArgs),
     /// Print klipcal's Klipper macros (config/klipcal.cfg), generated from its command table.
     Macros(MacrosArgs),
-    /// Offline backlash commands (seed 004).
+    /// Offline backlash commands (docs/backlash.md).
     #[command(subcommand)]
     Backlash(BacklashCommand),
 }
@@ -63,10 +63,14 @@ pub struct BenchPassArgs {
 /// `klipcal macros`
 #[derive(Debug, Args)]
 pub struct MacrosArgs {
-    /// Print the README's table of every operation (macro, remote method, HTTP path,
-    /// arguments) instead of the macros.
+    /// Print the table of every operation (macro, remote method, HTTP path, arguments) for
+    /// docs/operations.md instead of the macros.
     #[arg(long)]
     pub readme: bool,
+    /// With --readme: put the table into FILE between its `<!-- operations -->` markers
+    /// (e.g. docs/operations.md) instead of printing it.
+    #[arg(long, value_name = "FILE", requires = "readme")]
+    pub write: Option<PathBuf>,
 }
 
 /// `klipcal mesh …`

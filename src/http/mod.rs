@@ -236,7 +236,7 @@ async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) ->
     let how = if path.starts_with("/api/") && operation_paths().iter().any(|o| path[5..] == **o) {
         "it is an operation: POST it with a JSON body of arguments"
     } else {
-        "it is read with GET; operations are POSTs under /api/ (see README)"
+        "it is read with GET; operations are POSTs under /api/ (see docs/page-and-api.md)"
     };
     error(
         StatusCode::METHOD_NOT_ALLOWED,
@@ -247,7 +247,7 @@ async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) ->
 async fn not_found() -> Response {
     error(
         StatusCode::NOT_FOUND,
-        "no such page; the page is at / and the API under /api/ (see README)",
+        "no such page; the page is at / and the API under /api/ (see docs/page-and-api.md)",
     )
 }
 

@@ -367,18 +367,25 @@ mod tests {
     }
 
     #[test]
-    fn the_readmes_table_of_operations_is_the_command_tables() {
-        let readme = include_str!("../../README.md");
-        let inner = readme
-            .split("<!-- operations -->\n")
-            .nth(1)
-            .and_then(|r| r.split("<!-- /operations -->").next())
-            .expect("README has no <!-- operations --> table");
+    fn the_docs_table_of_operations_is_the_command_tables() {
+        let page = include_str!("../../docs/operations.md");
+        let inner = table::between_markers(page).expect("docs/operations.md has no table");
         assert_eq!(
             inner,
             table::markdown(&all_ops()),
-            "README's operations differ from the command table: `klipcal macros --readme`"
+            "docs/operations.md's operations differ from the command table: \
+             `klipcal macros --readme --write docs/operations.md`"
         );
+        // Writing it into the page is idempotent and leaves the rest of the page as it was.
+        let written = table::with_table(page, &table::markdown(&all_ops())).unwrap();
+        assert_eq!(written, page);
+        let changed = table::with_table(page, "| x |\n").unwrap();
+        assert!(changed.contains("<!-- operations -->\n| x |\n<!-- /operations -->"));
+        assert_eq!(
+            changed.split("| x |").next(),
+            page.split("| macro |").next()
+        );
+        assert!(table::with_table("no markers", "x").is_err());
     }
 
     #[test]
@@ -481,7 +488,7 @@ mod tests {
     #[test]
     fn every_example_can_be_typed_on_a_gcode_line_as_it_is() {
         // Klipper splits parameters at spaces and ends a command at ';', '#' or '*': an example
-        // a user copies from a field hint or the README must arrive whole.
+        // a user copies from a field hint or the docs must arrive whole.
         for op in all_ops() {
             for a in op.args {
                 assert!(
@@ -537,14 +544,10 @@ mod tests {
                 }
             }
         }
-        let readme = include_str!("../../README.md");
-        let trouble = readme
-            .split("## Troubleshooting")
-            .nth(1)
-            .expect("README has no Troubleshooting section");
+        let trouble = include_str!("../../docs/troubleshooting.md");
         assert!(
             trouble.contains("asking the klipcal service...") && trouble.contains("Unknown method"),
-            "README's troubleshooting does not name a macro without the service"
+            "docs/troubleshooting.md does not name a macro without the service"
         );
         for m in &methods {
             assert!(MACROS.contains(&format!("\"{m}\"")), "no macro calls {m}");

@@ -386,7 +386,7 @@ pub(crate) async fn install(
                 manifest.webcam = Some(uid);
             }
             Err(e) => println!(
-                "note: Moonraker did not take the webcam {} ({e:#}); add it by hand (README: \
+                "note: Moonraker did not take the webcam {} ({e:#}); add it by hand (docs/page-and-api.md: \
                  Inside Mainsail or Fluidd)",
                 webcam::NAME
             ),

@@ -78,7 +78,7 @@ pub(crate) fn unset_build_words(p: &SoakParams) -> Option<String> {
     }
     Some(format!(
         "{} not set in klipcal.toml, so this soak assumes {}; naming {} ([soak] bed = \
-         \"steel-pad\", frame = \"open\", …; README: How the bed soak is judged) is read by the \
+         \"steel-pad\", frame = \"open\", …; see docs/bed-soak.md) is read by the \
          next soak, no restart: on an open-frame steel bed it shortens the soak from about an \
          hour to about 20 min",
         unset.join(" and "),

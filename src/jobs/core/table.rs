@@ -1,7 +1,7 @@
 //! The command table: every operation declared once — its remote method, its macro, its HTTP
 //! path, and its arguments (type, range or choices, the sentence of help a macro field shows).
 //! The agent's routing and the methods registered with Moonraker, the HTTP API, the page's
-//! operation forms, `config/klipcal.cfg` (`klipcal macros`) and the README's tables (checked by
+//! operation forms, `config/klipcal.cfg` (`klipcal macros`) and docs/operations.md's table (checked by
 //! a test) all come from it. A call is read at the boundary by [`Args::parse`] against its
 //! [`OpSpec`], which refuses unknown arguments by name, and each getter checks its argument's
 //! range as it reads it (as Klipper's `gcmd.get_float('X', above=0.)` does); each calibration
@@ -502,7 +502,7 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
     out
 }
 
-/// How an argument is described in the README and the page: `60 (0–130)`, `paper\|full`.
+/// How an argument is described in the docs and the page: `60 (0–130)`, `paper\|full`.
 #[must_use]
 pub(crate) fn arg_form(a: &ArgSpec) -> String {
     let what = match a.kind {
@@ -520,9 +520,9 @@ pub(crate) fn arg_form(a: &ArgSpec) -> String {
     }
 }
 
-/// The README's table of every operation (between the markers `<!-- operations -->` and
-/// `<!-- /operations -->`; a test keeps the two the same): macro, remote method, HTTP path,
-/// arguments, what it does.
+/// The table of every operation in docs/operations.md (between the markers
+/// `<!-- operations -->` and `<!-- /operations -->`; a test keeps the two the same): macro,
+/// remote method, HTTP path, arguments, what it does.
 #[must_use]
 pub(crate) fn markdown(ops: &[&OpSpec]) -> String {
     let cell = |t: &str| t.replace('|', "\\|");
@@ -559,13 +559,44 @@ pub(crate) fn markdown(ops: &[&OpSpec]) -> String {
     out
 }
 
+const START: &str = "<!-- operations -->\n";
+const END: &str = "<!-- /operations -->";
+
+/// Where the operations table of a page stands: the byte range between its markers.
+fn table_span(page: &str) -> Option<std::ops::Range<usize>> {
+    let from = page.find(START)? + START.len();
+    let len = page[from..].find(END)?;
+    Some(from..from + len)
+}
+
+/// The operations table of a page: the text between its markers.
+#[must_use]
+#[cfg(test)]
+pub(crate) fn between_markers(page: &str) -> Option<&str> {
+    table_span(page).map(|r| &page[r])
+}
+
+/// The page with `table` between its markers in place of what stood there.
+///
+/// # Errors
+/// A page without both markers, in that order (the message names them).
+pub(crate) fn with_table(page: &str, table: &str) -> Result<String, String> {
+    let r = table_span(page).ok_or_else(|| {
+        format!(
+            "no `{}` … `{END}` markers to put the table between",
+            START.trim()
+        )
+    })?;
+    Ok(format!("{}{table}{}", &page[..r.start], &page[r.end..]))
+}
+
 const HEADER: &str = "\
 # klipcal macros for Klipper. Add to printer.cfg:
 #   [include klipcal.cfg]
 # They become buttons in Mainsail and Fluidd. Each calls the klipcal daemon through
 # Moonraker (action_call_remote_method); klipcal answers on the console with RESPOND,
 # so [respond] must be enabled in printer.cfg. Each first says it asked the service: if
-# nothing follows, the klipcal service is not running (see README, Troubleshooting).
+# nothing follows, the klipcal service is not running (see docs/troubleshooting.md).
 # Every parameter sits on its own `{% set … = params.X|default(…) %}` line, so Mainsail
 # and Fluidd show a field for it; every parameter goes to klipcal, which refuses unknown
 # ones and bad values by name (a typo never falls back to a default).
