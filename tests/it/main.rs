@@ -10,6 +10,7 @@ mod bench;
 mod browser;
 mod cli;
 mod daemon;
+mod docs;
 mod fake;
 mod faults;
 mod frontends;
