@@ -45,6 +45,8 @@ pub mod app;
 pub mod cli;
 pub mod cmd;
 pub mod config;
+#[cfg(test)]
+mod doc_images;
 pub mod fsio;
 pub mod http;
 pub mod jobs;

@@ -614,6 +614,13 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
         let f = b.eval(READ_FIGURE).await;
         b.screenshot(&artifact(&format!("backlash-camera-{size}.png")))
             .await;
+        if size == "desktop" {
+            // The documentation's picture (KLIPCAL_DOC_IMAGES=1): the page's backlash section,
+            // the snapshot with the found nozzle marked and the cycles under it.
+            let section = artifact("backlash-camera-section.png");
+            b.screenshot_element("#backlash", 8.0, &section).await;
+            crate::browser::doc_image(&section, "backlash-camera.png", 800);
+        }
         eprintln!("{size}: {f}; status {found:?}; drawn {want:?}");
         assert_eq!(f["seq"], json!(seq.to_string()), "{f}");
         assert_eq!((f["w"].as_u64(), f["h"].as_u64()), (Some(640), Some(480)));

@@ -273,3 +273,85 @@ pub fn artifact(name: &str) -> std::path::PathBuf {
         .join("target/test-artifacts")
         .join(name)
 }
+
+/// The largest picture in docs/images, bytes (tests/it/docs.rs checks the same).
+const DOC_IMAGE_BYTES_MAX: usize = 150 * 1024;
+
+/// With `KLIPCAL_DOC_IMAGES=1` (scripts/doc-images.sh), keeps the screenshot `shot` as the
+/// documentation's picture `docs/images/<name>`: scaled down to at most `width` px wide (and
+/// further, a tenth at a time, until it fits the docs' size limit), without alpha, at PNG's best
+/// compression. Without the variable it does nothing, so the tests run as before.
+pub fn doc_image(shot: &std::path::Path, name: &str, width: u32) {
+    use image::codecs::png::{CompressionType, FilterType, PngEncoder};
+    use image::ImageEncoder;
+    if std::env::var("KLIPCAL_DOC_IMAGES").map_or(true, |v| v != "1") {
+        return;
+    }
+    let img = image::open(shot).unwrap().to_rgb8();
+    let mut w = width.min(img.width());
+    loop {
+        let h = (u64::from(img.height()) * u64::from(w) / u64::from(img.width())).max(1);
+        let small = image::imageops::resize(
+            &img,
+            w,
+            u32::try_from(h).unwrap(),
+            image::imageops::FilterType::Lanczos3,
+        );
+        let mut png = Vec::new();
+        PngEncoder::new_with_quality(&mut png, CompressionType::Best, FilterType::Adaptive)
+            .write_image(
+                small.as_raw(),
+                small.width(),
+                small.height(),
+                image::ExtendedColorType::Rgb8,
+            )
+            .unwrap();
+        if png.len() <= DOC_IMAGE_BYTES_MAX || w < 200 {
+            let path = crate::bench::repo().join("docs/images").join(name);
+            std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+            std::fs::write(&path, &png).unwrap();
+            println!(
+                "doc image {} ({w} px wide, {} bytes)",
+                path.display(),
+                png.len()
+            );
+            return;
+        }
+        w = w * 9 / 10;
+    }
+}
+
+impl Browser {
+    /// Saves a PNG screenshot of one element of the page (found by a CSS selector, scrolled
+    /// into view), with `margin` CSS px around it.
+    pub async fn screenshot_element(
+        &mut self,
+        selector: &str,
+        margin: f64,
+        path: &std::path::Path,
+    ) {
+        let r = self
+            .eval(&format!(
+                "(() => {{ const e = document.querySelector({sel}); if (!e) return null;
+                   e.scrollIntoView({{block: 'start'}}); const r = e.getBoundingClientRect();
+                   return JSON.stringify({{x: r.left + window.scrollX, y: r.top + window.scrollY,
+                                           w: r.width, h: r.height}}); }})()",
+                sel = serde_json::to_string(selector).unwrap()
+            ))
+            .await;
+        let r: Value =
+            serde_json::from_str(r.as_str().unwrap_or_else(|| panic!("no {selector}"))).unwrap();
+        let at = |k: &str| r[k].as_f64().unwrap();
+        let clip = json!({
+            "x": (at("x") - margin).max(0.0), "y": (at("y") - margin).max(0.0),
+            "width": at("w") + 2.0 * margin, "height": at("h") + 2.0 * margin, "scale": 1,
+        });
+        let shot = self
+            .cmd(
+                "Page.captureScreenshot",
+                json!({"format": "png", "clip": clip, "captureBeyondViewport": true}),
+            )
+            .await;
+        self.save_png(&shot, path);
+    }
+}

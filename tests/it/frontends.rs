@@ -684,6 +684,12 @@ async fn ab_round(kind: Kind) {
         .await;
     let apply = ui.both_sizes("06-apply", &apply.title).await;
     assert_eq!(apply.buttons, ["Apply", "Close"], "{apply:?}");
+    // The documentation's picture of a klipcal dialog in this front end (KLIPCAL_DOC_IMAGES=1).
+    crate::browser::doc_image(
+        &ui.shots.join("06-apply-desktop.png"),
+        &format!("dialog-{}.png", kind.name()),
+        960,
+    );
     assert!(
         apply.texts.iter().any(|t| t.contains("stepper_x")),
         "{apply:?}"

@@ -4,6 +4,7 @@
 //! headless Chromium a user enters readings through the form, sees a bad one refused next to
 //! its field with nothing saved, and solves.
 
+use std::path::Path;
 use std::time::Duration;
 
 use serde_json::{json, Value};
@@ -440,6 +441,27 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         "no rounds or solution table on the phone"
     );
     b.screenshot(&artifact("page-solved-phone.png")).await;
+    // The documentation's pictures (KLIPCAL_DOC_IMAGES=1): the page as a phone shows it, from
+    // the solution down, and the convergence plot the daemon saved beside the config.
+    b.eval("document.querySelector('#solution').scrollIntoView({block: 'start'})")
+        .await;
+    b.screenshot_window(&artifact("page-solved-phone-window.png"))
+        .await;
+    crate::browser::doc_image(
+        &artifact("page-solved-phone-window.png"),
+        "page-phone.png",
+        600,
+    );
+    let config = Path::new(bench.info["printer_cfg"].as_str().unwrap())
+        .parent()
+        .unwrap()
+        .to_path_buf();
+    let plot = std::fs::read_dir(config.join("klipcal"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .find(|p| p.to_string_lossy().ends_with("-convergence.png"))
+        .expect("the daemon saved no convergence plot beside the config");
+    crate::browser::doc_image(&plot, "convergence.png", 720);
     let fit = b.eval(TABLES_ON_A_PHONE).await;
     let fit: Value = serde_json::from_str(fit.as_str().unwrap()).unwrap();
     println!("tables on a phone: {fit}");
