@@ -540,8 +540,9 @@ pub async fn session(bench: &Bench) -> Value {
         .unwrap_or(Value::Null)
 }
 
-/// README's console filter (Mainsail: Settings → Console → custom filter; Fluidd: console
-/// settings → filter of type "expression").
+/// The console filter docs/page-and-api.md gives (tests/it/docs.rs checks it is this one).
+/// Mainsail: Settings → Console → custom filter; Fluidd: console settings → filter of type
+/// "expression".
 pub const CONSOLE_FILTER: &str = r#"^(// )?(action:prompt_|klipcal asking the klipcal service)|^RESPOND (PREFIX=klipcal|(TYPE|type)="?command"? (MSG|msg)="?action:prompt_)"#;
 
 /// The most console rows one A/B round may list live in the real front ends (issue 26 A.4:

@@ -1,6 +1,7 @@
-//! tests/run-all.sh, the one test command README names, runs every kind of test: checked by
-//! running the script with a recording stand-in for `cargo` first on PATH, and one for the
-//! cross test (tests/cross/run.sh, which uses Debian's cargo, not the one on PATH).
+//! tests/run-all.sh, the one test command README.md names (and .ci/run runs), runs every kind
+//! of test: checked by running the script with a recording stand-in for `cargo` first on PATH,
+//! and one for the cross test (tests/cross/run.sh, which uses Debian's cargo, not the one on
+//! PATH).
 
 use std::os::unix::fs::PermissionsExt;
 use std::process::Command;

@@ -1,5 +1,6 @@
-//! The README's "Try it on a simulated printer" (issue 25 E): `scripts/try-bench.sh` starts a
-//! simulated printer of each variant with the daemon, and a macro run by Klipper reaches klipcal.
+//! "Try it on a simulated printer" in docs/development.md (issue 25 E): `scripts/try-bench.sh`
+//! starts a simulated printer of each variant with the daemon, and a macro run by Klipper
+//! reaches klipcal.
 
 use std::process::Command;
 
