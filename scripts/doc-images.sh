@@ -12,11 +12,11 @@ set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 export KLIPCAL_DOC_IMAGES=1
 bash tests/bench/setup.sh
-cargo test --lib doc_images -- --nocapture
-cargo test --test it -- --test-threads=2 --nocapture \
+cargo test -p klipcal --lib doc_images -- --nocapture
+cargo test -p klipcal --test it -- --test-threads=2 --nocapture \
     http::in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_solved \
     backlash_camera::the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles \
     frontends::an_ab_round_in_the_real_mainsail \
     frontends::an_ab_round_in_the_real_fluidd
-cargo test --test it docs:: -- --test-threads=2
+cargo test -p klipcal --test it docs:: -- --test-threads=2
 ls -l docs/images
