@@ -173,9 +173,9 @@ fn mesh_point_svg(p: &MeshPointPlot, title: &str) -> Result<String, String> {
 }
 
 /// A simulated 300 mm gantry warming from 22 to 32 °C (a bow along X of 8 µm per °C in the
-/// middle, the README's figure for such a gantry, and 1 µm of probe noise), captured every
-/// 0.5 °C on a 5×5 mesh, fitted and covered with profiles by klipcal's own code at the default
-/// 5 µm tolerance; the plot shows the middle point.
+/// middle, the figure docs/thermal-mesh.md gives for such a gantry, and 1 µm of probe noise),
+/// captured every 0.5 °C on a 5×5 mesh, fitted and covered with profiles by klipcal's own code
+/// at the default 5 µm tolerance; the plot shows the middle point.
 fn mesh_profiles_svg() -> String {
     let mut rng = fastrand::Rng::with_seed(2);
     let caps: Vec<Capture> = (0..=20)
