@@ -78,6 +78,9 @@ impl Answer {
     }
 }
 
+/// The status's remote method, answered by the agent itself.
+const STATUS_METHOD: &str = "klipcal_status";
+
 /// A call's outcome; its dialog changes are held by the caller (see [`holding_prompts`]).
 async fn answer(
     m: &Moonraker,
@@ -85,8 +88,10 @@ async fn answer(
     method: &str,
     args: &Value,
 ) -> Result<Answer, RpcError> {
-    if crate::jobs::registry::is_core_method(method) {
+    if method == STATUS_METHOD {
         // Read whole first: a status call with an unknown argument is refused like any other.
+        // (The other calls are read by the calibrations, after a dialog button's question
+        // number is taken out.)
         if crate::jobs::core::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
             == crate::jobs::core::CoreCall::Status
         {

@@ -121,6 +121,10 @@ impl Calibrations {
     /// # Errors
     /// The calibration's error (user errors say what was wrong and what is expected).
     pub(crate) async fn call(&self, method: &str, args: &Value) -> anyhow::Result<Value> {
+        // A dialog's button carries its question's number: a press of a dialog klipcal no
+        // longer asks is refused before it acts (issue 40).
+        let command = op_of_method(method).map_or(method, |o| o.macro_name);
+        let args = &self.core.take_ask(args, command).await?;
         if is_core_method(method) {
             return match CoreCall::parse(method, args)? {
                 CoreCall::Cancel(reason) => self.cancel(&reason).await,

@@ -129,7 +129,7 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
             && d.title.contains(" only · backlash ")
             && d.buttons
                 .iter()
-                .any(|b| b.1 == "_KLIPCAL_BACKLASH_JOG PRESS=centred")),
+                .any(|b| crate::mainsail::unasked(&b.1) == "_KLIPCAL_BACKLASH_JOG PRESS=centred")),
         "{shown:?}"
     );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;

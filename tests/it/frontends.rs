@@ -1286,3 +1286,131 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         started.elapsed().as_secs_f64()
     );
 }
+
+/// The G-code of the button `label` in the newest dialog the console lists (what a front end
+/// still showing that dialog sends when it is pressed).
+fn button_gcode(rows: &[(String, String)], label: &str) -> Option<String> {
+    rows.iter().rev().find_map(|(_, m)| {
+        let rest = m.split_once(&format!("button {label}|"))?.1;
+        Some(rest.rsplit_once('|')?.0.to_string())
+    })
+}
+
+/// Issue 40 item 1: the "round 2?" dialog, open in Mainsail and in Fluidd, ends in both once
+/// round 2 starts from one of them, and stays gone after a reload of both (they rebuild
+/// dialogs from the console); its End, pressed late (a front end that kept the old dialog),
+/// is refused and the round goes on; so is its Print round 2.
+#[tokio::test]
+async fn the_round_2_question_ends_everywhere_once_round_2_starts_and_its_stale_buttons_are_refused(
+) {
+    let started = std::time::Instant::now();
+    let bench = Bench::start_with("corexy", Some(crate::session::PLANT));
+    let (d, s) = crate::session::measuring_session(&bench).await;
+    let files = bench.files();
+    for p in s["pairs"].as_array().unwrap() {
+        extension_request(
+            &files,
+            "klipcal_measure",
+            json!({"pair": p["id"], "values": crate::session::simulated_readings(p)}),
+        )
+        .await
+        .unwrap();
+    }
+    extension_request(&files, "klipcal_solve", json!({}))
+        .await
+        .unwrap();
+    let applied = extension_request(&files, "klipcal_apply", json!({}))
+        .await
+        .unwrap();
+    assert_eq!(applied["state"], "applied", "{applied}");
+
+    let mains = FrontEnd::serve(Kind::Mainsail, &bench).await;
+    let flu = FrontEnd::serve(Kind::Fluidd, &bench).await;
+    let mut bm = Browser::start().await;
+    let mut bf = Browser::start().await;
+    let mut um = Ui::open(&mut bm, &mains, "round-2-mainsail").await;
+    let mut uf = Ui::open(&mut bf, &flu, "round-2-fluidd").await;
+    for ui in [&mut um, &mut uf] {
+        let next = ui.wait_dialog("round 2?", Duration::from_secs(30)).await;
+        assert_eq!(next.buttons, ["Print round 2", "End"], "{next:?}");
+        ui.shot("01-round-2-question").await;
+    }
+    // The buttons as the front ends hold them: each carries the question's number.
+    let rows = uf.rows().await;
+    let end = button_gcode(&rows, "End").expect("no End button on the console");
+    let print = button_gcode(&rows, "Print round 2").expect("no Print round 2 button");
+    assert!(end.starts_with("_KLIPCAL_CANCEL_ASK ASK="), "{end}");
+    assert!(print.starts_with("KLIPCAL_AB_START ASK="), "{print}");
+
+    // Round 2 from Mainsail's dialog: the question ends in both front ends.
+    um.press("Print round 2").await;
+    um.wait_row("round 2 started", Duration::from_secs(30))
+        .await;
+    for ui in [&mut um, &mut uf] {
+        ui.wait_no_dialog(Duration::from_secs(15)).await;
+    }
+    // And after a reload of both.
+    for (ui, fe) in [(&mut um, &mains), (&mut uf, &flu)] {
+        ui.b.open(&fe.url).await;
+        ui.wait_ready().await;
+        tokio::time::sleep(Duration::from_secs(3)).await;
+        let shown = ui.dialog().await;
+        ui.shot("02-reloaded-in-round-2").await;
+        assert!(
+            !shown.as_ref().is_some_and(|d| d.title.contains("round 2?")),
+            "{}: the round 2 question came back after a reload: {shown:?}",
+            ui.kind.name()
+        );
+    }
+
+    // The old dialog's End, sent by a front end that still shows it: Klipper's cancel
+    // question opens, and its Yes is refused; round 2 goes on.
+    let (m, _c) = crate::backlash::connect(&bench).await;
+    m.gcode(&end).await.unwrap();
+    uf.wait_dialog("end the session?", Duration::from_secs(15))
+        .await;
+    uf.press("Yes, end the session").await;
+    let refused = uf
+        .wait_row(
+            "pressed in an older klipcal dialog",
+            Duration::from_secs(15),
+        )
+        .await;
+    assert!(
+        refused.contains("KLIPCAL_CANCEL: nothing done"),
+        "{refused}"
+    );
+    uf.shot("03-stale-end-refused").await;
+    let s = session(&bench).await;
+    assert!(
+        !["cancelled", "applied", "failed"].contains(&s["state"].as_str().unwrap_or("")),
+        "a stale End cancelled round 2: {s}"
+    );
+    // The cancel question goes away with the refusal.
+    let left = uf.dialog().await;
+    assert!(
+        !left
+            .as_ref()
+            .is_some_and(|d| d.title.contains("end the session")),
+        "{left:?}"
+    );
+    // The old Print round 2 likewise says what happened instead of "is soaking".
+    m.gcode(&print).await.unwrap();
+    let refused = um
+        .wait_row("KLIPCAL_AB_START: nothing done", Duration::from_secs(15))
+        .await;
+    assert!(refused.contains("older klipcal dialog"), "{refused}");
+    // Typed without the question's number, the cancel acts on the session as it is now.
+    m.gcode("KLIPCAL_CANCEL").await.unwrap();
+    let ended = poll(Duration::from_secs(30), || async {
+        let s = session(&bench).await;
+        (s["state"] == "cancelled").then_some(s)
+    })
+    .await;
+    assert!(ended.is_some(), "{}", session(&bench).await);
+    drop(d);
+    println!(
+        "round 2 question in Mainsail and Fluidd: {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
+}

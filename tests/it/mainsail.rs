@@ -158,3 +158,11 @@ fn the_port_follows_mainsails_reading_of_the_history() {
     ]));
     assert_eq!(replay(&newer).unwrap().title, "klipcal: Apply?");
 }
+
+/// A button's G-code without the question number klipcal adds to it (` ASK=<n>`, issue 40).
+pub fn unasked(gcode: &str) -> &str {
+    match gcode.rsplit_once(" ASK=") {
+        Some((command, n)) if n.chars().all(|c| c.is_ascii_digit()) => command,
+        _ => gcode,
+    }
+}

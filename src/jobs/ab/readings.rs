@@ -153,6 +153,16 @@ impl Ab {
             values.len(),
             s.options.readings_per_pair
         ));
+        if req.typed_line && !values.is_empty() && values.len() < per_pair && count < per_pair {
+            // Klipper cut the line before klipcal saw it (issue 40: `;` saved 1 of 5 without
+            // a word). Said in words: RESPOND cannot carry the three characters themselves.
+            message.push_str(&format!(
+                " — fewer than the {per_pair} a pair takes: if you typed more, a semicolon, a \
+                 hash sign or an asterisk ends a Klipper command line (what follows never \
+                 reaches klipcal): separate readings with commas, VALUES={}",
+                entry::example(pair.nominal_mm)
+            ));
+        }
         if count > s.options.readings_per_pair && !values.is_empty() {
             message.push_str(&format!(
                 " — more than the {} asked for (all are used); if some were wrong, replace \

@@ -36,6 +36,8 @@ pub struct MeasureRequest {
     pub values: Vec<entry::Item>,
     /// Remove the pair's readings first (to enter them again, or to drop a wrong one).
     pub clear: bool,
+    /// Typed on a line (`VALUES=` or `VALUE=` text: a macro, the console), not as fields.
+    pub typed_line: bool,
 }
 
 impl MeasureRequest {
@@ -49,10 +51,12 @@ impl MeasureRequest {
         })?;
         let mut values = readings_typed(a.raw("values"), "VALUES");
         values.extend(readings_typed(a.raw("value"), "VALUE"));
+        let line = |k: &str| matches!(a.raw(k), Some(Value::String(_)));
         Ok(Self {
             pair,
             values,
             clear: a.flag("clear")?,
+            typed_line: line("values") || line("value"),
         })
     }
 }

@@ -574,6 +574,13 @@ impl Ab {
                 self.core.create(KIND, &mut s, |s, id| s.id = id).await?
             }
         };
+        // The question of the dialog before ("round 2?") is answered, whatever road answered
+        // it (its button, the macro typed, the page, the API): the dialog ends in every front
+        // end, also after a reload (they rebuild it from the console), and its buttons stop
+        // acting. Sent now, before the runner can show the round's first dialog.
+        if next_round.is_some() {
+            self.core.prompt_end_now().await;
+        }
         self.spawn_runner(id);
         // The next round of a session is that round, not a new session (issue 26 B.7).
         let message = match next_round {

@@ -47,6 +47,10 @@ pub(crate) fn answer_script(msg: &str, is_error: bool) -> String {
         .join("\n")
 }
 
+/// The argument a dialog's button adds to its G-code: the number of the question it answers
+/// (see [`Prompt::script_asked`]); any operation takes it.
+pub(crate) const ASK_ARG: &str = "ASK";
+
 /// The prompt action that closes any open dialog.
 pub(crate) const PROMPT_END: &str = "RESPOND TYPE=command MSG=action:prompt_end";
 
@@ -96,18 +100,39 @@ pub struct Prompt {
 }
 
 impl Prompt {
-    /// The G-code script that shows the dialog (closing any dialog open before).
+    /// The G-code script that shows the dialog (closing any dialog open before), its buttons
+    /// without a question number.
     #[must_use]
+    #[cfg(test)]
     pub(crate) fn script(&self) -> String {
+        self.script_asked(None)
+    }
+
+    /// [`Prompt::script`] with every button's G-code carrying `ASK=<ask>`, the number of the
+    /// question the dialog asks: klipcal refuses a press whose question it no longer asks
+    /// (issue 40: a stale dialog's End cancelled the round that had started since).
+    #[must_use]
+    pub(crate) fn script_asked(&self, ask: Option<u64>) -> String {
+        let gcode = |b: &Button| match ask {
+            Some(n) => format!("{} {ASK_ARG}={n}", b.gcode),
+            None => b.gcode.clone(),
+        };
         let mut actions = vec![format!("prompt_begin {}", self.title)];
         actions.extend(self.lines.iter().map(|l| format!("prompt_text {l}")));
         for b in &self.buttons {
-            actions.push(format!("prompt_button {}|{}|{}", b.label, b.gcode, b.style));
+            actions.push(format!(
+                "prompt_button {}|{}|{}",
+                b.label,
+                gcode(b),
+                b.style
+            ));
         }
         for b in &self.footer {
             actions.push(format!(
                 "prompt_footer_button {}|{}|{}",
-                b.label, b.gcode, b.style
+                b.label,
+                gcode(b),
+                b.style
             ));
         }
         actions.push("prompt_show".into());
@@ -275,6 +300,27 @@ mod tests {
         assert!(lines[2].contains("prompt_button Apply|KLIPCAL_AB_APPLY|primary"));
         assert!(lines[3].contains("prompt_footer_button Close|_KLIPCAL_PROMPT_CLOSE|secondary"));
         assert!(lines[4].contains("action:prompt_show"));
+    }
+
+    #[test]
+    fn every_button_carries_the_question_it_answers() {
+        let p = Prompt {
+            title: "klipcal: round 2?".into(),
+            lines: vec!["x".into()],
+            buttons: vec![Button::new("Print round 2", "KLIPCAL_AB_START", "primary")],
+            footer: vec![Button::new("End", "_KLIPCAL_CANCEL_ASK", "secondary")],
+        };
+        let s = p.script_asked(Some(7));
+        assert!(
+            s.contains("prompt_button Print round 2|KLIPCAL_AB_START ASK=7|primary"),
+            "{s}"
+        );
+        assert!(
+            s.contains("prompt_footer_button End|_KLIPCAL_CANCEL_ASK ASK=7|secondary"),
+            "{s}"
+        );
+        // What the console says to type keeps the bare command (it acts on the session now).
+        assert!(!closed_notice(&p).contains("ASK"), "{}", closed_notice(&p));
     }
 
     #[test]

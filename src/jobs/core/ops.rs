@@ -49,7 +49,9 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             body: MacroBody::Local(&[
                 "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
-                "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL|error\"",
+                // The Yes answers the question of the dialog whose Cancel asked (its ASK):
+                // klipcal refuses it once that question has passed (issue 40).
+                "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL{' ASK=%d' % (params.ASK|int) if 'ASK' in params else ''}|error\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|secondary\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_show\"",
             ]),

@@ -3,6 +3,7 @@
 //! printer guards (idle, ready, heaters off, hold limit). Nothing of any one calibration lives
 //! here: a calibration keeps its own document type and its own steps (`jobs/ab.rs`, …).
 
+mod ask;
 mod guards;
 
 use std::collections::BTreeMap;
@@ -71,6 +72,9 @@ struct Inner {
     /// klipcal's dialog open now (as last sent): a close seen on the console while it is open
     /// is the user's (see [`Core::watch_closes`]).
     open: std::sync::Mutex<Open>,
+    /// The number of the question klipcal's dialog asks (its buttons carry it), kept in the
+    /// store so that a press after a restart is judged too.
+    asked: std::sync::Mutex<ask::Asked>,
     /// Every task the core starts (runners, the follower, the watchdog, the resume), so that
     /// shutdown waits for them.
     tasks: tokio_util::task::TaskTracker,
@@ -88,6 +92,7 @@ impl Core {
         store: Store,
         shutdown: CancellationToken,
     ) -> Self {
+        let asked = ask::Asked::load(&store);
         Self {
             inner: Arc::new(Inner {
                 m,
@@ -99,6 +104,7 @@ impl Core {
                 titles: std::sync::RwLock::new(BTreeMap::new()),
                 shown: std::sync::Mutex::new(None),
                 open: std::sync::Mutex::new(Open::default()),
+                asked: std::sync::Mutex::new(asked),
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
                 page_off: std::sync::OnceLock::new(),

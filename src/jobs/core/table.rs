@@ -468,10 +468,12 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
                 }
             }
             MacroBody::Local(lines) => {
+                // ASK: the question number a dialog's button adds (any macro takes it).
                 let names: Vec<String> = op
                     .args
                     .iter()
                     .map(|a| format!("{:?}", a.name.to_uppercase()))
+                    .chain([format!("{:?}", super::console::ASK_ARG)])
                     .collect();
                 let takes = if op.args.is_empty() {
                     "no arguments".to_string()

@@ -163,16 +163,9 @@ impl Core {
     /// call's answer; the same dialog as the one showing is not sent again (a jog press does not
     /// repeat the whole dialog on the console).
     pub(crate) async fn prompt(&self, p: &Prompt) {
-        let script = p.script();
-        {
-            let mut shown = self.shown();
-            if shown
-                .as_ref()
-                .is_some_and(|s| s.as_deref() == Some(script.as_str()))
-            {
-                return;
-            }
-            *shown = Some(Some(script.clone()));
+        let (script, fresh) = self.stamp(p);
+        if !fresh {
+            return;
         }
         self.set_open(Some(p.clone()));
         let change = console::PromptChange::Show(script);
@@ -184,6 +177,7 @@ impl Core {
     /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
     /// sent when klipcal's dialog is known to be closed already.
     pub(crate) async fn prompt_end(&self) {
+        self.retire_ask();
         if !self.mark_closed() {
             return;
         }
@@ -196,6 +190,7 @@ impl Core {
     /// from `_KLIPCAL_CANCEL_ASK` in Klipper, and a front end may report klipcal's own dialog
     /// closed as it replaces it): a cancel always ends with no dialog.
     pub(crate) async fn prompt_end_any(&self) {
+        self.retire_ask();
         self.mark_closed();
         if !console::hold(console::PromptChange::End) {
             console::send_script(&self.inner.m, console::PROMPT_END).await;
@@ -206,6 +201,7 @@ impl Core {
     /// buttons cannot be pressed again meanwhile).
     pub(crate) async fn prompt_end_now(&self) {
         console::drop_held();
+        self.retire_ask();
         if self.mark_closed() {
             console::send_script(&self.inner.m, console::PROMPT_END).await;
         }
@@ -213,15 +209,7 @@ impl Core {
 
     /// Says `msg` on the console and opens a dialog, as one console script.
     pub(crate) async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
-        let script = p.script();
-        let fresh = {
-            let mut shown = self.shown();
-            let fresh = !shown
-                .as_ref()
-                .is_some_and(|s| s.as_deref() == Some(script.as_str()));
-            *shown = Some(Some(script.clone()));
-            fresh
-        };
+        let (script, fresh) = self.stamp(p);
         self.set_open(Some(p.clone()));
         let change = console::PromptChange::Show(script);
         let change = fresh.then_some(change);
@@ -245,7 +233,7 @@ impl Core {
             // Closed by the user's ✕ or tap outside: the helper the console named shows it.
             _ => match take_user_closed(self) {
                 Some(p) => {
-                    let script = p.script();
+                    let script = p.script_asked(self.asked().in_force);
                     *self.shown() = Some(Some(script.clone()));
                     self.set_open(Some(p));
                     script
@@ -258,6 +246,26 @@ impl Core {
             console::send_script(&self.inner.m, &change.script()).await;
         }
         true
+    }
+
+    /// `p`'s script stamped with the number of its question ([`Prompt::script_asked`]), marked
+    /// as showing, and whether it differs from the dialog showing (false: nothing to send).
+    /// The same dialog keeps its number; any other asks a new question.
+    fn stamp(&self, p: &Prompt) -> (String, bool) {
+        let mut shown = self.shown();
+        if let Some(n) = self.asked().in_force {
+            let same = p.script_asked(Some(n));
+            if shown
+                .as_ref()
+                .is_some_and(|s| s.as_deref() == Some(same.as_str()))
+            {
+                return (same, false);
+            }
+        }
+        let n = self.ask_next();
+        let script = p.script_asked(Some(n));
+        *shown = Some(Some(script.clone()));
+        (script, true)
     }
 
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
