@@ -325,11 +325,21 @@ fn status_text(a: &StatusAnswer) -> String {
     }
     if let Some(sess) = &a.sessions.session {
         let h = &sess.head;
-        t.push_str(&format!("\nsession {}: {}", h.id, h.state));
-        // "cancelled — cancelled" said nothing: the progress when it adds to the state, and
-        // why a session ended.
-        if !h.progress.is_empty() && h.progress != h.state {
-            t.push_str(&format!(" — {}", h.progress));
+        // "cancelled — cancelled" and "solved — solved; apply with …" said the state twice:
+        // a progress that begins with the state stands for it, and why a session ended.
+        let starts_with_state = h
+            .progress
+            .strip_prefix(h.state.as_str())
+            .is_some_and(|rest| {
+                rest.is_empty() || rest.starts_with(|c: char| !c.is_alphanumeric() && c != '_')
+            });
+        if starts_with_state {
+            t.push_str(&format!("\nsession {}: {}", h.id, h.progress));
+        } else {
+            t.push_str(&format!("\nsession {}: {}", h.id, h.state));
+            if !h.progress.is_empty() {
+                t.push_str(&format!(" — {}", h.progress));
+            }
         }
         if let Some(why) = h.reason.as_deref().filter(|r| !r.is_empty()) {
             if h.progress != why {
@@ -445,6 +455,19 @@ mod tests {
             t.contains("session 4: soaking — bed at 60 °C, settling"),
             "{t}"
         );
+        // Issue 40: "solved — solved; apply with …".
+        a.sessions.session = Some(session(
+            5,
+            "solved",
+            "solved; apply with KLIPCAL_AB_APPLY",
+            None,
+        ));
+        let t = status_text(&a);
+        assert!(
+            t.contains("session 5: solved; apply with KLIPCAL_AB_APPLY"),
+            "{t}"
+        );
+        assert!(!t.contains("solved — solved"), "{t}");
     }
 
     #[test]

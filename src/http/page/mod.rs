@@ -242,10 +242,15 @@ fn session_card(h: &mut String, s: &Value, active: bool) {
     };
     let _ = write!(
         h,
-        "<section id=\"session\"><h2>{kind} · session {} · round {} <span class=\"state {}\">{}</span></h2>\
+        "<section id=\"session\"><h2>{kind} · session {}{} <span class=\"state {}\">{}</span></h2>\
          <p id=\"progress\">{}</p>",
         text(&s["id"]),
-        text(&s["round"]),
+        // A backlash measurement has no rounds: "round measured" read as a broken line.
+        if s["round"].is_null() {
+            String::new()
+        } else {
+            format!(" · round {}", text(&s["round"]))
+        },
         esc(state),
         esc(state),
         text(&s["progress"])

@@ -48,7 +48,13 @@ impl Ab {
                     Ok(())
                 })
                 .await?;
-                self.core.console(&format!("{TITLE}: {note}")).await;
+                // The soak so far, plotted as for a settled bed (issue 40: none was saved).
+                let path = format!("klipcal/ab-s{id}-r{}-soak.svg", doc.rounds.len());
+                let plot = crate::jobs::core::soak::save_soak_picture(&self.core, &params, &path)
+                    .await
+                    .map(|p| format!("; plot: {p}"))
+                    .unwrap_or_default();
+                self.core.console(&format!("{TITLE}: {note}{plot}")).await;
                 return Ok(());
             }
             if let Some((_, line)) = &asked {
@@ -119,6 +125,7 @@ impl Ab {
                 }
                 SoakUpdate::TooLong {
                     minutes,
+                    at_target_s,
                     falling_pct_per_10min,
                 } => match &asked {
                     None => {
@@ -128,7 +135,12 @@ impl Ab {
                         // but time (issue 26 A.1).
                         soak.extend(hold_s);
                         let line = self
-                            .ask_soak_choice(id, minutes, falling_pct_per_10min, hold_s)
+                            .ask_soak_choice(
+                                id,
+                                soaked_words(minutes, at_target_s),
+                                falling_pct_per_10min,
+                                hold_s,
+                            )
                             .await?;
                         asked = Some((tokio::time::Instant::now(), line));
                     }
@@ -156,17 +168,17 @@ impl Ab {
     pub(super) async fn ask_soak_choice(
         &self,
         id: i64,
-        minutes: f64,
+        soaked: String,
         falling: Option<f64>,
         hold_s: f64,
     ) -> anyhow::Result<String> {
         let line = match falling {
             Some(f) => format!(
-                "bed power still {} by {:.1} % per 10 min after {minutes:.0} min (ab.soak_max_s)",
+                "bed power still {} by {:.1} % per 10 min {soaked} (ab.soak_max_s)",
                 if f < 0.0 { "rising" } else { "falling" },
                 f.abs()
             ),
-            None => format!("the bed has not settled after {minutes:.0} min (ab.soak_max_s)"),
+            None => format!("the bed has not settled {soaked} (ab.soak_max_s)"),
         };
         let hold_min = (hold_s / 60.0).ceil();
         let how = format!(
@@ -278,5 +290,44 @@ impl Ab {
             )
             .await;
         Ok(())
+    }
+}
+
+/// How long the bed has soaked, as the soak question says it: from when it reached its target
+/// ("40 s after reaching its target"), with the time since it was set when that differs much
+/// (issue 40: "after 1 min" read wrong 40 s after the bed reached its target).
+fn soaked_words(minutes: f64, at_target_s: Option<f64>) -> String {
+    let span = |s: f64| {
+        if s < 120.0 {
+            format!("{:.0} s", s.max(0.0))
+        } else {
+            format!("{:.0} min", s / 60.0)
+        }
+    };
+    match at_target_s {
+        Some(at) => format!(
+            "{} after reaching its target ({} since it was set)",
+            span(at),
+            span(minutes * 60.0)
+        ),
+        None => format!("{} after its target was set", span(minutes * 60.0)),
+    }
+}
+
+#[cfg(test)]
+mod soaked_tests {
+    use super::soaked_words;
+
+    #[test]
+    fn the_soak_question_counts_from_the_target_reached() {
+        assert_eq!(
+            soaked_words(1.0, Some(40.0)),
+            "40 s after reaching its target (60 s since it was set)"
+        );
+        assert_eq!(
+            soaked_words(25.0, Some(1200.0)),
+            "20 min after reaching its target (25 min since it was set)"
+        );
+        assert_eq!(soaked_words(3.0, None), "3 min after its target was set");
     }
 }

@@ -112,6 +112,8 @@ pub(crate) enum SoakUpdate {
     TooLong {
         /// Minutes since the target was set.
         minutes: f64,
+        /// Seconds since the bed reached its target (the soak proper), when it did.
+        at_target_s: Option<f64>,
         /// How fast the power still falls, % of full power per 10 min, when the fit can tell
         /// (negative: it still rises, after a step down to a lower target).
         falling_pct_per_10min: Option<f64>,
@@ -401,6 +403,7 @@ impl BedSoak {
             }
             return Ok(SoakUpdate::TooLong {
                 minutes: t_s / 60.0,
+                at_target_s: self.soaking_since_s.map(|since| t_s - since),
                 falling_pct_per_10min: self.detector.fit().and_then(|f| f.rate_pct_per_10min()),
             });
         }

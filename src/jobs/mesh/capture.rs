@@ -363,7 +363,13 @@ impl Mesh {
                     .heaters_off_reported("mesh capture complete")
                     .await;
                 self.put_back_user_mesh(&s, true).await;
-                let msg = format!("{TITLE}: capture complete, {why}; heaters off; fitting");
+                // An unheated bed (BED=0) had no heater on: "heaters off" said nothing there.
+                let off = if o.bed_temp_c > 0.0 {
+                    "; heaters off"
+                } else {
+                    ""
+                };
+                let msg = format!("{TITLE}: capture complete, {why}{off}; fitting");
                 self.core.console(&msg).await;
                 self.set_state(id, State::Writing, &msg).await?;
                 return Ok(());
