@@ -680,9 +680,7 @@ async fn ab_round(kind: Kind) {
     let solve = ui.both_sizes("05-solve", &solve.title).await;
     assert_eq!(solve.buttons, ["Solve", "Close"], "{solve:?}");
     ui.press("Solve").await;
-    let apply = ui
-        .wait_dialog("new rotation distances", Duration::from_secs(30))
-        .await;
+    let apply = ui.wait_dialog("new values", Duration::from_secs(30)).await;
     let apply = ui.both_sizes("06-apply", &apply.title).await;
     assert_eq!(apply.buttons, ["Apply", "Close"], "{apply:?}");
     // The documentation's picture of a klipcal dialog in this front end (KLIPCAL_DOC_IMAGES=1).
@@ -700,6 +698,14 @@ async fn ab_round(kind: Kind) {
     let next = ui.wait_dialog("round 2?", Duration::from_secs(30)).await;
     let next = ui.both_sizes("07-next-round", &next.title).await;
     assert_eq!(next.buttons, ["Print round 2", "End"], "{next:?}");
+    // Issue 40 item 7: titles a phone shows whole (Mainsail cut "klipcal: measure the pylons
+    // (round" at 400 px), the round first.
+    for d in [&measure, &solve, &apply, &next] {
+        assert!(d.title.chars().count() <= 30, "{:?} is long", d.title);
+    }
+    for d in [&measure, &solve, &apply] {
+        assert!(d.title.starts_with("Round 1 · "), "{:?}", d.title);
+    }
     let s = session(&bench).await;
     assert_eq!(s["state"], "applied", "{s}");
     // End asks first; Back returns; End + Yes ends the session.

@@ -678,7 +678,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     m.gcode("KLIPCAL_AB_SOLVE").await.unwrap();
     wait_state(&bench, "solved", Duration::from_secs(20)).await;
     let shown = crate::mainsail::after_reload_showing(&m, Duration::from_secs(10), |d| {
-        d.title.contains("new rotation distances")
+        d.title.contains("new values")
             && d.buttons
                 .iter()
                 .any(|b| crate::mainsail::unasked(&b.1) == "KLIPCAL_AB_APPLY")
@@ -687,7 +687,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     assert!(
         shown
             .as_ref()
-            .is_some_and(|d| d.title.contains("new rotation distances")
+            .is_some_and(|d| d.title.contains("new values")
                 && d.buttons
                     .iter()
                     .any(|b| crate::mainsail::unasked(&b.1) == "KLIPCAL_AB_APPLY")),
@@ -729,7 +729,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         .rposition(|(k, msg)| k == "response" && msg.contains("5 reading(s) saved"))
         .expect("readings saved");
     let measured = pos(
-        &response("prompt_begin klipcal: all pairs measured"),
+        &response("prompt_begin Round 1 · all pairs measured"),
         "Solve dialog",
     );
     assert!(
@@ -741,7 +741,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         "solve answer",
     );
     let dialog = pos(
-        &response("prompt_begin klipcal: new rotation distances"),
+        &response("prompt_begin Round 1 · new values"),
         "Apply dialog",
     );
     assert!(

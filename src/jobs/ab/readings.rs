@@ -181,10 +181,10 @@ impl Ab {
             // A decision its buttons can answer: solve now, or close and look again.
             self.core
                 .prompt(&Prompt {
-                    title: format!("klipcal: all pairs measured (round {})", s.rounds.len()),
+                    title: format!("Round {} · all pairs measured", s.rounds.len()),
                     lines: vec![progress.clone()],
                     buttons: vec![Button::new("Solve", "KLIPCAL_AB_SOLVE", "primary")],
-                    footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
+                    footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "info")],
                 })
                 .await;
         }

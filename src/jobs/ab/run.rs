@@ -53,7 +53,7 @@ impl Ab {
                     "KLIPCAL_AB_START",
                     "primary",
                 )],
-                footer: vec![Button::new("End", "_KLIPCAL_CANCEL_ASK", "secondary")],
+                footer: vec![Button::new("End", "_KLIPCAL_CANCEL_ASK", "info")],
             })
             .await;
         said

@@ -278,7 +278,7 @@ impl Ab {
             .say_and_prompt(
                 &guide.join("\n"),
                 &Prompt {
-                    title: format!("klipcal: measure the pylons (round {})", s.rounds.len()),
+                    title: format!("Round {} · measure the pylons", s.rounds.len()),
                     lines: measuring_dialog(&s),
                     buttons: vec![Button::new(
                         "Close and type readings",

@@ -69,10 +69,10 @@ impl Ab {
         }
         self.core
             .prompt(&Prompt {
-                title: "klipcal: new rotation distances".into(),
+                title: format!("Round {} · new values", s.rounds.len()),
                 lines: decision.lines().map(str::to_string).collect(),
                 buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
-                footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "secondary")],
+                footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "info")],
             })
             .await;
         Ok(json!({"solution": sol, "message": message}))

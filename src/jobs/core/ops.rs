@@ -52,7 +52,7 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
                 // The Yes answers the question of the dialog whose Cancel asked (its ASK):
                 // klipcal refuses it once that question has passed (issue 40).
                 "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL{' ASK=%d' % (params.ASK|int) if 'ASK' in params else ''}|error\"",
-                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|secondary\"",
+                "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|info\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_show\"",
             ]),
             variables: &[],
