@@ -858,7 +858,7 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     assert!(
         shown
             .as_ref()
-            .is_some_and(|d| d.title.contains("(round 2)")),
+            .is_some_and(|d| d.title.starts_with("Round 2 · ")),
         "{shown:?}"
     );
     // With the service gone a macro still says it asked (issue 9 item 9), from Klipper.
