@@ -932,6 +932,21 @@ async fn click_flow(size: (u32, u32, bool), camera_seed: u64, click_seed: u64, s
         .collect();
     assert_eq!(cycles, json!(want));
     b.screenshot(&artifact(shot)).await;
+    // Issue 40 item 8: no table of the measured axis scrolls sideways (a phone showed half
+    // the results table), and the page itself does not either.
+    let wide = b
+        .eval(
+            "JSON.stringify({page: document.documentElement.scrollWidth - window.innerWidth,
+              wide: [...document.querySelectorAll('.scroll')]
+                .filter(c => c.scrollWidth > c.clientWidth + 1)
+                .map(c => [c.scrollWidth, c.clientWidth, c.textContent.slice(0, 60)])})",
+        )
+        .await;
+    let wide: Value = serde_json::from_str(wide.as_str().unwrap()).unwrap();
+    assert!(
+        wide["page"].as_f64().unwrap() <= 1.0 && wide["wide"] == json!([]),
+        "{what}: scrolls sideways: {wide}"
+    );
 }
 
 /// Clicks posted to `klipcal_backlash_tip` off by up to 6 px on each axis (seeded), with the

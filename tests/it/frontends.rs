@@ -102,7 +102,10 @@ impl FrontEnd {
                 cfg["hostname"] = json!("127.0.0.1");
                 cfg["port"] = json!(port);
             }
-            Kind::Fluidd => cfg["endpoints"] = json!([format!("http://127.0.0.1:{port}")]),
+            Kind::Fluidd => {
+                cfg["endpoints"] = json!([format!("http://127.0.0.1:{port}")]);
+                hide_bench_macros_in_fluidd(port).await;
+            }
         }
         std::fs::write(&cfg_path, cfg.to_string()).unwrap();
         let web = free_port();
@@ -139,6 +142,23 @@ impl Drop for FrontEnd {
         let _ = self.server.kill();
         let _ = self.server.wait();
     }
+}
+
+/// The bench's own CANCEL_PRINT (its printer.cfg's, as on most printers) hidden from Fluidd's
+/// macro panel the way Fluidd hides a macro (its macro settings in Moonraker's database), so the
+/// panel shows what klipcal adds (issue 40 item 8). Mainsail lists it under its own cancel.
+async fn hide_bench_macros_in_fluidd(moonraker_port: u64) {
+    let r = reqwest::Client::new()
+        .post(format!(
+            "http://127.0.0.1:{moonraker_port}/server/database/item"
+        ))
+        .json(&json!({"namespace": "fluidd", "key": "macros", "value": {
+            "stored": [{"name": "cancel_print", "visible": false}],
+            "categories": [], "expanded": [0]}}))
+        .send()
+        .await
+        .expect("Moonraker's database");
+    assert!(r.status().is_success(), "Fluidd's macro settings: {r:?}");
 }
 
 /// A dialog as the front end draws it.
@@ -1336,6 +1356,16 @@ async fn the_round_2_question_ends_everywhere_once_round_2_starts_and_its_stale_
     let mut bf = Browser::start().await;
     let mut um = Ui::open(&mut bm, &mains, "round-2-mainsail").await;
     let mut uf = Ui::open(&mut bf, &flu, "round-2-fluidd").await;
+    // The bench's CANCEL_PRINT is not among Fluidd's macro buttons (issue 40 item 8).
+    let listed = uf
+        .b
+        .eval("[...document.querySelectorAll('button')].some(b => b.innerText.trim() === 'CANCEL_PRINT')")
+        .await;
+    assert_eq!(
+        listed,
+        json!(false),
+        "Fluidd lists the bench's CANCEL_PRINT"
+    );
     for ui in [&mut um, &mut uf] {
         let next = ui.wait_dialog("round 2?", Duration::from_secs(30)).await;
         assert_eq!(next.buttons, ["Print round 2", "End"], "{next:?}");

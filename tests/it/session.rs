@@ -590,6 +590,15 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     let measuring = crate::mainsail::after_reload(&m)
         .await
         .expect("no measuring dialog");
+    // Issue 40 item 3: the dialog that asks for typing names the page (a phone's Mainsail
+    // has no console on its dashboard).
+    assert!(
+        measuring
+            .texts
+            .iter()
+            .any(|t| t.contains(&format!("or on klipcal's page {page}/"))),
+        "{measuring:?}"
+    );
     assert!(
         measuring
             .buttons

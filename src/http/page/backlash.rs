@@ -27,9 +27,11 @@ pub(super) fn backlash_section(h: &mut String, s: &Value) {
         }
     }
     if let Some(results) = s["results"].as_object().filter(|r| !r.is_empty()) {
+        // Six narrow columns, the ± beside its value and headers that break: the table fits
+        // a phone's 366 px (issue 40: seven columns were 462 px wide there).
         h.push_str(
-            "<div class=\"scroll\"><table><tr><th>axis</th><th>backlash mm</th><th>± mm</th>\
-             <th>spread mm</th><th>cycles</th><th>compensate</th><th>smooth_time s</th></tr>",
+            "<div class=\"scroll\"><table><tr><th>axis</th><th>backlash mm</th>\
+             <th>spread mm</th><th>cycles</th><th>compen&shy;sate</th><th>smooth time s</th></tr>",
         );
         for (axis, r) in results {
             let f = |k: &str, d: usize| {
@@ -39,7 +41,7 @@ pub(super) fn backlash_section(h: &mut String, s: &Value) {
             };
             let _ = write!(
                 h,
-                "<tr><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
+                "<tr><td>{}</td><td>{} ± {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
                 esc(axis),
                 f("backlash_mm", 3),
                 f("uncertainty_mm", 3),

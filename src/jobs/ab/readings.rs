@@ -312,7 +312,7 @@ pub(super) fn pair_window(
 /// What to measure and how, for the console and the measuring prompt.
 /// The measuring dialog's text: what to do and where the details are (the console has the
 /// pairs and the commands; the dialog does not repeat them).
-pub(super) fn measuring_dialog(s: &Session) -> Vec<String> {
+pub(super) fn measuring_dialog(s: &Session, page: Option<&str>) -> Vec<String> {
     let on = if s.options.bed_temp_c > 0.0 {
         "on the hot bed"
     } else {
@@ -325,9 +325,14 @@ pub(super) fn measuring_dialog(s: &Session) -> Vec<String> {
         .and_then(|r| r.picture.clone())
         .map(|p| format!(" Picture: {p}"))
         .unwrap_or_default();
+    // A phone's Mainsail has no console on its dashboard: the page's address, where the
+    // readings can be typed too (issue 40 item 3).
+    let page = page
+        .map(|p| format!(" or on klipcal's page {p} (also the webcam 'klipcal', if installed)"))
+        .unwrap_or_default();
     vec![format!(
         "Calipers, part still {on}: {} readings per pair, outer face to outer face just below \
-         the top chamfer. The pairs and what to type are on the console.{picture}",
+         the top chamfer. The pairs and what to type are on the console{page}.{picture}",
         s.options.readings_per_pair
     )]
 }

@@ -279,7 +279,7 @@ impl Ab {
                 &guide.join("\n"),
                 &Prompt {
                     title: format!("Round {} · measure the pylons", s.rounds.len()),
-                    lines: measuring_dialog(&s),
+                    lines: measuring_dialog(&s, self.core.page()),
                     buttons: vec![Button::new(
                         "Close and type readings",
                         "_KLIPCAL_PROMPT_CLOSE",
