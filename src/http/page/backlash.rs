@@ -39,7 +39,8 @@ pub(super) fn backlash_section(h: &mut String, s: &Value) {
                     .map(|v| format!("{v:.d$}"))
                     .unwrap_or_default()
             };
-            let _ = write!(
+            let _ =
+                write!(
                 h,
                 "<tr><td>{}</td><td>{} ± {}</td><td>{}</td><td>{}</td><td>{}</td><td>{}</td></tr>",
                 esc(axis),

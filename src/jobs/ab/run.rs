@@ -170,6 +170,8 @@ impl Ab {
 
     /// Drives the automatic states until the session waits for the user or ends.
     pub(super) async fn run(&self, id: i64) -> anyhow::Result<()> {
+        // The bed's target and its bound were just sent (not by a runner before a restart).
+        let mut just_heated = false;
         loop {
             let s = self.load(id)?;
             match s.state {
@@ -181,9 +183,10 @@ impl Ab {
                         s.options.soak_max_s + crate::jobs::soak::BOUND_SLACK_S,
                     )
                     .await?;
+                    just_heated = true;
                     self.set_state(id, State::Heating, "bed heating").await?;
                 }
-                State::Heating | State::Soaking => self.soak(s).await?,
+                State::Heating | State::Soaking => self.soak(s, just_heated).await?,
                 State::Printing => self.print(s).await?,
                 State::Holding => self.hold(s).await?,
                 _ => return Ok(()),

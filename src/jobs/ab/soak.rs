@@ -4,7 +4,7 @@
 use super::*;
 
 impl Ab {
-    pub(super) async fn soak(&self, s: Session) -> anyhow::Result<()> {
+    pub(super) async fn soak(&self, s: Session, just_heated: bool) -> anyhow::Result<()> {
         let id = s.id;
         let hold_s = s.options.hold_max_s;
         let params = self
@@ -18,6 +18,9 @@ impl Ab {
             s.options.soak_max_s,
             "ab.soak_max_s",
         );
+        if just_heated {
+            soak = soak.bound_just_set();
+        }
         let mut last = String::new();
         let mut cost: Option<f64> = None;
         // Since when the soak question waits for an answer, and what it said.

@@ -330,6 +330,15 @@ impl BedSoak {
         k
     }
 
+    /// The heater was just set with [`BedSoak::heat`], whose bound covers this soak: the first
+    /// poll does not set Klipper's idle timeout again (issue 40: two `SET_IDLE_TIMEOUT` rows
+    /// per start). A soak resumed after a restart keeps the first poll's bound.
+    #[must_use]
+    pub(crate) fn bound_just_set(mut self) -> Self {
+        self.rebound = false;
+        self
+    }
+
     /// Allows `extra_s` more from now (the user chose to wait).
     pub(crate) fn extend(&mut self, extra_s: f64) {
         self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
