@@ -587,53 +587,10 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     );
     // A dialog never waits on input only the console can give (item 18): the measuring
     // dialog's button closes it and says where to type, and readings do not reopen it.
-    let measuring = crate::mainsail::after_reload(&m)
-        .await
-        .expect("no measuring dialog");
-    // Issue 40 item 3: the dialog that asks for typing names the page (a phone's Mainsail
-    // has no console on its dashboard).
-    assert!(
-        measuring
-            .texts
-            .iter()
-            .any(|t| t.contains(&format!("or on klipcal's page {page}/"))),
-        "{measuring:?}"
-    );
-    assert!(
-        measuring
-            .buttons
-            .iter()
-            .any(|b| crate::mainsail::unasked(&b.1) == "_KLIPCAL_PROMPT_CLOSE"),
-        "{measuring:?}"
-    );
-    m.gcode("_KLIPCAL_PROMPT_CLOSE").await.unwrap();
-    // The helper only asks; klipcal closes the dialog itself (as its own close, so no "closed"
-    // notice follows).
-    let closed = poll(Duration::from_secs(10), || async {
-        crate::mainsail::after_reload(&m)
-            .await
-            .is_none()
-            .then_some(())
-    })
-    .await;
-    assert!(
-        closed.is_some(),
-        "{:?}",
-        crate::mainsail::after_reload(&m).await
-    );
-    tokio::time::sleep(Duration::from_secs(1)).await;
-    let told = crate::mainsail::history(&m).await;
-    assert!(
-        !told.iter().any(|(_, msg)| msg.contains("' closed")),
-        "klipcal took its own close for the user's: {told:?}"
-    );
-    assert!(
-        told.iter()
-            .rev()
-            .take(4)
-            .any(|(_, msg)| msg.contains("type readings on the console: KLIPCAL_MEASURE")),
-        "{told:?}"
-    );
+    // Issue 40 item 4: no measuring dialog (Mainsail's is modal and blocked the console the
+    // readings are typed in until it was closed): the console's guide and the page are the
+    // ways, and the console is free.
+    assert_eq!(crate::mainsail::after_reload(&m).await, None);
     for (k, p) in s["pairs"].as_array().unwrap().iter().enumerate() {
         let vals: Vec<String> = simulated_readings(p)
             .iter()
@@ -863,13 +820,8 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
             .any(|(_, msg)| msg.contains(&format!("session {id}, round 2 started"))),
         "{h:#?}"
     );
-    let shown = crate::mainsail::after_reload(&m).await;
-    assert!(
-        shown
-            .as_ref()
-            .is_some_and(|d| d.title.starts_with("Round 2 · ")),
-        "{shown:?}"
-    );
+    // No dialog left from round 1, none for measuring (issue 40 items 1, 4).
+    assert_eq!(crate::mainsail::after_reload(&m).await, None);
     // With the service gone a macro still says it asked (issue 9 item 9), from Klipper.
     drop(d);
     m.gcode("KLIPCAL_STATUS").await.unwrap();

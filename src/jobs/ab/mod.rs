@@ -13,7 +13,7 @@ mod solve;
 #[cfg(test)]
 mod tests;
 
-use readings::{measuring_dialog, measuring_guide};
+use readings::measuring_guide;
 pub use requests::{ApplyRequest, CheckRequest, MeasureRequest, StartRequest};
 
 use std::collections::BTreeMap;

@@ -1,5 +1,5 @@
 //! The readings: `klipcal_ab_measure` and `klipcal_ab_check`, what is still missing, and the
-//! measuring dialog and guide.
+//! measuring guide.
 
 use super::*;
 
@@ -309,34 +309,7 @@ pub(super) fn pair_window(
     Ok((pair, window))
 }
 
-/// What to measure and how, for the console and the measuring prompt.
-/// The measuring dialog's text: what to do and where the details are (the console has the
-/// pairs and the commands; the dialog does not repeat them).
-pub(super) fn measuring_dialog(s: &Session, page: Option<&str>) -> Vec<String> {
-    let on = if s.options.bed_temp_c > 0.0 {
-        "on the hot bed"
-    } else {
-        "on the bed"
-    };
-    // One text row (issue 26 A.4: each prompt line is a console row).
-    let picture = s
-        .rounds
-        .last()
-        .and_then(|r| r.picture.clone())
-        .map(|p| format!(" Picture: {p}"))
-        .unwrap_or_default();
-    // A phone's Mainsail has no console on its dashboard: the page's address, where the
-    // readings can be typed too (issue 40 item 3).
-    let page = page
-        .map(|p| format!(" or on klipcal's page {p} (also the webcam 'klipcal', if installed)"))
-        .unwrap_or_default();
-    vec![format!(
-        "Calipers, part still {on}: {} readings per pair, outer face to outer face just below \
-         the top chamfer. The pairs and what to type are on the console{page}.{picture}",
-        s.options.readings_per_pair
-    )]
-}
-
+/// What to measure and how, for the console (and where else to type: klipcal's page).
 pub(super) fn measuring_guide(s: &Session, page: Option<&str>) -> Vec<String> {
     let Some(round) = s.rounds.last() else {
         return Vec::new();
@@ -374,7 +347,8 @@ pub(super) fn measuring_guide(s: &Session, page: Option<&str>) -> Vec<String> {
     lines.push(format!(
         "type readings on the console (or on klipcal's page{}); a wrong one: KLIPCAL_MEASURE \
          PAIR=… CLEAR=1, then enter the pair again",
-        page.map(|p| format!(", {p}")).unwrap_or_default()
+        page.map(|p| format!(", {p}, on a phone also its webcam tile 'klipcal'"))
+            .unwrap_or_default()
     ));
     lines
 }

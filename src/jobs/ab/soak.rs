@@ -274,24 +274,12 @@ impl Ab {
         self.set_state(id, State::Measuring, "waiting for caliper readings")
             .await?;
         let s = self.load(id)?;
-        // The console carries the whole guide; the dialog only what to do and where to look,
-        // so the console does not read the guide twice.
+        // The console carries the guide (the pairs, what to type, the page's address); no
+        // dialog: Mainsail's is modal and blocked the very console it asked the user to type
+        // in until it was closed (issue 40 item 4). The readings' roads are the console and
+        // klipcal's page (also its webcam tile on a phone); the next dialog offers Solve.
         let guide = measuring_guide(&s, self.core.page());
-        self.core
-            .say_and_prompt(
-                &guide.join("\n"),
-                &Prompt {
-                    title: format!("Round {} · measure the pylons", s.rounds.len()),
-                    lines: measuring_dialog(&s, self.core.page()),
-                    buttons: vec![Button::new(
-                        "Close and type readings",
-                        "_KLIPCAL_PROMPT_CLOSE",
-                        "primary",
-                    )],
-                    footer: Vec::new(),
-                },
-            )
-            .await;
+        self.core.console(&guide.join("\n")).await;
         Ok(())
     }
 }
