@@ -262,10 +262,13 @@ mod tests {
             "last": {}});
         let page = render(&st, None);
         assert!(
-            page.contains("<td>x</td><td>0.081</td><td>0.002</td>"),
+            page.contains("<td>x</td><td>0.081 ± 0.002</td><td>0.004</td>"),
             "{page}"
         );
         assert!(page.contains("data-op=\"backlash/apply\""));
+        // No round in a backlash session's header (issue 40: "round measured").
+        assert!(page.contains("session 9 <span"), "{page}");
+        assert!(!page.contains("· round"), "{page}");
     }
 
     #[test]
