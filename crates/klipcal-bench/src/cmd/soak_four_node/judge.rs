@@ -4,7 +4,7 @@
 use crate::calib::soak::{SoakDetector, SoakParams, SoakStatus};
 
 use super::klipper::{autotune, heat_up};
-use super::{FourNode, Kind, Knobs};
+use super::{Control, FourNode, Kind, Knobs};
 
 /// What each rule said on one bed, s (None: not within the run).
 #[derive(Debug, Clone, Default)]
@@ -63,10 +63,28 @@ pub(crate) struct BedResult {
     pub open_left_c: f64,
     /// The bed's slowest clamped time constant, s.
     pub slowest_s: f64,
+    /// klipcal's rule with a chamber thermometer in the enclosure's air (`temperature_sensor
+    /// chamber`, read once a second with 0.05 °C of noise), without and with the kind's preset.
+    pub chamber: Option<f64>,
+    /// See `chamber`.
+    pub chamber_preset: Option<f64>,
+}
+
+/// klipcal's rule with a chamber thermometer reading the air node.
+fn with_chamber(samples: &[[f64; 6]], params: &SoakParams, rng: &mut fastrand::Rng) -> Option<f64> {
+    let mut s = SoakDetector::new(params.clone()).with_chamber("temperature_sensor chamber");
+    for x in samples {
+        let air = x[5] + 0.05 * crate::cmd::soak_noise::gauss(rng);
+        s.push_chamber(x[0], (air * 100.0).round() / 100.0);
+        if let SoakStatus::Stable { at_s } = s.push(x[0], x[1], x[2], x[3]) {
+            return Some(at_s);
+        }
+    }
+    None
 }
 
 /// Runs the detector over the samples; the declaration and the detector.
-fn detector(samples: &[[f64; 5]], params: &SoakParams) -> (Option<f64>, SoakDetector) {
+fn detector(samples: &[[f64; 6]], params: &SoakParams) -> (Option<f64>, SoakDetector) {
     let mut d = SoakDetector::new(params.clone());
     for s in samples {
         if let SoakStatus::Stable { at_s } = d.push(s[0], s[1], s[2], s[3]) {
@@ -78,7 +96,7 @@ fn detector(samples: &[[f64; 5]], params: &SoakParams) -> (Option<f64>, SoakDete
 
 /// Every rule on one bed.
 #[must_use]
-pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -> BedResult {
+pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 6]], params: &SoakParams) -> BedResult {
     let fin = bed.surface_final_c();
     let budget = params.surface_budget_c;
     let moment_s = match samples.iter().rposition(|s| fin - s[4] > budget) {
@@ -181,6 +199,8 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 5]], params: &SoakParams) -
         open_preset_fixed: None,
         open_left_c: left_at(open),
         slowest_s: bed.clamped_taus_s()[0],
+        chamber: None,
+        chamber_preset: None,
     }
 }
 
@@ -195,24 +215,48 @@ pub(crate) fn preset_name(kind: Kind) -> &'static str {
     }
 }
 
-/// One bed of `kind` from the knobs (random when None), tuned and run for `until_s`; with
-/// `preset`, klipcal's rule is also run with `soak.bed` set to the kind's preset.
+/// One bed of `kind` from the knobs (random when None) under `control`, tuned (Klipper's
+/// PID_CALIBRATE, Kalico's MPC_CALIBRATE) and run for `until_s`; with `preset`, klipcal's rule
+/// is also run with `soak.bed` set to the kind's preset; with `chamber`, with a chamber
+/// thermometer too. None when the tuning did not finish.
 #[must_use]
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn run_bed(
     kind: Kind,
+    control: Control,
     knobs: Option<Knobs>,
     until_s: f64,
     params: &SoakParams,
     preset: bool,
+    chamber: bool,
     rng: &mut fastrand::Rng,
 ) -> Option<BedResult> {
     let bed = match knobs {
         Some(k) => FourNode::new(kind, k, rng),
         None => FourNode::random(kind, rng),
     };
-    let gains = autotune(&bed, rng)?;
-    let samples = heat_up(&bed, gains, until_s, rng);
+    let samples = match control {
+        Control::Pid => {
+            let gains = autotune(&bed, rng)?;
+            heat_up(&bed, gains, until_s, rng)
+        }
+        Control::Mpc => {
+            let cal = super::kalico::calibrate(&bed, bed.p_max_w, rng).ok()?;
+            super::kalico::heat_up(&bed, cal.profile, until_s, rng).0
+        }
+    };
     let mut r = judge(&bed, &samples, params);
+    if chamber {
+        r.chamber = with_chamber(&samples, params, rng);
+        r.chamber_preset = with_chamber(
+            &samples,
+            &SoakParams {
+                bed: preset_name(kind).into(),
+                ..params.clone()
+            },
+            rng,
+        );
+    }
     if preset {
         let with = SoakParams {
             bed: preset_name(kind).into(),

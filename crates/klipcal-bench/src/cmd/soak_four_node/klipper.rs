@@ -177,14 +177,14 @@ pub(crate) fn autotune_traced(
 }
 
 /// A heat-up from room temperature under Klipper's PID with these gains: `(t_s, power,
-/// reading, target, surface)` once a second for `until_s`.
+/// reading, target, surface, air)` once a second for `until_s`.
 #[must_use]
 pub(crate) fn heat_up(
     bed: &FourNode,
     gains: (f64, f64, f64),
     until_s: f64,
     rng: &mut fastrand::Rng,
-) -> Vec<[f64; 5]> {
+) -> Vec<[f64; 6]> {
     heat_up_traced(bed, gains, until_s, rng, None)
 }
 
@@ -195,7 +195,7 @@ pub(crate) fn heat_up_traced(
     until_s: f64,
     rng: &mut fastrand::Rng,
     mut trace: Option<&mut Trace>,
-) -> Vec<[f64; 5]> {
+) -> Vec<[f64; 6]> {
     let mut t = [bed.room_c; 4];
     let mut k = Klipper::new(1.0, gains);
     k.target = bed.target_c;
@@ -207,7 +207,7 @@ pub(crate) fn heat_up_traced(
     while time <= until_s {
         if time >= next_out {
             // The power Klipper reports is the last value it set.
-            out.push([time, k.last_pwm_value, temp, bed.target_c, t[2]]);
+            out.push([time, k.last_pwm_value, temp, bed.target_c, t[2], t[3]]);
             next_out += 1.0;
         }
         time += REPORT_S;
@@ -283,7 +283,6 @@ pub(crate) fn klipper_check(
     seed: u64,
 ) -> anyhow::Result<KlipperCheck> {
     use anyhow::Context;
-    use std::io::Write;
     let mut rng = fastrand::Rng::with_seed(seed);
     let kinds = Kind::all();
     let mut runs = Vec::new();
@@ -316,28 +315,7 @@ pub(crate) fn klipper_check(
         expect.push((tr, None));
     }
     let input = serde_json::json!({ "runs": runs }).to_string();
-    let mut child = std::process::Command::new(python)
-        .arg(script)
-        .stdin(std::process::Stdio::piped())
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .with_context(|| format!("cannot run {}", python.display()))?;
-    let mut stdin = child.stdin.take().context("python's stdin")?;
-    let writer = std::thread::spawn(move || stdin.write_all(input.as_bytes()));
-    let out = child.wait_with_output()?;
-    writer
-        .join()
-        .map_err(|_| anyhow::anyhow!("writing to python"))??;
-    if !out.status.success() {
-        anyhow::bail!(
-            "{} failed: {}",
-            script.display(),
-            String::from_utf8_lossy(&out.stderr)
-        );
-    }
-    let v: serde_json::Value =
-        serde_json::from_slice(&out.stdout).context("klipper_control_check.py's answer")?;
+    let v = run_python(python, script, input)?;
     let answers = v["runs"].as_array().context("no runs in the answer")?;
     anyhow::ensure!(
         answers.len() == expect.len(),
@@ -388,6 +366,40 @@ pub(crate) fn klipper_check(
         }
     }
     Ok(r)
+}
+
+/// Runs `script` under `python` with `input` on its stdin and reads its stdout as JSON.
+///
+/// # Errors
+/// Python could not run, failed, or answered something unreadable.
+pub(crate) fn run_python(
+    python: &std::path::Path,
+    script: &std::path::Path,
+    input: String,
+) -> anyhow::Result<serde_json::Value> {
+    use anyhow::Context;
+    use std::io::Write;
+    let mut child = std::process::Command::new(python)
+        .arg(script)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .with_context(|| format!("cannot run {}", python.display()))?;
+    let mut stdin = child.stdin.take().context("python's stdin")?;
+    let writer = std::thread::spawn(move || stdin.write_all(input.as_bytes()));
+    let out = child.wait_with_output()?;
+    writer
+        .join()
+        .map_err(|_| anyhow::anyhow!("writing to python"))??;
+    if !out.status.success() {
+        anyhow::bail!(
+            "{} failed: {}",
+            script.display(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    serde_json::from_slice(&out.stdout).with_context(|| format!("{}'s answer", script.display()))
 }
 
 #[cfg(test)]

@@ -18,9 +18,13 @@
 use super::soak_noise::{gauss, uniform};
 
 mod judge;
+mod kalico;
+mod kalico_check;
 mod klipper;
 
 pub(crate) use judge::{preset_name, run_bed, BedResult};
+pub(crate) use kalico::kalico_python;
+pub(crate) use kalico_check::{kalico_check, CAL_TOL};
 pub(crate) use klipper::{klipper_check, klippy_python, GAIN_TOL, PWM_TOL};
 
 /// One bed: nodes pad, plate, surface, air; conductances W/K; capacities J/K.
@@ -40,6 +44,27 @@ pub(crate) struct FourNode {
     pub target_c: f64,
     /// ADC noise, °C (sd).
     pub noise_c: f64,
+}
+
+/// The bed's control: Klipper's PID (gains from PID_CALIBRATE) or Kalico's MPC (its profile
+/// from MPC_CALIBRATE).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Control {
+    /// Klipper's `control: pid`.
+    Pid,
+    /// Kalico's `control: mpc`.
+    Mpc,
+}
+
+impl Control {
+    /// Its name in the report.
+    #[must_use]
+    pub(crate) fn name(self) -> &'static str {
+        match self {
+            Control::Pid => "Klipper's PID",
+            Control::Mpc => "Kalico's MPC",
+        }
+    }
 }
 
 /// A family of four-node beds.

@@ -37,6 +37,9 @@ pub struct Coupling {
     pub source: CouplingSource,
     /// Which, and why, in words.
     pub why: String,
+    /// Identified: the bed's whole heat capacity at its low end, full power·s/K.
+    #[serde(skip)]
+    pub heat_capacity: Option<f64>,
 }
 
 impl Coupling {
@@ -85,6 +88,7 @@ impl Coupling {
                 high: b.g,
                 charge_s: b.charge_s,
                 source: CouplingSource::Preset,
+                heat_capacity: None,
                 why: format!(
                     "coupling 1/{:.0} of full power per K from soak.bed = \"{}\" ({}); \
                      {not_identified}",
@@ -99,6 +103,7 @@ impl Coupling {
                 high: weakest.g,
                 charge_s: weakest.charge_s,
                 source: CouplingSource::Weakest,
+                heat_capacity: None,
                 why: format!(
                     "the weakest coupling, 1/{:.0} of full power per K ({}), as soak.bed is \
                      not set; {not_identified}",
@@ -320,20 +325,39 @@ fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
 /// two minutes' power per kelvin of rise (the power is still falling then) times the
 /// integral of the thermistor's rise; the stack beyond a pad's thermistor is cooler than it
 /// and not yet quite charged, so dividing by the thermistor's rise only lowers the answer.
+///
+/// That holds only while the bed is not giving heat back. Under a model-predictive control
+/// (Kalico's MPC) the bed overshoots its band and then returns its stored heat: the power
+/// dips below its final value while the temperature falls, so the last two minutes' power
+/// is below the losses and the answer came out above the true heat capacity on about a
+/// quarter of MPC beds (a correction by the thermistor's own fall was not enough: the
+/// surface, further over its final temperature, falls faster). A thermistor that fell by
+/// more than [`FALL_C`] over the last two minutes gives no heat capacity.
 fn heat_capacity_low(bins: &[[f64; 4]]) -> Result<f64, String> {
     let n = bins.len();
     let t0 = bins[0][2];
     let end = bins[n - 1][0];
     let tail: Vec<&[f64; 4]> = bins.iter().filter(|b| end - b[0] < 120.0).collect();
-    let p_end = tail.iter().map(|b| b[1]).sum::<f64>() / tail.len() as f64;
-    let rise_end = tail.iter().map(|b| b[2]).sum::<f64>() / tail.len() as f64 - t0;
+    let k = tail.len() as f64;
+    let p_end = tail.iter().map(|b| b[1]).sum::<f64>() / k;
+    let rise_end = tail.iter().map(|b| b[2]).sum::<f64>() / k - t0;
+    let fall = tail[0][2] - tail[tail.len() - 1][2];
+    if fall > FALL_C {
+        return Err(format!(
+            "the bed fell {fall:.2} K in the last two minutes of the hold (a controller that \
+             overshot its band gives heat back, so its power is below the losses)"
+        ));
+    }
     let (mut energy, mut rise_s) = (0.0, 0.0);
     for w in bins.windows(2) {
         let dt = w[1][0] - w[0][0];
         energy += w[1][1] * dt;
         rise_s += 0.5 * (w[0][2] + w[1][2] - 2.0 * t0) * dt;
     }
-    let c = (energy - p_end / rise_end * rise_s) / rise_end;
+    // A smaller fall still gives heat back: the losses are the power plus C times the fall
+    // rate, C on both sides.
+    let fall_rate = (-tail.iter().map(|b| b[3]).sum::<f64>() / k).max(0.0);
+    let c = (energy - p_end / rise_end * rise_s) / (rise_end + rise_s * fall_rate / rise_end);
     if !(c.is_finite() && c > 0.0) {
         return Err(format!(
             "the heat-up's energy gives no heat capacity ({c:.2} full power·s/K)"
@@ -341,6 +365,10 @@ fn heat_capacity_low(bins: &[[f64; 4]]) -> Result<f64, String> {
     }
     Ok(c)
 }
+
+/// A fall of the thermistor's reading over the last two minutes of the hold beyond which
+/// the bed is giving heat back (more than a PID's limit cycle and the readings' noise), K.
+const FALL_C: f64 = 0.15;
 
 /// Identifies the coupling from a cold heat-up and the first minutes of hold, binned:
 /// `(t_s, power, temp_c, rate_c_s)` from the first bin on (the bed at room temperature), for
@@ -373,7 +401,13 @@ pub fn identify_coupling(bins: &[[f64; 4]], params: &SoakParams) -> Result<Coupl
         }
         Err(LagError::Other(_)) => None,
     };
-    let c = heat_capacity_low(bins)?;
+    let capacity = heat_capacity_low(bins);
+    let c = match (&capacity, lag) {
+        (Ok(c), _) => *c,
+        // Without a heat capacity only the lag and the build bound G from below.
+        (Err(_), Some(_)) => 0.0,
+        (Err(why), None) => return Err(why.clone()),
+    };
     let named = BED_PRESETS.iter().find(|b| b.name == params.bed);
     let build = *named.unwrap_or(&BED_PRESETS[BED_PRESETS.len() - 1]);
     let from_c = c / build.rc_s;
@@ -418,11 +452,16 @@ pub fn identify_coupling(bins: &[[f64; 4]], params: &SoakParams) -> Result<Coupl
         high,
         charge_s: build.charge_s,
         source: CouplingSource::Identified,
+        heat_capacity: capacity.as_ref().ok().copied(),
         why: format!(
-            "G identified from the heat-up: at least 1/{:.0} of full power per K ({}; bed heat \
-             capacity {c:.1} full power·s/K{}), up to {}; the low end is used{note}",
+            "G identified from the heat-up: at least 1/{:.0} of full power per K ({}; {}{}), up \
+             to {}; the low end is used{note}",
             1.0 / low,
             how,
+            match &capacity {
+                Ok(c) => format!("bed heat capacity {c:.1} full power·s/K"),
+                Err(why) => format!("no heat capacity: {why}"),
+            },
             if named.is_some() {
                 format!(", soak.bed = \"{}\"", build.name)
             } else {

@@ -5,6 +5,7 @@
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
+use super::chamber::ChamberGate;
 use super::coupling::{identify_coupling, Coupling, ID_HOLD_S};
 use super::stack::{open_frame_reach, SurfaceReach};
 use super::SoakParams;
@@ -244,6 +245,8 @@ pub struct SoakDetector {
     coupling_final: bool,
     /// The first time the temperature entered the band for this target.
     first_band_s: Option<f64>,
+    /// A chamber thermometer, when the printer has one (see [`super::chamber`]).
+    gate: Option<Box<ChamberGate>>,
 }
 
 impl SoakDetector {
@@ -305,6 +308,7 @@ impl SoakDetector {
             first_band_s: None,
             over_since_s: None,
             approach_above: None,
+            gate: None,
         }
     }
 
@@ -315,6 +319,9 @@ impl SoakDetector {
         if max_power.is_finite() && (0.05..=1.0).contains(&max_power) {
             self.max_power = max_power;
             self.max_power_set = true;
+        }
+        if let Some(g) = self.gate.as_mut() {
+            g.stack.set_max_power(max_power);
         }
     }
 
@@ -441,12 +448,14 @@ impl SoakDetector {
 
     /// The latest status (as returned by the last [`push`](Self::push)).
     pub fn status(&self) -> &SoakStatus {
-        &self.status
+        self.gate.as_ref().map_or(&self.status, |g| &g.status)
     }
 
     /// Why the detector says what it says, in words: what it waits for, or why it declared.
     pub fn explanation(&self) -> &str {
-        &self.explanation
+        self.gate
+            .as_ref()
+            .map_or(&self.explanation, |g| &g.explanation)
     }
 
     /// The latest decay fit, once the soak has enough data.
@@ -457,9 +466,15 @@ impl SoakDetector {
     /// Forgets everything but the thresholds and `max_power` (a new heat-up).
     pub fn reset(&mut self) {
         let (max_power, set) = (self.max_power, self.max_power_set);
+        let gate = self.gate.take().map(|mut g| {
+            g.stack.reset();
+            g.status = SoakStatus::Heating;
+            g
+        });
         *self = SoakDetector::new(self.params.clone());
         self.max_power = max_power;
         self.max_power_set = set;
+        self.gate = gate;
     }
 
     /// Feeds one sample: time `t_s` (any origin, increasing), heater `power` (0..1, held until
@@ -467,6 +482,50 @@ impl SoakDetector {
     /// that are not finite or not later than the previous one are ignored; a change of target
     /// restarts the soak. The status changes at most once per `bin_s`.
     pub fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
+        let main = self.push_bed(t_s, power, temp_c, target_c);
+        match self.gate.take() {
+            None => main,
+            Some(mut g) => {
+                g.stack.push_bed(t_s, power, temp_c, target_c);
+                g.decide(&main, &self.explanation, target_c);
+                let status = g.status.clone();
+                self.gate = Some(g);
+                status
+            }
+        }
+    }
+
+    /// Reads a chamber thermometer (`name` as Klipper names its object) beside the bed: while
+    /// it still warms the soak waits, once it is flat the rule rules out only the bed stack's
+    /// own decays (see [`super::chamber`]).
+    #[must_use]
+    pub fn with_chamber(mut self, name: &str) -> Self {
+        let mut stack = SoakDetector::new(SoakParams {
+            frame: "open".into(),
+            ..self.params.clone()
+        });
+        if self.max_power_set {
+            stack.set_max_power(self.max_power);
+        }
+        self.gate = Some(Box::new(ChamberGate::new(name, stack)));
+        self
+    }
+
+    /// A chamber reading (ignored without [`with_chamber`](Self::with_chamber)).
+    pub fn push_chamber(&mut self, t_s: f64, temp_c: f64) {
+        if let Some(g) = self.gate.as_mut() {
+            g.chamber.push(t_s, temp_c);
+        }
+    }
+
+    /// The chamber thermometer's trend in words, naming it, when there is one.
+    #[must_use]
+    pub fn chamber_words(&self) -> Option<String> {
+        self.gate.as_ref().map(|g| g.chamber.words())
+    }
+
+    /// [`push`](Self::push) without the chamber.
+    fn push_bed(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
         if !(t_s.is_finite() && power.is_finite() && temp_c.is_finite() && target_c.is_finite()) {
             return self.status.clone();
         }

@@ -38,6 +38,7 @@
 
 use serde::{Deserialize, Serialize};
 
+mod chamber;
 mod coupling;
 mod detector;
 mod nnls;
@@ -45,6 +46,7 @@ mod stack;
 #[cfg(test)]
 mod test_beds;
 
+pub use chamber::CHAMBER_FLAT_K_PER_H;
 pub use coupling::{Coupling, CouplingSource};
 pub use detector::SoakDetector;
 pub use detector::SoakStatus;
@@ -92,6 +94,11 @@ pub struct SoakParams {
     /// is below `tau_max_s`), "enclosed", or "" (unknown). "enclosed" and "" use `tau_max_s`.
     /// Default "".
     pub frame: String,
+    /// The chamber or enclosure thermometer whose trend rules the enclosure's slow warming in
+    /// or out, as Klipper names its object (`temperature_sensor chamber`,
+    /// `temperature_fan enclosure`); "" (the default) takes the first such sensor Klipper's
+    /// config has, "none" reads none. Default "".
+    pub chamber_sensor: String,
     /// Issue 10's rule, for the bench's comparison only: stable once this much power (fraction
     /// of full power) is ruled out, whatever the surface. Not a setting.
     #[serde(skip)]
@@ -114,6 +121,7 @@ impl Default for SoakParams {
             bed: String::new(),
             tau_max_s: 3600.0,
             frame: String::new(),
+            chamber_sensor: String::new(),
             fixed_remaining: None,
             no_identify: false,
         }
@@ -139,6 +147,20 @@ const FRAME_NAMES: &str = "\"\" (unknown: up to tau_max_s), \"open\" (no enclosu
 /// What `soak.bed` accepts, for its error.
 const BED_NAMES: &str = "\"\" (unknown), \"bare-plate\", \"steel-plate\", \"bare-pad\", \
                          \"steel-pad\", \"glass-plate\" or \"glass-pad\"";
+
+/// `soak.chamber_sensor`: "", "none", or `temperature_sensor <name>` / `temperature_fan
+/// <name>`.
+fn chamber_sensor_ok(v: &str) -> bool {
+    let v = v.trim();
+    v.is_empty()
+        || v == "none"
+        || v.split_once(char::is_whitespace)
+            .is_some_and(|(kind, name)| {
+                ["temperature_sensor", "temperature_fan"].contains(&kind)
+                    && !name.trim().is_empty()
+                    && !name.contains([';', '#', '*', '\n'])
+            })
+}
 
 /// Likelihood-ratio threshold of the test in standard errors: a remaining fall of
 /// `max_remaining` is ruled out once it costs the fit more than Z² σ².
@@ -216,7 +238,28 @@ impl SoakParams {
                 expected: FRAME_NAMES,
             });
         }
+        if !chamber_sensor_ok(&p.chamber_sensor) {
+            return Err(SoakParamsError {
+                key: "chamber_sensor",
+                value: format!("{:?}", p.chamber_sensor),
+                expected: "\"\" (the first chamber or enclosure thermometer in Klipper's config), \
+                           \"none\", or a Klipper object such as \"temperature_sensor chamber\" or \
+                           \"temperature_fan enclosure\"",
+            });
+        }
         Ok(())
+    }
+
+    /// The chamber thermometer to read, from `chamber_sensor` and the ones Klipper's config has
+    /// (see `moonraker::answers::chamber_sensors`, the plainest first): None for "none" or when
+    /// there is none.
+    #[must_use]
+    pub fn chamber_sensor_from(&self, found: &[String]) -> Option<String> {
+        match self.chamber_sensor.trim() {
+            "none" => None,
+            "" => found.first().cloned(),
+            name => Some(name.split_whitespace().collect::<Vec<_>>().join(" ")),
+        }
     }
 
     /// The slowest decay the rule rules out, s: `tau_max_s`, or on an open frame the bed
