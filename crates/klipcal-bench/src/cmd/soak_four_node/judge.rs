@@ -68,6 +68,11 @@ pub(crate) struct BedResult {
     pub chamber: Option<f64>,
     /// See `chamber`.
     pub chamber_preset: Option<f64>,
+    /// The detector's ETA minus the true time left, min, at 25, 50 and 75 % of its soak from
+    /// reaching the target; with the defaults and with the kind's preset (and the frame).
+    pub eta_err: [f64; 3],
+    /// See `eta_err`.
+    pub preset_eta_err: [f64; 3],
 }
 
 /// klipcal's rule with a chamber thermometer reading the air node.
@@ -85,13 +90,42 @@ fn with_chamber(samples: &[[f64; 6]], params: &SoakParams, rng: &mut fastrand::R
 
 /// Runs the detector over the samples; the declaration and the detector.
 fn detector(samples: &[[f64; 6]], params: &SoakParams) -> (Option<f64>, SoakDetector) {
+    let (at, d, _) = detector_eta(samples, params);
+    (at, d)
+}
+
+/// [`detector`], and the ETA it stated at each sample `(t_s, eta_s)`.
+fn detector_eta(
+    samples: &[[f64; 6]],
+    params: &SoakParams,
+) -> (Option<f64>, SoakDetector, Vec<(f64, f64)>) {
     let mut d = SoakDetector::new(params.clone());
+    let mut etas = Vec::new();
     for s in samples {
-        if let SoakStatus::Stable { at_s } = d.push(s[0], s[1], s[2], s[3]) {
-            return (Some(at_s), d);
+        match d.push(s[0], s[1], s[2], s[3]) {
+            SoakStatus::Stable { at_s } => return (Some(at_s), d, etas),
+            SoakStatus::Soaking {
+                eta_s: Some(eta), ..
+            } => etas.push((s[0], eta)),
+            _ => {}
         }
     }
-    (None, d)
+    (None, d, etas)
+}
+
+/// The ETA's error (stated minus true time left, min) at 25, 50 and 75 % of the soak from the
+/// band to the declaration (NaN where none was stated then or nothing was declared).
+fn eta_errors(reach_s: f64, at: Option<f64>, etas: &[(f64, f64)]) -> [f64; 3] {
+    let Some(at) = at else {
+        return [f64::NAN; 3];
+    };
+    [0.25, 0.5, 0.75].map(|f| {
+        let t = reach_s + f * (at - reach_s);
+        etas.iter()
+            .rev()
+            .find(|e| e.0 <= t && t - e.0 <= 30.0)
+            .map_or(f64::NAN, |e| (e.1 - (at - e.0)) / 60.0)
+    })
 }
 
 /// Every rule on one bed.
@@ -108,7 +142,7 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 6]], params: &SoakParams) -
         .iter()
         .find(|s| (s[2] - s[3]).abs() <= 2.0)
         .map_or(f64::INFINITY, |s| s[0]);
-    let (rule, d) = detector(samples, params);
+    let (rule, d, etas) = detector_eta(samples, params);
     let c = d.coupling();
     let g = bed.g_true();
     let identified = c.source == crate::calib::soak::CouplingSource::Identified;
@@ -201,6 +235,8 @@ pub(crate) fn judge(bed: &FourNode, samples: &[[f64; 6]], params: &SoakParams) -
         slowest_s: bed.clamped_taus_s()[0],
         chamber: None,
         chamber_preset: None,
+        eta_err: eta_errors(reach_s, rule, &etas),
+        preset_eta_err: [f64::NAN; 3],
     }
 }
 
@@ -262,21 +298,26 @@ pub(crate) fn run_bed(
             bed: preset_name(kind).into(),
             ..params.clone()
         };
-        let (at, d) = detector(&samples, &with);
+        let (at, d, etas_with) = detector_eta(&samples, &with);
         r.with_preset = at;
         let c = d.coupling();
         r.preset_identified = c.source == crate::calib::soak::CouplingSource::Identified;
         r.preset_covered = c.low <= r.g_true && r.g_true <= c.high;
         r.preset_g_safe = c.g <= r.g_true;
         r.preset_g_used = c.g;
-        let open = detector(
+        if kind.enclosed {
+            // "enclosed" rules out what an unknown frame does: the run above is the named one.
+            r.preset_eta_err = eta_errors(r.reach_s, at, &etas_with);
+            return Some(r);
+        }
+        let (open, _, etas) = detector_eta(
             &samples,
             &SoakParams {
                 frame: "open".into(),
                 ..with
             },
-        )
-        .0;
+        );
+        r.preset_eta_err = eta_errors(r.reach_s, open, &etas);
         r.open_preset = open;
         let fixed = |p: SoakParams| {
             detector(
