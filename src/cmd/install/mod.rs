@@ -177,7 +177,15 @@ pub(crate) async fn install(
     let text = read_opt(&printer_cfg)?.unwrap_or_default();
     let loaded = crate::klipper::Config::load(&crate::fsio::FsFiles, &printer_cfg)
         .map_err(|e| anyhow!("reading the printer's config as Klipper would: {e}"))?;
-    let add_respond = if plan::has_respond(&loaded) {
+    // Kalico loads `respond` without a section: what Klipper runs counts, when it can be asked.
+    let respond_runs = match &moonraker {
+        Some(f) => f
+            .get("/printer/gcode/help")
+            .await
+            .is_ok_and(|h| h.get("RESPOND").is_some()),
+        None => false,
+    };
+    let add_respond = if plan::has_respond(&loaded) || respond_runs {
         false
     } else if a.yes || a.dry_run {
         true
