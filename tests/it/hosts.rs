@@ -302,3 +302,33 @@ async fn the_config_is_read_as_the_running_klipper_reads_it_references_and_all()
     );
     assert_eq!(session(&bench).await["state"], "solved");
 }
+
+#[tokio::test]
+async fn an_uncalibrated_mpc_bed_is_refused_in_plain_words() {
+    if !on_kalico() {
+        // `control: mpc` is Kalico's; Klipper 0.12 refuses the config.
+        return;
+    }
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    // A bed switched to MPC, never calibrated (no block_heat_capacity & co).
+    reconfigure(&bench, |t| {
+        let at = t.find("\n[heater_bed]\n").unwrap();
+        let (head, tail) = t.split_at(at);
+        format!(
+            "{head}{}",
+            tail.replacen("control: pid\n", "control: mpc\nheater_power: 200\n", 1)
+        )
+    })
+    .await;
+    let _d = Daemon::ready(&bench, &settings(600.0)).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    let s = wait_state(&bench, "failed", ROUND).await.to_string();
+    assert!(s.contains("Kalico will not heat heater_bed"), "{s}");
+    assert!(s.contains("MPC_CALIBRATE HEATER=heater_bed"), "{s}");
+    assert!(
+        !s.contains("Cannot activate"),
+        "Kalico's own text is replaced: {s}"
+    );
+}

@@ -186,6 +186,32 @@ pub(crate) fn is_recursive(pattern: &Path) -> bool {
     pattern.components().any(|c| c.as_os_str() == "**")
 }
 
+/// Kalico's refusal to heat a `control: mpc` heater that is not calibrated yet ("Cannot
+/// activate 'heater_bed' as MPC control is not fully configured. Run 'MPC_CALIBRATE' or …"),
+/// said in plain words with what to do, when `msg` holds it.
+#[must_use]
+pub(crate) fn mpc_refusal(msg: &str) -> Option<String> {
+    if !msg.contains("MPC control is not fully configured") {
+        return None;
+    }
+    let heater = msg
+        .split("Cannot activate '")
+        .nth(1)
+        .and_then(|r| r.split('\'').next())
+        .filter(|h| {
+            !h.is_empty()
+                && h.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "_ ".contains(c))
+        })
+        .unwrap_or("the heater");
+    Some(format!(
+        "Kalico will not heat {heater}: its [{heater}] uses control: mpc, which has not been \
+         calibrated yet. Run MPC_CALIBRATE HEATER={heater} once (the heater heats and cools by \
+         itself for a few minutes), then SAVE_CONFIG; or set block_heat_capacity, \
+         sensor_responsiveness and ambient_transfer under [{heater}]. Then start again"
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -290,6 +316,23 @@ mod tests {
         assert!(e.contains("used by 2 options") && e.contains("40.1"), "{e}");
         // The constant itself is an ordinary value.
         assert!(set_values(&c, &[("constants", "rd", "40.1")]).is_ok());
+    }
+
+    #[test]
+    fn an_uncalibrated_mpc_heater_is_explained_with_what_to_run() {
+        // Kalico 2026.10's control_mpc.py text, as Moonraker passes it on.
+        let kalico = "Cannot activate 'heater_bed' as MPC control is not fully configured.\n\n\
+                      Run 'MPC_CALIBRATE' or ensure 'block_heat_capacity', \
+                      'sensor_responsiveness', and 'ambient_transfer' settings are defined for \
+                      'heater_bed'.";
+        let said = mpc_refusal(kalico).unwrap();
+        assert!(
+            said.starts_with("Kalico will not heat heater_bed"),
+            "{said}"
+        );
+        assert!(said.contains("MPC_CALIBRATE HEATER=heater_bed"), "{said}");
+        assert!(!said.contains('\n'), "one console line: {said}");
+        assert_eq!(mpc_refusal("Extrude below minimum temp"), None);
     }
 
     #[test]

@@ -153,12 +153,15 @@ impl Core {
         if !then.is_empty() {
             lines.push(then.to_string());
         }
-        self.inner
-            .m
-            .gcode(&lines.join("\n"))
-            .await
-            .context("setting Klipper's idle timeout to the hold limit")?;
-        Ok(())
+        match self.inner.m.gcode(&lines.join("\n")).await {
+            Ok(_) => Ok(()),
+            // Kalico's uncalibrated MPC heater: the user's to fix, said in plain words.
+            Err(e) => match crate::klipper::kalico::mpc_refusal(&e.to_string()) {
+                Some(said) => Err(user(said)),
+                None => Err(anyhow::Error::from(e)
+                    .context("setting Klipper's idle timeout to the hold limit")),
+            },
+        }
     }
 
     /// A console message.
