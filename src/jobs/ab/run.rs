@@ -512,10 +512,12 @@ impl Ab {
                     return Ok(());
                 }
                 "error" => {
-                    return Err(anyhow!(
-                        "the calibration print failed: {}",
-                        ps["message"].as_str().unwrap_or("Klipper error")
-                    ))
+                    let msg = ps["message"].as_str().unwrap_or("Klipper error");
+                    // PRINT_START heating an uncalibrated MPC heater: what to run, not Kalico's text.
+                    return Err(match crate::klipper::kalico::mpc_refusal(msg) {
+                        Some(said) => user(format!("the calibration print failed: {said}")),
+                        None => anyhow!("the calibration print failed: {msg}"),
+                    });
                 }
                 "standby" => {
                     // Klipper forgot the print: it shut down or restarted mid-print. Two looks

@@ -5,6 +5,8 @@
 //!   `[backlash]`): detection, `SET_BACKLASH_COMPENSATION` and its reply, config values.
 //! - [`bed_mesh`]: bed-mesh profiles read and written as Klipper does; VGB profile names.
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
+//! - [`kalico`]: where Kalico's configfile reads differently ([`Dialect::Kalico`]: `${…}`
+//!   references, `!!include` in values, recursive `**` includes) and its refusals said plainly.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
 //!   reads them from.
