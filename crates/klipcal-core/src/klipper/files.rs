@@ -110,7 +110,7 @@ fn components(p: &Path) -> Vec<String> {
 /// Whether a path (as components) matches a pattern whose `**` components match zero or more
 /// components that are not hidden (Python's recursive glob); other components as
 /// [`component_matches`].
-pub(crate) fn recursive_matches(pattern: &[String], path: &[String]) -> bool {
+pub fn recursive_matches(pattern: &[String], path: &[String]) -> bool {
     match pattern.split_first() {
         None => path.is_empty(),
         Some((p, rest)) if p == "**" => (0..=path.len()).any(|n| {

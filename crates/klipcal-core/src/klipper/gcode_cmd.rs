@@ -262,7 +262,7 @@ pub fn set_idle_timeout(timeout_s: f64) -> Result<String, Error> {
 /// What Kalico's `[idle_timeout] timeout: 0` means (never time out) said the only way
 /// `SET_IDLE_TIMEOUT` takes it: its TIMEOUT must be above 0, so ten years, longer than any
 /// Klipper runs between restarts.
-pub(crate) const IDLE_TIMEOUT_NEVER_S: f64 = 10.0 * 365.0 * 86_400.0;
+pub const IDLE_TIMEOUT_NEVER_S: f64 = 10.0 * 365.0 * 86_400.0;
 
 /// The command that puts Klipper's idle timeout back to its configured `timeout` (s): that
 /// value, or for Kalico's `timeout: 0` (disabled; the 2023 Klipper refuses 0 in the config)
@@ -270,7 +270,7 @@ pub(crate) const IDLE_TIMEOUT_NEVER_S: f64 = 10.0 * 365.0 * 86_400.0;
 ///
 /// # Errors
 /// [`Error::BadNumber`] for a non-finite timeout.
-pub(crate) fn restore_idle_timeout(configured_s: f64) -> Result<String, Error> {
+pub fn restore_idle_timeout(configured_s: f64) -> Result<String, Error> {
     if configured_s > 0.0 || !configured_s.is_finite() {
         set_idle_timeout(configured_s)
     } else {

@@ -190,7 +190,7 @@ pub(crate) fn is_recursive(pattern: &Path) -> bool {
 /// activate 'heater_bed' as MPC control is not fully configured. Run 'MPC_CALIBRATE' or …"),
 /// said in plain words with what to do, when `msg` holds it.
 #[must_use]
-pub(crate) fn mpc_refusal(msg: &str) -> Option<String> {
+pub fn mpc_refusal(msg: &str) -> Option<String> {
     if !msg.contains("MPC control is not fully configured") {
         return None;
     }

@@ -37,7 +37,7 @@ const CONFIG_START: &str = "===== Config file =====";
 /// `log_config_file_at_startup: False` the config dump. `None` when the log has Stats lines, or
 /// nothing tells why it has none.
 #[must_use]
-pub(crate) fn why_no_stats(text: &str) -> Option<String> {
+pub fn why_no_stats(text: &str) -> Option<String> {
     let has_stats = text
         .lines()
         .any(|l| l.contains("Stats ") && l.contains(": gcodein="));
