@@ -75,7 +75,7 @@ fn run_all_also_runs_the_documentation_examples() {
     let kalico: Vec<&str> = kalico.lines().collect();
     assert_eq!(kalico.len(), 1, "{kalico:?}");
     for name in [
-        "kalico: test --test it",
+        "kalico: test -p klipcal --test it",
         "hosts::",
         "session::",
         "skew::",
