@@ -5,7 +5,7 @@
 use std::io;
 use std::path::{Component, Path, PathBuf};
 
-use crate::klipper::files::{component_matches, has_magic};
+use crate::klipper::files::{component_matches, has_magic, recursive_matches};
 use crate::klipper::Files;
 
 /// Reads Klipper config files from the local file system.
@@ -63,6 +63,42 @@ impl Files for FsFiles {
         }
         Ok(candidates)
     }
+
+    fn glob_recursive(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
+        // Every path below the pattern's literal start, matched by the pure rule.
+        let base: PathBuf = pattern
+            .components()
+            .take_while(|c| !has_magic(&c.as_os_str().to_string_lossy()))
+            .collect();
+        let mut all = Vec::new();
+        walk(&base, &mut all)?;
+        let comps = |p: &Path| -> Vec<String> {
+            p.components()
+                .map(|c| c.as_os_str().to_string_lossy().into_owned())
+                .collect()
+        };
+        let pc = comps(pattern);
+        Ok(all
+            .into_iter()
+            .filter(|p| recursive_matches(&pc, &comps(p)))
+            .collect())
+    }
+}
+
+/// Every file and folder below `dir` (symlinked folders not followed).
+fn walk(dir: &Path, out: &mut Vec<PathBuf>) -> io::Result<()> {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return Ok(());
+    };
+    for entry in entries {
+        let entry = entry?;
+        let p = entry.path();
+        out.push(p.clone());
+        if entry.file_type()?.is_dir() {
+            walk(&p, out)?;
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

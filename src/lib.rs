@@ -25,7 +25,7 @@
 //!   (crates/klipcal-core), re-exported here under the paths the daemon has always used. Its
 //!   dependencies have no I/O crate (a test walks Cargo.lock): the calibration math (statistics,
 //!   differential scale, geometry fit, error budget, bed soak, thermal mesh, backlash, the nozzle
-//!   in a picture), the pylon G-code, Klipper's config text and G-code command text built from
+//!   in a picture), the pylon G-code, Klipper's config text (read by Klipper's rules or Kalico's, `klipper::Dialect`) and G-code command text built from
 //!   typed values, the plots. Files reach it through the `klipper::Files` trait; [`fsio`] is
 //!   the small std::fs implementation.
 //! - [`http`]: the daemon's own page and JSON API (axum): the address/key/origin guard in front,

@@ -44,6 +44,40 @@ pub(crate) struct Features {
     pub virtual_sdcard: bool,
 }
 
+impl Features {
+    /// What the running Klipper has loaded, from its objects (`printer.objects.list`) and its
+    /// commands (`printer.gcode.help`), not from the config text: Kalico loads `respond` and
+    /// `exclude_object` without a section, and its `[exclude_object] enable_exclude_object:
+    /// False` (`enable_respond`, `enable_force_move` likewise) keeps the object but registers no
+    /// commands, so a feature counts only when its commands are there.
+    pub(crate) fn running(objects: &[String], help: &Map<String, Value>) -> Features {
+        let has_obj = |n: &str| objects.iter().any(|o| o == n);
+        let has_cmd = |n: &str| help.contains_key(n) || help.contains_key(&n.to_lowercase());
+        Features {
+            print_start: has_cmd("PRINT_START"),
+            skew_correction: has_cmd("SET_SKEW"),
+            bed_mesh: has_obj("bed_mesh"),
+            exclude_object: has_obj("exclude_object") && has_cmd("EXCLUDE_OBJECT_DEFINE"),
+            respond: has_cmd("RESPOND"),
+            set_backlash_compensation: has_cmd("SET_BACKLASH_COMPENSATION"),
+            virtual_sdcard: has_obj("virtual_sdcard"),
+        }
+    }
+}
+
+/// [`Features::running`], asked of Moonraker.
+///
+/// # Errors
+/// Moonraker failures.
+pub(crate) async fn running_features(m: &Moonraker) -> Result<Features, moonraker::Error> {
+    let objects = m.objects_list().await?;
+    let help = match m.call("printer.gcode.help", Value::Null).await? {
+        Value::Object(h) => h,
+        _ => Map::new(),
+    };
+    Ok(Features::running(&objects, &help))
+}
+
 /// Everything `check` prints.
 #[derive(Debug, Clone, PartialEq, Serialize, Default)]
 pub(crate) struct Summary {
@@ -163,17 +197,7 @@ impl Summary {
                 .map(str::to_string);
         }
         if let (Some(objs), Some(help)) = (objects, gcode_help) {
-            let has_obj = |n: &str| objs.iter().any(|o| o == n);
-            let has_cmd = |n: &str| help.contains_key(n) || help.contains_key(&n.to_lowercase());
-            out.features = Some(Features {
-                print_start: has_cmd("PRINT_START"),
-                skew_correction: has_cmd("SET_SKEW"),
-                bed_mesh: has_obj("bed_mesh"),
-                exclude_object: has_obj("exclude_object"),
-                respond: has_cmd("RESPOND"),
-                set_backlash_compensation: has_cmd("SET_BACKLASH_COMPENSATION"),
-                virtual_sdcard: has_obj("virtual_sdcard"),
-            });
+            out.features = Some(Features::running(objs, help));
         }
         Ok(out)
     }
@@ -325,7 +349,8 @@ mod tests {
             "exclude_object".into(),
             "toolhead".into(),
         ];
-        let help = json!({"SET_SKEW": "", "RESPOND": "", "PRINT_START": ""});
+        let help = json!({"SET_SKEW": "", "RESPOND": "", "PRINT_START": "",
+                          "EXCLUDE_OBJECT_DEFINE": ""});
         let status = json!({
             "configfile": {"settings": {
                 "printer": {"kinematics": "corexy"},
@@ -373,6 +398,25 @@ mod tests {
             text.contains("virtual_sdcard              no  → add [virtual_sdcard]"),
             "{text}"
         );
+    }
+
+    #[test]
+    fn a_feature_counts_when_klipper_runs_it_whatever_the_config_says() {
+        let objs = |names: &[&str]| names.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let help = |cmds: &[&str]| {
+            cmds.iter()
+                .map(|c| (c.to_string(), Value::String(String::new())))
+                .collect::<Map<String, Value>>()
+        };
+        // Kalico with no [exclude_object]/[respond] sections: loaded by default.
+        let f = Features::running(
+            &objs(&["exclude_object", "toolhead"]),
+            &help(&["RESPOND", "EXCLUDE_OBJECT_DEFINE"]),
+        );
+        assert!(f.exclude_object && f.respond);
+        // Kalico's enable_exclude_object: False keeps the object, not its commands.
+        let f = Features::running(&objs(&["exclude_object"]), &help(&[]));
+        assert!(!f.exclude_object && !f.respond);
     }
 
     #[test]

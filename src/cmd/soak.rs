@@ -306,6 +306,9 @@ fn detect_log(path: &Path, json: bool, params: &SoakParams) -> anyhow::Result<Ex
             params.skip_below_c,
             path.display()
         );
+        if let Some(why) = crate::klipper::klippy_log::why_no_stats(&text) {
+            println!("  why: {why}");
+        }
         return Ok(ExitCode::SUCCESS);
     }
     for (h, m, c) in &out {

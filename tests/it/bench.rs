@@ -42,6 +42,17 @@ fn bench_py(args: &[&str]) -> Result<String, String> {
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
 
+/// The Klipper host the benches of this test run use: `kalico` when `KLIPCAL_KLIPPY=kalico`
+/// (tests/run-all.sh's second pass), else Klipper's `klippy` (bench.py reads the same variable).
+pub fn host() -> String {
+    std::env::var("KLIPCAL_KLIPPY").unwrap_or_else(|_| "klippy".into())
+}
+
+/// True when the benches run Kalico's klippy.
+pub fn on_kalico() -> bool {
+    host() == "kalico"
+}
+
 /// One bench run; stopped on drop.
 pub struct Bench {
     pub dir: tempfile::TempDir,

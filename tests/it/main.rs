@@ -14,6 +14,7 @@ mod docs;
 mod fake;
 mod faults;
 mod frontends;
+mod hosts;
 mod http;
 mod install;
 mod mainsail;

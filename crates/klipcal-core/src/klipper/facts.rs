@@ -64,9 +64,10 @@ pub struct PrinterFacts {
     pub has_skew_correction: bool,
     /// `[bed_mesh]` exists.
     pub has_bed_mesh: bool,
-    /// `[exclude_object]` exists.
+    /// `[exclude_object]` exists in the config text (Kalico loads it without one: whether
+    /// Klipper runs it is `printer::Features::running`).
     pub has_exclude_object: bool,
-    /// `[respond]` exists (RESPOND command available).
+    /// `[respond]` exists in the config text (as for `has_exclude_object`).
     pub has_respond: bool,
     /// `[virtual_sdcard]` exists (uploaded G-code files can be printed).
     pub has_virtual_sdcard: bool,

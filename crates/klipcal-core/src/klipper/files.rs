@@ -24,6 +24,21 @@ pub trait Files {
     /// # Errors
     /// An I/O error while listing a folder.
     fn glob(&self, pattern: &Path) -> io::Result<Vec<PathBuf>>;
+
+    /// The existing paths matching `pattern` with Python's `glob.glob(…, recursive=True)` (as
+    /// Kalico includes): a `**` component matches zero or more folders (not hidden ones).
+    ///
+    /// # Errors
+    /// An I/O error while listing a folder; the default refuses, saying it cannot.
+    fn glob_recursive(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
+        Err(io::Error::new(
+            io::ErrorKind::Unsupported,
+            format!(
+                "a recursive include ({}) cannot be followed here",
+                pattern.display()
+            ),
+        ))
+    }
 }
 
 /// Files held in memory, keyed by their lexically normalised path (`a/./b/../c` → `a/c`).
@@ -80,9 +95,50 @@ impl Files for MemFiles {
         found.dedup();
         Ok(found)
     }
+
+    fn glob_recursive(&self, pattern: &Path) -> io::Result<Vec<PathBuf>> {
+        Ok(self.glob_recursive_mem(pattern))
+    }
+}
+
+fn components(p: &Path) -> Vec<String> {
+    p.components()
+        .map(|c| c.as_os_str().to_string_lossy().into_owned())
+        .collect()
+}
+
+/// Whether a path (as components) matches a pattern whose `**` components match zero or more
+/// components that are not hidden (Python's recursive glob); other components as
+/// [`component_matches`].
+pub fn recursive_matches(pattern: &[String], path: &[String]) -> bool {
+    match pattern.split_first() {
+        None => path.is_empty(),
+        Some((p, rest)) if p == "**" => (0..=path.len()).any(|n| {
+            path[..n].iter().all(|c| !c.starts_with('.')) && recursive_matches(rest, &path[n..])
+        }),
+        Some((p, rest)) => path
+            .split_first()
+            .is_some_and(|(f, more)| component_matches(p, f) && recursive_matches(rest, more)),
+    }
 }
 
 impl MemFiles {
+    /// [`Files::glob_recursive`] over these files.
+    fn glob_recursive_mem(&self, pattern: &Path) -> Vec<PathBuf> {
+        let pattern = normalize_path(pattern);
+        let pc: Vec<String> = components(&pattern);
+        let mut found: Vec<PathBuf> = self
+            .files
+            .keys()
+            .flat_map(|p| p.ancestors().skip(1).chain(std::iter::once(p.as_path())))
+            .filter(|p| p.parent().is_some() && recursive_matches(&pc, &components(p)))
+            .map(Path::to_path_buf)
+            .collect();
+        found.sort();
+        found.dedup();
+        found
+    }
+
     /// True when some file lies under `path` (normalised).
     fn is_dir(&self, path: &Path) -> bool {
         self.files.keys().any(|p| p != path && p.starts_with(path))

@@ -259,6 +259,25 @@ pub fn set_idle_timeout(timeout_s: f64) -> Result<String, Error> {
         .build()
 }
 
+/// What Kalico's `[idle_timeout] timeout: 0` means (never time out) said the only way
+/// `SET_IDLE_TIMEOUT` takes it: its TIMEOUT must be above 0, so ten years, longer than any
+/// Klipper runs between restarts.
+pub const IDLE_TIMEOUT_NEVER_S: f64 = 10.0 * 365.0 * 86_400.0;
+
+/// The command that puts Klipper's idle timeout back to its configured `timeout` (s): that
+/// value, or for Kalico's `timeout: 0` (disabled; the 2023 Klipper refuses 0 in the config)
+/// [`IDLE_TIMEOUT_NEVER_S`], which Klipper accepts where it refuses `TIMEOUT=0`.
+///
+/// # Errors
+/// [`Error::BadNumber`] for a non-finite timeout.
+pub fn restore_idle_timeout(configured_s: f64) -> Result<String, Error> {
+    if configured_s > 0.0 || !configured_s.is_finite() {
+        set_idle_timeout(configured_s)
+    } else {
+        set_idle_timeout(IDLE_TIMEOUT_NEVER_S)
+    }
+}
+
 /// `SET_HEATER_TEMPERATURE HEATER=<heater> TARGET=<°C>`.
 ///
 /// # Errors
@@ -405,6 +424,19 @@ mod tests {
             klipper_params(&line),
             vec![("MSG".into(), "file 'a,b' next".into())]
         );
+    }
+
+    #[test]
+    fn a_disabled_idle_timeout_is_restored_as_never_not_as_a_refused_zero() {
+        assert_eq!(
+            restore_idle_timeout(600.0).unwrap(),
+            "SET_IDLE_TIMEOUT TIMEOUT=600"
+        );
+        assert_eq!(
+            restore_idle_timeout(0.0).unwrap(),
+            "SET_IDLE_TIMEOUT TIMEOUT=315360000"
+        );
+        assert!(restore_idle_timeout(f64::NAN).is_err());
     }
 
     #[test]

@@ -32,6 +32,44 @@ pub struct LogSession {
 
 const CONFIG_START: &str = "===== Config file =====";
 
+/// Why a log gave no bed history, when the log itself says: Kalico's `[danger_options]
+/// minimal_logging: True` (or `log_statistics: False`) leaves out the `Stats` lines, and
+/// `log_config_file_at_startup: False` the config dump. `None` when the log has Stats lines, or
+/// nothing tells why it has none.
+#[must_use]
+pub fn why_no_stats(text: &str) -> Option<String> {
+    let has_stats = text
+        .lines()
+        .any(|l| l.contains("Stats ") && l.contains(": gcodein="));
+    if has_stats {
+        return None;
+    }
+    let kalico = text.contains("App Name: Kalico") || text.contains("Welcome to Kalico");
+    let started = text.contains("Starting Klippy...");
+    let config = text.contains(CONFIG_START);
+    if kalico {
+        Some(format!(
+            "this Kalico log has no Stats lines{}: Kalico's [danger_options] minimal_logging: \
+             True (or log_statistics: False) leaves them out; set log_statistics: True{} under \
+             [danger_options] and restart Klipper, then soak the bed again",
+            if config { "" } else { " and no config dump" },
+            if config {
+                ""
+            } else {
+                " and log_config_file_at_startup: True"
+            },
+        ))
+    } else if started {
+        Some(
+            "Klipper started in this log but logged no Stats lines (it writes them about once \
+             a second while it runs; a log cut short, or a logging setup that drops them?)"
+                .to_string(),
+        )
+    } else {
+        None
+    }
+}
+
 /// Reads every start of Klipper in `text` that logged bed stats or a config. Lines may carry a
 /// timestamp before `Stats` (as some logging setups add); Stats lines without a `heater_bed:`
 /// section, or whose eventtime does not move forward, are skipped.
@@ -175,6 +213,24 @@ Stats 5.0: gcodein=0 heater_bed: target=60 temp=58.0 pwm=1.000
         assert!(s[1].has_config);
         assert_eq!(s[1].control.as_deref(), Some("watermark"));
         assert_eq!(s[1].stats.len(), 1);
+    }
+
+    #[test]
+    fn a_kalico_log_with_minimal_logging_says_why_it_has_no_stats() {
+        // The head of a real Kalico 2026.10 klippy.log (the bench's, `[danger_options]
+        // minimal_logging: True`): its start, no config dump, no Stats line.
+        let text = "Starting Klippy...\nArgs: ['kalico', 'printer.cfg']\nApp Name: Kalico\n\
+                    Git version: 'v2026.10.0'\nWelcome to Kalico\n";
+        assert!(parse(text).is_empty());
+        let why = why_no_stats(text).unwrap();
+        assert!(
+            why.contains("minimal_logging") && why.contains("log_statistics: True"),
+            "{why}"
+        );
+        assert!(why.contains("log_config_file_at_startup: True"), "{why}");
+        let with_stats = "Stats 10.0: gcodein=0  heater_bed: target=0 temp=20.0 pwm=0.000\n";
+        assert_eq!(why_no_stats(&format!("{text}{with_stats}")), None);
+        assert_eq!(why_no_stats("some other text\n"), None);
     }
 
     #[test]

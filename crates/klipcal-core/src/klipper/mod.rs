@@ -5,6 +5,8 @@
 //!   `[backlash]`): detection, `SET_BACKLASH_COMPENSATION` and its reply, config values.
 //! - [`bed_mesh`]: bed-mesh profiles read and written as Klipper does; VGB profile names.
 //! - [`config`]: the parser ([`Config::load`] over a [`Files`] reader) with source positions.
+//! - [`kalico`]: where Kalico's configfile reads differently ([`Dialect::Kalico`]: `${…}`
+//!   references, `!!include` in values, recursive `**` includes) and its refusals said plainly.
 //! - [`files`]: the [`Files`] trait, the in-memory [`MemFiles`], Python-compatible globbing.
 //! - [`edit`]: [`set_value`] / [`set_values`]: values replaced in place in the files Klipper
 //!   reads them from.
@@ -26,6 +28,7 @@ pub mod edit;
 pub mod facts;
 pub mod files;
 pub mod gcode_cmd;
+pub mod kalico;
 pub mod klippy_log;
 pub mod plan;
 pub mod start_macro;
@@ -37,6 +40,7 @@ pub use edit::set_values;
 pub use facts::{Kinematics, PrinterFacts, Stepper};
 pub use files::{Files, MemFiles};
 pub use gcode_cmd::GcodeCmd;
+pub use kalico::Dialect;
 pub use plan::{add_include, plan_values, Protected};
 pub use start_macro::{find_start_macro, StartMacro};
 
@@ -137,6 +141,26 @@ pub enum Error {
         first_line: usize,
         /// Last line.
         last_line: usize,
+    },
+    /// The option's value is a Kalico reference (`${constants.rd_x}`): klipcal does not edit
+    /// through it.
+    #[error(
+        "[{section}] {key} is written as '{written}', which Kalico reads from {places}; klipcal \
+         does not change a value written as a reference (the constant is yours, and may serve \
+         other options): set the new value {new_value} there yourself, or write \
+         '{key}: {new_value}' in place of the reference, then restart Klipper"
+    )]
+    InReference {
+        /// Section name.
+        section: String,
+        /// Option name.
+        key: String,
+        /// The value as written.
+        written: String,
+        /// Where each referenced value is defined.
+        places: String,
+        /// The value klipcal would have written.
+        new_value: String,
     },
     /// The replacement value would not read back as written.
     #[error("cannot set [{section}] {key} to '{value}': {reason}")]

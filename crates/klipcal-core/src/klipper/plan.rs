@@ -123,7 +123,7 @@ pub fn plan_values(
             );
             files.insert(&main, new);
         }
-        let working = Config::load(&files, &main).map_err(|e| {
+        let working = Config::load_as(&files, &main, config.dialect()).map_err(|e| {
             Error::Protected(format!("adding {OVERRIDES_FILE} breaks the config: {e}"))
         })?;
         // Same effective config, only now defined in the overrides file.

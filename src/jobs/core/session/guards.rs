@@ -107,11 +107,23 @@ impl Core {
         Ok(())
     }
 
+    /// The configured timeout again. Kalico's `timeout: 0` (never) cannot be sent back as 0
+    /// (`SET_IDLE_TIMEOUT` refuses it, which left the session's hold in force): it goes back
+    /// as ten years, said on the console.
     async fn restore_idle_timeout(&self) -> anyhow::Result<()> {
         let cf = self.inner.m.configfile().await?;
-        if let Some(t) = cf.settings.idle_timeout.and_then(|i| i.timeout) {
-            self.inner.m.gcode(&gcode_cmd::set_idle_timeout(t)?).await?;
+        let Some(t) = cf.settings.idle_timeout.and_then(|i| i.timeout) else {
+            return Ok(());
+        };
+        let mut script = gcode_cmd::restore_idle_timeout(t)?;
+        if t <= 0.0 {
+            let why = crate::jobs::core::console::respond_line(
+                "idle timeout back to off ([idle_timeout] timeout: 0; Klipper takes no 0 at run \
+                 time, so ten years)",
+            );
+            script = format!("{why}\n{script}");
         }
+        self.inner.m.gcode(&script).await?;
         Ok(())
     }
 
@@ -141,12 +153,15 @@ impl Core {
         if !then.is_empty() {
             lines.push(then.to_string());
         }
-        self.inner
-            .m
-            .gcode(&lines.join("\n"))
-            .await
-            .context("setting Klipper's idle timeout to the hold limit")?;
-        Ok(())
+        match self.inner.m.gcode(&lines.join("\n")).await {
+            Ok(_) => Ok(()),
+            // Kalico's uncalibrated MPC heater: the user's to fix, said in plain words.
+            Err(e) => match crate::klipper::kalico::mpc_refusal(&e.to_string()) {
+                Some(said) => Err(user(said)),
+                None => Err(anyhow::Error::from(e)
+                    .context("setting Klipper's idle timeout to the hold limit")),
+            },
+        }
     }
 
     /// A console message.
