@@ -100,8 +100,8 @@ impl Coupling {
                 charge_s: weakest.charge_s,
                 source: CouplingSource::Weakest,
                 why: format!(
-                    "the weakest coupling, 1/{:.0} of full power per K ({}), as soak.bed is \
-                     not set; {not_identified}",
+                    "the weakest coupling, 1/{:.0} of full power per K ({}), as soak.bed \
+                     names no build; {not_identified}",
                     1.0 / weakest.g,
                     weakest.words
                 ),
