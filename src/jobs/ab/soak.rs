@@ -47,7 +47,7 @@ impl Ab {
                     |c| {
                         format!(
                             "the surface may still warm by up to {} (95 %)",
-                            crate::calib::soak::kelvin_words(c)
+                            crate::calib::soak::cost_words(c)
                         )
                     },
                 );

@@ -91,28 +91,28 @@ impl SoakSettings {
 /// assumes instead, what naming them buys, and that the next soak reads them.
 #[must_use]
 pub(crate) fn unset_build_words(p: &SoakParams) -> Option<String> {
-    let unset: Vec<&str> = [
-        ("soak.bed", p.bed.is_empty()),
-        ("soak.frame", p.frame.is_empty()),
-    ]
-    .into_iter()
-    .filter_map(|(k, unset)| unset.then_some(k))
-    .collect();
+    let (bed, frame) = (ask::not_named(&p.bed), ask::not_named(&p.frame));
+    let unset: Vec<&str> = [("soak.bed", bed), ("soak.frame", frame)]
+        .into_iter()
+        .filter_map(|(k, unset)| unset.then_some(k))
+        .collect();
     if unset.is_empty() {
         return None;
     }
     Some(format!(
-        "{} not set in klipcal.toml, so this soak assumes {}; naming {} ([soak] bed = \
-         \"steel-pad\", frame = \"open\", …; see docs/bed-soak.md) is read by the \
-         next soak, no restart: on an open-frame steel bed it shortens the soak from about an \
-         hour to about 20 min",
+        "{} not set in klipcal.toml (or answered \"don't know\"), so this soak assumes {}; \
+         answering klipcal's question (KLIPCAL_SOAK_BED SURFACE=… SENSOR=… FRAME=…) names {} \
+         and this soak uses it at once (an edit of [soak] by hand is read by the next soak; docs/bed-soak.md): on \
+         an open-frame steel bed about {} min instead of about {} min",
         unset.join(" and "),
-        match (p.bed.is_empty(), p.frame.is_empty()) {
+        match (bed, frame) {
             (true, true) => "the weakest bed (glass on clips) and an enclosure",
             (true, false) => "the weakest bed (glass on clips)",
             _ => "an enclosure",
         },
-        if unset.len() == 2 { "yours" } else { "it" }
+        if unset.len() == 2 { "them" } else { "it" },
+        ask::Minutes::STEEL_OPEN,
+        ask::Minutes::DEFAULTS_OPEN
     ))
 }
 
@@ -632,6 +632,7 @@ impl BedSoak {
             // A question closed without an answer is asked again now (once).
             super::soak_ask::ask(core, title, true).await;
             core.console(&self.first_line(title)).await;
+            tracing::info!(derivation = %self.derivation(), "{title}: bed soak begins");
             self.last_console_s = t_s;
         }
         // 100 % is said when the bed is stable, not while it is being confirmed.

@@ -136,16 +136,15 @@ pub(crate) async fn ask(core: &Core, title: &str, again: bool) {
         core.ask_state().asking = false;
         return;
     };
+    // Shown again only when it is not showing (closed without an answer), once.
+    let on_screen = showing(core);
     {
         let mut st = core.ask_state();
-        if again && (!st.asking || st.shown >= 2) {
+        if again && (!st.asking || st.shown >= 2 || on_screen) {
             return;
         }
         st.asking = true;
         st.shown += 1;
-    }
-    if again && showing(core) {
-        return;
     }
     core.say_and_prompt(&console_line(title, &step), &prompt(&step))
         .await;
