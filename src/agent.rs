@@ -350,6 +350,31 @@ fn status_text(a: &StatusAnswer) -> String {
             t.push_str(&format!("\n  {m}"));
         }
     }
+    if let Some(soak) = &a.sessions.soak {
+        if let Some(live) = &soak.live {
+            t.push_str(&format!("\nbed soak: {}", live.derivation));
+        }
+        if let Some(q) = &soak.question {
+            let answers: Vec<String> = q
+                .answers
+                .iter()
+                .map(|a| {
+                    format!(
+                        "{}: KLIPCAL_SOAK_BED {}={}",
+                        a.label,
+                        a.arg.to_uppercase(),
+                        a.value
+                    )
+                })
+                .collect();
+            t.push_str(&format!(
+                "\nklipcal asks: {} {} ({})",
+                q.title,
+                q.text,
+                answers.join(", ")
+            ));
+        }
+    }
     t
 }
 

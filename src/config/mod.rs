@@ -4,11 +4,13 @@
 //!
 //! One file per section: `daemon` (`[moonraker]`, `[log]`, `[daemon]`), `ab`, `mesh`,
 //! `backlash`, `http`; `[soak]` is `calib::soak::SoakParams`. Each section checks its own
-//! ranges; `Config::validate` asks each in turn and returns the first error.
+//! ranges; `Config::validate` asks each in turn and returns the first error. `edit` writes an
+//! answer into the file (the soak question's), comments kept, backed up first.
 
 mod ab;
 mod backlash;
 mod daemon;
+pub(crate) mod edit;
 mod http;
 mod mesh;
 

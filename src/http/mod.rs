@@ -364,7 +364,11 @@ async fn convergence(State(h): State<Shared>, Path(id): Path<String>) -> Respons
 /// The bed over Moonraker's temperature store (~20 min at 1 Hz) with the soak detector's fit
 /// replayed over the same samples.
 async fn soak_plot(State(h): State<Shared>) -> Response {
-    match crate::jobs::soak::soak_picture(&h.m, &h.soak).await {
+    let live = h
+        .cals
+        .as_ref()
+        .and_then(|c| c.core().ask_state().live.clone());
+    match crate::jobs::soak::soak_picture(&h.m, &h.soak, live).await {
         Ok(text) => svg(text),
         Err(why) => error(StatusCode::SERVICE_UNAVAILABLE, &why),
     }

@@ -68,12 +68,16 @@ impl Calibrations {
     /// Every calibration klipcal has, over `core`, each with its own sections of the settings.
     #[must_use]
     pub(crate) fn new(core: Core, config: &crate::config::Config) -> Self {
+        // One soak settings for every calibration: an answer to the soak question names the
+        // file for all of them.
+        let soak = SoakSettings::of(config);
+        core.ask_state().settings = Some(soak.clone());
         let list: Vec<Arc<dyn Calibration>> = vec![
             Arc::new(super::ab::Ab::new(
                 core.clone(),
                 super::ab::AbSettings {
                     defaults: config.ab.clone(),
-                    soak: SoakSettings::of(config),
+                    soak: soak.clone(),
                 },
             )),
             Arc::new(super::backlash::Backlash::new(
@@ -83,7 +87,7 @@ impl Calibrations {
             Arc::new(super::mesh::Mesh::new(
                 core.clone(),
                 config.mesh.clone(),
-                SoakSettings::of(config),
+                soak,
             )),
         ];
         for c in &list {
@@ -128,6 +132,7 @@ impl Calibrations {
         if is_core_method(method) {
             return match CoreCall::parse(method, args)? {
                 CoreCall::Cancel(reason) => self.cancel(&reason).await,
+                CoreCall::SoakBed(a) => crate::jobs::core::soak_ask::answer(&self.core, a).await,
                 // The helpers only ask; klipcal closes or replaces the dialog itself, marked as
                 // its own before it is sent, so a close klipcal did not send is the user's.
                 CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
@@ -233,7 +238,11 @@ impl Calibrations {
                 last.insert(c.kind().into(), c.status(&row)?);
             }
         }
-        Ok(SessionsStatus { session, last })
+        Ok(SessionsStatus {
+            session,
+            last,
+            soak: crate::jobs::core::soak_ask::view(&self.core),
+        })
     }
 
     /// One session as [`Calibrations::status`] shows it, whatever its state; `None` when there
@@ -481,9 +490,10 @@ mod tests {
             );
             assert!(!visible.contains(&&helper[1..]), "{helper} shows");
         }
-        // 16 a user presses, and KLIPCAL_BACKLASH_CAMERA and KLIPCAL_BACKLASH_CLICK (issue 27).
+        // 16 a user presses, KLIPCAL_BACKLASH_CAMERA and KLIPCAL_BACKLASH_CLICK (issue 27), and
+        // KLIPCAL_SOAK_BED (issue 38: the bed named from the panel, before any soak asks).
         assert!(
-            visible.len() <= 18,
+            visible.len() <= 19,
             "{} buttons: {visible:?}",
             visible.len()
         );

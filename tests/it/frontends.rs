@@ -1451,3 +1451,89 @@ async fn the_round_2_question_ends_everywhere_once_round_2_starts_and_its_stale_
         started.elapsed().as_secs_f64()
     );
 }
+
+/// The soak question (issue 38 item 1) in a real front end, as a new user meets it with a
+/// klipcal.toml that names neither bed nor frame: the macro button, the question's buttons,
+/// the thermistor step closed by mistake and brought back by the helper the console names,
+/// the answers written to klipcal.toml (a backup, the user's comment kept).
+async fn soak_question(kind: Kind) {
+    let bench = Bench::start_with("corexy", Some(crate::session::PLANT));
+    let toml = "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = 600.0\n\
+                soak_max_s = 600.0\n[soak]\n# my own note\nsettle_s = 1.0\nbin_s = 0.5\n\
+                min_soak_s = 3000.0\ntau_max_s = 30.0\n";
+    let _d = Daemon::ready(&bench, toml).await;
+    let fe = FrontEnd::serve(kind, &bench).await;
+    let mut b = Browser::start().await;
+    let mut ui = Ui::open(&mut b, &fe, &format!("{}-soak-question", kind.name())).await;
+    println!("{}: screenshots in {}", kind.name(), ui.shots.display());
+    ui.click_macro("KLIPCAL_AB_START").await;
+    let bed = ui
+        .wait_dialog("what is on your bed?", Duration::from_secs(60))
+        .await;
+    let bed = ui.both_sizes("01-what-is-on-the-bed", &bed.title).await;
+    assert_eq!(
+        bed.buttons,
+        [
+            "Steel sheet on a magnet",
+            "Glass",
+            "Bare plate",
+            "Don't know"
+        ],
+        "{bed:?}"
+    );
+    assert!(bed.texts.iter().any(|t| t.contains("min")), "{bed:?}");
+    ui.press("Steel sheet on a magnet").await;
+    ui.wait_dialog("where is the bed's thermistor?", Duration::from_secs(15))
+        .await;
+    ui.shot("02-thermistor").await;
+    ui.dismiss().await;
+    ui.wait_no_dialog(Duration::from_secs(5)).await;
+    let said = ui
+        .wait_row("still waiting for your answer", Duration::from_secs(10))
+        .await;
+    assert!(said.contains("KLIPCAL_SOAK_BED SENSOR=pad"), "{said}");
+    ui.type_line("_KLIPCAL_PROMPT_BACK").await;
+    ui.wait_dialog("where is the bed's thermistor?", Duration::from_secs(10))
+        .await;
+    ui.press("In the heater pad").await;
+    ui.wait_dialog("is the printer enclosed?", Duration::from_secs(15))
+        .await;
+    ui.shot("03-enclosed").await;
+    ui.press("Open, no enclosure").await;
+    ui.wait_row(
+        "this soak now uses soak.bed = 'steel-pad' and soak.frame = 'open'",
+        Duration::from_secs(20),
+    )
+    .await;
+    let cfg = std::fs::read_to_string(bench.dir.path().join("klipcal.toml")).unwrap();
+    assert!(
+        cfg.contains("# my own note")
+            && cfg.contains("bed = \"steel-pad\"")
+            && cfg.contains("frame = \"open\""),
+        "{cfg}"
+    );
+    assert!(bench.dir.path().join("klipcal_backups").is_dir());
+    // Answered: once the bed is in its band the dialog offers to print now (item 5).
+    let offer = ui
+        .wait_dialog("the bed is soaking", Duration::from_secs(60))
+        .await;
+    assert_eq!(
+        offer.buttons,
+        ["Print now", "Wait", "Cancel session…"],
+        "{offer:?}"
+    );
+    ui.shot("04-print-now-offered").await;
+    extension_request(&bench.files(), "klipcal_cancel", json!({}))
+        .await
+        .unwrap();
+}
+
+#[tokio::test]
+async fn the_soak_question_in_the_real_mainsail() {
+    soak_question(Kind::Mainsail).await;
+}
+
+#[tokio::test]
+async fn the_soak_question_in_the_real_fluidd() {
+    soak_question(Kind::Fluidd).await;
+}

@@ -28,5 +28,6 @@ mod realcfg;
 mod runall;
 mod session;
 mod skew;
+mod soak_ask;
 mod startup;
 mod try_bench;

@@ -967,6 +967,19 @@ async fn a_capture_from_the_macro_says_what_a_user_needs_and_nothing_about_print
         printing.is_empty(),
         "a capture's lines speak of printing: {printing:#?}"
     );
+    // Issue 38 item 9: soak.frame is not set in these settings, and the capture's soak asks
+    // the same question as an A/B round's, with the same buttons.
+    assert!(
+        rows.iter().any(|(k, t)| k == "response"
+            && t.contains("thermal mesh: is the printer enclosed?")
+            && t.contains("KLIPCAL_SOAK_BED FRAME=open")),
+        "the capture's soak did not ask: {rows:#?}"
+    );
+    assert!(
+        rows.iter().any(|(k, t)| k == "response"
+            && t.contains("prompt_button Open, no enclosure|KLIPCAL_SOAK_BED FRAME=open")),
+        "no dialog button: {rows:#?}"
+    );
     m.gcode("KLIPCAL_CANCEL").await.unwrap();
     poll(Duration::from_secs(60), || async {
         (mesh_session(&bench).await["state"] == "cancelled").then_some(())

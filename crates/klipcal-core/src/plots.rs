@@ -88,6 +88,27 @@ pub fn decay_points(
     )
 }
 
+/// Whether the fitted decay passes through the power it was fitted to: its value now within 5 %
+/// of full power of the mean over the last two minutes. A fit whose summary leaves out a decay
+/// (the controller's, of the other sign) was once drawn flat at 45 % over a power at 18 %: such a
+/// curve is not drawn.
+fn fit_meets_data(fit: &DecayCurve, samples: &[BedSample]) -> bool {
+    let Some(last) = samples.last() else {
+        return false;
+    };
+    let recent: Vec<f64> = samples
+        .iter()
+        .filter(|s| s.t_s >= last.t_s - 120.0 && s.power.is_finite())
+        .map(|s| s.power)
+        .collect();
+    if recent.is_empty() {
+        return false;
+    }
+    let mean = recent.iter().sum::<f64>() / recent.len() as f64;
+    let at_last = fit.final_power + fit.remaining * (-(last.t_s - fit.now_s) / fit.tau_s).exp();
+    (at_last - mean).abs() <= 0.05
+}
+
 /// The soak plot: bed temperature and target (left axis, °C) and power (right axis, %) over
 /// minutes, with the fitted decay dashed up to `eta_s` past the last sample; the legend in a
 /// row under the plot, where it covers no data.
@@ -104,7 +125,10 @@ pub fn soak_svg(
         return Err("plot: no bed samples yet".into());
     };
     let t0 = first.t_s;
-    let ahead_s = eta_s.unwrap_or(0.0).clamp(0.0, 3600.0);
+    // The fitted decay is drawn ahead by the ETA, but never further than the data go back:
+    // 6 min of data on a 50 min axis showed nothing (issue 38 item 7).
+    let span_s = last.t_s - t0;
+    let ahead_s = eta_s.unwrap_or(0.0).clamp(0.0, span_s.max(120.0));
     let x1 = ((last.t_s - t0 + ahead_s) / 60.0).max(1.0);
     let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
     for s in samples {
@@ -125,7 +149,9 @@ pub fn soak_svg(
         .filter(|p| p.is_finite())
         .fold(0.0_f64, f64::max)
         .max(0.05);
-    let curve = fit.and_then(|f| decay_points(&f, t0, last.t_s + ahead_s, max_power));
+    let curve = fit
+        .filter(|f| fit_meets_data(f, samples))
+        .and_then(|f| decay_points(&f, t0, last.t_s + ahead_s, max_power));
     let text = ("sans-serif", TEXT_PT);
     let mut out = String::new();
     {
@@ -454,6 +480,41 @@ mod tests {
         assert!(svg.matches("<polyline").count() + svg.matches("<path").count() >= 4);
         let without = soak_svg(&samples, None, None, "bed soak").unwrap();
         assert!(!without.contains("fitted decay"));
+    }
+
+    /// Issue 38 item 7: a fit that does not pass through the power it was fitted to is not
+    /// drawn (it showed flat at 45 % over a power at 18 %), and 6 min of data are not drawn on
+    /// a 50 min axis.
+    #[test]
+    fn a_fit_away_from_the_data_is_not_drawn_and_the_axis_fits_the_data() {
+        let samples: Vec<BedSample> = (0..36)
+            .map(|i| BedSample {
+                t_s: f64::from(i) * 10.0,
+                temp_c: 60.0,
+                target_c: 60.0,
+                power: 0.18,
+            })
+            .collect();
+        let flat = DecayCurve {
+            now_s: 350.0,
+            tau_s: 3600.0,
+            final_power: 0.45,
+            remaining: 0.0,
+        };
+        assert!(!fit_meets_data(&flat, &samples));
+        let svg = soak_svg(&samples, Some(flat), Some(2640.0), "bed soak").unwrap();
+        assert!(!svg.contains("fitted decay"), "drawn");
+        // The minute labels stop near twice the data's span, not at 50.
+        assert!(
+            !svg.contains(">50<") && !svg.contains(">40<"),
+            "axis beyond the data"
+        );
+        let near = DecayCurve {
+            final_power: 0.17,
+            remaining: 0.01,
+            ..flat
+        };
+        assert!(fit_meets_data(&near, &samples));
     }
 
     /// A temperature store as Moonraker keeps it (1 Hz): an earlier session's heat-up to 60 °C

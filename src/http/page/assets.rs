@@ -22,7 +22,7 @@ img.plot,.diagram svg{width:100%;height:auto;max-height:70vh}.diagram .pair.hl l
 .snap img{width:100%;height:auto;display:block}.snap svg{position:absolute;left:0;top:0;width:100%;height:100%}
 figure[data-click="1"] .snap{cursor:crosshair;outline:3px solid #2b8a3e}#clicked circle{fill:none;stroke:#2b8a3e;stroke-width:2}.snap svg *{vector-effect:non-scaling-stroke}
 #found circle,#found line{fill:none;stroke:#e03131;stroke-width:2}.approach.plus{fill:#1c7ed6}.approach.minus{fill:#f76707}
-figure{margin:.4em 0}figcaption{font-size:.9em}
+form.inline{display:inline}figure{margin:.4em 0}figcaption{font-size:.9em}
 .saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
 @media (max-width:600px){main{padding:.3em}section{padding:.6em .5em}td,th{padding:.2em .25em;font-size:.88em}}
 "#;

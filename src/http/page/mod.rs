@@ -4,7 +4,8 @@
 //! (printer hosts are often offline), fits a phone. Every text from a document is escaped.
 //!
 //! This file holds the frame (header, start form, session card, last sessions, every
-//! operation); each calibration's section is its own file (`ab`, `mesh`, `backlash`), the
+//! operation); each calibration's section is its own file (`ab`, `mesh`, `backlash`), the bed
+//! soak's (its line, its question, print now) is `soak`, the
 //! style sheet and script are in `assets`.
 
 use std::fmt::Write as _;
@@ -20,6 +21,7 @@ mod ab;
 mod assets;
 mod backlash;
 mod mesh;
+mod soak;
 
 /// Escapes text for HTML content and attribute values.
 pub(super) fn esc(s: &str) -> String {
@@ -133,6 +135,9 @@ pub(crate) fn render(status: &Value, diagram_svg: Option<&str>) -> String {
     }
     if !session.is_null() {
         session_card(&mut h, &session, active);
+        if active {
+            soak::soak_section(&mut h, &status["soak"], &session);
+        }
         if session["kind"] == "ab" {
             ab_sections(&mut h, &session, diagram_svg);
         }
@@ -484,6 +489,25 @@ mod tests {
             sessions: SessionsStatus {
                 session: last.get("ab").cloned(),
                 last,
+                soak: Some(crate::jobs::core::soak_ask::SoakView {
+                    question: Some(crate::jobs::core::soak_ask::QuestionStatus {
+                        title: String::new(),
+                        text: String::new(),
+                        answers: vec![crate::jobs::core::soak_ask::AnswerStatus {
+                            label: String::new(),
+                            arg: String::new(),
+                            value: String::new(),
+                        }],
+                    }),
+                    live: Some(crate::jobs::core::soak::LiveSoak {
+                        progress: String::new(),
+                        derivation: String::new(),
+                        eta_s: Some(1.0),
+                        print_now_c: Some(1.0),
+                        fit: None,
+                        at: std::time::Instant::now(),
+                    }),
+                }),
             },
         };
         let mut keys = std::collections::BTreeSet::new();
@@ -529,6 +553,7 @@ mod tests {
             include_str!("ab.rs"),
             include_str!("mesh.rs"),
             include_str!("backlash.rs"),
+            include_str!("soak.rs"),
         ]
         .iter()
         .map(|s| &s[..s.find("#[cfg(test)]").unwrap_or(s.len())])

@@ -149,14 +149,14 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "klipcal_soak_choice",
             "KLIPCAL_SOAK_CHOICE",
             "ab/soak_choice",
-            "the bed soak: CHOICE=print prints now (offered from the moment the bed is in its band, with what the surface may still warm) or CHOICE=wait (10 min more, at the soak limit's prompt)",
+            "the bed soak: CHOICE=print prints now (offered from the moment the bed is in its band, with what the surface may still warm) or CHOICE=wait (go on waiting for the bed to settle; 10 min more at the soak limit's prompt)",
             &[arg(
                 "choice",
                 ArgKind::Choice(&["print", "wait"]),
                 "wait",
                 "print or wait",
                 "wait",
-                "print: print now; wait: 10 min more",
+                "print: print now; wait: go on waiting (10 min more at the soak limit)",
             )],
         ),
         parse: |a| {

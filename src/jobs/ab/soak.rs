@@ -3,6 +3,15 @@
 
 use super::*;
 
+/// The offer to print now while the bed soaks: what it said last and when, and whether the
+/// user chose to wait.
+#[derive(Default)]
+struct Offer {
+    words: String,
+    at: Option<tokio::time::Instant>,
+    declined: bool,
+}
+
 impl Ab {
     pub(super) async fn soak(&self, s: Session, just_heated: bool) -> anyhow::Result<()> {
         let id = s.id;
@@ -23,6 +32,7 @@ impl Ab {
         }
         let mut last = String::new();
         let mut cost: Option<f64> = None;
+        let mut offer = Offer::default();
         // Since when the soak question waits for an answer, and what it said.
         let mut asked: Option<(tokio::time::Instant, String)> = None;
         loop {
@@ -37,7 +47,7 @@ impl Ab {
                     |c| {
                         format!(
                             "the surface may still warm by up to {} (95 %)",
-                            crate::calib::soak::kelvin_words(c)
+                            crate::calib::soak::cost_words(c)
                         )
                     },
                 );
@@ -60,6 +70,21 @@ impl Ab {
                 self.core.console(&format!("{TITLE}: {note}{plot}")).await;
                 return Ok(());
             }
+            if asked.is_none() && doc.soak_choice.as_deref() == Some("wait") {
+                // Wait, chosen while soaking: the offer closes and the soak goes on.
+                offer.declined = true;
+                self.update(id, |s| {
+                    s.soak_choice = None;
+                    Ok(())
+                })
+                .await?;
+                self.core
+                    .console(&format!(
+                        "{TITLE}: waiting until the bed has settled; KLIPCAL_SOAK_CHOICE \
+                         CHOICE=print prints now"
+                    ))
+                    .await;
+            }
             if let Some((_, line)) = &asked {
                 if doc.soak_choice.as_deref() == Some("wait") {
                     self.core.prompt_end().await;
@@ -79,6 +104,9 @@ impl Ab {
             }
             match soak.poll(&self.core, TITLE).await? {
                 SoakUpdate::Stable { why } => {
+                    if self.core.dialog_title().as_deref() == Some("klipcal: the bed is soaking") {
+                        self.core.prompt_end().await;
+                    }
                     if let Some((_, line)) = asked.take() {
                         // Settled while the question waited: what the user was waiting for.
                         self.core.prompt_end().await;
@@ -118,12 +146,18 @@ impl Ab {
                     }
                 }
                 SoakUpdate::Soaking {
-                    text, print_now_c, ..
+                    text,
+                    print_now_c,
+                    eta_s,
+                    ..
                 } => {
                     cost = print_now_c.or(cost);
                     if asked.is_none() && last != text {
                         self.set_state(id, State::Soaking, &text).await?;
                         last = text;
+                    }
+                    if asked.is_none() {
+                        self.offer_print_now(&mut offer, cost, eta_s).await;
                     }
                 }
                 SoakUpdate::TooLong {
@@ -159,6 +193,60 @@ impl Ab {
             }
             tokio::time::sleep(Duration::from_millis(250)).await;
         }
+    }
+
+    /// From the moment the bed is in its band: the dialog offers *Print now* with its cost and
+    /// *Wait* (issue 38 item 5). Shown once the soak question (if any) is out of the way; shown
+    /// again when the cost said changes, at most every 5 min; not after *Wait*.
+    async fn offer_print_now(&self, offer: &mut Offer, cost: Option<f64>, eta_s: Option<f64>) {
+        use crate::jobs::core::soak_ask;
+        if offer.declined || soak_ask::pending(&self.core) || soak_ask::showing(&self.core) {
+            return;
+        }
+        let words = cost.map_or_else(
+            || {
+                "what the surface may still warm is worked out after a few minutes of the bed's \
+                power"
+                    .to_string()
+            },
+            |c| {
+                format!(
+                    "the surface may still warm by up to {}",
+                    crate::calib::soak::cost_words(c)
+                )
+            },
+        );
+        let due = offer
+            .at
+            .map_or(true, |at| at.elapsed() >= Duration::from_secs(300));
+        if offer.words == words || !due {
+            return;
+        }
+        let wait = eta_s.map_or_else(
+            || "once the bed has settled".to_string(),
+            |e| {
+                format!(
+                    "once the bed has settled, about {:.0} min from now",
+                    (e / 60.0).ceil()
+                )
+            },
+        );
+        self.core
+            .prompt(&Prompt {
+                title: "klipcal: the bed is soaking".into(),
+                lines: vec![format!(
+                    "Print now: {words}. Wait: klipcal prints {wait} (KLIPCAL_STATUS and \
+                     klipcal's page follow it)."
+                )],
+                buttons: vec![
+                    Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                    Button::new("Wait", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+                ],
+                footer: vec![Button::cancel_asking()],
+            })
+            .await;
+        offer.words = words;
+        offer.at = Some(tokio::time::Instant::now());
     }
 
     /// The bed is at its target but its power still moves after `soak_max_s`: asks print now
@@ -226,17 +314,18 @@ impl Ab {
     /// # Errors
     /// A bad CHOICE, or no soak waiting for one.
     pub(crate) async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
-        let s = match self.active()? {
-            Some(s) if s.soak_asking => s,
-            // Print now is offered from the moment the bed is in its band (issue 29).
-            Some(s) if s.state == State::Soaking && choice == "print" => s,
-            _ => {
-                return Err(user(
-                    "nothing to choose: no bed soak is waiting for an answer (CHOICE=print is \
-                     taken while the bed soaks at its target)",
-                ))
-            }
-        };
+        let s =
+            match self.active()? {
+                Some(s) if s.soak_asking => s,
+                // Print now and Wait are offered from the moment the bed is in its band (issue 29,
+                // issue 38 item 5: the macro's default CHOICE=wait answered "nothing to choose").
+                Some(s) if s.state == State::Soaking => s,
+                _ => return Err(user(
+                    "nothing to choose: no bed soak is waiting for an answer (CHOICE=print and \
+                     CHOICE=wait are taken while the bed soaks at its target)",
+                )),
+            };
+        let asking = s.soak_asking;
         self.update(s.id, |d| {
             d.soak_choice = Some(choice.to_string());
             Ok(())
@@ -245,8 +334,12 @@ impl Ab {
         // The question is answered: its dialog closes with this answer, in the same script (the
         // runner's own close then has nothing to do; issue 26 A.4).
         self.core.prompt_end().await;
-        Ok(json!({"session": s.id, "choice": choice,
-                  "message": if choice == "print" { "printing now" } else { "waiting 10 min more" }}))
+        let message = match (choice, asking) {
+            ("print", _) => "printing now",
+            (_, true) => "waiting 10 min more",
+            _ => "waiting until the bed has settled",
+        };
+        Ok(json!({"session": s.id, "choice": choice, "message": message}))
     }
 
     pub(super) async fn hold(&self, s: Session) -> anyhow::Result<()> {

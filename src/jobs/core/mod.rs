@@ -1,6 +1,7 @@
 //! The session core every calibration shares: stored session documents, one active session
 //! and the runner (`session`), the printer guards and the dialog (`session::guards`); answers
-//! and prompts on the console (`console`); the bed soak step (`soak`); the command table and
+//! and prompts on the console (`console`); the bed soak step (`soak`) and its question of the
+//! bed's build (`soak_ask`); the command table and
 //! the typed arguments read against it (`table`); the config transaction (`printer_config`);
 //! the session envelope every stored document shares and what a calibration says of its states
 //! (`envelope`); the status as typed structs (`status`);
@@ -15,6 +16,7 @@ pub mod ops;
 pub mod printer_config;
 pub mod session;
 pub mod soak;
+pub mod soak_ask;
 pub mod status;
 pub mod table;
 

@@ -62,6 +62,47 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
     },
     Op {
         spec: OpSpec::remote(
+            "klipcal_soak_bed",
+            "KLIPCAL_SOAK_BED",
+            "soak/bed",
+            "answer the bed soak's question (written to klipcal.toml, used at once): SURFACE=steel, glass or bare, SENSOR=plate or pad (where the bed's thermistor is), FRAME=open or enclosed; unknown keeps the slow assumption",
+            &[
+                arg(
+                    "surface",
+                    ArgKind::Choice(crate::calib::soak::ask::SURFACE_WORDS),
+                    "steel",
+                    "steel, glass, bare or unknown",
+                    "",
+                    "what is on the bed: a steel sheet on a magnet, glass, the bare plate",
+                ),
+                arg(
+                    "sensor",
+                    ArgKind::Choice(crate::calib::soak::ask::SENSOR_WORDS),
+                    "pad",
+                    "plate, pad or unknown",
+                    "",
+                    "where the bed's thermistor is: in the plate or in the heater pad",
+                ),
+                arg(
+                    "frame",
+                    ArgKind::Choice(crate::calib::soak::ask::FRAME_WORDS),
+                    "open",
+                    "open, enclosed or unknown",
+                    "",
+                    "open: no enclosure; enclosed: in an enclosure or a box",
+                ),
+            ],
+        ),
+        parse: |a| {
+            Ok(CoreCall::SoakBed(super::soak_ask::BuildAnswer::from_words(
+                a.choice("surface")?,
+                a.choice("sensor")?,
+                a.choice("frame")?,
+            )?))
+        },
+    },
+    Op {
+        spec: OpSpec::remote(
             "klipcal_prompt_back",
             "_KLIPCAL_PROMPT_BACK",
             "prompt/back",
@@ -89,6 +130,8 @@ pub enum CoreCall {
     Status,
     /// `klipcal_cancel` with its reason.
     Cancel(String),
+    /// `klipcal_soak_bed`: an answer to the soak question.
+    SoakBed(super::soak_ask::BuildAnswer),
     /// `klipcal_prompt_back`.
     PromptBack,
     /// `klipcal_prompt_close`.

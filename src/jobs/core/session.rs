@@ -82,6 +82,8 @@ struct Inner {
     page: std::sync::OnceLock<String>,
     /// Why the page is off when it could not start (its port taken, …).
     page_off: std::sync::OnceLock<String>,
+    /// The soak question (what is on the bed, open or enclosed) and its answers.
+    ask: std::sync::Mutex<super::soak_ask::AskState>,
 }
 
 impl Core {
@@ -108,8 +110,17 @@ impl Core {
                 tasks: tokio_util::task::TaskTracker::new(),
                 page: std::sync::OnceLock::new(),
                 page_off: std::sync::OnceLock::new(),
+                ask: std::sync::Mutex::new(super::soak_ask::AskState::default()),
             }),
         }
+    }
+
+    /// The soak question's state (held only briefly: never across an await).
+    pub(crate) fn ask_state(&self) -> std::sync::MutexGuard<'_, super::soak_ask::AskState> {
+        self.inner
+            .ask
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 
     /// Moonraker.

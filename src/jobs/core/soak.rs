@@ -10,18 +10,21 @@ use serde_json::json;
 
 use super::session::Core;
 use super::user;
-use crate::calib::soak::{kelvin_words, SoakDetector, SoakParams, SoakStatus};
+use crate::calib::soak::ask;
+use crate::calib::soak::{cost_words, kelvin_words, SoakDetector, SoakParams, SoakStatus};
 use crate::klipper::gcode_cmd;
 
 /// The `[soak]` settings a soak starts with: as klipcal.toml says when the soak starts, so an
 /// edit (in Mainsail's or Fluidd's file editor, say) applies to the next soak without a
-/// restart; as klipcal started when the file no longer loads.
+/// restart; as klipcal started when the file no longer loads. Every calibration shares one
+/// (its clones share the file's path, which the soak question may create).
 #[derive(Debug, Clone, Default)]
 pub(crate) struct SoakSettings {
     /// `[soak]` as klipcal started with it.
     pub started: SoakParams,
-    /// The settings file klipcal read (none: the embedded defaults).
-    pub path: Option<std::path::PathBuf>,
+    /// The settings file klipcal read (none: the embedded defaults, until an answer to the
+    /// soak question writes one).
+    path: std::sync::Arc<std::sync::Mutex<Option<std::path::PathBuf>>>,
 }
 
 impl SoakSettings {
@@ -30,17 +33,39 @@ impl SoakSettings {
     pub(crate) fn of(config: &crate::config::Config) -> Self {
         Self {
             started: config.soak.clone(),
-            path: config.path.clone(),
+            path: std::sync::Arc::new(std::sync::Mutex::new(config.path.clone())),
         }
+    }
+
+    fn path(&self) -> Option<std::path::PathBuf> {
+        self.path
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
+    }
+
+    /// The settings file an answer goes to: the one klipcal read, else the conventional
+    /// `~/printer_data/config/klipcal.toml`.
+    #[must_use]
+    pub(crate) fn file(&self) -> std::path::PathBuf {
+        self.path().unwrap_or_else(crate::config::default_path)
+    }
+
+    /// An answer was written to `path`: `[soak]` is read from it from now on.
+    pub(crate) fn written_to(&self, path: &std::path::Path) {
+        *self
+            .path
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner) = Some(path.to_path_buf());
     }
 
     /// `[soak]` as the file says now, or as klipcal started with why not (the file no longer
     /// reads or a value is out of range: the whole file is refused, not half of it).
     pub(crate) fn now(&self) -> (SoakParams, Option<String>) {
-        let Some(path) = &self.path else {
+        let Some(path) = self.path() else {
             return (self.started.clone(), None);
         };
-        match crate::config::Config::load(Some(path)) {
+        match crate::config::Config::load(Some(&path)) {
             Ok(c) => (c.soak, None),
             Err(e) => (
                 self.started.clone(),
@@ -66,28 +91,28 @@ impl SoakSettings {
 /// assumes instead, what naming them buys, and that the next soak reads them.
 #[must_use]
 pub(crate) fn unset_build_words(p: &SoakParams) -> Option<String> {
-    let unset: Vec<&str> = [
-        ("soak.bed", p.bed.is_empty()),
-        ("soak.frame", p.frame.is_empty()),
-    ]
-    .into_iter()
-    .filter_map(|(k, unset)| unset.then_some(k))
-    .collect();
+    let (bed, frame) = (ask::not_named(&p.bed), ask::not_named(&p.frame));
+    let unset: Vec<&str> = [("soak.bed", bed), ("soak.frame", frame)]
+        .into_iter()
+        .filter_map(|(k, unset)| unset.then_some(k))
+        .collect();
     if unset.is_empty() {
         return None;
     }
     Some(format!(
-        "{} not set in klipcal.toml, so this soak assumes {}; naming {} ([soak] bed = \
-         \"steel-pad\", frame = \"open\", …; see docs/bed-soak.md) is read by the \
-         next soak, no restart: on an open-frame steel bed it shortens the soak from about an \
-         hour to about 20 min",
+        "{} not set in klipcal.toml (or answered \"don't know\"), so this soak assumes {}; \
+         answering klipcal's question (KLIPCAL_SOAK_BED SURFACE=… SENSOR=… FRAME=…) names {} \
+         and this soak uses it at once (an edit of [soak] by hand is read by the next soak; docs/bed-soak.md): on \
+         an open-frame steel bed about {} min instead of about {} min",
         unset.join(" and "),
-        match (p.bed.is_empty(), p.frame.is_empty()) {
+        match (bed, frame) {
             (true, true) => "the weakest bed (glass on clips) and an enclosure",
             (true, false) => "the weakest bed (glass on clips)",
             _ => "an enclosure",
         },
-        if unset.len() == 2 { "yours" } else { "it" }
+        if unset.len() == 2 { "them" } else { "it" },
+        ask::Minutes::STEEL_OPEN,
+        ask::Minutes::DEFAULTS_OPEN
     ))
 }
 
@@ -152,6 +177,23 @@ pub(crate) struct BedSoak {
     /// The chamber thermometer read beside the bed (`soak.chamber_sensor`, else the first one
     /// Klipper's config has), as Klipper names its object.
     chamber: Option<String>,
+    /// Every sample fed to the detector (time, power, temperature, target): replayed into a new
+    /// detector when an answer to the soak question changes `[soak]` mid-soak.
+    samples: Vec<[f64; 4]>,
+    /// Klipper's `max_power` of the bed, once read.
+    max_power: Option<f64>,
+    /// The soak question's count of answers this soak's settings include.
+    generation: u64,
+    /// The core, once polled: the soak question ends with the soak.
+    core: Option<Core>,
+}
+
+impl Drop for BedSoak {
+    fn drop(&mut self) {
+        if let Some(core) = &self.core {
+            super::soak_ask::soak_ended(core);
+        }
+    }
 }
 
 /// Beyond the soak's own limit, how long Klipper's idle timeout leaves the bed on (klipcal's
@@ -261,7 +303,62 @@ impl BedSoak {
             coupling_told: false,
             prints: true,
             chamber: None,
+            samples: Vec::new(),
+            max_power: None,
+            generation: 0,
+            core: None,
         }
+    }
+
+    /// Feeds one sample to the detector, keeping it for a replay.
+    fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
+        self.samples.push([t_s, power, temp_c, target_c]);
+        self.detector.push(t_s, power, temp_c, target_c)
+    }
+
+    /// An answer to the soak question was written since this soak read `[soak]`: the soak goes
+    /// on with the new settings at once, its samples replayed into a detector that has them.
+    async fn reread(&mut self, core: &Core, title: &str) {
+        let (generation, settings) = {
+            let st = core.ask_state();
+            (st.generation, st.settings.clone())
+        };
+        if generation == self.generation {
+            return;
+        }
+        self.generation = generation;
+        let Some(settings) = settings else { return };
+        let (mut params, unread) = settings.now();
+        if let Some(why) = unread {
+            core.console(&format!("{title}: {why}")).await;
+            return;
+        }
+        params.fixed_remaining = self.detector.params().fixed_remaining;
+        params.no_identify = self.detector.params().no_identify;
+        if params == *self.detector.params() {
+            return;
+        }
+        let mut d = SoakDetector::new(params);
+        if let Some(p) = self.max_power {
+            d.set_max_power(p);
+        }
+        for [t, p, temp, target] in &self.samples {
+            d.push(*t, *p, *temp, *target);
+        }
+        self.detector = d;
+        self.best_progress = 0.0;
+        self.eta_shown = EtaShown::default();
+        self.last_print_now_c = None;
+        self.coupling_told = false;
+        let p = self.detector.params();
+        core.console(&format!(
+            "{title}: this soak now uses soak.bed = \"{}\" and soak.frame = \"{}\": {}; {}",
+            p.bed,
+            p.frame,
+            self.detector.coupling().why,
+            self.detector.slowest_words()
+        ))
+        .await;
     }
 
     /// A soak no print follows (a mesh capture): its console lines and progress neither offer
@@ -281,6 +378,7 @@ impl BedSoak {
         if let Ok(cf) = core.m().configfile().await {
             if let Some(p) = cf.settings.heater_bed.as_ref().and_then(|h| h.max_power) {
                 self.detector.set_max_power(p);
+                self.max_power = Some(p);
             }
             self.chamber = self
                 .detector
@@ -351,7 +449,7 @@ impl BedSoak {
             {
                 self.detector.push_chamber(t, *c);
             }
-            self.detector.push(t, powers[i], temps[i], targets[i]);
+            self.push(t, powers[i], temps[i], targets[i]);
         }
         k
     }
@@ -410,6 +508,8 @@ impl BedSoak {
     /// The soak took longer than allowed (a user error naming the setting), or Moonraker failed.
     pub(crate) async fn poll(&mut self, core: &Core, title: &str) -> anyhow::Result<SoakUpdate> {
         if !self.primed {
+            self.core = Some(core.clone());
+            self.generation = core.ask_state().generation;
             let n = self.prime(core).await;
             if n > 0 {
                 tracing::debug!(
@@ -417,7 +517,11 @@ impl BedSoak {
                     "soak detector primed from Moonraker's temperature store"
                 );
             }
+            if self.target_c > self.detector.params().skip_below_c {
+                super::soak_ask::ask(core, title, false).await;
+            }
         }
+        self.reread(core, title).await;
         let t_s = self.start.elapsed().as_secs_f64();
         if self.rebound && self.target_c > 0.0 {
             // Klipper owns the heated bed for the rest of the soak: if klipcal or Moonraker is
@@ -470,7 +574,7 @@ impl BedSoak {
                 Err(e) => tracing::warn!(sensor = %name, error = %e, "chamber sensor not read"),
             }
         }
-        let status = self.detector.push(
+        let status = self.push(
             t_s,
             hb.power.unwrap_or(0.0),
             hb.temperature.unwrap_or(0.0),
@@ -478,6 +582,7 @@ impl BedSoak {
         );
         Ok(match status {
             SoakStatus::Stable { .. } | SoakStatus::Skipped => {
+                super::soak_ask::soak_ended(core);
                 let why = self.detector.explanation().to_string();
                 if let Some(since) = self.soaking_since_s {
                     core.console(&format!(
@@ -495,100 +600,190 @@ impl BedSoak {
                 print_now_c,
                 ..
             } => {
-                if self.soaking_since_s.is_none() {
-                    self.soaking_since_s = Some(t_s);
-                    // One row: what is assumed for an unset soak.bed or soak.frame goes on
-                    // the same line (a console filter keeps or hides it with the rest).
-                    core.console(&format!(
-                        "{title}: the bed is at {:.0} °C; waiting until its print surface can \
-                         warm by at most {} ({}; {}{}){}{}",
-                        self.target_c,
-                        kelvin_words(self.detector.params().surface_budget_c),
-                        self.detector.coupling().why,
-                        self.detector.slowest_words(),
-                        self.detector
-                            .chamber_words()
-                            .map(|w| format!("; {w}"))
-                            .unwrap_or_default(),
-                        unset_build_words(self.detector.params())
-                            .map(|w| format!("; {w}"))
-                            .unwrap_or_default(),
-                        if self.prints {
-                            "; KLIPCAL_SOAK_CHOICE CHOICE=print prints now"
-                        } else {
-                            ""
-                        }
-                    ))
-                    .await;
-                    self.last_console_s = t_s;
-                }
-                // 100 % is said when the bed is stable, not while it is being confirmed.
-                self.best_progress = self.best_progress.max(progress.clamp(0.0, 0.99));
-                let done = self.best_progress * 100.0;
-                let shown = self
-                    .eta_shown
-                    .update(t_s, eta_s, (self.max_s - t_s).max(0.0));
-                let eta_s = match shown {
-                    Eta::Left(s) => Some(s),
-                    _ => None,
-                };
-                let mut text = match shown {
-                    Eta::Left(eta) => {
-                        format!(
-                            "bed soaking: {done:.0} % done, about {} left",
-                            eta_words(eta, self.prints)
-                        )
-                    }
-                    Eta::Confirming => format!(
-                        "bed soaking: {done:.0} % done, due to settle now: confirming that its \
-                         power has stopped falling"
-                    ),
-                    Eta::BeyondLimit(left) => format!(
-                        "bed soaking: {done:.0} % done; it may not settle within {} ({} of it \
-                         left): {}",
-                        self.max_setting,
-                        eta_words(left, self.prints),
-                        if self.prints {
-                            "you will be asked then whether to print or wait"
-                        } else {
-                            "the capture stops then"
-                        }
-                    ),
-                    Eta::Unknown => format!(
-                        "bed soaking: {done:.0} % done, waiting for the bed power to settle"
-                    ),
-                };
-                if self.detector.coupling_final() {
-                    if !self.coupling_told {
-                        self.coupling_told = true;
-                        core.console(&format!("{title}: {}", self.detector.coupling().why))
-                            .await;
-                    }
-                    text.push_str(&format!("; {}", self.detector.coupling().short()));
-                }
-                if print_now_c.is_some() {
-                    self.last_print_now_c = print_now_c;
-                }
-                let print_now_c = self.last_print_now_c;
-                if let Some(c) = print_now_c.filter(|_| self.prints) {
-                    text.push_str(&format!(
-                        "; printing now costs up to {} of surface warming (95 %)",
-                        kelvin_words(c)
-                    ));
-                }
-                if t_s - self.last_console_s >= CONSOLE_EVERY_S {
-                    self.last_console_s = t_s;
-                    core.console(&format!("{title}: {text}")).await;
-                }
-                SoakUpdate::Soaking {
-                    progress: self.best_progress,
-                    eta_s,
-                    print_now_c,
-                    text,
-                }
+                self.soaking(core, title, t_s, eta_s, progress, print_now_c)
+                    .await
             }
         })
     }
+}
+
+impl BedSoak {
+    /// The soak's first line: what klipcal waits for, about how long, how to shorten it (the
+    /// derivation goes to STATUS and the page, [`BedSoak::derivation`]).
+    fn first_line(&self, title: &str) -> String {
+        let p = self.detector.params();
+        let named = !(ask::not_named(&p.bed) || ask::not_named(&p.frame));
+        let mut shorten = Vec::new();
+        let chamber = self.detector.chamber_words();
+        if let Some(w) = &chamber {
+            shorten.push(w.as_str());
+        }
+        if !named {
+            shorten.push("naming your bed and frame shortens it (KLIPCAL_SOAK_BED)");
+        }
+        if self.prints {
+            shorten.push("KLIPCAL_SOAK_CHOICE CHOICE=print prints now");
+        }
+        format!(
+            "{title}: the bed is at {:.0} °C; klipcal waits until its print surface can warm by \
+             at most {:.1} K more, typically about {} min {}{}; KLIPCAL_STATUS and klipcal's page \
+             say how this is worked out",
+            self.target_c,
+            p.surface_budget_c,
+            ask::typical_minutes(&p.bed, &p.frame),
+            if named {
+                "for this bed"
+            } else {
+                "for a bed not named"
+            },
+            if shorten.is_empty() {
+                String::new()
+            } else {
+                format!("; {}", shorten.join("; "))
+            }
+        )
+    }
+
+    /// How the rule was worked out: the coupling and where it came from, the slowest decay
+    /// ruled out, what is assumed for what is not named.
+    fn derivation(&self) -> String {
+        let p = self.detector.params();
+        format!(
+            "waiting until the print surface can warm by at most {}: {}; {}{}",
+            kelvin_words(p.surface_budget_c),
+            self.detector.coupling().why,
+            self.detector.slowest_words(),
+            unset_build_words(p)
+                .map(|w| format!("; {w}"))
+                .unwrap_or_default()
+        )
+    }
+
+    /// A poll while the bed soaks at its target: the progress line (the one the console, the
+    /// session's progress, STATUS and the page all show) and the live view.
+    async fn soaking(
+        &mut self,
+        core: &Core,
+        title: &str,
+        t_s: f64,
+        eta_s: Option<f64>,
+        progress: f64,
+        print_now_c: Option<f64>,
+    ) -> SoakUpdate {
+        if self.soaking_since_s.is_none() {
+            self.soaking_since_s = Some(t_s);
+            // A question closed without an answer is asked again now (once).
+            super::soak_ask::ask(core, title, true).await;
+            core.console(&self.first_line(title)).await;
+            tracing::info!(derivation = %self.derivation(), "{title}: bed soak begins");
+            self.last_console_s = t_s;
+        }
+        // 100 % is said when the bed is stable, not while it is being confirmed.
+        self.best_progress = self.best_progress.max(progress.clamp(0.0, 0.99));
+        let done = self.best_progress * 100.0;
+        let shown = self
+            .eta_shown
+            .update(t_s, eta_s, (self.max_s - t_s).max(0.0));
+        let eta_s = match shown {
+            Eta::Left(s) => Some(s),
+            _ => None,
+        };
+        let mut text = match shown {
+            Eta::Left(eta) => format!(
+                "bed soaking: {done:.0} % done, about {} left",
+                eta_words(eta, self.prints)
+            ),
+            Eta::Confirming => format!(
+                "bed soaking: {done:.0} % done, due to settle now: confirming that its power \
+                 has stopped falling"
+            ),
+            Eta::BeyondLimit(left) => format!(
+                "bed soaking: {done:.0} % done; it may not settle within {} ({} of it left): {}",
+                self.max_setting,
+                eta_words(left, self.prints),
+                if self.prints {
+                    "you will be asked then whether to print or wait"
+                } else {
+                    "the capture stops then"
+                }
+            ),
+            Eta::Unknown => {
+                let p = self.detector.params();
+                format!(
+                    "bed soaking: watching the bed's power (the first estimate comes after a \
+                     few minutes; typically about {} min)",
+                    ask::typical_minutes(&p.bed, &p.frame)
+                )
+            }
+        };
+        if self.detector.coupling_final() {
+            if !self.coupling_told {
+                self.coupling_told = true;
+                core.console(&format!("{title}: {}", self.detector.coupling().why))
+                    .await;
+            }
+            text.push_str(&format!("; {}", self.detector.coupling().short()));
+        }
+        if print_now_c.is_some() {
+            self.last_print_now_c = print_now_c;
+        }
+        let print_now_c = self.last_print_now_c;
+        if let Some(c) = print_now_c.filter(|_| self.prints) {
+            text.push_str(&format!(
+                "; printing now: the surface may still warm by up to {} (95 %)",
+                cost_words(c)
+            ));
+        }
+        if t_s - self.last_console_s >= CONSOLE_EVERY_S {
+            self.last_console_s = t_s;
+            core.console(&format!("{title}: {text}")).await;
+        }
+        self.publish(core, &text, eta_s, print_now_c);
+        SoakUpdate::Soaking {
+            progress: self.best_progress,
+            eta_s,
+            print_now_c,
+            text,
+        }
+    }
+
+    /// What this soak says now, for STATUS, the page and its plot (the same line and ETA as the
+    /// console's).
+    fn publish(&self, core: &Core, text: &str, eta_s: Option<f64>, print_now_c: Option<f64>) {
+        let fit = self.detector.fit().map(|f| crate::plots::DecayCurve {
+            now_s: 0.0,
+            tau_s: f.tau_s,
+            final_power: f.final_power,
+            remaining: f.remaining,
+        });
+        core.ask_state().live = Some(LiveSoak {
+            progress: text.to_string(),
+            derivation: self.derivation(),
+            eta_s,
+            print_now_c: print_now_c.filter(|_| self.prints),
+            fit,
+            at: Instant::now(),
+        });
+    }
+}
+
+/// What the soak running now says, as STATUS and the page show it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub(crate) struct LiveSoak {
+    /// The progress line: how far, about how long, what printing now costs.
+    pub progress: String,
+    /// How the rule was worked out (coupling, slowest decay, what is assumed).
+    pub derivation: String,
+    /// The wait told, s (the console's).
+    pub eta_s: Option<f64>,
+    /// What printing now costs, K (a soak before a print).
+    pub print_now_c: Option<f64>,
+    /// The detector's fitted decay, its `now_s` at [`LiveSoak::at`].
+    #[serde(skip)]
+    pub fit: Option<crate::plots::DecayCurve>,
+    /// When it was said.
+    #[serde(skip)]
+    pub at: Instant,
 }
 
 /// The bed since its current heat-up began, as far as Moonraker's temperature store goes back
@@ -600,6 +795,7 @@ impl BedSoak {
 pub(crate) async fn soak_picture(
     m: &crate::moonraker::Moonraker,
     params: &SoakParams,
+    live: Option<LiveSoak>,
 ) -> Result<String, String> {
     let store = m
         .call(
@@ -608,8 +804,18 @@ pub(crate) async fn soak_picture(
         )
         .await
         .map_err(|e| format!("Moonraker's temperature store: {e}"))?;
-    let (samples, fit, eta) = crate::plots::replay_soak(&store["heater_bed"], params)
+    let (samples, mut fit, mut eta) = crate::plots::replay_soak(&store["heater_bed"], params)
         .ok_or("the printer has no heater_bed in Moonraker's temperature store")?;
+    if let (Some(live), Some(last)) = (live, samples.last()) {
+        // The soak under way says the ETA and the fit: the plot shows the same as the console
+        // (issue 38 item 4), not a replay of its own. The store's last sample is now.
+        let ago = live.at.elapsed().as_secs_f64();
+        eta = live.eta_s.map(|e| (e - ago).max(0.0));
+        fit = live.fit.map(|f| crate::plots::DecayCurve {
+            now_s: last.t_s - ago,
+            ..f
+        });
+    }
     crate::plots::soak_svg(&samples, fit, eta, &crate::plots::soak_title(&samples))
 }
 
@@ -619,7 +825,7 @@ pub(crate) async fn save_soak_picture(
     params: &SoakParams,
     path: &str,
 ) -> Option<String> {
-    let svg = soak_picture(core.m(), params).await.ok()?;
+    let svg = soak_picture(core.m(), params, None).await.ok()?;
     core.save_picture(path, svg).await
 }
 

@@ -63,4 +63,7 @@ pub(crate) struct SessionsStatus {
     pub session: Option<SessionStatus>,
     /// Per kind, its newest session, final or not.
     pub last: BTreeMap<String, SessionStatus>,
+    /// The bed soak under way (its line, how it was worked out) and its question.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub soak: Option<super::soak_ask::SoakView>,
 }

@@ -283,6 +283,11 @@ impl Core {
         (script, true)
     }
 
+    /// The title of klipcal's dialog open now, as far as klipcal knows.
+    pub(crate) fn dialog_title(&self) -> Option<String> {
+        self.open().prompt.as_ref().map(|p| p.title.clone())
+    }
+
     /// Marks klipcal's dialog closed; false when it was known to be closed already.
     fn mark_closed(&self) -> bool {
         let was_closed = {

@@ -105,8 +105,8 @@ impl Coupling {
                 source: CouplingSource::Weakest,
                 heat_capacity: None,
                 why: format!(
-                    "the weakest coupling, 1/{:.0} of full power per K ({}), as soak.bed is \
-                     not set; {not_identified}",
+                    "the weakest coupling, 1/{:.0} of full power per K ({}), as soak.bed \
+                     names no build; {not_identified}",
                     1.0 / weakest.g,
                     weakest.words
                 ),
@@ -186,7 +186,8 @@ fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
     let rise = bins.iter().map(|b| b[2]).fold(f64::NEG_INFINITY, f64::max) - t0;
     if rise.is_nan() || rise <= 10.0 {
         return Err(format!(
-            "the bed rose only {rise:.1} K from its start: too little to identify the coupling"
+            "the bed rose only {rise:.1} K from {t0:.1} °C in the part of its heat-up klipcal \
+             saw: too little to identify the coupling"
         )
         .into());
     }

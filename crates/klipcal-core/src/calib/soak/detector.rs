@@ -136,6 +136,9 @@ const FROZEN_S: f64 = 120.0;
 const CAP_RUN_S: f64 = 30.0;
 /// A temperature this far over the target counts as an overshoot, °C.
 const OVERSHOOT_C: f64 = 0.5;
+/// The coldest room a printer runs in, °C: after a warm start, the lowest the print surface
+/// can be.
+const COLDEST_ROOM_C: f64 = 10.0;
 
 #[derive(Debug, Clone, Copy)]
 struct Point {
@@ -247,6 +250,12 @@ pub struct SoakDetector {
     first_band_s: Option<f64>,
     /// A chamber thermometer, when the printer has one (see [`super::chamber`]).
     gate: Option<Box<ChamberGate>>,
+    /// The lowest temperature seen for this target, °C: the surface, which lags the
+    /// thermistor on its way up, was at least there (see [`SoakDetector::surface_reach_c`]).
+    lowest_c: Option<f64>,
+    /// The print-now cost told last, K: a later one is never higher (the surface's warming
+    /// still to come only shrinks while the bed is held), so the figure does not jump.
+    print_now_told: Option<f64>,
 }
 
 impl SoakDetector {
@@ -309,7 +318,35 @@ impl SoakDetector {
             over_since_s: None,
             approach_above: None,
             gate: None,
+            lowest_c: None,
+            print_now_told: None,
         }
+    }
+
+    /// The most the print surface can still warm, K, whatever the fit: from where it can be
+    /// now to the target. It was at least at the lowest temperature seen since a cold start
+    /// (it lags the thermistor on the way up and warms on); after a warm start the bed's past
+    /// is not seen, and the coldest room, [`COLDEST_ROOM_C`], is all that is known.
+    #[must_use]
+    pub fn surface_reach_c(&self) -> Option<f64> {
+        let target = self.target_c?;
+        let lowest = self.lowest_c?;
+        let from = match self.cold_start {
+            Some((true, _)) => lowest,
+            _ => lowest.min(COLDEST_ROOM_C),
+        };
+        Some((target - from).max(0.0))
+    }
+
+    /// What printing now costs, K, as told: the fit's 95 % figure, at most
+    /// [`SoakDetector::surface_reach_c`] and never above the figure told before.
+    fn print_now_bounded(&mut self, surface_95_c: f64) -> f64 {
+        let c = surface_95_c
+            .max(0.0)
+            .min(self.surface_reach_c().unwrap_or(f64::INFINITY))
+            .min(self.print_now_told.unwrap_or(f64::INFINITY));
+        self.print_now_told = Some(c);
+        c
     }
 
     /// The heater's `max_power` from Klipper's config (0.05–1; Klipper reports the pwm as a
@@ -566,6 +603,7 @@ impl SoakDetector {
         );
         self.cold_start
             .get_or_insert((temp_c <= self.params.skip_below_c, temp_c));
+        self.lowest_c = Some(self.lowest_c.map_or(temp_c, |l| l.min(temp_c)));
         if let Some(bin) = self.bin.as_mut() {
             bin.temp_sum += temp_c;
             bin.temp_n += 1;
@@ -1667,5 +1705,44 @@ mod tests {
             );
         }
         assert!(costs.last().unwrap().1 < costs.first().unwrap().1);
+    }
+
+    /// Issue 38 item 8: a user once read "printing now costs up to 295.7 K" and then 1354.0 K
+    /// on a 60 °C bed, figures 30 s apart jumping both ways. The cost told is at most the
+    /// distance from where the surface can be to the target, and never rises.
+    #[test]
+    fn the_print_now_cost_is_physically_possible_and_never_jumps_up() {
+        // Beds from weakly to strongly coupled, with the weakest coupling assumed (defaults):
+        // early fits divided by a weak G give hundreds of kelvin unbounded.
+        for (seed, g) in [(1, 1.0 / 120.0), (2, 1.0 / 60.0), (5, 1.0 / 30.0)] {
+            let bed = two_node_bed(g, 0.4, 6.0, 0.002, 0.012, 0.08, 3600.0, seed);
+            let mut d = SoakDetector::new(SoakParams::default());
+            let start_c = bed[0][2];
+            let mut told: Vec<f64> = Vec::new();
+            for s in &bed {
+                if let SoakStatus::Soaking {
+                    print_now_c: Some(c),
+                    ..
+                } = d.push(s[0], s[1], s[2], TARGET_C)
+                {
+                    told.push(c);
+                }
+            }
+            assert!(!told.is_empty(), "seed {seed}: no cost stated");
+            let reach = TARGET_C - start_c + 0.5;
+            assert!(
+                told.iter()
+                    .all(|c| c.is_finite() && *c >= 0.0 && *c <= reach),
+                "seed {seed}: a cost beyond {reach:.1} K: {told:?}"
+            );
+            assert!(
+                told.windows(2).all(|w| w[1] <= w[0]),
+                "seed {seed}: the cost rose between updates"
+            );
+        }
+        // A warm start (a bed first seen at its target) is bounded from the coldest room.
+        let mut d = SoakDetector::new(SoakParams::default());
+        d.push(0.0, 0.3, TARGET_C, TARGET_C);
+        assert_eq!(d.surface_reach_c(), Some(TARGET_C - COLDEST_ROOM_C));
     }
 }

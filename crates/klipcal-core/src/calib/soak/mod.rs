@@ -38,6 +38,7 @@
 
 use serde::{Deserialize, Serialize};
 
+pub mod ask;
 mod chamber;
 mod coupling;
 mod detector;
@@ -51,7 +52,7 @@ pub use coupling::{Coupling, CouplingSource};
 pub use detector::SoakDetector;
 pub use detector::SoakStatus;
 pub use stack::open_frame_reach;
-pub use stack::{kelvin_words, BED_PRESETS, OPEN_FRAME_TAU_MAX_S};
+pub use stack::{cost_words, kelvin_words, BED_PRESETS, OPEN_FRAME_TAU_MAX_S};
 
 /// Thresholds of the soak detector. Every field has a default (see [`SoakParams::default`]),
 /// so a `[soak]` table in the daemon's TOML may name only the keys it changes.
@@ -81,8 +82,9 @@ pub struct SoakParams {
     /// half the paper's ±2 K).
     pub surface_budget_c: f64,
     /// The bed's build, whose coupling the rule uses (capped at the most a cold heat-up of this
-    /// bed allows, which bounds it only from above): one of [`BED_PRESETS`] by name, or ""
-    /// (unknown: the weakest coupling is assumed). Default "".
+    /// bed allows, which bounds it only from above): one of [`BED_PRESETS`] by name, "unknown"
+    /// (the weakest coupling is assumed) or "" (not set: the first soak asks, and assumes the
+    /// weakest meanwhile). Default "".
     pub bed: String,
     /// The slowest time constant the bed and its surroundings (plate, enclosure) may have: a
     /// decay this slow is ruled out before the bed is declared stable, so a longer value waits
@@ -91,8 +93,8 @@ pub struct SoakParams {
     pub tau_max_s: f64,
     /// The printer's frame: "open" (no enclosure: nothing around the bed warms for hours, so
     /// the slowest decay ruled out is the bed stack's own, [`OPEN_FRAME_TAU_MAX_S`], when that
-    /// is below `tau_max_s`), "enclosed", or "" (unknown). "enclosed" and "" use `tau_max_s`.
-    /// Default "".
+    /// is below `tau_max_s`), "enclosed", "unknown", or "" (not set: the first soak asks).
+    /// All but "open" use `tau_max_s`. Default "".
     pub frame: String,
     /// The chamber or enclosure thermometer whose trend rules the enclosure's slow warming in
     /// or out, as Klipper names its object (`temperature_sensor chamber`,
@@ -141,12 +143,13 @@ pub const RETIRED_KEYS: &[&str] = &[
 ];
 
 /// What `soak.frame` accepts, for its error.
-const FRAME_NAMES: &str = "\"\" (unknown: up to tau_max_s), \"open\" (no enclosure: up to 20 min) \
-                           or \"enclosed\" (up to tau_max_s)";
+const FRAME_NAMES: &str = "\"\" (not set: the first soak asks), \"open\" (no enclosure: up to 20 \
+                           min), \"enclosed\" (up to tau_max_s) or \"unknown\" (as enclosed)";
 
 /// What `soak.bed` accepts, for its error.
-const BED_NAMES: &str = "\"\" (unknown), \"bare-plate\", \"steel-plate\", \"bare-pad\", \
-                         \"steel-pad\", \"glass-plate\" or \"glass-pad\"";
+const BED_NAMES: &str = "\"\" (not set: the first soak asks), \"bare-plate\", \"steel-plate\", \
+                         \"bare-pad\", \"steel-pad\", \"glass-plate\", \"glass-pad\" or \"unknown\" (the \
+                         weakest)";
 
 /// `soak.chamber_sensor`: "", "none", or `temperature_sensor <name>` / `temperature_fan
 /// <name>`.
@@ -218,7 +221,7 @@ impl SoakParams {
             p.surface_budget_c >= 0.1 && p.surface_budget_c <= 10.0,
             "between 0.1 and 10 K",
         )?;
-        if !(p.bed.is_empty() || BED_PRESETS.iter().any(|b| b.name == p.bed)) {
+        if !(ask::not_named(&p.bed) || BED_PRESETS.iter().any(|b| b.name == p.bed)) {
             return Err(SoakParamsError {
                 key: "bed",
                 value: format!("{:?}", p.bed),
@@ -231,7 +234,7 @@ impl SoakParams {
             p.tau_max_s >= 20.0 * p.bin_s && p.tau_max_s <= 14_400.0,
             "at least 20 bins (bin_s) and at most 14400 s (4 h)",
         )?;
-        if !["", "open", "enclosed"].contains(&p.frame.as_str()) {
+        if !["", "open", "enclosed", "unknown"].contains(&p.frame.as_str()) {
             return Err(SoakParamsError {
                 key: "frame",
                 value: format!("{:?}", p.frame),

@@ -227,3 +227,39 @@ pub fn kelvin_words(k: f64) -> String {
         k * UM_PER_100MM_K_ALUMINIUM
     )
 }
+
+/// What printing now costs, in words a user weighs: "about 1.5 K, 2 µm per 100 mm on steel"
+/// (the 95 % figure, rounded as a person reads it: tenths below 10 K, whole kelvin above, the
+/// expansion to a whole µm from 2 µm on).
+#[must_use]
+pub fn cost_words(k: f64) -> String {
+    if !k.is_finite() || k < 0.05 {
+        return "less than 0.1 K".into();
+    }
+    let kelvin = if k < 10.0 {
+        format!("{k:.1}")
+    } else {
+        format!("{k:.0}")
+    };
+    let um = k * UM_PER_100MM_K_STEEL;
+    let um = if um < 2.0 {
+        format!("{um:.1}")
+    } else {
+        format!("{um:.0}")
+    };
+    format!("about {kelvin} K, {um} µm per 100 mm on steel")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::cost_words;
+
+    #[test]
+    fn a_cost_is_said_as_a_person_weighs_it() {
+        assert_eq!(cost_words(1.5), "about 1.5 K, 1.8 µm per 100 mm on steel");
+        assert_eq!(cost_words(1.7), "about 1.7 K, 2 µm per 100 mm on steel");
+        assert_eq!(cost_words(34.6), "about 35 K, 42 µm per 100 mm on steel");
+        assert_eq!(cost_words(0.01), "less than 0.1 K");
+        assert_eq!(cost_words(f64::NAN), "less than 0.1 K");
+    }
+}

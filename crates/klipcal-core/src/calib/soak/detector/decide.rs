@@ -416,7 +416,8 @@ impl SoakDetector {
             .map_or(0.0, |eta| (span / (span + eta)).clamp(0.0, 1.0))
             .max(self.progress_floor);
         self.progress_floor = progress;
-        let print_now_c = (plausible && fit.surface_95_c.is_finite()).then_some(fit.surface_95_c);
+        let print_now_c = (plausible && fit.surface_95_c.is_finite())
+            .then(|| self.print_now_bounded(fit.surface_95_c));
         self.status = SoakStatus::Soaking {
             progress,
             eta_s,

@@ -1,0 +1,216 @@
+//! The soak question (issue 38, item 1) as a user meets it: a klipcal.toml that names neither
+//! the bed nor the frame, an A/B start typed as Klipper runs it (`printer/gcode/script`), the
+//! dialog's buttons pressed as the macros they are, a dialog closed by mistake and brought
+//! back, the frame answered over klipcal's API; klipcal.toml rewritten with a backup and its
+//! comments kept, the running soak using the answer at once, a broken file refused whole; and
+//! the soak's Wait and Print now (item 5).
+
+use std::time::Duration;
+
+use klipcal::moonraker::{Event, Moonraker};
+use serde_json::{json, Value};
+
+use crate::bench::{wait_event, Bench, Daemon};
+use crate::session::{session, wait_state, PLANT};
+
+/// Settings a user might have: their own comment in `[soak]`, neither bed nor frame named; a
+/// soak that stays open while the test answers (min_soak_s), on the bench's fast plant.
+const TOML: &str = "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = 600.0\n\
+                    soak_max_s = 600.0\n\
+                    [soak]\n# my own note: the bed is the stock one\nsettle_s = 1.0\nbin_s = 0.5\n\
+                    min_soak_s = 3000.0\ntau_max_s = 30.0\n";
+
+/// Types `line` as Klipper runs it and waits for a console response containing `words`.
+async fn typed(m: &Moonraker, line: &str, words: &str) -> String {
+    let mut rx = m.events();
+    m.gcode(line)
+        .await
+        .unwrap_or_else(|e| panic!("{line}: Klipper refused it: {e}"));
+    match wait_event(
+        &mut rx,
+        Duration::from_secs(30),
+        |ev| matches!(ev, Event::GcodeResponse(l) if l.contains(words)),
+    )
+    .await
+    {
+        Some(Event::GcodeResponse(l)) => l,
+        _ => panic!(
+            "{line}: no console line with {words:?}; the console said:\n{}",
+            crate::mainsail::history(m)
+                .await
+                .iter()
+                .rev()
+                .take(20)
+                .map(|(_, l)| l.as_str())
+                .collect::<Vec<_>>()
+                .join("\n")
+        ),
+    }
+}
+
+/// The dialog Mainsail shows now, once its title contains `title`.
+async fn dialog(m: &Moonraker, title: &str) -> crate::mainsail::Dialog {
+    let got = crate::bench::poll(Duration::from_secs(30), || async {
+        crate::mainsail::after_reload(m)
+            .await
+            .filter(|d| d.title.contains(title))
+    })
+    .await;
+    match got {
+        Some(d) => d,
+        None => panic!(
+            "no dialog {title:?}; Mainsail shows {:?}",
+            crate::mainsail::after_reload(m).await
+        ),
+    }
+}
+
+async fn api(d: &Daemon, path: &str, body: Value) -> Value {
+    let base = d.page_url().await;
+    reqwest::Client::new()
+        .post(format!("{base}/api/{path}"))
+        .json(&body)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap()
+}
+
+#[tokio::test]
+async fn the_first_soak_asks_the_build_writes_the_answer_and_uses_it_at_once() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let d = Daemon::ready(&bench, TOML).await;
+    let cfg = bench.dir.path().join("klipcal.toml");
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+
+    // Started as a user types it: the soak asks what is on the bed.
+    typed(&m, "KLIPCAL_AB_START BED=60", "session").await;
+    let q = dialog(&m, "what is on your bed?").await;
+    // (Each button also carries the question's number, ASK=n, issue 40.)
+    let gcodes: Vec<&str> = q
+        .buttons
+        .iter()
+        .map(|(_, g)| g.split(" ASK=").next().unwrap_or(g))
+        .collect();
+    assert_eq!(
+        gcodes,
+        [
+            "KLIPCAL_SOAK_BED SURFACE=steel",
+            "KLIPCAL_SOAK_BED SURFACE=glass",
+            "KLIPCAL_SOAK_BED SURFACE=bare",
+            "KLIPCAL_SOAK_BED SURFACE=unknown"
+        ],
+        "{q:?}"
+    );
+    assert!(q.texts.iter().any(|t| t.contains("min")), "{q:?}");
+
+    // The button, as Klipper runs it: the next step.
+    typed(
+        &m,
+        "KLIPCAL_SOAK_BED SURFACE=steel",
+        "next: where is the bed's thermistor?",
+    )
+    .await;
+    dialog(&m, "where is the bed's thermistor?").await;
+    // Closed by mistake (Mainsail's ✕ sends prompt_end): not lost.
+    let said = typed(
+        &m,
+        "RESPOND TYPE=command MSG=action:prompt_end",
+        "still waiting for your answer",
+    )
+    .await;
+    assert!(said.contains("KLIPCAL_SOAK_BED SENSOR=pad"), "{said}");
+    let status = typed(&m, "KLIPCAL_STATUS", "klipcal asks").await;
+    assert!(status.contains("KLIPCAL_SOAK_BED SENSOR=plate"), "{status}");
+    typed(&m, "_KLIPCAL_PROMPT_BACK", "prompt_show").await;
+    dialog(&m, "where is the bed's thermistor?").await;
+
+    // Answered: written to klipcal.toml with a backup, the user's comment kept.
+    let before = std::fs::read_to_string(&cfg).unwrap();
+    typed(
+        &m,
+        "KLIPCAL_SOAK_BED SENSOR=pad",
+        "soak.bed = 'steel-pad' written",
+    )
+    .await;
+    let after = std::fs::read_to_string(&cfg).unwrap();
+    assert!(
+        after.contains("# my own note: the bed is the stock one"),
+        "{after}"
+    );
+    assert!(after.contains("bed = \"steel-pad\""), "{after}");
+    let backups = bench.dir.path().join("klipcal_backups");
+    let backup = std::fs::read_dir(&backups)
+        .unwrap()
+        .flatten()
+        .map(|e| e.path().join("klipcal.toml"))
+        .find(|p| p.exists())
+        .expect("a backup of klipcal.toml");
+    assert_eq!(std::fs::read_to_string(backup).unwrap(), before);
+    dialog(&m, "is the printer enclosed?").await;
+
+    // The frame over klipcal's API: the running soak uses both at once.
+    let mut rx = m.events();
+    let r = api(&d, "soak/bed", json!({"frame": "open"})).await;
+    assert_eq!(r["ok"], true, "{r}");
+    assert!(
+        r["message"]
+            .as_str()
+            .unwrap_or("")
+            .contains("the soak under way uses it now"),
+        "{r}"
+    );
+    let used = wait_event(&mut rx, Duration::from_secs(30), |ev| {
+        matches!(ev, Event::GcodeResponse(l)
+            if l.contains("this soak now uses soak.bed = 'steel-pad' and soak.frame = 'open'"))
+    })
+    .await;
+    assert!(used.is_some(), "the running soak did not take the answer");
+    let cfg_now: String = std::fs::read_to_string(&cfg).unwrap();
+    assert!(cfg_now.contains("frame = \"open\""), "{cfg_now}");
+    assert!(crate::mainsail::after_reload(&m)
+        .await
+        .map_or(true, |d| !d.title.contains("enclosed")));
+
+    // Item 5: from the band on, Print now and Wait are buttons; Wait (the macro's default)
+    // is an answer, not "nothing to choose".
+    wait_state(&bench, "soaking", Duration::from_secs(120)).await;
+    let offer = dialog(&m, "the bed is soaking").await;
+    let labels: Vec<&str> = offer.buttons.iter().map(|(l, _)| l.as_str()).collect();
+    assert_eq!(
+        labels,
+        ["Print now", "Wait", "Cancel session…"],
+        "{offer:?}"
+    );
+    typed(
+        &m,
+        "KLIPCAL_SOAK_CHOICE",
+        "waiting until the bed has settled",
+    )
+    .await;
+    assert_eq!(session(&bench).await["state"], "soaking");
+
+    // A broken file is refused whole: nothing written.
+    let broken = "[soak]\nbin_s = 0\nbed = \"\"\n";
+    std::fs::write(&cfg, broken).unwrap();
+    let r = api(
+        &d,
+        "soak/bed",
+        json!({"surface": "glass", "sensor": "plate"}),
+    )
+    .await;
+    assert_eq!(r["ok"], false, "{r}");
+    let msg = r["error"]["message"].as_str().unwrap_or("");
+    assert!(
+        msg.contains("nothing written") && msg.contains("bin_s"),
+        "{msg}"
+    );
+    assert_eq!(std::fs::read_to_string(&cfg).unwrap(), broken);
+    std::fs::write(&cfg, cfg_now).unwrap();
+
+    typed(&m, "KLIPCAL_CANCEL", "cancel").await;
+    drop(d);
+}
