@@ -13,7 +13,8 @@
 //! - [`plots`]: the plots people look at (bed soak, convergence) as SVG text, and as PNG.
 //! - `camera_render` and `calib::sim` (feature `sim`, and this crate's tests): simulated
 //!   nozzle-camera pictures and a simulated machine for the benchmarks and the tests; never in
-//!   the printer's build.
+//!   the printer's build. `nozzle_photos` (the same): the real nozzle photographs of
+//!   `tests/fixtures/nozzle`, read from the source checkout for the tests and the bench.
 
 pub mod calib;
 #[cfg(any(test, feature = "sim"))]
@@ -21,6 +22,8 @@ pub mod camera_render;
 pub mod gcode;
 pub mod klipper;
 pub mod layout;
+#[cfg(any(test, feature = "sim"))]
+pub mod nozzle_photos;
 pub mod plots;
 
 #[cfg(test)]

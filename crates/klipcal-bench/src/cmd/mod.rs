@@ -12,3 +12,4 @@ pub mod soak_real;
 
 pub use klipcal::cmd::soak;
 pub use klipcal_core::camera_render;
+pub use klipcal_core::nozzle_photos;

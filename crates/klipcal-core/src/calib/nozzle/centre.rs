@@ -1,92 +1,18 @@
-//! The sub-pixel centre: by radial symmetry (the gradient lines' nearest point, with its
-//! uncertainty), and the edge circle fitted along rays from it.
+//! The sub-pixel centre: the edge circle fitted along rays from a first guess, with its
+//! uncertainty and how closed the edge is all round.
 
 use super::background::median_in_place;
 
-/// Correlation of neighbouring pixels' gradients (3×3 box, then Sobel): the independent
-/// samples are about this many times fewer than the edge pixels.
-const GRADIENT_CORRELATION_AREA: f64 = 9.0;
-
+#[derive(Clone)]
 pub(super) struct Fit {
     pub(super) c: [f64; 2],
     pub(super) cov: nalgebra::Matrix2<f64>,
     pub(super) radius: f64,
     pub(super) scatter: f64,
     pub(super) used: usize,
-}
-
-/// Radial-symmetry centre in a disc of radius `roi` about `c0`, on gradients `gx`, `gy`.
-pub(super) fn radial_centre(
-    gx: &[f32],
-    gy: &[f32],
-    w: usize,
-    h: usize,
-    c0: [f64; 2],
-    roi: f64,
-    g_floor2: f64,
-) -> Option<Fit> {
-    let mut c = c0;
-    let mut last = None;
-    for _ in 0..4 {
-        let x0 = (c[0] - roi).floor().max(1.0) as usize;
-        let x1 = ((c[0] + roi).ceil() as usize).min(w.saturating_sub(2));
-        let y0 = (c[1] - roi).floor().max(1.0) as usize;
-        let y1 = ((c[1] + roi).ceil() as usize).min(h.saturating_sub(2));
-        let mut m = nalgebra::Matrix2::<f64>::zeros();
-        let mut b = nalgebra::Vector2::<f64>::zeros();
-        let mut pts = Vec::new();
-        for y in y0..=y1 {
-            for x in x0..=x1 {
-                let (dx, dy) = (x as f64 - c[0], y as f64 - c[1]);
-                if dx * dx + dy * dy > roi * roi {
-                    continue;
-                }
-                let i = y * w + x;
-                let (a, bb) = (f64::from(gx[i]), f64::from(gy[i]));
-                let g2 = a * a + bb * bb;
-                if g2 <= g_floor2 {
-                    continue;
-                }
-                let gm = g2.sqrt();
-                // Unit normal to the gradient line.
-                let n = nalgebra::Vector2::new(-bb / gm, a / gm);
-                let p = nalgebra::Vector2::new(x as f64, y as f64);
-                let wgt = g2;
-                let nn = n * n.transpose();
-                m += wgt * nn;
-                b += wgt * nn * p;
-                pts.push((wgt, n, p));
-            }
-        }
-        if pts.len() < 8 {
-            return None;
-        }
-        let minv = m.try_inverse()?;
-        let cn = minv * b;
-        let mut meat = nalgebra::Matrix2::<f64>::zeros();
-        let (mut sw, mut swr2, mut swd) = (0.0, 0.0, 0.0);
-        for (wgt, n, p) in &pts {
-            let r = n.dot(&(cn - p));
-            meat += (wgt * wgt * r * r) * (n * n.transpose());
-            sw += wgt;
-            swr2 += wgt * r * r;
-            swd += wgt * (cn - p).norm();
-        }
-        let cov = minv * meat * minv * GRADIENT_CORRELATION_AREA;
-        let moved = ((cn.x - c[0]).powi(2) + (cn.y - c[1]).powi(2)).sqrt();
-        c = [cn.x, cn.y];
-        last = Some(Fit {
-            c,
-            cov,
-            radius: swd / sw,
-            scatter: (swr2 / sw).sqrt(),
-            used: pts.len(),
-        });
-        if moved < 1e-3 {
-            break;
-        }
-    }
-    last
+    /// How closed the edge is: the weakest of eight 45° sectors' mean edge slope over the
+    /// mean of all (1: the same all round; 0: a sector without an edge).
+    pub(super) closed: f64,
 }
 
 fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64) -> Option<f64> {
@@ -247,5 +173,22 @@ pub(super) fn edge_circle(
         radius: rad,
         scatter: rms,
         used: m,
+        closed: closedness(&rays),
     })
+}
+
+/// The weakest 45° sector's mean edge slope over the mean of all rays (`rays`: angle, edge
+/// radius, slope, step), 0 when a sector has no ray with an edge.
+fn closedness(rays: &[(f64, f64, f64, f64)]) -> f64 {
+    let mut sum = [0.0f64; 8];
+    for &(a, _, dm, _) in rays {
+        let k = ((a / std::f64::consts::TAU * 8.0).floor() as usize).min(7);
+        sum[k] += dm;
+    }
+    let all = rays.iter().map(|r| r.2).sum::<f64>() / RAYS as f64;
+    let per = (RAYS / 8) as f64;
+    (0..8)
+        .map(|k| sum[k] / per / all.max(1e-12))
+        .fold(f64::INFINITY, f64::min)
+        .min(1.0)
 }

@@ -30,25 +30,33 @@
 
 use serde::Serialize;
 
-use background::{box3, join_nested, median_in_place, percentile_u8, regions, Background, Region};
-use centre::{edge_circle, radial_centre};
+use background::{box3, percentile_u8, Background};
+use centre::{edge_circle, Fit};
+use locate::{ring_edges, vote};
 
 mod background;
 mod centre;
 mod decode;
+mod locate;
+mod noise;
 mod register;
 
 pub use decode::decode_gray;
-pub use register::{ClickReader, ClickReading};
+pub use noise::fine_noise_sd;
+pub use register::{ClickReader, ClickReading, Reference, RegisterParams};
 
 /// What the edge fit's least-squares covariance leaves out of a centre's error, px: it treats
 /// the residuals as independent, but the smoothing correlates neighbouring pixels and JPEG's
-/// 8×8 blocks add structured error. On the bench's renderings (JPEG q 60–95, blur sd
-/// 0.6–2.5 px, noise sd 1–5, both families) the errors were 1.2× the fit's σ at every noise
-/// level, and both coordinates fell within ±2 × the fit's σ on 80–82 % of pictures, against
-/// the 91 % of two normal coordinates at 95 % each. This much in quadrature brings that to
-/// 93–94 % (`klipcal bench backlash`).
-const UNMODELLED_SD_PX: f64 = 0.04;
+/// 8×8 blocks add structured error. Issue 27 measured 0.04 px on the bench's renderings; since
+/// issue 37 the edge is found from a vote's peak and several concentric circles are averaged,
+/// and on the same renderings (40 of each family, JPEG q 60–95, blur sd 0.6–2.5 px, noise sd
+/// 1–5) both coordinates fell within ±2u on 27 of 40 dark tips with 0.04 and 35 of 40 with
+/// this (`cmd::camera_render` tests).
+const UNMODELLED_SD_PX: f64 = 0.08;
+
+/// The tip's edge is the innermost circle about the vote's peak whose slope reaches this share
+/// of the strongest (the orifice inside the ring inside the cone).
+const INNER_SHARE: f64 = 0.4;
 
 /// A grey image borrowed from its decoder: row-major, one byte per pixel.
 #[derive(Debug, Clone, Copy)]
@@ -62,19 +70,27 @@ pub struct Gray<'a> {
 /// spans a few percent of the frame.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct DetectParams {
-    /// Refuse when more than this fraction of pixels is clipped white (≥ 250) or black (≤ 5).
+    /// Refuse when more than this fraction of pixels is clipped white (≥ 250) …
     pub max_clipped_fraction: f64,
+    /// … or black (≤ 5): a zoomed-in nozzle's cone is often black over a third of the view.
+    pub max_black_fraction: f64,
     /// The nozzle must stand out from the background by at least this many grey levels.
     pub min_contrast: f64,
     /// … and by this many times the picture's noise sd.
     pub min_snr: f64,
     /// A candidate smaller than this (pixels) is a speck, not a nozzle.
     pub min_area_px: usize,
-    /// A second candidate with at least this share of the first one's weight makes the picture
+    /// A second tip with at least this share of the first one's vote makes the picture
     /// ambiguous: refused as "two candidates".
     pub second_candidate_ratio: f64,
     /// Refuse an answer whose uncertainty (1 sd per axis) exceeds this, px.
     pub max_uncertainty_px: f64,
+    /// A tip's edge is closed all round: its weakest 45° sector's mean slope is at least this
+    /// share of the mean (texture blobs: 0–0.5; real tips 0.7–0.9).
+    pub min_closed: f64,
+    /// The tip's vote must be at least this share of the strongest round structure in view,
+    /// or something else (sparkles, reflections) outshines it.
+    pub min_vote_share: f64,
     /// Refuse when the gradient lines scatter about the centre by more than this share of the
     /// radius (weighted rms): not a round object.
     pub max_scatter_share: f64,
@@ -84,11 +100,14 @@ impl Default for DetectParams {
     fn default() -> Self {
         DetectParams {
             max_clipped_fraction: 0.2,
+            max_black_fraction: 0.6,
             min_contrast: 12.0,
             min_snr: 8.0,
             min_area_px: 20,
-            second_candidate_ratio: 0.25,
+            second_candidate_ratio: 0.5,
             max_uncertainty_px: 0.5,
+            min_closed: 0.65,
+            min_vote_share: 0.6,
             max_scatter_share: 0.2,
         }
     }
@@ -111,10 +130,12 @@ pub enum Refusal {
         count: usize,
         centres_px: Vec<[f64; 2]>,
     },
+    /// Round things in view, but none a dark orifice or tip closed all round.
+    NoTip { round: usize },
+    /// A tip, but fainter than other round structure in view (sparkles, reflections).
+    Outshone { centre_px: [f64; 2], share_pct: f64 },
     /// The object touches the frame, so its centre cannot be measured.
     AtEdge { centre_px: [f64; 2] },
-    /// The object is not round: its edges do not point at one centre.
-    NotRound { scatter_px: f64, radius_px: f64 },
     /// A centre was found but its uncertainty is over the limit.
     Uncertain { uncertainty_px: f64, limit_px: f64 },
 }
@@ -152,19 +173,27 @@ impl std::fmt::Display for Refusal {
                     .collect::<Vec<_>>()
                     .join(", ")
             ),
+            Refusal::NoTip { round } => write!(
+                f,
+                "no nozzle tip: nothing in view is a dark orifice or tip with an edge closed all \
+                 round ({round} other round thing(s): bright specks, reflections, texture); bring \
+                 the nozzle's tip over the camera, in focus, lit from the side or below"
+            ),
+            Refusal::Outshone {
+                centre_px,
+                share_pct,
+            } => write!(
+                f,
+                "not sure: the dark round spot at ({:.0}, {:.0}) px stands out only {share_pct:.0} \
+                 % as much as other round things in view (sparkles, reflections, texture); zoom \
+                 in on the tip, focus, and light it evenly",
+                centre_px[0], centre_px[1]
+            ),
             Refusal::AtEdge { centre_px } => write!(
                 f,
                 "the nozzle touches the edge of the picture (near ({:.0}, {:.0}) px); move it \
                  towards the middle of the camera's view",
                 centre_px[0], centre_px[1]
-            ),
-            Refusal::NotRound {
-                scatter_px,
-                radius_px,
-            } => write!(
-                f,
-                "not sure: the object's edges do not point at one centre (scatter {scatter_px:.1} \
-                 px for a radius of {radius_px:.1} px); expected a round nozzle seen from below"
             ),
             Refusal::Uncertain {
                 uncertainty_px,
@@ -191,7 +220,7 @@ pub enum Polarity {
 pub struct Diagnostics {
     /// Background level at the centre, grey levels.
     pub background: f64,
-    /// Noise sd of the picture after the background is taken out, grey levels.
+    /// Pixel noise sd, grey levels, from the picture's finest scale ([`fine_noise_sd`]).
     pub noise_sd: f64,
     /// How far the nozzle stands out from the background at its strongest, grey levels.
     pub contrast: f64,
@@ -244,7 +273,7 @@ pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
     }
     let white = hist[250..].iter().sum::<usize>() as f64 / n as f64;
     let black = hist[..=5].iter().sum::<usize>() as f64 / n as f64;
-    if white > p.max_clipped_fraction || black > p.max_clipped_fraction {
+    if white > p.max_clipped_fraction || black > p.max_black_fraction {
         return Err(Refusal::Saturated {
             white_pct: 100.0 * white,
             black_pct: 100.0 * black,
@@ -266,84 +295,79 @@ pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
         }
     }
     let rs = box3(&res, w, h);
-    // Noise of the smoothed residual, from the whole picture (the nozzle is a small share).
-    let mut absr: Vec<f64> = rs.iter().step_by(3).map(|v| f64::from(v.abs())).collect();
-    let noise = (1.4826 * median_in_place(&mut absr)).max(0.3);
+    // The pixel noise from the finest scale (issue 37), and what the 3×3 box leaves of it.
+    let pixel_noise = fine_noise_sd(img, None);
+    let noise = pixel_noise / 3.0;
     let strongest = rs.iter().fold(0f32, |m, v| m.max(v.abs())) as f64;
     let needed = p.min_contrast.max(p.min_snr * noise);
     if strongest < needed {
-        // A faint object above the noise is "too little contrast"; only noise is "no nozzle".
-        if strongest >= p.min_snr * noise {
-            return Err(Refusal::TooLittleContrast {
-                contrast: strongest,
-                needed,
-            });
-        }
         return Err(Refusal::NoNozzle { strongest, needed });
     }
-    let thr = (0.3 * strongest).max(0.5 * needed) as f32;
-    let mask: Vec<bool> = rs.iter().map(|v| v.abs() > thr).collect();
-    let cands: Vec<Region> = join_nested(regions(&mask, &rs, w, h))
-        .into_iter()
-        .filter(|r| r.area >= p.min_area_px)
-        .collect();
-    let Some(first) = cands.first().cloned() else {
+    // Gradients (Sobel) of the smoothed residual. Gradient of pure noise: Sobel of the
+    // smoothed noise has an sd of about 4·noise per axis; only edges well above it vote.
+    let g_floor = 3.0 * 4.0 * noise;
+    let r_max = 0.45 * w.min(h) as f64;
+    let Some(votes) = vote(&rs, w, h, g_floor, r_max) else {
         return Err(Refusal::NoNozzle { strongest, needed });
     };
-    let rivals: Vec<&Region> = cands
+    let field = Field {
+        rs: &rs,
+        w,
+        h,
+        r_max,
+    };
+    // Each strong peak fitted; the tips (a dark edge closed all round), one per place,
+    // strongest vote first.
+    let top = votes.peaks[0].score;
+    let mut tips: Vec<(f64, Fit)> = Vec::new();
+    let (mut fitted, mut strongest_refusal) = (0, None);
+    for pk in &votes.peaks {
+        match field.fit_at(pk.c, p) {
+            Ok(fit) => {
+                fitted += 1;
+                let part_of =
+                    |f: &Fit| (f.c[0] - fit.c[0]).hypot(f.c[1] - fit.c[1]) < f.radius.max(3.0);
+                if fit.closed >= p.min_closed && !tips.iter().any(|(_, f)| part_of(f)) {
+                    tips.push((pk.score, fit));
+                }
+            }
+            Err(e) => {
+                if pk.c == votes.peaks[0].c {
+                    strongest_refusal = Some(e);
+                }
+            }
+        }
+    }
+    let Some((score, fit)) = tips.first().map(|t| (t.0, t.1.clone())) else {
+        // The strongest structure at the frame (a nozzle cut by it votes for its centre, just
+        // inside) says so; anything else is no tip.
+        let c = votes.peaks[0].c;
+        let near_frame = field.to_frame(c) < (0.05 * w.min(h) as f64).max(4.0);
+        return Err(match strongest_refusal {
+            Some(e @ Refusal::AtEdge { .. }) => e,
+            _ if near_frame => Refusal::AtEdge { centre_px: c },
+            _ => Refusal::NoTip { round: fitted },
+        });
+    };
+    if score < p.min_vote_share * top {
+        return Err(Refusal::Outshone {
+            centre_px: fit.c,
+            share_pct: 100.0 * score / top,
+        });
+    }
+    let rivals: Vec<[f64; 2]> = tips
         .iter()
-        .filter(|r| r.weight >= p.second_candidate_ratio * first.weight)
+        .filter(|t| t.0 >= p.second_candidate_ratio * score)
+        .map(|t| t.1.c)
         .collect();
     if rivals.len() >= 2 {
         return Err(Refusal::TwoCandidates {
             count: rivals.len(),
-            centres_px: rivals.iter().map(|r| [r.cx, r.cy]).collect(),
+            centres_px: rivals,
         });
     }
-    if first.x0 == 0 || first.y0 == 0 || first.x1 + 1 >= w || first.y1 + 1 >= h {
-        return Err(Refusal::AtEdge {
-            centre_px: [first.cx, first.cy],
-        });
-    }
-    // Gradients (Sobel) of the smoothed residual.
-    let mut gx = vec![0f32; n];
-    let mut gy = vec![0f32; n];
-    for y in 1..h - 1 {
-        for x in 1..w - 1 {
-            let at = |dx: i64, dy: i64| rs[(y as i64 + dy) as usize * w + (x as i64 + dx) as usize];
-            gx[y * w + x] = (at(1, -1) + 2.0 * at(1, 0) + at(1, 1))
-                - (at(-1, -1) + 2.0 * at(-1, 0) + at(-1, 1));
-            gy[y * w + x] = (at(-1, 1) + 2.0 * at(0, 1) + at(1, 1))
-                - (at(-1, -1) + 2.0 * at(0, -1) + at(1, -1));
-        }
-    }
-    // Gradient of pure noise: Sobel of the smoothed noise has an sd of about 4·noise per axis;
-    // only edges well above it vote.
-    let g_floor = 3.0 * 4.0 * noise;
-    let roi = 1.4 * first.half_extent() + 3.0;
-    let Some(fit) = radial_centre(&gx, &gy, w, h, [first.cx, first.cy], roi, g_floor * g_floor)
-    else {
-        return Err(Refusal::NoNozzle { strongest, needed });
-    };
-    if fit.scatter > p.max_scatter_share * fit.radius.max(1.0) + 0.5 {
-        return Err(Refusal::NotRound {
-            scatter_px: fit.scatter,
-            radius_px: fit.radius,
-        });
-    }
-    let sign = if first.signed >= 0.0 { -1.0 } else { 1.0 };
-    let Some(fit) = edge_circle(&rs, w, h, fit.c, first.half_extent(), sign) else {
-        return Err(Refusal::NotRound {
-            scatter_px: fit.scatter,
-            radius_px: fit.radius,
-        });
-    };
-    if fit.scatter > p.max_scatter_share * fit.radius.max(1.0) + 0.5 {
-        return Err(Refusal::NotRound {
-            scatter_px: fit.scatter,
-            radius_px: fit.radius,
-        });
-    }
+    let c0 = votes.peaks[0].c;
+    let sign = 1.0;
     // The fit's own covariance, and in quadrature what it leaves out (issue 27).
     let u = (0.5 * (fit.cov[(0, 0)] + fit.cov[(1, 1)]))
         .max(0.0)
@@ -368,19 +392,104 @@ pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
         uncertainty_px: u,
         diagnostics: Diagnostics {
             background: bg.at(cx, cy),
-            noise_sd: noise,
+            noise_sd: pixel_noise,
             contrast: strongest,
-            polarity: if first.signed >= 0.0 {
+            polarity: if sign < 0.0 {
                 Polarity::Bright
             } else {
                 Polarity::Dark
             },
             radius_px: fit.radius,
             scatter_px: fit.scatter,
-            candidates: cands.len(),
+            candidates: tips.len(),
             clipped_fraction: white + black,
             edge_pixels: fit.used,
-            centroid_px: [first.cx, first.cy],
+            centroid_px: c0,
         },
     })
 }
+
+/// The smoothed residual, for fitting the nozzle about a vote's peak.
+struct Field<'a> {
+    rs: &'a [f32],
+    w: usize,
+    h: usize,
+    r_max: f64,
+}
+
+impl Field<'_> {
+    fn to_frame(&self, c: [f64; 2]) -> f64 {
+        c[0].min(c[1])
+            .min((self.w - 1) as f64 - c[0])
+            .min((self.h - 1) as f64 - c[1])
+    }
+
+    /// The innermost strong circle about `c0` ([`inner_edge`]), its centre by radial symmetry,
+    /// then its edge fitted along rays ([`edge_circle`]): the fit and the sign of the edge
+    /// (+1: darker inside), or why this peak is not a round nozzle.
+    fn fit_at(&self, c0: [f64; 2], p: &DetectParams) -> Result<Fit, Refusal> {
+        let (rs, w, h) = (self.rs, self.w, self.h);
+        let reach = self.to_frame(c0).min(self.r_max);
+        if reach < 4.0 {
+            return Err(Refusal::AtEdge { centre_px: c0 });
+        }
+        let edges = ring_edges(rs, w, h, c0, reach, INNER_SHARE).unwrap_or_default();
+        let round = |f: &Fit| f.scatter <= p.max_scatter_share * f.radius.max(1.0) + 0.5;
+        // The edge along rays from the peak, then again from that circle's centre: the rays'
+        // steepest steps do not heed the texture inside the tip, which turns gradients.
+        let fit_edge = |r: f64, slope: f64| {
+            let sign = slope.signum();
+            let first = edge_circle(rs, w, h, c0, r, sign)
+                .filter(|f| round(f) && (f.c[0] - c0[0]).hypot(f.c[1] - c0[1]) <= r.max(3.0))?;
+            edge_circle(rs, w, h, first.c, first.radius, sign)
+                .filter(|f| round(f) && f.closed >= p.min_closed)
+        };
+        // The tip: the innermost edge darker inside (an orifice, a dark tip; a bright speck's
+        // edge is passed over) that is round and closed all round.
+        let Some((k, tip)) = edges
+            .iter()
+            .enumerate()
+            .filter(|(_, e)| e.1 > 0.0)
+            .find_map(|(k, e)| fit_edge(e.0, e.1).map(|f| (k, f)))
+        else {
+            return Err(Refusal::NoTip { round: 0 });
+        };
+        // The circles about it (a ring round an orifice, the cone), each a measurement of the
+        // same centre: those that agree with the tip's within their errors are averaged by
+        // their weights.
+        let var = |f: &Fit| 0.5 * (f.cov[(0, 0)] + f.cov[(1, 1)]).max(1e-6);
+        let mut used = vec![(tip.c, var(&tip))];
+        for e in edges
+            .iter()
+            .skip(k + 1)
+            .filter(|e| e.0 <= 3.0 * tip.radius + 10.0)
+        {
+            if let Some(f) = fit_edge(e.0, e.1) {
+                let d = (f.c[0] - tip.c[0]).hypot(f.c[1] - tip.c[1]);
+                if d <= (3.0 * (var(&f) + var(&tip)).sqrt() + 0.1).max(1.0) {
+                    used.push((f.c, var(&f)));
+                }
+            }
+        }
+        let sw: f64 = used.iter().map(|u| 1.0 / u.1).sum();
+        let c = [
+            used.iter().map(|u| u.0[0] / u.1).sum::<f64>() / sw,
+            used.iter().map(|u| u.0[1] / u.1).sum::<f64>() / sw,
+        ];
+        // The circles' own errors, and how far they disagree (shading moves each edge its own
+        // way): per axis.
+        let spread = used
+            .iter()
+            .map(|u| ((u.0[0] - c[0]).powi(2) + (u.0[1] - c[1]).powi(2)) / (2.0 * u.1))
+            .sum::<f64>()
+            / sw;
+        let v = 1.0 / sw + spread;
+        let mut out = tip;
+        out.c = c;
+        out.cov = nalgebra::Matrix2::new(v, 0.0, 0.0, v);
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod photos_test;
