@@ -515,6 +515,7 @@ const READ_FIGURE: &str = "(() => {
 /// drew it), each approach's position, and the per-cycle values with their median and spread
 /// as the status gives them; at a desktop's and a phone's size, in Chromium.
 #[tokio::test]
+#[allow(clippy::too_many_lines)] // 142 lines: to be split along its steps
 async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() {
     let camera = json!({"look": "ring", "px_per_mm": 80, "rotation_deg": 15,
         "offset_px": [12, -8], "centre_mm": [100, 100], "seed": 3});

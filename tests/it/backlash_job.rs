@@ -38,6 +38,7 @@ fn choose(seen_mm: f64, crossing: bool) -> &'static str {
 }
 
 #[tokio::test]
+#[allow(clippy::too_many_lines)] // 158 lines: to be split along its steps
 async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_applied() {
     let bench = Bench::start_args(
         "cartesian",
@@ -504,6 +505,7 @@ async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
 }
 
 #[tokio::test]
+#[allow(clippy::too_many_lines)] // 136 lines: to be split along its steps
 async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_argument() {
     let bench = Bench::start_args("cartesian", &["--play", r#"{"x": 0.07}"#]);
     let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;

@@ -508,6 +508,7 @@ async fn wait_klipper(bench: &Bench, state: &str, limit: Duration) {
     assert!(ok.is_some(), "Klipper never {state}");
 }
 
+#[allow(clippy::too_many_lines)] // 260 lines: to be split along its steps
 async fn run_case(phase: Phase, fault: Fault) -> String {
     let t_setup = Instant::now();
     let (bench, mut d) = setup(phase, fault).await;

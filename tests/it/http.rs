@@ -34,6 +34,7 @@ async fn post(c: &reqwest::Client, url: &str, body: &str) -> (u16, Value) {
 }
 
 #[tokio::test]
+#[allow(clippy::too_many_lines)] // 199 lines: to be split along its steps
 async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
     let bench = Bench::start("corexy");
     let d = Daemon::ready(
@@ -273,6 +274,7 @@ fn click_save(pair: &str) -> String {
 }
 
 #[tokio::test]
+#[allow(clippy::too_many_lines)] // 227 lines: to be split along its steps
 async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_solved() {
     let bench = Bench::start_with("corexy", Some(PLANT));
     let (d, s) = measuring_session(&bench).await;

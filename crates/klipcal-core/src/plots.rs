@@ -115,6 +115,7 @@ fn fit_meets_data(fit: &DecayCurve, samples: &[BedSample]) -> bool {
 ///
 /// # Errors
 /// No samples, or plotters failed (the message says which).
+#[allow(clippy::too_many_lines)] // 136 lines: to be split along its steps
 pub fn soak_svg(
     samples: &[BedSample],
     fit: Option<DecayCurve>,

@@ -98,6 +98,7 @@ pub struct UninstallArgs {
 ///
 /// # Errors
 /// No printer_data layout, a print running, a conflict (named), or an I/O failure.
+#[allow(clippy::too_many_lines)] // 299 lines: to be split along its steps
 pub(crate) async fn install(
     a: &InstallArgs,
     config: &Config,

@@ -18,6 +18,7 @@ use crate::config::Config;
 ///
 /// # Errors
 /// No install recorded, a print running, or an I/O failure.
+#[allow(clippy::too_many_lines)] // 181 lines: to be split along its steps
 pub(crate) async fn uninstall(
     a: &UninstallArgs,
     config: &Config,

@@ -10,6 +10,7 @@ impl Ab {
     /// # Errors
     /// Nothing solved, a print running, an implausible change without FORCE, or Klipper failing
     /// on the new values (rolled back).
+    #[allow(clippy::too_many_lines)] // 154 lines: to be split along its steps
     pub(crate) async fn apply(&self, req: &ApplyRequest) -> anyhow::Result<Value> {
         let s = match self.active()? {
             Some(s) if s.state == State::Solved => s,

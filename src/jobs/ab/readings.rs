@@ -55,6 +55,7 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or an entry refused (nothing saved).
+    #[allow(clippy::too_many_lines)] // 128 lines: to be split along its steps
     pub(crate) async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;

@@ -238,6 +238,7 @@ impl Ab {
         None
     }
 
+    #[allow(clippy::too_many_lines)] // 158 lines: to be split along its steps
     pub(super) async fn preflight(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         self.core.printer_idle().await?;
@@ -400,6 +401,7 @@ impl Ab {
         Ok(())
     }
 
+    #[allow(clippy::too_many_lines)] // 123 lines: to be split along its steps
     pub(super) async fn print(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         let round = s

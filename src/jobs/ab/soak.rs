@@ -13,6 +13,7 @@ struct Offer {
 }
 
 impl Ab {
+    #[allow(clippy::too_many_lines)] // 171 lines: to be split along its steps
     pub(super) async fn soak(&self, s: Session, just_heated: bool) -> anyhow::Result<()> {
         let id = s.id;
         let hold_s = s.options.hold_max_s;

@@ -153,6 +153,7 @@ impl Mesh {
         Ok(json!({"following": true, "session": s.id, "message": msg}))
     }
 
+    #[allow(clippy::too_many_lines)] // 132 lines: to be split along its steps
     pub(super) async fn follow_loop(
         &self,
         token: CancellationToken,

@@ -53,6 +53,7 @@ fn anon_kib(pid: u32) -> u64 {
 ///
 /// # Errors
 /// A process that is not running.
+#[allow(clippy::too_many_lines)] // 129 lines: to be split along its steps
 pub(crate) async fn footprint(a: &FootprintArgs) -> anyhow::Result<ExitCode> {
     const TICKS_PER_S: f64 = 100.0; // Linux USER_HZ
     let start = Instant::now();

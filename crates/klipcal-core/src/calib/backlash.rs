@@ -430,6 +430,7 @@ fn jog_slope(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64, f64)> {
 ///
 /// # Errors
 /// No cycles, or a reading that is not a finite number.
+#[allow(clippy::too_many_lines)] // 187 lines: to be split along its steps
 pub fn analyse(
     axis: &str,
     cycles: &[Cycle],

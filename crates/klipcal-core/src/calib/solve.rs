@@ -228,6 +228,7 @@ fn check_facts(name: &str, s: &StepperFacts) -> Result<(), Error> {
 /// Readings for pairs the layout lacks or missing for pairs it has, non-numbers, non-positive
 /// readings, fewer than 3 per pair, a far pair not reading longer, a scale beyond ±5 %, a
 /// layout whose kinematics differs from the printer's, or unusable printer facts.
+#[allow(clippy::too_many_lines)] // 331 lines: to be split along its steps
 pub fn solve(
     layout: &Layout,
     raw: &RawReadings,

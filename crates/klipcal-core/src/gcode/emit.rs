@@ -308,6 +308,7 @@ fn park_point(m: &Machine, o: &Options, placed: &Placed) -> [f64; 2] {
 }
 
 /// Writes the job.
+#[allow(clippy::too_many_lines)] // 217 lines: to be split along its steps
 pub fn emit(
     m: &Machine,
     o: &Options,

@@ -422,6 +422,7 @@ fn check(name: &'static str, value: f64, ok: bool, expected: &str) -> Result<(),
     }
 }
 
+#[allow(clippy::too_many_lines)] // 197 lines: to be split along its steps
 fn validate(m: &Machine, o: &Options) -> Result<(), Error> {
     check(
         "--nozzle-diameter",

@@ -212,6 +212,7 @@ fn unit(v: P) -> P {
 /// bottom. The drawing shows the pylons' part of the bed (so they and their texts are large);
 /// under it stand the front, the nominal distances, and a map of the whole bed with the origin
 /// and the part drawn.
+#[allow(clippy::too_many_lines)] // 407 lines: to be split along its steps
 pub fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout) -> String {
     let t = o.pylon_thickness_mm;
     let l = o.pylon_length_mm;

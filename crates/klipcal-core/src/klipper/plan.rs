@@ -65,6 +65,7 @@ pub struct WritePlan {
 /// # Errors
 /// As [`companion_values`] and [`set_values`]; [`Error::Protected`] when the main file itself
 /// is protected, or a value still would not win from the overrides file.
+#[allow(clippy::too_many_lines)] // 138 lines: to be split along its steps
 pub fn plan_values(
     config: &Config,
     values: &[(String, String, String)],

@@ -321,6 +321,7 @@ impl Backlash {
     }
 
     /// The measurement itself (the runner's steps; run again from the start after an outage).
+    #[allow(clippy::too_many_lines)] // 162 lines: to be split along its steps
     async fn camera_run(&self, id: i64, run: Run, cam: &Webcam) -> anyhow::Result<()> {
         let Run {
             axis,

@@ -646,6 +646,7 @@ fn bench_real_photos(seed: u64) -> anyhow::Result<bool> {
     Ok(good && good_shift)
 }
 
+#[allow(clippy::too_many_lines)] // 226 lines: to be split along its steps
 pub(super) fn bench_camera(
     args: &BenchBacklashArgs,
     params: &BacklashParams,

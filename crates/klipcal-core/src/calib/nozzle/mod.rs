@@ -254,6 +254,7 @@ pub struct Detection {
 ///
 /// # Errors
 /// A [`Refusal`] naming what is wrong with the picture and what is expected.
+#[allow(clippy::too_many_lines)] // 144 lines: to be split along its steps
 pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
     let (w, h) = (img.width, img.height);
     if w.checked_mul(h) != Some(img.data.len()) {

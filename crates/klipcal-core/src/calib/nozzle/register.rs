@@ -208,6 +208,7 @@ impl Reference {
     ///
     /// # Errors
     /// A bad buffer, nothing standing out under the click, or a nozzle at the picture's edge.
+    #[allow(clippy::too_many_lines)] // 151 lines: to be split along its steps
     pub fn new(
         img: &Gray<'_>,
         click_px: [f64; 2],
@@ -398,6 +399,7 @@ impl Reference {
     ///
     /// # Errors
     /// A [`ClickRefusal`] saying why the click is to be kept as it was.
+    #[allow(clippy::too_many_lines)] // 218 lines: to be split along its steps
     pub fn refine(
         &self,
         img: &Gray<'_>,

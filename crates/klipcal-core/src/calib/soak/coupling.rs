@@ -177,6 +177,7 @@ struct Lag {
 /// widens it). A layer behind the first one whose lag is short or whose share is small (a
 /// steel sheet on its magnet) does not show: it only lowers G below b, by at most what its
 /// build allows ([`BedPreset::hidden_s`]).
+#[allow(clippy::too_many_lines)] // 129 lines: to be split along its steps
 fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
     let n = bins.len();
     if n < ID_MIN_HEAT_BINS + 6 {

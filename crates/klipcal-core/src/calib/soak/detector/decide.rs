@@ -211,6 +211,7 @@ impl SoakDetector {
         self.explanation = status_reason(&self.status);
     }
 
+    #[allow(clippy::too_many_lines)] // 201 lines: to be split along its steps
     pub(super) fn decide(&mut self, now_s: f64, t0: f64) {
         let p = self.params.clone();
         let span = now_s - t0;
