@@ -568,9 +568,11 @@ pub const CONSOLE_FILTER: &str = r#"^(// )?(action:prompt_|klipcal asking the kl
 /// The most console rows one A/B round may list live in the real front ends (issue 26 A.4:
 /// 166 in Mainsail before its reductions, 148–152 after; issue 40: 144 in Fluidd without the
 /// measuring dialog and the second SET_IDLE_TIMEOUT), and after a reload with README's filter
-/// (78 before issue 26, 68 after, 67 with issue 40's).
-const LIVE_ROWS_MAX: usize = 148;
-const FILTERED_ROWS_MAX: usize = 69;
+/// (78 before issue 26, 68 after, 67 with issue 40's). The first soak's question about the bed
+/// (issue 38, asked while `soak.frame` is unset, as here) adds its dialog: measured 150–152 live
+/// in Mainsail, 154 in Fluidd, 70 with the filter in both.
+const LIVE_ROWS_MAX: usize = 158;
+const FILTERED_ROWS_MAX: usize = 72;
 
 /// A plate far slower than the soak limit allows: the soak question comes at `ab.soak_max_s`.
 const SLOW_PLANT: &str = r#"{"accel": 10, "bed": {"tau_plate_s": 3000.0, "tau_heater_s": 20.0}}"#;
@@ -877,6 +879,7 @@ async fn ab_round(kind: Kind) {
             .any(|(_, m)| m.contains("klipcal A/B calibration")),
         "the filter hid klipcal's answers"
     );
+    println!("{}: rows with the filter {}", kind.name(), filtered.len());
     assert!(
         filtered.len() <= FILTERED_ROWS_MAX,
         "{}: {} rows with README's filter (at most {FILTERED_ROWS_MAX})",
