@@ -1294,10 +1294,14 @@ async fn a_soak_past_its_limit_asks_print_now_or_wait_instead_of_failing() {
         .await
         .expect("no confirmation");
     assert!(confirm.title.contains("end the session"), "{confirm:?}");
+    // Its Yes carries the question's number (issue 40: a stale button never acts).
     assert!(
         confirm
             .buttons
-            .contains(&("Yes, end the session".into(), "KLIPCAL_CANCEL".into())),
+            .iter()
+            .any(|(label, cmd)| label == "Yes, end the session"
+                && cmd.split_whitespace().next() == Some("KLIPCAL_CANCEL")
+                && cmd.contains("ASK=")),
         "{confirm:?}"
     );
     let back = confirm
