@@ -19,7 +19,7 @@ pub const RESPOND_PREFIX: &str = "klipcal";
 /// returned by [`GcodeCmd::build`].
 ///
 /// ```
-/// use klipcal::klipper::gcode_cmd::GcodeCmd;
+/// use klipcal_core::klipper::gcode_cmd::GcodeCmd;
 /// let line = GcodeCmd::new("SET_HEATER_TEMPERATURE")
 ///     .word("HEATER", "heater_bed")
 ///     .num("TARGET", 60.0)
