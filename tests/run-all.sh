@@ -29,6 +29,8 @@ cargo clippy --workspace --all-targets --quiet -- -D warnings
 cargo clippy -p klipcal --lib --bins --quiet -- -D warnings
 
 echo "== cargo test"
+# `klipcal bench …` execs the benchmarks' binary beside the daemon's; the tests run it.
+cargo build -p klipcal-bench --quiet
 # Each integration test starts its own bench on free ports; four at a time fit two cores.
 cargo test --workspace --all-targets -- --test-threads="${KLIPCAL_TEST_THREADS:-4}"
 

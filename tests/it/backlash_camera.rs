@@ -16,7 +16,7 @@ use crate::browser::{artifact, Browser};
 const TRUE_X_MM: f64 = 0.08;
 
 fn klipcal_bin() -> &'static str {
-    env!("CARGO_BIN_EXE_klipcal")
+    crate::bench::klipcal_with_bench()
 }
 
 /// The bench with its nozzle camera (`klipcal bench camera`, this build, drawing `camera`):

@@ -25,6 +25,21 @@ pub fn klipcal_ok(cmd: &mut Command) -> std::process::Output {
     out
 }
 
+/// The daemon binary for `klipcal bench …`, which execs `klipcal-bench` beside it: fails with
+/// what to do when that binary was not built (`cargo test --workspace` builds it through the
+/// bench crate's own tests; `cargo test -p klipcal` alone does not).
+pub fn klipcal_with_bench() -> &'static str {
+    let klipcal = env!("CARGO_BIN_EXE_klipcal");
+    let bench = std::path::Path::new(klipcal).with_file_name("klipcal-bench");
+    assert!(
+        bench.exists(),
+        "{} is missing: `klipcal bench …` runs it; build it first with \
+         `cargo build -p klipcal-bench` (tests/run-all.sh does)",
+        bench.display()
+    );
+    klipcal
+}
+
 fn bench_py(args: &[&str]) -> Result<String, String> {
     let out = Command::new("python3")
         .arg(repo().join("tests/bench/bench.py"))

@@ -9,7 +9,7 @@ use crate::bench::klipcal_ok;
 /// panic message (it panicked with "failed printing to stdout: Broken pipe" before).
 #[test]
 fn an_offline_command_piped_into_a_reader_that_stops_early_ends_quietly() {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+    let mut child = Command::new(crate::bench::klipcal_with_bench())
         .args(["bench", "soak", "--beds", "40"])
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
