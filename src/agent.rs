@@ -7,7 +7,8 @@ use tracing::{info, warn};
 
 use crate::jobs::console::{self, answer_script, holding_prompts};
 use crate::jobs::core::status::SessionsStatus;
-use crate::jobs::{is_user_error, Calibrations};
+use crate::jobs::core::CoreCall;
+use crate::jobs::{is_user_error, Calibrations, Call, Route};
 use crate::moonraker::{AgentCall, ConnState, Moonraker, RpcError};
 use crate::printer;
 
@@ -35,15 +36,16 @@ fn rpc_error(e: &anyhow::Error) -> RpcError {
 /// the same requests, checks and messages.
 ///
 /// # Errors
-/// Unknown method (-32601), no session database (503), a user's mistake (400, the message
+/// No session database (503), a user's mistake (400, the message
 /// says what was wrong and what is expected), or the daemon's failure (500).
 pub(crate) async fn dispatch(
     m: &Moonraker,
     cals: Option<&Calibrations>,
-    method: &str,
+    route: Route,
     args: &Value,
 ) -> Result<Value, RpcError> {
-    let (outcome, change) = holding_prompts(answer(m, cals, method, args)).await;
+    let method = route.spec.method.unwrap_or(route.spec.macro_name);
+    let (outcome, change) = holding_prompts(answer(m, cals, method, Some(route), args)).await;
     if let Some(c) = change {
         console::send_script(m, &c.script()).await;
     }
@@ -78,23 +80,19 @@ impl Answer {
     }
 }
 
-/// The status's remote method, answered by the agent itself.
-const STATUS_METHOD: &str = "klipcal_status";
-
 /// A call's outcome; its dialog changes are held by the caller (see [`holding_prompts`]).
+/// `route` is the method's operation (`None`: not one of klipcal's).
 async fn answer(
     m: &Moonraker,
     cals: Option<&Calibrations>,
     method: &str,
+    route: Option<Route>,
     args: &Value,
 ) -> Result<Answer, RpcError> {
-    if method == STATUS_METHOD {
+    if let Some(route) = route.filter(|r| r.spec.by_agent) {
         // Read whole first: a status call with an unknown argument is refused like any other.
-        // (The other calls are read by the calibrations, after a dialog button's question
-        // number is taken out.)
-        if crate::jobs::core::CoreCall::parse(method, args).map_err(|e| rpc_error(&e))?
-            == crate::jobs::core::CoreCall::Status
-        {
+        // (The other calls are read after a dialog button's question number is taken out.)
+        if route.parse(args).map_err(|e| rpc_error(&e))? == Call::Core(CoreCall::Status) {
             // The status answers at once, whatever Moonraker's state: while it is unreachable,
             // the printer's part is null and `connection` says why (the sessions come from
             // the database).
@@ -107,7 +105,7 @@ async fn answer(
             message: "calibration sessions are not available (no session database)".into(),
         });
     };
-    if !cals.knows(method) {
+    let Some(route) = route else {
         return Err(RpcError {
             code: -32601,
             message: format!(
@@ -115,11 +113,19 @@ async fn answer(
                 crate::jobs::registry::all_methods().join(", ")
             ),
         });
+    };
+    // A dialog's button carries its question's number: a press of a dialog klipcal no longer
+    // asks is refused before it acts (issue 40).
+    let call = async {
+        let args = cals.core().take_ask(args, route.spec.macro_name).await?;
+        route.parse(&args)
+    };
+    match call.await {
+        Ok(call) => cals.call(call).await,
+        Err(e) => Err(e),
     }
-    cals.call(method, args)
-        .await
-        .map(Answer::Json)
-        .map_err(|e| rpc_error(&e))
+    .map(Answer::Json)
+    .map_err(|e| rpc_error(&e))
 }
 
 /// An outcome as JSON for an HTTP caller: the result with `"ok": true`, or
@@ -138,7 +144,9 @@ pub(crate) fn result_json(outcome: Result<Value, RpcError>) -> Value {
 
 async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
     info!(method = %call.method, from = if call.responder.is_some() { "http" } else { "macro" }, "agent call");
-    let (outcome, change) = holding_prompts(answer(m, cals, &call.method, &call.params)).await;
+    let route = Route::of_method(&call.method);
+    let (outcome, change) =
+        holding_prompts(answer(m, cals, &call.method, route, &call.params)).await;
     let script = match call.responder {
         // Moonraker's HTTP endpoint drops an agent's error message (it answers 424 "Agent
         // klipcal RPC error"), so failures travel as a JSON result the caller can read.

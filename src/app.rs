@@ -70,7 +70,7 @@ pub fn run(cli: Cli) -> anyhow::Result<ExitCode> {
         Command::Backlash(crate::cli::BacklashCommand::Image(a)) => crate::cmd::backlash::image(&a),
         Command::Macros(a) => {
             if a.readme {
-                let table = crate::jobs::table::markdown(&crate::jobs::registry::all_ops());
+                let table = crate::jobs::table::markdown(crate::jobs::registry::all_ops());
                 match &a.write {
                     Some(path) => crate::cmd::write_operations_table(path, &table)?,
                     None => print!("{table}"),
@@ -151,7 +151,7 @@ pub(crate) fn client_options(config: &Config) -> ClientOptions {
         request_timeout: Duration::from_secs_f64(m.request_timeout_s),
         reconnect_min: Duration::from_secs_f64(m.reconnect_min_s),
         reconnect_max: Duration::from_secs_f64(m.reconnect_max_s),
-        remote_methods: crate::jobs::registry::all_methods(),
+        remote_methods: crate::jobs::registry::all_methods().to_vec(),
         subscriptions,
     }
 }

@@ -23,7 +23,7 @@ use tokio_util::sync::CancellationToken;
 use crate::agent::{dispatch, result_json};
 use crate::calib::soak::SoakParams;
 use crate::config::HttpConfig;
-use crate::jobs::Calibrations;
+use crate::jobs::{Calibrations, Route};
 use crate::moonraker::{Moonraker, RpcError};
 use crate::plots;
 
@@ -93,21 +93,6 @@ fn host_identity() -> (Option<std::net::IpAddr>, Option<String>) {
 pub fn page_address_here(bound: SocketAddr) -> String {
     let (ip, name) = host_identity();
     page_address(bound, ip, name.as_deref())
-}
-
-/// HTTP paths that are another operation with one argument set: `ab/clear` is `ab/measure`
-/// with `clear`.
-pub(crate) const ALIASES: &[(&str, &str, &str)] = &[("ab/clear", "ab/measure", "clear")];
-
-/// Every path a POST may name under `/api/`: each operation's of the command table, then the
-/// aliases.
-#[must_use]
-pub(crate) fn operation_paths() -> Vec<&'static str> {
-    crate::jobs::registry::all_ops()
-        .iter()
-        .filter_map(|o| o.http)
-        .chain(ALIASES.iter().map(|(a, _, _)| *a))
-        .collect()
 }
 
 /// Why the page could not start, in a user's words: the address and, when it is taken, what
@@ -233,7 +218,7 @@ fn answer(outcome: Result<Value, RpcError>) -> Response {
 /// empty 405.
 async fn method_not_allowed(method: axum::http::Method, uri: axum::http::Uri) -> Response {
     let path = uri.path();
-    let how = if path.starts_with("/api/") && operation_paths().iter().any(|o| path[5..] == **o) {
+    let how = if path.starts_with("/api/") && Route::of_path(&path[5..]).is_some() {
         "it is an operation: POST it with a JSON body of arguments"
     } else {
         "it is read with GET; operations are POSTs under /api/ (see docs/page-and-api.md)"
@@ -252,7 +237,7 @@ async fn not_found() -> Response {
 }
 
 async fn status(State(h): State<Shared>) -> Response {
-    answer(dispatch(&h.m, h.cals.as_ref(), "klipcal_status", &json!({})).await)
+    answer(dispatch(&h.m, h.cals.as_ref(), Route::status(), &json!({})).await)
 }
 
 fn no_sessions() -> Response {
@@ -395,7 +380,7 @@ async fn backlash_snapshot(
             "seq: expected a whole number, e.g. /api/backlash/snapshot.jpg?seq=3",
         );
     };
-    match cals.snapshot_jpeg("backlash", q.seq) {
+    match cals.snapshot_jpeg(q.seq) {
         Some(jpeg) => ([(header::CONTENT_TYPE, "image/jpeg")], jpeg).into_response(),
         None => error(
             StatusCode::NOT_FOUND,
@@ -413,7 +398,7 @@ async fn backlash_snapshot(
 }
 
 async fn index(State(h): State<Shared>) -> Response {
-    let st = dispatch(&h.m, h.cals.as_ref(), "klipcal_status", &json!({})).await;
+    let st = dispatch(&h.m, h.cals.as_ref(), Route::status(), &json!({})).await;
     let status = result_json(st);
     let diagram = match status.get("session") {
         Some(s) if matches!(s["state"].as_str(), Some("measuring" | "solved")) => {
@@ -449,16 +434,8 @@ async fn run_operation(
     op: &str,
     body: Result<Bytes, axum::extract::rejection::BytesRejection>,
 ) -> Response {
-    let (path, set) = match ALIASES.iter().find(|(a, _, _)| *a == op) {
-        Some((_, target, flag)) => (*target, Some(*flag)),
-        None => (op, None),
-    };
-    let method = crate::jobs::registry::all_ops()
-        .into_iter()
-        .find(|o| o.http == Some(path))
-        .and_then(|o| o.method);
-    let Some(method) = method else {
-        let known = operation_paths();
+    let Some(route) = Route::of_path(op) else {
+        let known = crate::jobs::registry::operation_paths();
         return error(
             StatusCode::NOT_FOUND,
             &format!("unknown operation /api/{op}; known: {}", known.join(", ")),
@@ -497,25 +474,20 @@ async fn run_operation(
             }
         }
     };
-    if let (Some(flag), Value::Object(o)) = (set, &mut args) {
+    if let (Some(flag), Value::Object(o)) = (route.sets, &mut args) {
         o.insert(flag.into(), json!(1));
     }
     tracing::info!(%op, "HTTP call");
-    let outcome = dispatch(&h.m, h.cals.as_ref(), method, &args).await;
-    // A cancel from the page is said on the console too: a user at the printer's front end
-    // sees why the session stopped (a macro's answer reaches the console by the agent).
-    if method == "klipcal_cancel" {
-        if let Ok(v) = &outcome {
-            let said = v["message"].as_str().unwrap_or("cancelled").to_string();
-            let m = h.m.clone();
-            tokio::spawn(async move {
-                crate::jobs::core::console::say(
-                    &m,
-                    &format!("klipcal: {said} (cancelled from klipcal's page)"),
-                )
-                .await;
-            });
-        }
+    let outcome = dispatch(&h.m, h.cals.as_ref(), route, &args).await;
+    // An operation the table marks (the cancel) is said on the console too: a user at the
+    // printer's front end sees why the session stopped (a macro's answer reaches the console
+    // by the agent).
+    if let (Some(echo), Ok(v)) = (route.spec.echo, &outcome) {
+        let said = v["message"].as_str().unwrap_or(echo.fallback).to_string();
+        let m = h.m.clone();
+        tokio::spawn(async move {
+            crate::jobs::core::console::say(&m, &format!("klipcal: {said} ({})", echo.note)).await;
+        });
     }
     answer(outcome)
 }

@@ -8,6 +8,7 @@
 
 pub mod ab;
 pub mod backlash;
+mod call;
 pub mod core;
 pub mod mesh;
 pub mod registry;
@@ -17,4 +18,5 @@ pub use self::core::{console, printer_config, soak, table};
 
 pub(crate) use self::core::user;
 pub use self::core::{is_user_error, Core};
+pub(crate) use call::{Call, Route};
 pub use registry::Calibrations;

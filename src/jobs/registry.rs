@@ -1,8 +1,8 @@
-//! The calibrations the daemon runs, each behind the [`Calibration`] trait, and
-//! [`Calibrations`]: routes a remote method to the calibration that owns it, cancels the active
-//! session whatever its kind, resumes after a restart, builds the status (the active session
-//! of any kind and the last result of each kind), and guards the heaters of every kind with
-//! one hold-limit watchdog.
+//! The calibrations the daemon runs, each held by its type, and [`Calibrations`]: answers a
+//! typed [`Call`] (matched, no trait object), cancels the active session whatever its kind,
+//! resumes after a restart, builds the status (the active session of any kind and the last
+//! result of each kind), and guards the heaters of every kind with one hold-limit watchdog.
+//! The routing of a method or a path to its call is `jobs::call`.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -12,56 +12,70 @@ use std::collections::BTreeMap;
 use serde_json::{json, Value};
 use tracing::{info, warn};
 
+pub use super::call::all_ops;
+pub(crate) use super::call::{all_methods, macros_cfg, operation_paths, Call};
+use crate::jobs::core::calibration::Declared;
 use crate::jobs::core::session::{hold_expired, now_unix, Core};
 use crate::jobs::core::soak::SoakSettings;
 use crate::jobs::core::status::SessionsStatus;
-use crate::jobs::core::table::{self, OpSpec};
-use crate::jobs::core::{Calibration, CoreCall, CORE_OPS};
+use crate::jobs::core::{Calibration, CoreCall};
 use crate::jobs::user;
 
-/// Every operation klipcal has, in the order a user meets them: the common ones, then each
-/// calibration's.
-#[must_use]
-pub fn all_ops() -> Vec<&'static OpSpec> {
-    table::specs(CORE_OPS)
-        .chain(table::specs(super::ab::OPS))
-        .chain(table::specs(super::backlash::OPS))
-        .chain(table::specs(super::mesh::OPS))
-        .collect()
-}
-
-/// Whether `method` is one of the common operations'.
-#[must_use]
-pub(crate) fn is_core_method(method: &str) -> bool {
-    CORE_OPS.iter().any(|o| o.spec.method == Some(method))
-}
-
-/// The operation of a remote method.
-#[must_use]
-pub(crate) fn op_of_method(method: &str) -> Option<&'static OpSpec> {
-    all_ops().into_iter().find(|o| o.method == Some(method))
-}
-
-/// Every remote method the daemon registers with Moonraker.
-#[must_use]
-pub(crate) fn all_methods() -> Vec<String> {
-    all_ops()
-        .iter()
-        .filter_map(|o| o.method.map(str::to_string))
-        .collect()
-}
-
-/// `config/klipcal.cfg`, generated from the table (`klipcal macros`).
-#[must_use]
-pub(crate) fn macros_cfg() -> String {
-    table::macros_cfg(&all_ops())
-}
+use super::ab::Ab;
+use super::backlash::Backlash;
+use super::mesh::Mesh;
 
 /// The daemon's calibrations over one core.
 #[derive(Clone)]
 pub struct Calibrations {
     core: Core,
-    list: Vec<Arc<dyn Calibration>>,
+    ab: Arc<Ab>,
+    backlash: Arc<Backlash>,
+    mesh: Arc<Mesh>,
+}
+
+/// A stored session's calibration, by its kind.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Kind {
+    Ab,
+    Backlash,
+    Mesh,
+}
+
+impl Kind {
+    fn of(kind: &str) -> Option<Self> {
+        [Kind::Ab, Kind::Backlash, Kind::Mesh]
+            .into_iter()
+            .find(|k| k.name() == kind)
+    }
+
+    fn name(self) -> &'static str {
+        match self {
+            Kind::Ab => super::ab::KIND,
+            Kind::Backlash => super::backlash::KIND,
+            Kind::Mesh => super::mesh::KIND,
+        }
+    }
+}
+
+/// Runs `$body` with `$c` bound to the calibration of `$kind` (a static call on its type).
+macro_rules! on_kind {
+    ($cals:expr, $kind:expr, |$c:ident| $body:expr) => {
+        match $kind {
+            Kind::Ab => {
+                let $c = &*$cals.ab;
+                $body
+            }
+            Kind::Backlash => {
+                let $c = &*$cals.backlash;
+                $body
+            }
+            Kind::Mesh => {
+                let $c = &*$cals.mesh;
+                $body
+            }
+        }
+    };
 }
 
 impl Calibrations {
@@ -72,29 +86,32 @@ impl Calibrations {
         // file for all of them.
         let soak = SoakSettings::of(config);
         core.ask_state().settings = Some(soak.clone());
-        let list: Vec<Arc<dyn Calibration>> = vec![
-            Arc::new(super::ab::Ab::new(
+        let cals = Self {
+            ab: Arc::new(Ab::new(
                 core.clone(),
                 super::ab::AbSettings {
                     defaults: config.ab.clone(),
                     soak: soak.clone(),
                 },
             )),
-            Arc::new(super::backlash::Backlash::new(
-                core.clone(),
-                config.backlash.clone(),
-            )),
-            Arc::new(super::mesh::Mesh::new(
-                core.clone(),
-                config.mesh.clone(),
-                soak,
-            )),
-        ];
-        for c in &list {
-            core.register_kind(c.kind(), c.title());
-            core.store().add_final_states(c.final_states());
+            backlash: Arc::new(Backlash::new(core.clone(), config.backlash.clone())),
+            mesh: Arc::new(Mesh::new(core.clone(), config.mesh.clone(), soak)),
+            core,
+        };
+        for c in cals.declared() {
+            cals.core.register_kind(c.kind(), c.title());
+            cals.core.store().add_final_states(c.final_states());
         }
-        Self { core, list }
+        cals
+    }
+
+    /// Each calibration's declaration, in the order the status lists them.
+    fn declared(&self) -> [&dyn Declared; 3] {
+        [&*self.ab, &*self.backlash, &*self.mesh]
+    }
+
+    fn declared_of(&self, kind: &str) -> Option<&dyn Declared> {
+        Some(on_kind!(self, Kind::of(kind)?, |c| c as &dyn Declared))
     }
 
     /// The shared core.
@@ -103,65 +120,50 @@ impl Calibrations {
         &self.core
     }
 
-    /// A camera frame `kind` keeps for the page (`seq`, or the newest), JPEG.
+    /// The backlash measurement's camera frame kept for the page (`seq`, or the newest), JPEG.
     #[must_use]
-    pub fn snapshot_jpeg(&self, kind: &str, seq: Option<u64>) -> Option<Vec<u8>> {
-        self.by_kind(kind)?.snapshot_jpeg(seq)
+    pub fn snapshot_jpeg(&self, seq: Option<u64>) -> Option<Vec<u8>> {
+        self.backlash.snapshot_jpeg(seq)
     }
 
-    fn by_kind(&self, kind: &str) -> Option<&Arc<dyn Calibration>> {
-        self.list.iter().find(|c| c.kind() == kind)
-    }
-
-    /// Whether `method` is one of the calibrations' or the common ones.
-    #[must_use]
-    pub(crate) fn knows(&self, method: &str) -> bool {
-        op_of_method(method).is_some()
-    }
-
-    /// Answers a remote method (except `klipcal_status`, which the agent builds with the
-    /// printer summary around [`Calibrations::status`]).
+    /// Answers a typed call (except `klipcal_status`, which the agent builds with the printer
+    /// summary around [`Calibrations::status`]).
     ///
     /// # Errors
     /// The calibration's error (user errors say what was wrong and what is expected).
-    pub(crate) async fn call(&self, method: &str, args: &Value) -> anyhow::Result<Value> {
-        // A dialog's button carries its question's number: a press of a dialog klipcal no
-        // longer asks is refused before it acts (issue 40).
-        let command = op_of_method(method).map_or(method, |o| o.macro_name);
-        let args = &self.core.take_ask(args, command).await?;
-        if is_core_method(method) {
-            return match CoreCall::parse(method, args)? {
-                CoreCall::Cancel(reason) => self.cancel(&reason).await,
-                CoreCall::SoakBed(a) => crate::jobs::core::soak_ask::answer(&self.core, a).await,
-                // The helpers only ask; klipcal closes or replaces the dialog itself, marked as
-                // its own before it is sent, so a close klipcal did not send is the user's.
-                CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
-                    json!({"message": ""})
-                } else {
-                    // The cancel question (shown by Klipper) closes whatever klipcal believes.
-                    self.core.prompt_end_any().await;
-                    json!({"message": "no klipcal dialog to go back to"})
-                }),
-                CoreCall::PromptClose => {
-                    self.core.prompt_end_any().await;
-                    Ok(json!({"message": format!(
-                        "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
-                         (or on klipcal's page{})",
-                        self.core.page().map(|p| format!(", {p}")).unwrap_or_default()
-                    )}))
-                }
-                CoreCall::Status => Err(anyhow::anyhow!(
-                    "klipcal_status is answered by the agent with the printer's summary"
-                )),
-            };
+    pub(crate) async fn call(&self, call: Call) -> anyhow::Result<Value> {
+        match call {
+            Call::Core(c) => self.core_call(c).await,
+            Call::Ab(c) => self.ab.handle(c).await,
+            Call::Backlash(c) => self.backlash.handle(c).await,
+            Call::Mesh(c) => self.mesh.handle(c).await,
         }
-        match self
-            .list
-            .iter()
-            .find(|c| c.ops().iter().any(|o| o.method == Some(method)))
-        {
-            Some(c) => c.call(method, args).await,
-            None => Err(user(format!("unknown method {method}"))),
+    }
+
+    async fn core_call(&self, call: CoreCall) -> anyhow::Result<Value> {
+        match call {
+            CoreCall::Cancel(reason) => self.cancel(&reason).await,
+            CoreCall::SoakBed(a) => crate::jobs::core::soak_ask::answer(&self.core, a).await,
+            // The helpers only ask; klipcal closes or replaces the dialog itself, marked as
+            // its own before it is sent, so a close klipcal did not send is the user's.
+            CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
+                json!({"message": ""})
+            } else {
+                // The cancel question (shown by Klipper) closes whatever klipcal believes.
+                self.core.prompt_end_any().await;
+                json!({"message": "no klipcal dialog to go back to"})
+            }),
+            CoreCall::PromptClose => {
+                self.core.prompt_end_any().await;
+                Ok(json!({"message": format!(
+                    "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
+                     (or on klipcal's page{})",
+                    self.core.page().map(|p| format!(", {p}")).unwrap_or_default()
+                )}))
+            }
+            CoreCall::Status => Err(anyhow::anyhow!(
+                "klipcal_status is answered by the agent with the printer's summary"
+            )),
         }
     }
 
@@ -186,10 +188,9 @@ impl Calibrations {
             )));
         }
         self.core.stop_runner();
-        let c = self
-            .by_kind(&row.kind)
+        let kind = Kind::of(&row.kind)
             .ok_or_else(|| anyhow::anyhow!("session {} has unknown kind {}", row.id, row.kind))?;
-        let answer = c.cancel(&row, reason).await;
+        let answer = on_kind!(self, kind, |c| c.cancel(&row, reason).await);
         // The cancel question's dialog (opened in Klipper) closes with the answer, whatever
         // klipcal believed shown: Fluidd kept "end the session?" open after a cancel.
         self.core.prompt_end_any().await;
@@ -198,9 +199,9 @@ impl Calibrations {
 
     /// Resumes the active session after a daemon start or a reconnect.
     pub(crate) async fn resume(&self) {
-        for c in &self.list {
-            c.connected().await;
-        }
+        self.ab.connected().await;
+        self.backlash.connected().await;
+        self.mesh.connected().await;
         let row = match self.core.active() {
             Ok(Some(r)) => r,
             Ok(None) => return,
@@ -209,8 +210,8 @@ impl Calibrations {
                 return;
             }
         };
-        match self.by_kind(&row.kind) {
-            Some(c) => c.resume(&row).await,
+        match Kind::of(&row.kind) {
+            Some(kind) => on_kind!(self, kind, |c| c.resume(&row).await),
             None => warn!(session = row.id, kind = %row.kind, "active session of an unknown kind"),
         }
     }
@@ -226,14 +227,14 @@ impl Calibrations {
             None => self.core.store().latest_session()?,
         };
         let session = match row {
-            Some(row) => match self.by_kind(&row.kind) {
+            Some(row) => match self.declared_of(&row.kind) {
                 Some(c) => Some(c.status(&row)?),
                 None => None,
             },
             None => None,
         };
         let mut last = BTreeMap::new();
-        for c in &self.list {
+        for c in self.declared() {
             if let Some(row) = self.core.store().latest_session_of(c.kind())? {
                 last.insert(c.kind().into(), c.status(&row)?);
             }
@@ -254,7 +255,7 @@ impl Calibrations {
         let Some(row) = self.core.store().session(id)? else {
             return Ok(None);
         };
-        Ok(match self.by_kind(&row.kind) {
+        Ok(match self.declared_of(&row.kind) {
             Some(c) => Some(serde_json::to_value(c.status(&row)?)?),
             None => Some(json!({"id": row.id, "kind": row.kind, "state": row.state})),
         })
@@ -282,16 +283,18 @@ impl Calibrations {
             let Ok(Some(row)) = self.core.active() else {
                 continue;
             };
-            let Some(c) = self.by_kind(&row.kind) else {
+            let Some(kind) = Kind::of(&row.kind) else {
                 continue;
             };
-            let Some(hold) = c.held(&row) else { continue };
+            let Some(hold) = on_kind!(self, kind, |c| c.held(&row)) else {
+                continue;
+            };
             if !hold_expired(Some(hold.since_unix), hold.max_s, now_unix()) {
                 continue;
             }
             info!(session = row.id, "hold limit reached: heaters off");
             if self.core.heaters_off().await.is_ok() {
-                c.heaters_turned_off(&row).await;
+                on_kind!(self, kind, |c| c.heaters_turned_off(&row).await);
             }
         }
     }
@@ -300,7 +303,7 @@ impl Calibrations {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::jobs::core::table::ArgKind;
+    use crate::jobs::core::table::{self, ArgKind, OpSpec};
     use serde_json::json;
 
     const MACROS: &str = include_str!("../../config/klipcal.cfg");
@@ -385,12 +388,12 @@ mod tests {
         let inner = table::between_markers(page).expect("docs/operations.md has no table");
         assert_eq!(
             inner,
-            table::markdown(&all_ops()),
+            table::markdown(all_ops()),
             "docs/operations.md's operations differ from the command table: \
              `klipcal macros --readme --write docs/operations.md`"
         );
         // Writing it into the page is idempotent and leaves the rest of the page as it was.
-        let written = table::with_table(page, &table::markdown(&all_ops())).unwrap();
+        let written = table::with_table(page, &table::markdown(all_ops())).unwrap();
         assert_eq!(written, page);
         let changed = table::with_table(page, "| x |\n").unwrap();
         assert!(changed.contains("<!-- operations -->\n| x |\n<!-- /operations -->"));
@@ -405,7 +408,7 @@ mod tests {
     fn every_operation_is_declared_once_with_its_own_names() {
         let ops = all_ops();
         let mut seen = std::collections::BTreeSet::new();
-        for op in &ops {
+        for op in ops {
             for name in [op.method, Some(op.macro_name), op.http]
                 .into_iter()
                 .flatten()
@@ -563,7 +566,7 @@ mod tests {
             trouble.contains("asking the klipcal service...") && trouble.contains("Unknown method"),
             "docs/troubleshooting.md does not name a macro without the service"
         );
-        for m in &methods {
+        for m in methods {
             assert!(MACROS.contains(&format!("\"{m}\"")), "no macro calls {m}");
         }
     }

@@ -100,7 +100,7 @@ async fn every_operation_is_reachable_on_each_road_and_refuses_an_unknown_argume
     assert!(ops.len() >= 20, "the table lost operations: {}", ops.len());
 
     // Idle: the unknown argument on every road, then typical and edge arguments.
-    for op in &ops {
+    for op in ops {
         let unknown = format!("{} ZZTOP=1", op.macro_name);
         let want = "unknown argument ZZTOP";
         match (op.method, op.body) {
@@ -173,7 +173,7 @@ async fn every_operation_is_reachable_on_each_road_and_refuses_an_unknown_argume
         )
         .await
         .unwrap();
-    for op in &ops {
+    for op in ops {
         if print_state(&m).await != "printing" {
             m.gcode("CANCEL_PRINT").await.ok();
             m.print_start("users.gcode").await.unwrap();

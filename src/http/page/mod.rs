@@ -149,7 +149,7 @@ pub(crate) fn render(status: &Value, diagram_svg: Option<&str>) -> String {
         }
     }
     last_results(&mut h, &status["last"], &session);
-    operations(&mut h, &crate::jobs::registry::all_ops());
+    operations(&mut h, crate::jobs::registry::all_ops());
     let _ = write!(h, "</main><script>{SCRIPT}</script></body></html>");
     h
 }

@@ -20,8 +20,6 @@ use std::collections::BTreeMap;
 use std::time::Duration;
 
 use anyhow::{anyhow, Context};
-use futures_util::future::BoxFuture;
-use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use tracing::{info, warn};
@@ -36,7 +34,7 @@ use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakSettings, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, ArgKind, Args, Fields, Op, OpSpec};
+use crate::jobs::core::table::{arg, Alias, ArgKind, Args, Fields, Op, OpSpec};
 use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::{self, PrinterFacts};
@@ -89,7 +87,12 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
         parse: |a| Ok(AbCall::Start(StartRequest::from_args(a)?)),
     },
     Op {
-        spec: OpSpec::remote(
+        spec: OpSpec {
+            alias: Some(Alias {
+                http: "ab/clear",
+                sets: "clear",
+            }),
+            ..OpSpec::remote(
             "klipcal_measure",
             "KLIPCAL_MEASURE",
             "ab/measure",
@@ -121,7 +124,8 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
                     "1: remove the pair's readings first",
                 ),
             ],
-        ),
+        )
+        },
         parse: |a| Ok(AbCall::Measure(MeasureRequest::from_args(a)?)),
     },
     Op {
@@ -551,34 +555,23 @@ impl Declare for Ab {
 }
 
 impl Calibration for Ab {
-    fn call<'a>(
-        &'a self,
-        method: &'a str,
-        args: &'a Value,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        async move {
-            match Self::parse_call(method, args)? {
-                AbCall::Start(r) => self.start(&r).await,
-                AbCall::Measure(r) => self.measure(&r).await,
-                AbCall::Solve => self.solve().await,
-                AbCall::Apply(r) => self.apply(&r).await,
-                AbCall::Check(r) => self.check(&r),
-                AbCall::SoakChoice(c) => self.soak_choice(c).await,
-            }
+    async fn handle(&self, call: AbCall) -> anyhow::Result<Value> {
+        match call {
+            AbCall::Start(r) => self.start(&r).await,
+            AbCall::Measure(r) => self.measure(&r).await,
+            AbCall::Solve => self.solve().await,
+            AbCall::Apply(r) => self.apply(&r).await,
+            AbCall::Check(r) => self.check(&r),
+            AbCall::SoakChoice(c) => self.soak_choice(c).await,
         }
-        .boxed()
     }
 
-    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        self.resume_session(row.id).boxed()
+    async fn resume(&self, row: &SessionRow) {
+        self.resume_session(row.id).await;
     }
 
-    fn cancel<'a>(
-        &'a self,
-        row: &'a SessionRow,
-        reason: &'a str,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        self.cancel_session(row.id, reason).boxed()
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+        self.cancel_session(row.id, reason).await
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {
@@ -600,8 +593,8 @@ impl Calibration for Ab {
         })
     }
 
-    fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        async move {
+    async fn heaters_turned_off(&self, row: &SessionRow) {
+        {
             let _ = self
                 .update(row.id, |s| {
                     s.heaters_off = true;
@@ -617,6 +610,5 @@ impl Calibration for Ab {
                 .console(&format!("{TITLE}: hold limit reached, heaters off"))
                 .await;
         }
-        .boxed()
     }
 }

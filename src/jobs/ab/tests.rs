@@ -28,9 +28,17 @@ fn rotation_distances_are_written_without_trailing_zeros() {
     assert_eq!(entry::fmt_rd(39.94284), "39.94284");
 }
 
+/// A call of `method` read at the boundary, as the agent reads it.
+fn parse_call(method: &str, args: &Value) -> anyhow::Result<AbCall> {
+    match crate::jobs::Route::of_method(method).unwrap().parse(args)? {
+        crate::jobs::Call::Ab(c) => Ok(c),
+        other => panic!("{other:?}"),
+    }
+}
+
 #[test]
 fn start_arguments_are_typed_at_the_boundary() {
-    let r = Ab::parse_call(
+    let r = parse_call(
         "klipcal_ab_start",
         &json!({"BED": "60", "extruder": 215, "layout": "Full"}),
     )
@@ -43,11 +51,11 @@ fn start_arguments_are_typed_at_the_boundary() {
             layout: Some("full".into())
         })
     );
-    let e = Ab::parse_call("klipcal_ab_start", &json!({"bed": "200"})).unwrap_err();
+    let e = parse_call("klipcal_ab_start", &json!({"bed": "200"})).unwrap_err();
     assert!(e.to_string().starts_with("BED=200: expected"), "{e}");
-    let e = Ab::parse_call("klipcal_ab_start", &json!({"layout": "round"})).unwrap_err();
+    let e = parse_call("klipcal_ab_start", &json!({"layout": "round"})).unwrap_err();
     assert_eq!(e.to_string(), "LAYOUT=round: expected paper or full");
-    let apply = |v| Ab::parse_call("klipcal_apply", &v).unwrap();
+    let apply = |v| parse_call("klipcal_apply", &v).unwrap();
     assert_eq!(
         apply(json!({"FORCE": "1"})),
         AbCall::Apply(ApplyRequest { force: true })
@@ -56,7 +64,7 @@ fn start_arguments_are_typed_at_the_boundary() {
         apply(json!({})),
         AbCall::Apply(ApplyRequest { force: false })
     );
-    let measure = |v| match Ab::parse_call("klipcal_measure", &v).unwrap() {
+    let measure = |v| match parse_call("klipcal_measure", &v).unwrap() {
         AbCall::Measure(m) => m,
         other => panic!("{other:?}"),
     };
@@ -81,7 +89,7 @@ fn start_arguments_are_typed_at_the_boundary() {
     assert_eq!(m.values[0].label, "field 2");
     assert!(m.values[0].comma_is_decimal);
     assert_eq!(
-        Ab::parse_call("klipcal_soak_choice", &json!({})).unwrap(),
+        parse_call("klipcal_soak_choice", &json!({})).unwrap(),
         AbCall::SoakChoice("wait"),
         "the macro's field default is the daemon's"
     );

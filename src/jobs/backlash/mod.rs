@@ -17,8 +17,6 @@ pub mod snapshot;
 use std::collections::BTreeMap;
 
 use anyhow::{anyhow, Context};
-use futures_util::future::BoxFuture;
-use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
@@ -568,34 +566,23 @@ impl Declare for Backlash {
 }
 
 impl Calibration for Backlash {
-    fn call<'a>(
-        &'a self,
-        method: &'a str,
-        args: &'a Value,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        async move {
-            match Self::parse_call(method, args)? {
-                BacklashCall::SetPoint => self.set_point().await,
-                BacklashCall::Start(r) => self.start(&r).await,
-                BacklashCall::Jog(p) => self.jog(p).await,
-                BacklashCall::Camera(r) => self.camera(&r).await,
-                BacklashCall::Tip(r) => self.tip(&r),
-                BacklashCall::Apply => self.apply().await,
-            }
+    async fn handle(&self, call: BacklashCall) -> anyhow::Result<Value> {
+        match call {
+            BacklashCall::SetPoint => self.set_point().await,
+            BacklashCall::Start(r) => self.start(&r).await,
+            BacklashCall::Jog(p) => self.jog(p).await,
+            BacklashCall::Camera(r) => self.camera(&r).await,
+            BacklashCall::Tip(r) => self.tip(&r),
+            BacklashCall::Apply => self.apply().await,
         }
-        .boxed()
     }
 
-    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        self.resume_session(row.id).boxed()
+    async fn resume(&self, row: &SessionRow) {
+        self.resume_session(row.id).await;
     }
 
-    fn cancel<'a>(
-        &'a self,
-        row: &'a SessionRow,
-        reason: &'a str,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        self.cancel_session(row.id, reason).boxed()
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+        self.cancel_session(row.id, reason).await
     }
 
     fn held(&self, _row: &SessionRow) -> Option<Hold> {
@@ -606,7 +593,5 @@ impl Calibration for Backlash {
         self.frames.jpeg(seq)
     }
 
-    fn heaters_turned_off<'a>(&'a self, _row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        async {}.boxed()
-    }
+    async fn heaters_turned_off(&self, _row: &SessionRow) {}
 }

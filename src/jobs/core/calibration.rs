@@ -1,9 +1,11 @@
 //! The [`Calibration`] trait every calibration implements, and what the hold-limit watchdog
 //! needs of a waiting session ([`Hold`]). The routing over the calibrations is
-//! `jobs::registry`, which lists them; the calibrations import only this.
+//! `jobs::registry`, which holds each by its type and matches on the typed call
+//! (`jobs::call::Call`); the calibrations import only this.
+
+use std::future::Future;
 
 use anyhow::Context;
-use futures_util::future::BoxFuture;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 
@@ -36,14 +38,6 @@ pub trait Declare {
     type Call: 'static;
     /// Its operations (see [`table`]).
     const OPS: &'static [Op<Self::Call>];
-
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// An unknown method, or a bad or unknown argument, named.
-    fn parse_call(method: &str, args: &Value) -> anyhow::Result<Self::Call> {
-        table::parse_call(Self::OPS, method, args)
-    }
 
     /// A session as `klipcal_status` shows it.
     ///
@@ -95,29 +89,29 @@ impl<T: Declare> Declared for T {
     }
 }
 
-/// One calibration: its remote methods, its session's resume, cancel and hold.
-pub trait Calibration: Declared + Send + Sync {
-    /// Answers the remote method of one of [`Declared::ops`].
-    fn call<'a>(&'a self, method: &'a str, args: &'a Value)
-        -> BoxFuture<'a, anyhow::Result<Value>>;
+/// One calibration: its calls, its session's resume, cancel and hold. The registry holds each
+/// by its type (no trait object): these are static calls.
+pub trait Calibration: Declare + Send + Sync {
+    /// Answers one of its calls, typed at the boundary.
+    fn handle(&self, call: Self::Call) -> impl Future<Output = anyhow::Result<Value>> + Send;
     /// Picks its session up after a daemon start or reconnect.
-    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()>;
+    fn resume(&self, row: &SessionRow) -> impl Future<Output = ()> + Send;
     /// Ends its session safely (prints cancelled, heaters off, prompt closed).
-    fn cancel<'a>(
-        &'a self,
-        row: &'a SessionRow,
-        reason: &'a str,
-    ) -> BoxFuture<'a, anyhow::Result<Value>>;
+    fn cancel(
+        &self,
+        row: &SessionRow,
+        reason: &str,
+    ) -> impl Future<Output = anyhow::Result<Value>> + Send;
     /// When its session holds heaters on while waiting on the user: since when, how long.
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.
-    fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()>;
+    fn heaters_turned_off(&self, row: &SessionRow) -> impl Future<Output = ()> + Send;
     /// A camera frame it keeps for the page (`seq`, or the newest), JPEG.
     fn snapshot_jpeg(&self, _seq: Option<u64>) -> Option<Vec<u8>> {
         None
     }
     /// Runs once the daemon is connected (e.g. a follower the settings switch on).
-    fn connected(&self) -> BoxFuture<'_, ()> {
-        Box::pin(async {})
+    fn connected(&self) -> impl Future<Output = ()> + Send {
+        async {}
     }
 }

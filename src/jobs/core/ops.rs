@@ -1,37 +1,44 @@
 //! The operations every daemon answers besides the calibrations' own ([`CORE_OPS`]), and
 //! their call typed at the boundary ([`CoreCall`]).
 
-use serde_json::Value;
-
-use super::table::{arg, parse_call, ArgKind, MacroBody, Op, OpSpec};
+use super::table::{arg, ArgKind, Echo, Op, OpSpec};
 
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
-        spec: OpSpec::remote(
-            "klipcal_status",
-            "KLIPCAL_STATUS",
-            "status",
-            "show the daemon's state and what it sees of the printer",
-            &[],
-        ),
+        spec: OpSpec {
+            by_agent: true,
+            ..OpSpec::remote(
+                "klipcal_status",
+                "KLIPCAL_STATUS",
+                "status",
+                "show the daemon's state and what it sees of the printer",
+                &[],
+            )
+        },
         parse: |_| Ok(CoreCall::Status),
     },
     Op {
-        spec: OpSpec::remote(
-            "klipcal_cancel",
-            "KLIPCAL_CANCEL",
-            "cancel",
-            "cancel the calibration session (cancels its print, turns the heaters off)",
-            &[arg(
-                "reason",
-                ArgKind::Text,
-                "aborted",
-                "a word or a quoted text",
-                "",
-                "why, noted in the session (optional)",
-            )],
-        ),
+        spec: OpSpec {
+            echo: Some(Echo {
+                fallback: "cancelled",
+                note: "cancelled from klipcal's page",
+            }),
+            ..OpSpec::remote(
+                "klipcal_cancel",
+                "KLIPCAL_CANCEL",
+                "cancel",
+                "cancel the calibration session (cancels its print, turns the heaters off)",
+                &[arg(
+                    "reason",
+                    ArgKind::Text,
+                    "aborted",
+                    "a word or a quoted text",
+                    "",
+                    "why, noted in the session (optional)",
+                )],
+            )
+        },
         parse: |a| {
             Ok(CoreCall::Cancel(
                 a.text("reason")
@@ -40,13 +47,11 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
         },
     },
     Op {
-        spec: OpSpec {
-            method: None,
-            macro_name: "_KLIPCAL_CANCEL_ASK",
-            http: None,
-            summary: "ask before ending the session (the Cancel of klipcal's dialogs)",
-            args: &[],
-            body: MacroBody::Local(&[
+        spec: OpSpec::local(
+            "_KLIPCAL_CANCEL_ASK",
+            "ask before ending the session (the Cancel of klipcal's dialogs)",
+            &[],
+            &[
                 "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
                 // The Yes answers the question of the dialog whose Cancel asked (its ASK):
@@ -54,10 +59,8 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
                 "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL{' ASK=%d' % (params.ASK|int) if 'ASK' in params else ''}|error\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_footer_button Back|_KLIPCAL_PROMPT_BACK|info\"",
                 "RESPOND TYPE=command MSG=\"action:prompt_show\"",
-            ]),
-            variables: &[],
-            comment: &[],
-        },
+            ],
+        ),
         parse: |_| Err(anyhow::anyhow!("_KLIPCAL_CANCEL_ASK runs in Klipper")),
     },
     Op {
@@ -136,14 +139,4 @@ pub enum CoreCall {
     PromptBack,
     /// `klipcal_prompt_close`.
     PromptClose,
-}
-
-impl CoreCall {
-    /// Reads a call of `method` at the boundary.
-    ///
-    /// # Errors
-    /// Not a common method, or a bad or unknown argument, named.
-    pub(crate) fn parse(method: &str, args: &Value) -> anyhow::Result<Self> {
-        parse_call(CORE_OPS, method, args)
-    }
 }

@@ -90,6 +90,34 @@ pub struct OpSpec {
     pub variables: &'static [(&'static str, &'static str)],
     /// Comment lines written above the macro's G-code.
     pub comment: &'static [&'static str],
+    /// Answered by the agent itself, before any session is looked at (`klipcal_status`: the
+    /// printer's summary around the sessions; it answers without a session database, and a
+    /// dialog's `ASK=` is not one of its arguments).
+    pub by_agent: bool,
+    /// A second HTTP path that is this operation with one flag set (`ab/clear` is
+    /// `ab/measure` with `clear`).
+    pub alias: Option<Alias>,
+    /// Called from klipcal's page, its answer is said on the console too (a user at the
+    /// printer's front end sees why a session stopped).
+    pub echo: Option<Echo>,
+}
+
+/// A second HTTP path of an operation, with one of its flags set.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Alias {
+    /// The path under `/api/` (`ab/clear`).
+    pub http: &'static str,
+    /// The flag it sets to 1 (`clear`).
+    pub sets: &'static str,
+}
+
+/// What the console says when an operation is called from klipcal's page.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Echo {
+    /// Said when the answer has no message.
+    pub fallback: &'static str,
+    /// Put after the message, in brackets.
+    pub note: &'static str,
 }
 
 impl OpSpec {
@@ -111,6 +139,32 @@ impl OpSpec {
             body: REMOTE,
             variables: &[],
             comment: &[],
+            by_agent: false,
+            alias: None,
+            echo: None,
+        }
+    }
+
+    /// A macro that runs in Klipper alone: no remote method, no HTTP path.
+    #[must_use]
+    pub(crate) const fn local(
+        macro_name: &'static str,
+        summary: &'static str,
+        args: &'static [ArgSpec],
+        gcode: &'static [&'static str],
+    ) -> Self {
+        Self {
+            method: None,
+            macro_name,
+            http: None,
+            summary,
+            args,
+            body: MacroBody::Local(gcode),
+            variables: &[],
+            comment: &[],
+            by_agent: false,
+            alias: None,
+            echo: None,
         }
     }
 
@@ -127,23 +181,6 @@ pub struct Op<C: 'static> {
     pub spec: OpSpec,
     /// Builds the typed call from the checked arguments.
     pub parse: fn(&Args) -> anyhow::Result<C>,
-}
-
-/// Finds the operation of `method` in `ops` and reads `args` into its typed call: the one
-/// boundary between a caller's JSON and a calibration's handlers.
-///
-/// # Errors
-/// Not one of `ops`, an unknown or twice-given argument, or a bad value, each named.
-pub(crate) fn parse_call<C>(
-    ops: &'static [Op<C>],
-    method: &str,
-    args: &Value,
-) -> anyhow::Result<C> {
-    let op = ops
-        .iter()
-        .find(|o| o.spec.method == Some(method))
-        .ok_or_else(|| anyhow::anyhow!("{method} is not one of this calibration's methods"))?;
-    (op.parse)(&Args::parse(args, &op.spec)?)
 }
 
 /// The declarations of `ops`.

@@ -20,8 +20,6 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{anyhow, Context};
-use futures_util::future::BoxFuture;
-use futures_util::FutureExt;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use tokio_util::sync::CancellationToken;
@@ -138,6 +136,9 @@ pub(crate) static OPS: &[Op<MeshCall>] = &[
                 "A value not given keeps the one kept before. Bad values stop the macro before anything is",
                 "set or kept.",
             ],
+            by_agent: false,
+            alias: None,
+            echo: None,
         },
         parse: |_| Err(anyhow::anyhow!("KLIPCAL_MESH_OFFSET runs in Klipper")),
     },
@@ -517,41 +518,27 @@ impl Declare for Mesh {
 }
 
 impl Calibration for Mesh {
-    fn call<'a>(
-        &'a self,
-        method: &'a str,
-        args: &'a Value,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        async move {
-            match Self::parse_call(method, args)? {
-                MeshCall::Capture { bed_c } => self.capture(bed_c).await,
-                MeshCall::Import => self.import().await,
-                MeshCall::Follow { enable } => self.follow_cmd(enable).await,
-                MeshCall::Check => self.check().await,
-            }
+    async fn handle(&self, call: MeshCall) -> anyhow::Result<Value> {
+        match call {
+            MeshCall::Capture { bed_c } => self.capture(bed_c).await,
+            MeshCall::Import => self.import().await,
+            MeshCall::Follow { enable } => self.follow_cmd(enable).await,
+            MeshCall::Check => self.check().await,
         }
-        .boxed()
     }
 
-    fn resume<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        async move {
-            let Ok(s) = self.core.load::<Session>(row.id) else {
-                return;
-            };
-            if !s.state.is_final() {
-                info!(session = s.id, state = %s.state.name(), "resuming thermal mesh session");
-                self.spawn_runner(s.id);
-            }
+    async fn resume(&self, row: &SessionRow) {
+        let Ok(s) = self.core.load::<Session>(row.id) else {
+            return;
+        };
+        if !s.state.is_final() {
+            info!(session = s.id, state = %s.state.name(), "resuming thermal mesh session");
+            self.spawn_runner(s.id);
         }
-        .boxed()
     }
 
-    fn cancel<'a>(
-        &'a self,
-        row: &'a SessionRow,
-        reason: &'a str,
-    ) -> BoxFuture<'a, anyhow::Result<Value>> {
-        self.cancel_session(row.id, reason).boxed()
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+        self.cancel_session(row.id, reason).await
     }
 
     fn held(&self, row: &SessionRow) -> Option<Hold> {
@@ -563,48 +550,43 @@ impl Calibration for Mesh {
         })
     }
 
-    fn heaters_turned_off<'a>(&'a self, row: &'a SessionRow) -> BoxFuture<'a, ()> {
-        async move {
-            let _ = self
-                .update(row.id, |s| {
-                    s.notes
-                        .push("heaters turned off: the capture ran past mesh.max_s".into());
-                    Ok(())
-                })
-                .await;
-        }
-        .boxed()
+    async fn heaters_turned_off(&self, row: &SessionRow) {
+        let _ = self
+            .update(row.id, |s| {
+                s.notes
+                    .push("heaters turned off: the capture ran past mesh.max_s".into());
+                Ok(())
+            })
+            .await;
     }
 
-    fn connected(&self) -> BoxFuture<'_, ()> {
-        async move {
-            // Following switched on by the user goes on after a daemon restart, and says so.
-            let asked = self.following_was_on();
-            if self.settings.follow || asked {
-                match self.follow_cmd(true).await {
-                    Ok(r) if asked => {
-                        let msg = r["message"].as_str().unwrap_or("");
-                        self.core
-                            .console(&format!("klipcal started again; {msg}"))
-                            .await;
-                    }
-                    Ok(_) => {}
-                    Err(e) => {
-                        let e = format!("{e:#}");
-                        warn!(error = %e, "following was on but cannot start again");
-                        if asked {
-                            self.core
-                                .console_error(&format!(
-                                    "{TITLE}: following was on before klipcal restarted but \
-                                     cannot start again: {e}"
-                                ))
-                                .await;
-                        }
-                    }
+    async fn connected(&self) {
+        // Following switched on by the user goes on after a daemon restart, and says so.
+        let asked = self.following_was_on();
+        if !(self.settings.follow || asked) {
+            return;
+        }
+        match self.follow_cmd(true).await {
+            Ok(r) if asked => {
+                let msg = r["message"].as_str().unwrap_or("");
+                self.core
+                    .console(&format!("klipcal started again; {msg}"))
+                    .await;
+            }
+            Ok(_) => {}
+            Err(e) => {
+                let e = format!("{e:#}");
+                warn!(error = %e, "following was on but cannot start again");
+                if asked {
+                    self.core
+                        .console_error(&format!(
+                            "{TITLE}: following was on before klipcal restarted but \
+                             cannot start again: {e}"
+                        ))
+                        .await;
                 }
             }
         }
-        .boxed()
     }
 }
 
