@@ -437,10 +437,10 @@ mod tests {
                     let spec: &'static OpSpec = op;
                     let args = table::Args::parse(&json!({}), spec).unwrap();
                     let ok = match a.kind {
-                        ArgKind::Number { .. } => args.num(a.name).is_ok(),
-                        ArgKind::Whole { .. } => args.int(a.name).is_ok(),
-                        ArgKind::Flag => args.flag(a.name).is_ok(),
-                        ArgKind::Choice(_) => args.choice(a.name).is_ok(),
+                        ArgKind::Number { .. } => args.num(a).is_ok(),
+                        ArgKind::Whole { .. } => args.int(a).is_ok(),
+                        ArgKind::Flag => args.flag(a).is_ok(),
+                        ArgKind::Choice(_) => args.choice(a).is_ok(),
                         ArgKind::Text | ArgKind::Readings => true,
                     };
                     assert!(

@@ -15,6 +15,7 @@ mod tests;
 
 use readings::measuring_guide;
 pub use requests::{ApplyRequest, CheckRequest, MeasureRequest, StartRequest};
+use requests::{CHECK_VALUES, CHOICE, CLEAR, EXTRUDER, FORCE, LAYOUT, VALUE, VALUES};
 
 use std::collections::BTreeMap;
 use std::time::Duration;
@@ -63,25 +64,8 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "print the pylons and calibrate stepper_x/stepper_y rotation_distance (BED=0 for an unheated bed, LAYOUT=paper or full)",
             &[
                 BED,
-                arg(
-                    "extruder",
-                    ArgKind::Number {
-                        min: 150.0,
-                        max: 320.0,
-                    },
-                    "215",
-                    "a nozzle temperature from 150 to 320 °C",
-                    "",
-                    "nozzle temperature, °C (default ab.nozzle_temp_c)",
-                ),
-                arg(
-                    "layout",
-                    ArgKind::Choice(&["paper", "full"]),
-                    "paper",
-                    "paper or full",
-                    "",
-                    "paper: the paper's pylons; full: also observes shear",
-                ),
+                EXTRUDER,
+                LAYOUT,
             ],
         ),
         parse: |a| Ok(AbCall::Start(StartRequest::from_args(a)?)),
@@ -99,30 +83,9 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "enter caliper readings for one pair, e.g. PAIR=A-D1 VALUES=10.02,10.03,10.01,10.02,10.04 (CLEAR=1 removes the pair's readings)",
             &[
                 PAIR,
-                arg(
-                    "values",
-                    ArgKind::Readings,
-                    "10.02,10.03,10.01",
-                    "readings separated by commas, e.g. 10.02,10.03",
-                    "",
-                    "the readings as the caliper shows them: commas between, a dot as the decimal mark",
-                ),
-                arg(
-                    "value",
-                    ArgKind::Readings,
-                    "10.02",
-                    "one reading, e.g. 10.02",
-                    "",
-                    "one reading (its comma is the decimal mark: 10,02 is 10.02)",
-                ),
-                arg(
-                    "clear",
-                    ArgKind::Flag,
-                    "1",
-                    "1 or 0",
-                    "0",
-                    "1: remove the pair's readings first",
-                ),
+                VALUES,
+                VALUE,
+                CLEAR,
             ],
         )
         },
@@ -136,14 +99,7 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "check readings for one pair without saving them, e.g. PAIR=A-D1 VALUES=10.02,10.03",
             &[
                 PAIR,
-                arg(
-                    "values",
-                    ArgKind::Readings,
-                    "10.02,10.03",
-                    "readings separated by commas, e.g. 10.02,10.03",
-                    "",
-                    "the readings, separated by commas",
-                ),
+                CHECK_VALUES,
             ],
         ),
         parse: |a| Ok(AbCall::Check(CheckRequest::from_args(a)?)),
@@ -154,17 +110,10 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "KLIPCAL_SOAK_CHOICE",
             "ab/soak_choice",
             "the bed soak: CHOICE=print prints now (offered from the moment the bed is in its band, with what the surface may still warm) or CHOICE=wait (go on waiting for the bed to settle; 10 min more at the soak limit's prompt)",
-            &[arg(
-                "choice",
-                ArgKind::Choice(&["print", "wait"]),
-                "wait",
-                "print or wait",
-                "wait",
-                "print: print now; wait: go on waiting (10 min more at the soak limit)",
-            )],
+            &[CHOICE],
         ),
         parse: |a| {
-            Ok(AbCall::SoakChoice(a.choice("choice")?.ok_or_else(|| {
+            Ok(AbCall::SoakChoice(a.choice(&CHOICE)?.ok_or_else(|| {
                 user("no CHOICE given; expected CHOICE=print or CHOICE=wait (KLIPCAL_CANCEL cancels)")
             })?))
         },
@@ -185,14 +134,7 @@ pub(crate) static OPS: &[Op<AbCall>] = &[
             "KLIPCAL_AB_APPLY",
             "ab/apply",
             "write the new rotation distances (backup, restart, verify, FORCE=1 for a change beyond the limit)",
-            &[arg(
-                "force",
-                ArgKind::Flag,
-                "1",
-                "1 or 0",
-                "0",
-                "1: apply a change beyond ab.max_change_pct",
-            )],
+            &[FORCE],
         ),
         parse: |a| Ok(AbCall::Apply(ApplyRequest::from_args(a)?)),
     },

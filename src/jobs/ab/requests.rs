@@ -1,6 +1,83 @@
 //! The A/B operations' requests, typed at the boundary from the command table's arguments.
 
 use super::*;
+use crate::jobs::core::table::ArgSpec;
+
+/// `EXTRUDER=` of KLIPCAL_AB_START.
+pub(super) const EXTRUDER: ArgSpec = arg(
+    "extruder",
+    ArgKind::Number {
+        min: 150.0,
+        max: 320.0,
+    },
+    "215",
+    "a nozzle temperature from 150 to 320 °C",
+    "",
+    "nozzle temperature, °C (default ab.nozzle_temp_c)",
+);
+/// `LAYOUT=` of KLIPCAL_AB_START.
+pub(super) const LAYOUT: ArgSpec = arg(
+    "layout",
+    ArgKind::Choice(&["paper", "full"]),
+    "paper",
+    "paper or full",
+    "",
+    "paper: the paper's pylons; full: also observes shear",
+);
+/// `VALUES=` of KLIPCAL_MEASURE.
+pub(super) const VALUES: ArgSpec = arg(
+    "values",
+    ArgKind::Readings,
+    "10.02,10.03,10.01",
+    "readings separated by commas, e.g. 10.02,10.03",
+    "",
+    "the readings as the caliper shows them: commas between, a dot as the decimal mark",
+);
+/// `VALUE=` of KLIPCAL_MEASURE.
+pub(super) const VALUE: ArgSpec = arg(
+    "value",
+    ArgKind::Readings,
+    "10.02",
+    "one reading, e.g. 10.02",
+    "",
+    "one reading (its comma is the decimal mark: 10,02 is 10.02)",
+);
+/// `CLEAR=` of KLIPCAL_MEASURE.
+pub(super) const CLEAR: ArgSpec = arg(
+    "clear",
+    ArgKind::Flag,
+    "1",
+    "1 or 0",
+    "0",
+    "1: remove the pair's readings first",
+);
+/// `VALUES=` of KLIPCAL_AB_CHECK.
+pub(super) const CHECK_VALUES: ArgSpec = arg(
+    "values",
+    ArgKind::Readings,
+    "10.02,10.03",
+    "readings separated by commas, e.g. 10.02,10.03",
+    "",
+    "the readings, separated by commas",
+);
+/// `CHOICE=` of KLIPCAL_SOAK_CHOICE.
+pub(super) const CHOICE: ArgSpec = arg(
+    "choice",
+    ArgKind::Choice(&["print", "wait"]),
+    "wait",
+    "print or wait",
+    "wait",
+    "print: print now; wait: go on waiting (10 min more at the soak limit)",
+);
+/// `FORCE=` of KLIPCAL_AB_APPLY.
+pub(super) const FORCE: ArgSpec = arg(
+    "force",
+    ArgKind::Flag,
+    "1",
+    "1 or 0",
+    "0",
+    "1: apply a change beyond ab.max_change_pct",
+);
 
 /// `klipcal_ab_start` / `KLIPCAL_AB_START`.
 #[derive(Debug, Clone, PartialEq)]
@@ -20,9 +97,9 @@ impl StartRequest {
     /// A bad or unknown argument, named.
     pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         Ok(Self {
-            bed_temp_c: a.num("bed")?,
-            nozzle_temp_c: a.num("extruder")?,
-            layout: a.choice("layout")?.map(str::to_string),
+            bed_temp_c: a.num(&BED)?,
+            nozzle_temp_c: a.num(&EXTRUDER)?,
+            layout: a.choice(&LAYOUT)?.map(str::to_string),
         })
     }
 }
@@ -46,17 +123,17 @@ impl MeasureRequest {
     /// # Errors
     /// No pair, a bad CLEAR, or an unknown argument.
     pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
-        let pair = a.text("pair").ok_or_else(|| {
+        let pair = a.text(&PAIR).ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_MEASURE PAIR=A-D1 VALUES=10.02,10.03,10.01")
         })?;
-        let mut values = readings_typed(a.raw("values"), "VALUES");
-        values.extend(readings_typed(a.raw("value"), "VALUE"));
-        let line = |k: &str| matches!(a.raw(k), Some(Value::String(_)));
+        let mut values = readings_typed(a.raw(&VALUES), "VALUES");
+        values.extend(readings_typed(a.raw(&VALUE), "VALUE"));
+        let line = |k: &'static ArgSpec| matches!(a.raw(k), Some(Value::String(_)));
         Ok(Self {
             pair,
             values,
-            clear: a.flag("clear")?,
-            typed_line: line("values") || line("value"),
+            clear: a.flag(&CLEAR)?,
+            typed_line: line(&VALUES) || line(&VALUE),
         })
     }
 }
@@ -103,7 +180,7 @@ impl ApplyRequest {
     /// A bad FORCE, or an unknown argument.
     pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
         Ok(Self {
-            force: a.flag("force")?,
+            force: a.flag(&FORCE)?,
         })
     }
 }
@@ -125,16 +202,16 @@ impl CheckRequest {
     /// # Errors
     /// No pair.
     pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
-        let pair = a.text("pair").ok_or_else(|| {
+        let pair = a.text(&PAIR).ok_or_else(|| {
             user("no PAIR given; expected e.g. KLIPCAL_AB_CHECK PAIR=A-D1 VALUES=10.02,10.03")
         })?;
-        let fields = match a.fields("values") {
+        let fields = match a.fields(&CHECK_VALUES) {
             Some(Fields::List(list)) => Some(list),
             _ => None,
         };
         Ok(Self {
             pair,
-            items: readings_typed(a.raw("values"), "VALUES"),
+            items: readings_typed(a.raw(&CHECK_VALUES), "VALUES"),
             fields,
         })
     }

@@ -22,7 +22,7 @@ use tokio::sync::oneshot;
 use super::camera::{CameraRequest, Seen, Webcam};
 use super::{Backlash, BacklashCall, TITLE};
 use crate::calib::nozzle::{ClickReader, Gray};
-use crate::jobs::core::table::{arg, ArgKind, Args, Op, OpSpec};
+use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::user;
 
 /// Starts the flow (the camera measurement's arguments).
@@ -41,10 +41,59 @@ pub(super) const START_OP: Op<BacklashCall> = Op {
     parse: |a| {
         Ok(BacklashCall::Camera(CameraRequest {
             clicks: true,
-            ..CameraRequest::from_args(a, "KLIPCAL_BACKLASH_CLICK")?
+            ..CameraRequest::from_args(a)?
         }))
     },
 };
+
+/// `X=`: the tip's column.
+const TIP_X: ArgSpec = arg(
+    "x",
+    ArgKind::Number {
+        min: -1.0,
+        max: 8192.0,
+    },
+    "321.5",
+    "a pixel column of the picture",
+    "",
+    "the tip's column, px (pixel centres at whole numbers)",
+);
+/// `Y=`: the tip's row.
+const TIP_Y: ArgSpec = arg(
+    "y",
+    ArgKind::Number {
+        min: -1.0,
+        max: 8192.0,
+    },
+    "240.25",
+    "a pixel row of the picture",
+    "",
+    "the tip's row, px",
+);
+/// `FRAME=`: the snapshot clicked in.
+const TIP_FRAME: ArgSpec = arg(
+    "frame",
+    ArgKind::Whole {
+        min: 1,
+        max: 1_000_000_000,
+    },
+    "7",
+    "the snapshot's number the page shows",
+    "",
+    "the snapshot clicked in",
+);
+/// `SD=`: the click's precision.
+const TIP_SD: ArgSpec = arg(
+    "sd",
+    ArgKind::Number {
+        min: 0.01,
+        max: 50.0,
+    },
+    "0.5",
+    "0.01..50 px",
+    "1",
+    "how precisely the click places the tip, px (1 sd; the page sends its zoom's)",
+);
 
 /// One click, as the page sends it.
 pub(super) const TIP_OP: Op<BacklashCall> = Op {
@@ -54,50 +103,10 @@ pub(super) const TIP_OP: Op<BacklashCall> = Op {
         "backlash/tip",
         "the nozzle's tip clicked in the snapshot waiting on klipcal's page: X= Y= in the picture's pixels, FRAME= its number, SD= the click's precision in pixels",
         &[
-            arg(
-                "x",
-                ArgKind::Number {
-                    min: -1.0,
-                    max: 8192.0,
-                },
-                "321.5",
-                "a pixel column of the picture",
-                "",
-                "the tip's column, px (pixel centres at whole numbers)",
-            ),
-            arg(
-                "y",
-                ArgKind::Number {
-                    min: -1.0,
-                    max: 8192.0,
-                },
-                "240.25",
-                "a pixel row of the picture",
-                "",
-                "the tip's row, px",
-            ),
-            arg(
-                "frame",
-                ArgKind::Whole {
-                    min: 1,
-                    max: 1_000_000_000,
-                },
-                "7",
-                "the snapshot's number the page shows",
-                "",
-                "the snapshot clicked in",
-            ),
-            arg(
-                "sd",
-                ArgKind::Number {
-                    min: 0.01,
-                    max: 50.0,
-                },
-                "0.5",
-                "0.01..50 px",
-                "1",
-                "how precisely the click places the tip, px (1 sd; the page sends its zoom's)",
-            ),
+            TIP_X,
+            TIP_Y,
+            TIP_FRAME,
+            TIP_SD,
         ],
     ),
     parse: |a| Ok(BacklashCall::Tip(TipRequest::from_args(a)?)),
@@ -120,13 +129,13 @@ impl TipRequest {
                 k.to_uppercase()
             ))
         };
-        let x = a.num("x")?.ok_or_else(|| need("x"))?;
-        let y = a.num("y")?.ok_or_else(|| need("y"))?;
-        let frame = a.int("frame")?.ok_or_else(|| need("frame"))?;
+        let x = a.num(&TIP_X)?.ok_or_else(|| need(TIP_X.name))?;
+        let y = a.num(&TIP_Y)?.ok_or_else(|| need(TIP_Y.name))?;
+        let frame = a.int(&TIP_FRAME)?.ok_or_else(|| need(TIP_FRAME.name))?;
         Ok(Self {
             at_px: [x, y],
             frame: u64::try_from(frame).unwrap_or(0),
-            sd_px: a.num("sd")?.unwrap_or(1.0),
+            sd_px: a.num(&TIP_SD)?.unwrap_or(1.0),
         })
     }
 }

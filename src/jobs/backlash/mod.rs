@@ -48,6 +48,24 @@ pub(super) const CYCLES_ARG: ArgSpec = arg(
     "",
     "approach cycles (default backlash.cycles)",
 );
+/// `AXIS=` of the guided measurement (the camera's has no Z: [`camera::AXIS_ARG`]).
+const AXIS_ARG: ArgSpec = arg(
+    "axis",
+    ArgKind::Text,
+    "X",
+    "X, Y, Z, A or B",
+    "",
+    "the axis: X, Y, Z, or A/B (CoreXY motors)",
+);
+/// `PRESS=` of the jog dialog's buttons.
+const PRESS_ARG: ArgSpec = arg(
+    "press",
+    ArgKind::Text,
+    "fine",
+    "coarse, fine, centred, past, short or overshot",
+    "",
+    "coarse, fine, centred, past, short or overshot",
+);
 /// `CARRIAGE=`, shared by the guided and the camera measurement.
 pub(super) const CARRIAGE_ARG: ArgSpec = arg(
     "carriage",
@@ -76,18 +94,7 @@ pub(crate) static OPS: &[Op<BacklashCall>] = &[
             "KLIPCAL_BACKLASH_START",
             "backlash/start",
             "measure backlash through the nozzle camera, AXIS=X, Y, Z, or A/B (CoreXY motors), CYCLES=5, CARRIAGE=0|1 on dual_carriage",
-            &[
-                arg(
-                    "axis",
-                    ArgKind::Text,
-                    "X",
-                    "X, Y, Z, A or B",
-                    "",
-                    "the axis: X, Y, Z, or A/B (CoreXY motors)",
-                ),
-                CYCLES_ARG,
-                CARRIAGE_ARG,
-            ],
+            &[AXIS_ARG, CYCLES_ARG, CARRIAGE_ARG],
         ),
         parse: |a| Ok(BacklashCall::Start(StartRequest::from_args(a)?)),
     },
@@ -100,17 +107,10 @@ pub(crate) static OPS: &[Op<BacklashCall>] = &[
             "_KLIPCAL_BACKLASH_JOG",
             "backlash/jog",
             "backlash prompt button, PRESS=coarse, fine, centred, past, short or overshot (moves only in the approach direction; from Centred on each press says what the nozzle looks like, until Past twice)",
-            &[arg(
-                "press",
-                ArgKind::Text,
-                "fine",
-                "coarse, fine, centred, past, short or overshot",
-                "",
-                "coarse, fine, centred, past, short or overshot",
-            )],
+            &[PRESS_ARG],
         ),
         parse: |a| {
-            Press::parse(&a.text("press").unwrap_or_default())
+            Press::parse(&a.text(&PRESS_ARG).unwrap_or_default())
                 .map(BacklashCall::Jog)
                 .map_err(|e| user(e.to_string()))
         },
@@ -161,15 +161,10 @@ impl StartRequest {
     /// # Errors
     /// No or a bad axis, bad cycles or carriage.
     pub(crate) fn from_args(a: &Args) -> anyhow::Result<Self> {
-        let carriage = a.int("carriage")?;
-        let axis_text = a.text("axis").ok_or_else(|| {
-            user("KLIPCAL_BACKLASH_START: AXIS is required; expected X, Y, Z, A or B")
-        })?;
-        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
-        let cycles = a
-            .int("cycles")?
-            .map(|c| usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50"))))
-            .transpose()?;
+        let carriage = a.int(&CARRIAGE_ARG)?;
+        let axis =
+            GuideAxis::parse(&a.required_text(&AXIS_ARG)?).map_err(|e| user(e.to_string()))?;
+        let cycles = a.count(&CYCLES_ARG)?;
         Ok(Self {
             axis,
             cycles,

@@ -1,7 +1,40 @@
 //! The operations every daemon answers besides the calibrations' own ([`CORE_OPS`]), and
 //! their call typed at the boundary ([`CoreCall`]).
 
-use super::table::{arg, ArgKind, Echo, Op, OpSpec};
+use super::table::{arg, ArgKind, ArgSpec, Echo, Op, OpSpec};
+
+const REASON: ArgSpec = arg(
+    "reason",
+    ArgKind::Text,
+    "aborted",
+    "a word or a quoted text",
+    "",
+    "why, noted in the session (optional)",
+);
+const SURFACE: ArgSpec = arg(
+    "surface",
+    ArgKind::Choice(crate::calib::soak::ask::SURFACE_WORDS),
+    "steel",
+    "steel, glass, bare or unknown",
+    "",
+    "what is on the bed: a steel sheet on a magnet, glass, the bare plate",
+);
+const SENSOR: ArgSpec = arg(
+    "sensor",
+    ArgKind::Choice(crate::calib::soak::ask::SENSOR_WORDS),
+    "pad",
+    "plate, pad or unknown",
+    "",
+    "where the bed's thermistor is: in the plate or in the heater pad",
+);
+const FRAME: ArgSpec = arg(
+    "frame",
+    ArgKind::Choice(crate::calib::soak::ask::FRAME_WORDS),
+    "open",
+    "open, enclosed or unknown",
+    "",
+    "open: no enclosure; enclosed: in an enclosure or a box",
+);
 
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
@@ -29,19 +62,12 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
                 "KLIPCAL_CANCEL",
                 "cancel",
                 "cancel the calibration session (cancels its print, turns the heaters off)",
-                &[arg(
-                    "reason",
-                    ArgKind::Text,
-                    "aborted",
-                    "a word or a quoted text",
-                    "",
-                    "why, noted in the session (optional)",
-                )],
+                &[REASON],
             )
         },
         parse: |a| {
             Ok(CoreCall::Cancel(
-                a.text("reason")
+                a.text(&REASON)
                     .unwrap_or_else(|| "cancelled by the user".into()),
             ))
         },
@@ -69,38 +95,13 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             "KLIPCAL_SOAK_BED",
             "soak/bed",
             "answer the bed soak's question (written to klipcal.toml, used at once): SURFACE=steel, glass or bare, SENSOR=plate or pad (where the bed's thermistor is), FRAME=open or enclosed; unknown keeps the slow assumption",
-            &[
-                arg(
-                    "surface",
-                    ArgKind::Choice(crate::calib::soak::ask::SURFACE_WORDS),
-                    "steel",
-                    "steel, glass, bare or unknown",
-                    "",
-                    "what is on the bed: a steel sheet on a magnet, glass, the bare plate",
-                ),
-                arg(
-                    "sensor",
-                    ArgKind::Choice(crate::calib::soak::ask::SENSOR_WORDS),
-                    "pad",
-                    "plate, pad or unknown",
-                    "",
-                    "where the bed's thermistor is: in the plate or in the heater pad",
-                ),
-                arg(
-                    "frame",
-                    ArgKind::Choice(crate::calib::soak::ask::FRAME_WORDS),
-                    "open",
-                    "open, enclosed or unknown",
-                    "",
-                    "open: no enclosure; enclosed: in an enclosure or a box",
-                ),
-            ],
+            &[SURFACE, SENSOR, FRAME],
         ),
         parse: |a| {
             Ok(CoreCall::SoakBed(super::soak_ask::BuildAnswer::from_words(
-                a.choice("surface")?,
-                a.choice("sensor")?,
-                a.choice("frame")?,
+                a.choice(&SURFACE)?,
+                a.choice(&SENSOR)?,
+                a.choice(&FRAME)?,
             )?))
         },
     },

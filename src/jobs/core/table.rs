@@ -249,39 +249,42 @@ impl Args {
         Ok(Self { spec, map })
     }
 
-    fn spec_of(&self, key: &str) -> &'static ArgSpec {
-        match self.spec.arg(key) {
-            Some(a) => a,
-            // A getter for an argument the table does not declare is a programming error the
-            // table test catches; answer as for an unknown argument rather than panic.
-            None => &UNDECLARED,
-        }
-    }
-
-    /// The raw value, when given and not empty.
-    #[must_use]
-    pub(crate) fn raw(&self, key: &str) -> Option<&Value> {
-        match self.map.get(key) {
+    /// The value of `a`, when given and not empty; `a` must be one of the operation's own
+    /// declared arguments (each getter takes the declaration, never a name, so a key that is
+    /// not declared does not compile).
+    fn given(&self, a: &'static ArgSpec) -> Option<&Value> {
+        debug_assert!(
+            self.spec.args.iter().any(|d| std::ptr::eq(d, a) || d == a),
+            "{} is not an argument of {}",
+            a.name,
+            self.spec.macro_name
+        );
+        match self.map.get(a.name) {
             None | Some(Value::Null) => None,
             Some(Value::String(s)) if s.trim().is_empty() => None,
             Some(v) => Some(v),
         }
     }
 
+    /// The raw value, when given and not empty.
+    #[must_use]
+    pub(crate) fn raw(&self, a: &'static ArgSpec) -> Option<&Value> {
+        self.given(a)
+    }
+
     /// A number (`60`, `"60"`) within its declared range, when given.
     ///
     /// # Errors
     /// Not a finite number (named with an example), or out of range (with what is expected).
-    pub(crate) fn num(&self, key: &str) -> anyhow::Result<Option<f64>> {
-        let a = self.spec_of(key);
-        let name = key.to_uppercase();
+    pub(crate) fn num(&self, a: &'static ArgSpec) -> anyhow::Result<Option<f64>> {
+        let name = a.name.to_uppercase();
         let bad = |shown: &str| {
             user(format!(
                 "{name}={shown} is not a number; expected e.g. {name}={}",
                 a.example
             ))
         };
-        let v = match self.raw(key) {
+        let v = match self.given(a) {
             None => return Ok(None),
             Some(Value::Number(n)) => n.as_f64().ok_or_else(|| bad(&n.to_string()))?,
             Some(Value::String(s)) => s
@@ -304,10 +307,9 @@ impl Args {
     ///
     /// # Errors
     /// Not a whole number, or out of range.
-    pub(crate) fn int(&self, key: &str) -> anyhow::Result<Option<i64>> {
-        let a = self.spec_of(key);
-        let name = key.to_uppercase();
-        let v = match self.num(key)? {
+    pub(crate) fn int(&self, a: &'static ArgSpec) -> anyhow::Result<Option<i64>> {
+        let name = a.name.to_uppercase();
+        let v = match self.num(a)? {
             None => return Ok(None),
             Some(v) if v.fract() == 0.0 && v.abs() < 1e15 => v as i64,
             Some(v) => {
@@ -325,10 +327,28 @@ impl Args {
         }
     }
 
+    /// A count (a whole number of at least 0 in its declared range), when given.
+    ///
+    /// # Errors
+    /// Not a whole number, or out of range (the declaration's words).
+    pub(crate) fn count(&self, a: &'static ArgSpec) -> anyhow::Result<Option<usize>> {
+        self.int(a)?
+            .map(|c| {
+                usize::try_from(c).map_err(|_| {
+                    user(format!(
+                        "{}={c}: expected {}",
+                        a.name.to_uppercase(),
+                        a.expect
+                    ))
+                })
+            })
+            .transpose()
+    }
+
     /// A word or text, trimmed, when given.
     #[must_use]
-    pub(crate) fn text(&self, key: &str) -> Option<String> {
-        match self.raw(key)? {
+    pub(crate) fn text(&self, a: &'static ArgSpec) -> Option<String> {
+        match self.given(a)? {
             Value::String(s) => Some(s.trim().to_string()),
             Value::Number(n) => Some(n.to_string()),
             Value::Bool(b) => Some(b.to_string()),
@@ -336,12 +356,28 @@ impl Args {
         }
     }
 
+    /// A word or text that must be given: `{MACRO}: {NAME} is required; expected …` (the
+    /// declaration's words) when it is not.
+    ///
+    /// # Errors
+    /// Not given.
+    pub(crate) fn required_text(&self, a: &'static ArgSpec) -> anyhow::Result<String> {
+        self.text(a).ok_or_else(|| {
+            user(format!(
+                "{}: {} is required; expected {}",
+                self.spec.macro_name,
+                a.name.to_uppercase(),
+                a.expect
+            ))
+        })
+    }
+
     /// A yes/no flag: `1`/`0`, `true`/`false`, `yes`/`no`; absent is no.
     ///
     /// # Errors
     /// Any other value.
-    pub(crate) fn flag(&self, key: &str) -> anyhow::Result<bool> {
-        match self.raw(key) {
+    pub(crate) fn flag(&self, a: &'static ArgSpec) -> anyhow::Result<bool> {
+        match self.given(a) {
             None => Ok(false),
             Some(Value::Bool(b)) => Ok(*b),
             Some(v) => {
@@ -352,7 +388,10 @@ impl Args {
                 match t.as_str() {
                     "1" | "true" | "yes" | "on" => Ok(true),
                     "0" | "false" | "no" | "off" => Ok(false),
-                    _ => Err(user(format!("{}={t}: expected 1 or 0", key.to_uppercase()))),
+                    _ => Err(user(format!(
+                        "{}={t}: expected 1 or 0",
+                        a.name.to_uppercase()
+                    ))),
                 }
             }
         }
@@ -362,26 +401,31 @@ impl Args {
     ///
     /// # Errors
     /// Anything else, with what is expected.
-    pub(crate) fn choice(&self, key: &str) -> anyhow::Result<Option<&'static str>> {
-        let a = self.spec_of(key);
+    pub(crate) fn choice(&self, a: &'static ArgSpec) -> anyhow::Result<Option<&'static str>> {
         let ArgKind::Choice(choices) = a.kind else {
             return Ok(None);
         };
-        match self.text(key) {
+        match self.text(a) {
             None => Ok(None),
             Some(t) => choices
                 .iter()
                 .find(|c| c.eq_ignore_ascii_case(&t))
                 .map(|c| Some(*c))
-                .ok_or_else(|| user(format!("{}={t}: expected {}", key.to_uppercase(), a.expect))),
+                .ok_or_else(|| {
+                    user(format!(
+                        "{}={t}: expected {}",
+                        a.name.to_uppercase(),
+                        a.expect
+                    ))
+                }),
         }
     }
 
     /// Readings as typed: a JSON list gives one field each, a text its items
     /// ([`crate::calib::entry::items`]).
     #[must_use]
-    pub(crate) fn fields(&self, key: &str) -> Option<Fields> {
-        match self.raw(key)? {
+    pub(crate) fn fields(&self, a: &'static ArgSpec) -> Option<Fields> {
+        match self.given(a)? {
             Value::Array(list) => Some(Fields::List(
                 list.iter()
                     .map(|v| match v {
@@ -404,15 +448,6 @@ pub(crate) enum Fields {
     /// One text of items (the console's `VALUES=`).
     Text(String),
 }
-
-const UNDECLARED: ArgSpec = ArgSpec {
-    name: "",
-    kind: ArgKind::Text,
-    example: "",
-    expect: "",
-    default: "",
-    help: "",
-};
 
 /// An argument declaration, for the tables' brevity.
 #[must_use]
@@ -703,12 +738,12 @@ mod tests {
             &START,
         )
         .unwrap();
-        assert_eq!(a.num("bed").unwrap(), Some(60.0));
-        assert_eq!(a.choice("layout").unwrap(), Some("full"));
-        assert!(a.flag("force").unwrap());
-        assert_eq!(a.int("cycles").unwrap(), Some(5));
+        assert_eq!(a.num(&BED).unwrap(), Some(60.0));
+        assert_eq!(a.choice(&LAYOUT).unwrap(), Some("full"));
+        assert!(a.flag(&FORCE).unwrap());
+        assert_eq!(a.int(&CYCLES).unwrap(), Some(5));
         let a = Args::parse(&json!({"bed": "hot"}), &START).unwrap();
-        let err = a.num("bed").unwrap_err();
+        let err = a.num(&BED).unwrap_err();
         assert_eq!(
             err.to_string(),
             "BED=hot is not a number; expected e.g. BED=60"
@@ -724,19 +759,19 @@ mod tests {
         )
         .unwrap();
         assert_eq!(
-            a.num("bed").unwrap_err().to_string(),
+            a.num(&BED).unwrap_err().to_string(),
             "BED=200: expected a bed temperature from 0 (unheated) to 130 °C"
         );
         assert_eq!(
-            a.int("cycles").unwrap_err().to_string(),
+            a.int(&CYCLES).unwrap_err().to_string(),
             "CYCLES=0: expected 1..50"
         );
         assert_eq!(
-            a.choice("layout").unwrap_err().to_string(),
+            a.choice(&LAYOUT).unwrap_err().to_string(),
             "LAYOUT=wide: expected paper or full"
         );
         let a = Args::parse(&json!({"cycles": "2.5"}), &START).unwrap();
-        assert!(a.int("cycles").unwrap_err().to_string().contains("whole"));
+        assert!(a.int(&CYCLES).unwrap_err().to_string().contains("whole"));
     }
 
     #[test]
@@ -760,11 +795,11 @@ mod tests {
     #[test]
     fn empty_values_count_as_not_given_and_bad_flags_are_refused() {
         let a = Args::parse(&json!({"force": "", "bed": " "}), &START).unwrap();
-        assert!(!a.flag("force").unwrap());
-        assert_eq!(a.num("bed").unwrap(), None);
+        assert!(!a.flag(&FORCE).unwrap());
+        assert_eq!(a.num(&BED).unwrap(), None);
         let a = Args::parse(&json!({"force": "maybe"}), &START).unwrap();
         assert!(a
-            .flag("force")
+            .flag(&FORCE)
             .unwrap_err()
             .to_string()
             .contains("FORCE=maybe"));

@@ -33,11 +33,24 @@ use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakSettings, SoakUpdate};
 use crate::jobs::core::status::SessionStatus;
-use crate::jobs::core::table::{arg, ArgKind, MacroBody, Op, OpSpec};
+use crate::jobs::core::table::{arg, ArgKind, ArgSpec, MacroBody, Op, OpSpec};
 use crate::jobs::core::{Calibration, Declare, Envelope, Hold, SessionState};
 use crate::jobs::user;
 use crate::klipper::bed_mesh::{self, MeshParams, MeshProfile};
 use crate::store::SessionRow;
+
+/// `BED=` of KLIPCAL_MESH_CAPTURE.
+const BED_ARG: ArgSpec =
+    crate::jobs::core::table::bed_arg("bed temperature, °C (0: unheated; default mesh.bed_temp_c)");
+/// `ENABLE=` of KLIPCAL_MESH_FOLLOW.
+const ENABLE_ARG: ArgSpec = arg(
+    "enable",
+    ArgKind::Choice(&["1", "0"]),
+    "1",
+    "1 (follow) or 0 (stop)",
+    "1",
+    "1: follow the frame temperature, 0: stop",
+);
 
 /// The thermal mesh's operations, each declared once (see [`crate::jobs::core::table`]).
 pub(crate) static OPS: &[Op<MeshCall>] = &[
@@ -47,11 +60,13 @@ pub(crate) static OPS: &[Op<MeshCall>] = &[
             "KLIPCAL_MESH_CAPTURE",
             "mesh/capture",
             "thermal bed mesh: heat the bed, then take meshes as the frame warms and write klipcal_<T> profiles (BED=0 for an unheated bed)",
-            &[crate::jobs::core::table::bed_arg(
-                "bed temperature, °C (0: unheated; default mesh.bed_temp_c)",
-            )],
+            &[BED_ARG],
         ),
-        parse: |a| Ok(MeshCall::Capture { bed_c: a.num("bed")? }),
+        parse: |a| {
+            Ok(MeshCall::Capture {
+                bed_c: a.num(&BED_ARG)?,
+            })
+        },
     },
     Op {
         spec: OpSpec::remote(
@@ -69,18 +84,11 @@ pub(crate) static OPS: &[Op<MeshCall>] = &[
             "KLIPCAL_MESH_FOLLOW",
             "mesh/follow",
             "load the thermal mesh profile for the frame temperature as it changes (ENABLE=1) or stop (ENABLE=0)",
-            &[arg(
-                "enable",
-                ArgKind::Choice(&["1", "0"]),
-                "1",
-                "1 (follow) or 0 (stop)",
-                "1",
-                "1: follow the frame temperature, 0: stop",
-            )],
+            &[ENABLE_ARG],
         ),
         parse: |a| {
             Ok(MeshCall::Follow {
-                enable: a.choice("enable")? != Some("0"),
+                enable: a.choice(&ENABLE_ARG)? != Some("0"),
             })
         },
     },

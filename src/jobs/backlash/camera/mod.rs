@@ -70,12 +70,7 @@ pub(super) const OP: Op<BacklashCall> = Op {
             super::CARRIAGE_ARG,
         ],
     ),
-    parse: |a| {
-        Ok(BacklashCall::Camera(CameraRequest::from_args(
-            a,
-            "KLIPCAL_BACKLASH_CAMERA",
-        )?))
-    },
+    parse: |a| Ok(BacklashCall::Camera(CameraRequest::from_args(a)?)),
 };
 
 /// `KLIPCAL_BACKLASH_CAMERA`, or `KLIPCAL_BACKLASH_CLICK` (`clicks`).
@@ -89,27 +84,23 @@ pub(crate) struct CameraRequest {
 }
 
 impl CameraRequest {
-    pub(super) fn from_args(a: &Args, macro_name: &str) -> anyhow::Result<Self> {
-        let axis_text = a.text("axis").ok_or_else(|| {
-            user(format!(
-                "{macro_name}: AXIS is required; expected X, Y, A or B"
-            ))
-        })?;
-        let axis = GuideAxis::parse(&axis_text).map_err(|e| user(e.to_string()))?;
+    /// Reads the call's arguments (KLIPCAL_BACKLASH_CAMERA's or KLIPCAL_BACKLASH_CLICK's).
+    ///
+    /// # Errors
+    /// No or a bad axis (Z), bad cycles or carriage.
+    pub(super) fn from_args(a: &Args) -> anyhow::Result<Self> {
+        let axis =
+            GuideAxis::parse(&a.required_text(&AXIS_ARG)?).map_err(|e| user(e.to_string()))?;
         if axis == GuideAxis::Z {
             return Err(user(
                 "AXIS=Z: a camera under the nozzle cannot see Z move; measure Z with \
                  KLIPCAL_BACKLASH_START AXIS=Z (guided), or X, Y, A, B here",
             ));
         }
-        let cycles = a
-            .int("cycles")?
-            .map(|c| usize::try_from(c).map_err(|_| user(format!("CYCLES={c}: expected 1..50"))))
-            .transpose()?;
         Ok(Self {
             axis,
-            cycles,
-            carriage: a.int("carriage")?,
+            cycles: a.count(&super::CYCLES_ARG)?,
+            carriage: a.int(&super::CARRIAGE_ARG)?,
             clicks: false,
         })
     }
