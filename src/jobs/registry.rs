@@ -14,6 +14,7 @@ use tracing::{info, warn};
 
 pub use super::call::all_ops;
 pub(crate) use super::call::{all_methods, macros_cfg, operation_paths, Call};
+use crate::jobs::core::answer::{reply, Said, SessionAnswer};
 use crate::jobs::core::calibration::Declared;
 use crate::jobs::core::session::{hold_expired, now_unix, Core};
 use crate::jobs::core::soak::SoakSettings;
@@ -142,24 +143,33 @@ impl Calibrations {
 
     async fn core_call(&self, call: CoreCall) -> anyhow::Result<Value> {
         match call {
-            CoreCall::Cancel(reason) => self.cancel(&reason).await,
-            CoreCall::SoakBed(a) => crate::jobs::core::soak_ask::answer(&self.core, a).await,
+            CoreCall::Cancel(reason) => reply(self.cancel(&reason).await),
+            CoreCall::SoakBed(a) => reply(crate::jobs::core::soak_ask::answer(&self.core, a).await),
             // The helpers only ask; klipcal closes or replaces the dialog itself, marked as
             // its own before it is sent, so a close klipcal did not send is the user's.
-            CoreCall::PromptBack => Ok(if self.core.prompt_again().await {
-                json!({"message": ""})
+            CoreCall::PromptBack => reply(Ok(if self.core.prompt_again().await {
+                Said {
+                    message: String::new(),
+                }
             } else {
                 // The cancel question (shown by Klipper) closes whatever klipcal believes.
                 self.core.prompt_end_any().await;
-                json!({"message": "no klipcal dialog to go back to"})
-            }),
+                Said {
+                    message: "no klipcal dialog to go back to".into(),
+                }
+            })),
             CoreCall::PromptClose => {
                 self.core.prompt_end_any().await;
-                Ok(json!({"message": format!(
-                    "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
-                     (or on klipcal's page{})",
-                    self.core.page().map(|p| format!(", {p}")).unwrap_or_default()
-                )}))
+                reply(Ok(Said {
+                    message: format!(
+                        "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
+                         (or on klipcal's page{})",
+                        self.core
+                            .page()
+                            .map(|p| format!(", {p}"))
+                            .unwrap_or_default()
+                    ),
+                }))
             }
             CoreCall::Status => Err(anyhow::anyhow!(
                 "klipcal_status is answered by the agent with the printer's summary"
@@ -171,7 +181,7 @@ impl Calibrations {
     ///
     /// # Errors
     /// No session to cancel.
-    pub(crate) async fn cancel(&self, reason: &str) -> anyhow::Result<Value> {
+    pub(crate) async fn cancel(&self, reason: &str) -> anyhow::Result<SessionAnswer> {
         let row = self
             .core
             .active()?

@@ -11,7 +11,7 @@ impl Ab {
     /// Nothing solved, a print running, an implausible change without FORCE, or Klipper failing
     /// on the new values (rolled back).
     #[allow(clippy::too_many_lines)] // 154 lines: to be split along its steps
-    pub(crate) async fn apply(&self, req: &ApplyRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn apply(&self, req: &ApplyRequest) -> anyhow::Result<Applied> {
         let s = match self.active()? {
             Some(s) if s.state == State::Solved => s,
             Some(s) => {
@@ -69,7 +69,11 @@ impl Ab {
             })
             .await?;
             self.restore_skew(s.skew_before).await;
-            return Ok(json!({"state": "converged", "message": msg}));
+            return Ok(Applied {
+                state: State::Converged.name(),
+                applied: None,
+                message: msg,
+            });
         }
         self.set_state(s.id, State::Applying, "writing the new rotation distances")
             .await?;
@@ -153,7 +157,11 @@ impl Ab {
                 if next == State::Applied {
                     msg.push_str(&self.preheat_next_round(&s, next_round).await);
                 }
-                Ok(json!({"state": next.name(), "applied": report, "message": msg}))
+                Ok(Applied {
+                    state: next.name(),
+                    applied: Some(report),
+                    message: msg,
+                })
             }
             Err(e) => {
                 let why = format!("{e:#}");

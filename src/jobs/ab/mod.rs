@@ -4,6 +4,7 @@
 //! remote methods; the session store, runner, guards, console and config transaction are the
 //! shared core's (`session`, `console`, `soak`, `printer_config`).
 
+mod answers;
 mod apply;
 mod readings;
 mod requests;
@@ -13,6 +14,7 @@ mod solve;
 #[cfg(test)]
 mod tests;
 
+use answers::{Applied, Checked, Chosen, ItemAnswer, Saved, Solved};
 use readings::measuring_guide;
 pub use requests::{ApplyRequest, CheckRequest, MeasureRequest, StartRequest};
 use requests::{CHECK_VALUES, CHOICE, CLEAR, EXTRUDER, FORCE, LAYOUT, VALUE, VALUES};
@@ -30,6 +32,7 @@ use crate::calib::metric::{Kinematics as CalibKinematics, ShearTo};
 use crate::calib::solve::{solve, MotionFacts, Solution, SolveOptions, StepperFacts};
 use crate::config::AbConfig;
 use crate::gcode::{self, LayoutKind};
+use crate::jobs::core::answer::{reply, SessionAnswer};
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ApplyReport, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
@@ -354,7 +357,7 @@ impl Ab {
     }
 
     /// Cancels the session: its print cancelled, heaters off, skew restored, prompt closed.
-    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<SessionAnswer> {
         let s = self.load(id)?;
         if s.state == State::Printing {
             if let Err(e) = self.core.m().gcode("CANCEL_PRINT").await {
@@ -499,12 +502,12 @@ impl Declare for Ab {
 impl Calibration for Ab {
     async fn handle(&self, call: AbCall) -> anyhow::Result<Value> {
         match call {
-            AbCall::Start(r) => self.start(&r).await,
-            AbCall::Measure(r) => self.measure(&r).await,
-            AbCall::Solve => self.solve().await,
-            AbCall::Apply(r) => self.apply(&r).await,
-            AbCall::Check(r) => self.check(&r),
-            AbCall::SoakChoice(c) => self.soak_choice(c).await,
+            AbCall::Start(r) => reply(self.start(&r).await),
+            AbCall::Measure(r) => reply(self.measure(&r).await),
+            AbCall::Solve => reply(self.solve().await),
+            AbCall::Apply(r) => reply(self.apply(&r).await),
+            AbCall::Check(r) => reply(self.check(&r)),
+            AbCall::SoakChoice(c) => reply(self.soak_choice(c).await),
         }
     }
 
@@ -512,7 +515,7 @@ impl Calibration for Ab {
         self.resume_session(row.id).await;
     }
 
-    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<SessionAnswer> {
         self.cancel_session(row.id, reason).await
     }
 

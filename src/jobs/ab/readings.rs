@@ -56,7 +56,7 @@ impl Ab {
     /// # Errors
     /// No session waiting for readings, an unknown pair, or an entry refused (nothing saved).
     #[allow(clippy::too_many_lines)] // 128 lines: to be split along its steps
-    pub(crate) async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Saved> {
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;
         let values = if req.values.is_empty() && req.clear {
@@ -189,9 +189,14 @@ impl Ab {
                 })
                 .await;
         }
-        Ok(json!({"pair": pair.id, "saved": values, "count": count,
-                  "readings": have.get(&pair.id).cloned().unwrap_or_default(),
-                  "missing": missing, "message": message}))
+        Ok(Saved {
+            readings: have.get(&pair.id).cloned().unwrap_or_default(),
+            pair: pair.id,
+            saved: values,
+            count,
+            missing,
+            message,
+        })
     }
 
     /// `klipcal_ab_check`: judges an entry by the rules [`Ab::measure`] applies, field by field
@@ -200,13 +205,13 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or a bad argument.
-    pub(crate) fn check(&self, req: &CheckRequest) -> anyhow::Result<Value> {
+    pub(crate) fn check(&self, req: &CheckRequest) -> anyhow::Result<Checked> {
         let typed_items = &req.items;
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;
         // One answer per field as sent (blank fields too), so the page marks the field the
         // user typed in; a console list: one per item.
-        let per_field: Vec<Value> = match &req.fields {
+        let per_field: Vec<ItemAnswer> = match &req.fields {
             Some(texts) => texts
                 .iter()
                 .enumerate()
@@ -234,15 +239,17 @@ impl Ab {
             Err(e) => format!("{}: would be refused; {}", pair.id, e.0),
         };
         let items = per_field;
-        Ok(json!({
-            "pair": pair.id,
-            "nominal_mm": pair.nominal_mm,
-            "window_mm": [window.nominal_mm - window.half_width_mm(),
-                          window.nominal_mm + window.half_width_mm()],
-            "valid": whole.is_ok(),
-            "message": message,
-            "items": items,
-        }))
+        Ok(Checked {
+            nominal_mm: pair.nominal_mm,
+            pair: pair.id,
+            window_mm: [
+                window.nominal_mm - window.half_width_mm(),
+                window.nominal_mm + window.half_width_mm(),
+            ],
+            valid: whole.is_ok(),
+            message,
+            items,
+        })
     }
 }
 
@@ -273,13 +280,13 @@ pub(super) fn item_answer(
     item: Option<&entry::Item>,
     pair: &str,
     window: &entry::Window,
-) -> Value {
+) -> ItemAnswer {
     let one = item.map(|it| entry::one(it, pair, window));
-    json!({
-        "text": text,
-        "values": one.as_ref().and_then(|r| r.as_ref().ok()).map(|v| vec![*v]),
-        "error": one.and_then(Result::err),
-    })
+    ItemAnswer {
+        text: text.to_string(),
+        values: one.as_ref().and_then(|r| r.as_ref().ok()).map(|v| vec![*v]),
+        error: one.and_then(Result::err),
+    }
 }
 
 /// The round's pair named `typed` (any case) and its plausibility window.

@@ -542,7 +542,7 @@ impl Ab {
     ///
     /// # Errors
     /// A session already running, bad arguments, or a printer that is printing.
-    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<SessionAnswer> {
         let d = &self.settings.defaults;
         let bed = req.bed_temp_c.unwrap_or(d.bed_temp_c);
         let nozzle = req.nozzle_temp_c.unwrap_or(d.nozzle_temp_c);
@@ -610,6 +610,10 @@ impl Ab {
             }
             None => format!("{TITLE} session {id} started: checking the printer"),
         };
-        Ok(json!({"session": id, "state": "preflight", "message": message}))
+        Ok(SessionAnswer {
+            session: id,
+            state: State::Preflight.name(),
+            message,
+        })
     }
 }

@@ -314,7 +314,7 @@ impl Ab {
     ///
     /// # Errors
     /// A bad CHOICE, or no soak waiting for one.
-    pub(crate) async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Value> {
+    pub(crate) async fn soak_choice(&self, choice: &'static str) -> anyhow::Result<Chosen> {
         let s =
             match self.active()? {
                 Some(s) if s.soak_asking => s,
@@ -340,7 +340,11 @@ impl Ab {
             (_, true) => "waiting 10 min more",
             _ => "waiting until the bed has settled",
         };
-        Ok(json!({"session": s.id, "choice": choice, "message": message}))
+        Ok(Chosen {
+            session: s.id,
+            choice,
+            message: message.into(),
+        })
     }
 
     pub(super) async fn hold(&self, s: Session) -> anyhow::Result<()> {

@@ -7,7 +7,7 @@ impl Ab {
     ///
     /// # Errors
     /// Readings missing or inconsistent (the solver's message names the pair).
-    pub(crate) async fn solve(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn solve(&self) -> anyhow::Result<Solved> {
         let s = self.measuring()?;
         let round = s.rounds.last().ok_or_else(|| anyhow!("no round"))?.clone();
         let raw = self.readings(&s)?;
@@ -49,7 +49,7 @@ impl Ab {
             solve(&round.layout, &raw, &facts, &opts).map_err(|e| user(e.to_string()))?;
         let decision = solution_text(&solution);
         let mut message = decision.clone();
-        let sol = serde_json::to_value(&solution)?;
+        let sol = solution.clone();
         self.update(s.id, |s| {
             if let Some(r) = s.rounds.last_mut() {
                 r.solution = Some(solution);
@@ -75,7 +75,10 @@ impl Ab {
                 footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "info")],
             })
             .await;
-        Ok(json!({"solution": sol, "message": message}))
+        Ok(Solved {
+            solution: sol,
+            message,
+        })
     }
 }
 

@@ -9,7 +9,7 @@ impl Backlash {
     /// # Errors
     /// Nothing measured, a printer printing, neither branch (with the reason), a reply that
     /// disagrees, or a config Klipper rejects (rolled back).
-    pub(crate) async fn apply(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn apply(&self) -> anyhow::Result<Applied> {
         let s = match self.active()? {
             Some(s) if s.state == State::Measured => s,
             _ => {
@@ -38,9 +38,13 @@ impl Backlash {
                 "nothing to apply: no axis needs compensation",
             )
             .await?;
-            return Ok(
-                json!({"session": s.id, "state": "done", "message": "no axis needs compensation; nothing written"}),
-            );
+            return Ok(Applied {
+                session: s.id,
+                state: State::Done.name(),
+                values: None,
+                smooth_time_s: None,
+                message: "no axis needs compensation; nothing written".into(),
+            });
         }
         let smooth =
             (detection.branch == Branch::Seed).then(|| common_smooth_time_s(results.values()));
@@ -74,14 +78,18 @@ impl Backlash {
         values: &BTreeMap<String, f64>,
         smooth: Option<f64>,
         outcome: anyhow::Result<String>,
-    ) -> anyhow::Result<Value> {
+    ) -> anyhow::Result<Applied> {
         match outcome {
             Ok(msg) => {
                 self.finish(id, State::Done, &msg).await?;
                 let msg = format!("{TITLE}: {msg}");
-                Ok(
-                    json!({"session": id, "state": "done", "values": values, "smooth_time_s": smooth, "message": msg}),
-                )
+                Ok(Applied {
+                    session: id,
+                    state: State::Done.name(),
+                    values: Some(values.clone()),
+                    smooth_time_s: Some(smooth),
+                    message: msg,
+                })
             }
             Err(e) => {
                 let why = format!("{e:#}");

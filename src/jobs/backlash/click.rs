@@ -16,7 +16,6 @@
 
 use std::sync::Mutex;
 
-use serde_json::{json, Value};
 use tokio::sync::oneshot;
 
 use super::camera::{CameraRequest, Seen, Webcam};
@@ -305,7 +304,7 @@ impl Backlash {
     ///
     /// # Errors
     /// No snapshot waiting, another snapshot's number, a point outside the picture.
-    pub(super) fn tip(&self, r: &TipRequest) -> anyhow::Result<Value> {
+    pub(super) fn tip(&self, r: &TipRequest) -> anyhow::Result<super::answers::Clicked> {
         let mut g = self.clicks.lock_pending();
         let Some(p) = g.take() else {
             return Err(user(
@@ -344,9 +343,11 @@ impl Backlash {
         }
         let seq = p.seq;
         let _ = p.tx.send((r.at_px, r.sd_px));
-        Ok(json!({
-            "frame": seq,
-            "message": format!("tip at ({x:.2}, {y:.2}) px of snapshot {seq} saved; the next snapshot follows"),
-        }))
+        Ok(super::answers::Clicked {
+            frame: seq,
+            message: format!(
+                "tip at ({x:.2}, {y:.2}) px of snapshot {seq} saved; the next snapshot follows"
+            ),
+        })
     }
 }

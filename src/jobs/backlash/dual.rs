@@ -137,7 +137,7 @@ impl Backlash {
         s: &Session,
         values: &BTreeMap<String, f64>,
         smooth_s: f64,
-    ) -> anyhow::Result<Value> {
+    ) -> anyhow::Result<Applied> {
         let (_, cf) = self.detect().await?;
         let dc_axis = cf.settings.dual_carriage_axis();
         if let Some(k) = values.keys().find(|k| k.as_str() == dc_axis.as_str()) {

@@ -279,7 +279,7 @@ impl Backlash {
     ///
     /// # Errors
     /// A measurement in progress, a printer that is printing or not homed.
-    pub(crate) async fn set_point(&self) -> anyhow::Result<Value> {
+    pub(crate) async fn set_point(&self) -> anyhow::Result<PointSaved> {
         // The point is what every reading of a measurement is taken against (issue 27's walk).
         if let Some(s) = self.active()? {
             if matches!(s.state, State::Measuring | State::Applying) {
@@ -310,7 +310,10 @@ impl Backlash {
             "camera point saved: X{:.3} Y{:.3} Z{:.3}; KLIPCAL_BACKLASH_START AXIS=X begins",
             p[0], p[1], p[2]
         );
-        Ok(json!({"point": p, "message": msg}))
+        Ok(PointSaved {
+            point: p,
+            message: msg,
+        })
     }
 
     /// `klipcal_backlash_start`: measures one axis (a new session, or the next axis of a
@@ -319,7 +322,7 @@ impl Backlash {
     /// # Errors
     /// Bad arguments, no camera point, another calibration running, a printing or unhomed
     /// printer, or A/B on a printer that is not CoreXY.
-    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<Value> {
+    pub(crate) async fn start(&self, req: &StartRequest) -> anyhow::Result<AxisStarted> {
         let axis = req.axis;
         let mut params = self.settings.guide();
         if let Some(c) = req.cycles {
@@ -356,16 +359,21 @@ impl Backlash {
             s.guide.as_ref().map_or(1.0, |g| g.params.approach_mm),
             start_note(&s.detection)
         );
-        Ok(
-            json!({"session": s.id, "state": "measuring", "axis": axis.name(), "carriage": carriage, "message": msg}),
-        )
+        Ok(AxisStarted {
+            session: s.id,
+            state: State::Measuring.name(),
+            axis: axis.name(),
+            carriage,
+            webcam: None,
+            message: msg,
+        })
     }
 
     /// `klipcal_backlash_jog PRESS=coarse|fine|centred|past|short|overshot`.
     ///
     /// # Errors
     /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
-    pub(crate) async fn jog(&self, press: Press) -> anyhow::Result<Value> {
+    pub(crate) async fn jog(&self, press: Press) -> anyhow::Result<Jogged> {
         // The press and its reading are saved before the machine moves.
         let (s, step) = {
             let _g = self.core.lock().await;
@@ -407,9 +415,12 @@ impl Backlash {
                 lines.join("\n"),
                 next_line(&s.detection, "KLIPCAL_BACKLASH_START")
             );
-            return Ok(
-                json!({"session": s.id, "state": "measured", "results": self.results(&s)?, "message": text}),
-            );
+            return Ok(Jogged::Measured {
+                session: s.id,
+                state: State::Measured.name(),
+                results: self.results(&s)?,
+                message: text,
+            });
         }
         self.move_along(&s, &step).await?;
         self.core.prompt(&Self::prompt_for(&s, &step)).await;
@@ -431,12 +442,16 @@ impl Backlash {
             ),
             (None, _) => String::new(),
         };
-        Ok(
-            json!({"session": s.id, "state": "measuring", "recorded": step.recorded,
-                  "phase": format!("{:?}", step.phase), "crossing": step.crossing,
-                  "past_once": step.past_once,
-                  "cycle": step.cycle, "message": message}),
-        )
+        Ok(Jogged::Step {
+            session: s.id,
+            state: State::Measuring.name(),
+            recorded: step.recorded,
+            phase: format!("{:?}", step.phase),
+            crossing: step.crossing,
+            past_once: step.past_once,
+            cycle: step.cycle,
+            message,
+        })
     }
 }
 

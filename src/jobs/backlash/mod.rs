@@ -7,6 +7,7 @@
 //! PR 7259; PR 7157's `[backlash]` by config) and persists them through the shared config
 //! transaction. Session store, runner, guards, console and config transaction are the core's.
 
+mod answers;
 mod apply;
 pub mod camera;
 pub mod click;
@@ -26,6 +27,7 @@ use crate::calib::backlash::{
 };
 use crate::calib::backlash_guide::{Guide, GuideAxis, Phase, Press, Step};
 use crate::config::BacklashConfig;
+use crate::jobs::core::answer::{reply, SessionAnswer};
 use crate::jobs::core::console::{Button, Prompt};
 use crate::jobs::core::printer_config::{self, ValueSet};
 use crate::jobs::core::session::{now_unix, Core};
@@ -38,6 +40,7 @@ use crate::klipper::backlash::{self as kb, Branch, CarriageBacklash, Detection, 
 use crate::klipper::GcodeCmd;
 use crate::moonraker::ConfigFile;
 use crate::store::SessionRow;
+use answers::{Applied, AxisStarted, Jogged, PointSaved};
 
 /// `CYCLES=`, shared by the guided and the camera measurement.
 pub(super) const CYCLES_ARG: ArgSpec = arg(
@@ -66,6 +69,25 @@ const PRESS_ARG: ArgSpec = arg(
     "",
     "coarse, fine, centred, past, short or overshot",
 );
+/// Checks a number of cycles (`CYCLES=` or `backlash.cycles`) against `CYCLES=`'s declared
+/// range, in its words.
+///
+/// # Errors
+/// Outside the range.
+pub(super) fn cycles_allowed(cycles: usize) -> anyhow::Result<()> {
+    match CYCLES_ARG.kind {
+        ArgKind::Whole { min, max }
+            if !(min..=max).contains(&i64::try_from(cycles).unwrap_or(i64::MAX)) =>
+        {
+            Err(user(format!(
+                "CYCLES={cycles}: expected {}",
+                CYCLES_ARG.expect
+            )))
+        }
+        _ => Ok(()),
+    }
+}
+
 /// `CARRIAGE=`, shared by the guided and the camera measurement.
 pub(super) const CARRIAGE_ARG: ArgSpec = arg(
     "carriage",
@@ -387,7 +409,7 @@ impl Backlash {
     }
 
     /// The dialog closes in Calibrations::cancel, after every calibration's cancel.
-    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<SessionAnswer> {
         self.core
             .cancel_session::<State, BacklashBody>(
                 id,
@@ -563,12 +585,12 @@ impl Declare for Backlash {
 impl Calibration for Backlash {
     async fn handle(&self, call: BacklashCall) -> anyhow::Result<Value> {
         match call {
-            BacklashCall::SetPoint => self.set_point().await,
-            BacklashCall::Start(r) => self.start(&r).await,
-            BacklashCall::Jog(p) => self.jog(p).await,
-            BacklashCall::Camera(r) => self.camera(&r).await,
-            BacklashCall::Tip(r) => self.tip(&r),
-            BacklashCall::Apply => self.apply().await,
+            BacklashCall::SetPoint => reply(self.set_point().await),
+            BacklashCall::Start(r) => reply(self.start(&r).await),
+            BacklashCall::Jog(p) => reply(self.jog(p).await),
+            BacklashCall::Camera(r) => reply(self.camera(&r).await),
+            BacklashCall::Tip(r) => reply(self.tip(&r)),
+            BacklashCall::Apply => reply(self.apply().await),
         }
     }
 
@@ -576,7 +598,7 @@ impl Calibration for Backlash {
         self.resume_session(row.id).await;
     }
 
-    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<SessionAnswer> {
         self.cancel_session(row.id, reason).await
     }
 

@@ -9,6 +9,7 @@ use anyhow::Context;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 
+use super::answer::SessionAnswer;
 use super::envelope::SessionState;
 use super::status::SessionStatus;
 use super::table::{self, Op, OpSpec};
@@ -101,7 +102,7 @@ pub trait Calibration: Declare + Send + Sync {
         &self,
         row: &SessionRow,
         reason: &str,
-    ) -> impl Future<Output = anyhow::Result<Value>> + Send;
+    ) -> impl Future<Output = anyhow::Result<SessionAnswer>> + Send;
     /// When its session holds heaters on while waiting on the user: since when, how long.
     fn held(&self, row: &SessionRow) -> Option<Hold>;
     /// Records that the hold limit turned the heaters off.

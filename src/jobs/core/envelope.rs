@@ -248,14 +248,18 @@ impl Core {
         reason: &str,
         progress: &str,
         message: String,
-    ) -> anyhow::Result<serde_json::Value>
+    ) -> anyhow::Result<super::answer::SessionAnswer>
     where
         S: SessionState,
         B: Serialize + DeserializeOwned + Send,
     {
         self.end_session::<S, B>(id, S::CANCELLED, reason, progress)
             .await?;
-        Ok(serde_json::json!({"session": id, "state": S::CANCELLED.name(), "message": message}))
+        Ok(super::answer::SessionAnswer {
+            session: id,
+            state: S::CANCELLED.name(),
+            message,
+        })
     }
 }
 

@@ -9,6 +9,7 @@
 //! daemon answers besides the calibrations' own (`ops`). Nothing here knows a calibration: the
 //! routing over them is `jobs::registry`.
 
+pub mod answer;
 pub mod calibration;
 pub mod console;
 pub mod envelope;

@@ -7,7 +7,6 @@
 //! shown again when the bed reaches its band, and the console and the page keep the question.
 
 use serde::Serialize;
-use serde_json::{json, Value};
 
 use super::console::{Button, Prompt};
 use super::session::Core;
@@ -242,7 +241,7 @@ impl BuildAnswer {
 /// # Errors
 /// A thermistor without what is on the bed, or the settings file refused (it does not load:
 /// nothing written) or not written.
-pub(crate) async fn answer(core: &Core, a: BuildAnswer) -> anyhow::Result<Value> {
+pub(crate) async fn answer(core: &Core, a: BuildAnswer) -> anyhow::Result<BedAnswer> {
     let (settings, mut answers) = {
         let st = core.ask_state();
         let s = st
@@ -330,7 +329,22 @@ pub(crate) async fn answer(core: &Core, a: BuildAnswer) -> anyhow::Result<Value>
             }
         }
     }
-    Ok(json!({"message": said.join("; "), "bed": bed, "frame": a.frame.map(Frame::setting)}))
+    Ok(BedAnswer {
+        message: said.join("; "),
+        bed,
+        frame: a.frame.map(Frame::setting),
+    })
+}
+
+/// `klipcal_soak_bed`'s answer: what was written, the settings now.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub(crate) struct BedAnswer {
+    /// What the console shows.
+    pub message: String,
+    /// `soak.bed` as written, when the answer made it whole.
+    pub bed: Option<&'static str>,
+    /// `soak.frame` as written.
+    pub frame: Option<&'static str>,
 }
 
 #[cfg(test)]

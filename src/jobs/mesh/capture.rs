@@ -6,7 +6,7 @@ use super::*;
 
 impl Mesh {
     /// `klipcal_mesh_capture`: starts a capture.
-    pub(super) async fn capture(&self, bed_c: Option<f64>) -> anyhow::Result<Value> {
+    pub(super) async fn capture(&self, bed_c: Option<f64>) -> anyhow::Result<SessionAnswer> {
         let mut options = self.settings.clone();
         if let Some(b) = bed_c {
             options.bed_temp_c = b;
@@ -64,7 +64,11 @@ impl Mesh {
                 cm::MIN_SPAN_C
             )
         };
-        Ok(json!({"session": id, "state": "preflight", "message": msg}))
+        Ok(SessionAnswer {
+            session: id,
+            state: State::Preflight.name(),
+            message: msg,
+        })
     }
 
     /// Refuses when the printer lacks what a capture needs, naming it.

@@ -7,7 +7,7 @@ impl Mesh {
     /// `klipcal_mesh_check`: probes the mesh's corners and centre and compares each with the
     /// model at the current frame temperature (seed 001: a difference over the reference
     /// limit halts the print start).
-    pub(super) async fn check(&self) -> anyhow::Result<Value> {
+    pub(super) async fn check(&self) -> anyhow::Result<Checked> {
         // From PRINT_START the macro pauses the print right after asking (a remote call does
         // not wait): wait for the pause, probe, then RESUME on a pass or CANCEL_PRINT on a fail.
         let in_print = self.paused_print().await?;
@@ -50,7 +50,7 @@ impl Mesh {
         }
     }
 
-    pub(super) async fn check_points(&self) -> anyhow::Result<Value> {
+    pub(super) async fn check_points(&self) -> anyhow::Result<Checked> {
         let (s, sel) = self.model()?;
         let params = s
             .params
@@ -120,7 +120,13 @@ impl Mesh {
             if diff.abs() > worst.0.abs() {
                 worst = (diff, label.clone());
             }
-            rows.push(json!({"x": x, "y": y, "probed_mm": z, "model_mm": want, "diff_mm": diff}));
+            rows.push(CheckPoint {
+                x,
+                y,
+                probed_mm: z,
+                model_mm: want,
+                diff_mm: diff,
+            });
         }
         let limit = self.settings.reference_limit_mm;
         let clamp_note = if (temp - t_model).abs() > 1e-9 {
@@ -142,6 +148,11 @@ impl Mesh {
             "{TITLE} check passed: largest difference {:+.3} mm at {} (limit {limit} mm){clamp_note}",
             worst.0, worst.1
         );
-        Ok(json!({"ok_check": true, "points": rows, "frame_c": temp, "message": msg}))
+        Ok(Checked {
+            ok_check: true,
+            points: rows,
+            frame_c: temp,
+            message: msg,
+        })
     }
 }

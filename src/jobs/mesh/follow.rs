@@ -55,7 +55,7 @@ impl Mesh {
     }
 
     /// `klipcal_mesh_follow`: starts or stops following the frame temperature.
-    pub(super) async fn follow_cmd(&self, enable: bool) -> anyhow::Result<Value> {
+    pub(super) async fn follow_cmd(&self, enable: bool) -> anyhow::Result<Following> {
         if !enable {
             self.stop_following("KLIPCAL_MESH_FOLLOW ENABLE=0").await;
             if let Ok((s, _)) = self.model() {
@@ -67,7 +67,11 @@ impl Mesh {
                     .await?;
                 }
             }
-            return Ok(json!({"following": false, "message": "thermal mesh following is off"}));
+            return Ok(Following {
+                following: false,
+                session: None,
+                message: "thermal mesh following is off".into(),
+            });
         }
         let (s, sel) = self.model()?;
         let temps = s
@@ -150,7 +154,11 @@ impl Mesh {
             "{TITLE}: following the frame temperature with the profiles of session {}{directions}{offset_note}",
             s.id
         );
-        Ok(json!({"following": true, "session": s.id, "message": msg}))
+        Ok(Following {
+            following: true,
+            session: Some(s.id),
+            message: msg,
+        })
     }
 
     #[allow(clippy::too_many_lines)] // 132 lines: to be split along its steps

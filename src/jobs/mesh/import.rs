@@ -7,7 +7,7 @@ impl Mesh {
     /// `HOTxx.x`; `TESTxx.x` are judged, never fitted) and writes klipcal's profiles from
     /// them, every profile's mesh parameters checked against the others.
     #[allow(clippy::too_many_lines)] // 156 lines: to be split along its steps
-    pub(super) async fn import(&self) -> anyhow::Result<Value> {
+    pub(super) async fn import(&self) -> anyhow::Result<Imported> {
         self.core.refuse_other_kind(KIND)?;
         self.core.printer_idle().await?;
         let pc = crate::jobs::core::printer_config::fetch(self.core.m(), self.core.files()).await?;
@@ -96,11 +96,14 @@ impl Mesh {
                 )
             })
             .collect();
-        let tests_json: Vec<Value> = judged
+        let tests: Vec<TestJudged> = judged
             .iter()
-            .map(|(n, t, e)| {
-                json!({"name": n, "temp_c": t, "max_um": e.max_um, "mean_um": e.mean_um,
-                       "within_tolerance": e.max_um <= tol})
+            .map(|(n, t, e)| TestJudged {
+                name: n.to_string(),
+                temp_c: *t,
+                max_um: e.max_um,
+                mean_um: e.mean_um,
+                within_tolerance: e.max_um <= tol,
             })
             .collect();
         // An earlier capture's (or import's) profiles are replaced by the write.
@@ -160,9 +163,13 @@ impl Mesh {
             names.len(),
             names.join(", ")
         );
-        Ok(
-            json!({"session": id, "state": "writing", "imported": names, "tests": tests_json,
-                  "replaces": replaced, "message": msg}),
-        )
+        Ok(Imported {
+            session: id,
+            state: State::Writing.name(),
+            imported: names.iter().map(|n| n.to_string()).collect(),
+            tests,
+            replaces: replaced.iter().map(|n| n.to_string()).collect(),
+            message: msg,
+        })
     }
 }

@@ -7,12 +7,14 @@
 //! the model says it matters (`calib::mesh_follow`). Check: seed 001's 0.5 mm reference rule
 //! before a print.
 
+mod answers;
 mod capture;
 mod check;
 mod follow;
 mod import;
 mod plan;
 
+use answers::{CheckPoint, Checked, Following, Imported, TestJudged};
 use plan::fit_session;
 pub use plan::{capture_done, mesh_due, plan_session};
 
@@ -29,6 +31,7 @@ use crate::calib::mesh::{self as cm, Capture, Phase};
 pub use crate::calib::mesh_capture::point_temps;
 use crate::calib::mesh_follow::{Branch, Decision, Follower};
 use crate::config::MeshConfig;
+use crate::jobs::core::answer::{reply, SessionAnswer};
 use crate::jobs::core::printer_config::FileWrite;
 use crate::jobs::core::session::{now_unix, Core};
 use crate::jobs::core::soak::{BedSoak, SoakSettings, SoakUpdate};
@@ -378,7 +381,7 @@ impl Mesh {
         })
     }
 
-    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel_session(&self, id: i64, reason: &str) -> anyhow::Result<SessionAnswer> {
         self.core.stop_runner();
         self.core
             .heaters_off_reported("mesh session cancelled")
@@ -528,10 +531,10 @@ impl Declare for Mesh {
 impl Calibration for Mesh {
     async fn handle(&self, call: MeshCall) -> anyhow::Result<Value> {
         match call {
-            MeshCall::Capture { bed_c } => self.capture(bed_c).await,
-            MeshCall::Import => self.import().await,
-            MeshCall::Follow { enable } => self.follow_cmd(enable).await,
-            MeshCall::Check => self.check().await,
+            MeshCall::Capture { bed_c } => reply(self.capture(bed_c).await),
+            MeshCall::Import => reply(self.import().await),
+            MeshCall::Follow { enable } => reply(self.follow_cmd(enable).await),
+            MeshCall::Check => reply(self.check().await),
         }
     }
 
@@ -545,7 +548,7 @@ impl Calibration for Mesh {
         }
     }
 
-    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<Value> {
+    async fn cancel(&self, row: &SessionRow, reason: &str) -> anyhow::Result<SessionAnswer> {
         self.cancel_session(row.id, reason).await
     }
 
@@ -576,9 +579,8 @@ impl Calibration for Mesh {
         }
         match self.follow_cmd(true).await {
             Ok(r) if asked => {
-                let msg = r["message"].as_str().unwrap_or("");
                 self.core
-                    .console(&format!("klipcal started again; {msg}"))
+                    .console(&format!("klipcal started again; {}", r.message))
                     .await;
             }
             Ok(_) => {}

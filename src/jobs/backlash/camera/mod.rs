@@ -28,7 +28,6 @@
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
-use serde_json::{json, Value};
 
 use super::{key_words, next_line, result_key, start_note, Backlash, BacklashCall};
 use super::{Session, State};
@@ -199,12 +198,13 @@ impl Backlash {
     /// # Errors
     /// Bad arguments, another calibration, a printing or unhomed printer, no camera point, no
     /// or several webcams, a first frame without a sure nozzle (the reason), A/B off CoreXY.
-    pub(super) async fn camera(&self, req: &CameraRequest) -> anyhow::Result<Value> {
+    pub(super) async fn camera(
+        &self,
+        req: &CameraRequest,
+    ) -> anyhow::Result<super::answers::AxisStarted> {
         let axis = req.axis;
         let cycles = req.cycles.unwrap_or(self.settings.cycles);
-        if !(1..=50).contains(&cycles) {
-            return Err(user(format!("CYCLES={cycles}: expected 1..50")));
-        }
+        super::cycles_allowed(cycles)?;
         self.core.refuse_other_kind(KIND)?;
         if let Some(s) = self.active()? {
             if s.state != State::Measured {
@@ -305,10 +305,14 @@ impl Backlash {
                 note
             )
         };
-        Ok(
-            json!({"session": id, "state": "measuring", "axis": axis.name(),
-                  "carriage": carriage, "webcam": cam, "message": msg}),
-        )
+        Ok(super::answers::AxisStarted {
+            session: id,
+            state: State::Measuring.name(),
+            axis: axis.name(),
+            carriage,
+            webcam: Some(cam),
+            message: msg,
+        })
     }
 
     /// The measurement itself (the runner's steps; run again from the start after an outage).
