@@ -5,7 +5,7 @@
 use serde::Serialize;
 use serde_json::{json, Map, Value};
 
-use crate::moonraker::answers::HeatersStatus;
+use crate::moonraker::answers::{PrinterInfo, ServerInfo, SummaryObjects};
 use crate::moonraker::{self, Moonraker};
 
 /// One X/Y stepper as Klipper runs it.
@@ -117,12 +117,8 @@ pub(crate) fn query_objects() -> Value {
     })
 }
 
-fn f(v: &Value) -> Option<f64> {
-    v.as_f64()
-}
-
-fn xy(v: &Value) -> Option<[f64; 2]> {
-    Some([v.get(0)?.as_f64()?, v.get(1)?.as_f64()?])
+fn xy(v: &[f64]) -> Option<[f64; 2]> {
+    Some([*v.first()?, *v.get(1)?])
 }
 
 impl Summary {
@@ -132,25 +128,24 @@ impl Summary {
     /// # Errors
     /// [`moonraker::Error::Protocol`] when Klipper's `heaters` object is malformed.
     pub(crate) fn from_answers(
-        server_info: &Value,
-        printer_info: Option<&Value>,
+        server_info: &ServerInfo,
+        printer_info: Option<&PrinterInfo>,
         objects: Option<&[String]>,
         gcode_help: Option<&Map<String, Value>>,
-        status: Option<&Map<String, Value>>,
+        status: Option<&SummaryObjects>,
     ) -> Result<Self, moonraker::Error> {
-        let s = |v: &Value| v.as_str().unwrap_or_default().to_string();
         let klippy_state = printer_info
-            .and_then(|p| p["state"].as_str())
-            .unwrap_or_else(|| server_info["klippy_state"].as_str().unwrap_or("unknown"))
-            .to_string();
+            .map(|p| p.state.clone())
+            .or_else(|| server_info.klippy_state.clone())
+            .unwrap_or_else(|| "unknown".into());
         let mut out = Summary {
-            moonraker_version: s(&server_info["moonraker_version"]),
+            moonraker_version: server_info.moonraker_version.clone(),
             klippy_state,
             klippy_message: printer_info
-                .map(|p| s(&p["state_message"]))
+                .map(|p| p.state_message.clone())
                 .unwrap_or_default(),
             klipper_version: printer_info
-                .map(|p| s(&p["software_version"]))
+                .map(|p| p.software_version.clone())
                 .unwrap_or_default(),
             kinematics: None,
             steppers: Vec::new(),
@@ -162,39 +157,33 @@ impl Summary {
             features: None,
         };
         if let Some(st) = status {
-            let settings = &st
-                .get("configfile")
-                .map_or(&Value::Null, |c| &c["settings"]);
-            out.kinematics = settings["printer"]["kinematics"]
-                .as_str()
-                .map(str::to_string);
-            for name in ["stepper_x", "stepper_y"] {
-                let sec = &settings[name];
-                if sec.is_null() {
-                    continue;
-                }
+            let settings = st.configfile.as_ref().map(|c| &c.settings);
+            out.kinematics = settings
+                .and_then(|s| s.printer.as_ref())
+                .and_then(|p| p.kinematics.clone());
+            for (name, sec) in settings
+                .into_iter()
+                .flat_map(|s| [("stepper_x", &s.stepper_x), ("stepper_y", &s.stepper_y)])
+            {
+                let Some(sec) = sec else { continue };
                 out.steppers.push(Stepper {
                     name: name.to_string(),
-                    rotation_distance_mm: f(&sec["rotation_distance"]),
-                    microsteps: sec["microsteps"].as_u64(),
-                    full_steps_per_rotation: sec["full_steps_per_rotation"].as_u64(),
-                    position_min_mm: f(&sec["position_min"]),
-                    position_max_mm: f(&sec["position_max"]),
+                    rotation_distance_mm: sec.rotation_distance,
+                    microsteps: sec.microsteps,
+                    full_steps_per_rotation: sec.full_steps_per_rotation,
+                    position_min_mm: sec.position_min,
+                    position_max_mm: sec.position_max,
                 });
             }
-            if let Some(th) = st.get("toolhead") {
-                out.axis_min_mm = xy(&th["axis_minimum"]);
-                out.axis_max_mm = xy(&th["axis_maximum"]);
+            if let Some(th) = &st.toolhead {
+                out.axis_min_mm = th.axis_minimum.as_deref().and_then(xy);
+                out.axis_max_mm = th.axis_maximum.as_deref().and_then(xy);
             }
-            if let Some(h) = st.get("heaters") {
-                let h = HeatersStatus::parse(h.clone())?;
-                out.heaters = h.available_heaters;
-                out.sensors = h.available_sensors;
+            if let Some(h) = &st.heaters {
+                out.heaters.clone_from(&h.available_heaters);
+                out.sensors.clone_from(&h.available_sensors);
             }
-            out.print_state = st
-                .get("print_stats")
-                .and_then(|p| p["state"].as_str())
-                .map(str::to_string);
+            out.print_state = st.print_stats.as_ref().and_then(|p| p.state.clone());
         }
         if let (Some(objs), Some(help)) = (objects, gcode_help) {
             out.features = Some(Features::running(objs, help));
@@ -307,9 +296,7 @@ impl Summary {
 pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
     let server_info = m.server_info().await?;
     let printer_info = m.printer_info().await.ok();
-    let ready = printer_info
-        .as_ref()
-        .is_some_and(|p| p["state"].as_str() == Some("ready"));
+    let ready = printer_info.as_ref().is_some_and(PrinterInfo::ready);
     if !ready {
         return Summary::from_answers(&server_info, printer_info.as_ref(), None, None, None);
     }
@@ -318,7 +305,7 @@ pub(crate) async fn gather(m: &Moonraker) -> Result<Summary, moonraker::Error> {
         Value::Object(h) => h,
         _ => Map::new(),
     };
-    let status = m.objects_query(query_objects()).await?;
+    let status = SummaryObjects::parse(&m.objects_query(query_objects()).await?)?;
     Summary::from_answers(
         &server_info,
         printer_info.as_ref(),
@@ -333,8 +320,8 @@ mod tests {
     use super::*;
 
     type Answers = (
-        Value,
-        Value,
+        ServerInfo,
+        PrinterInfo,
         Vec<String>,
         Map<String, Value>,
         Map<String, Value>,
@@ -369,7 +356,17 @@ mod tests {
         let Value::Object(status) = status else {
             unreachable!()
         };
-        (server, printer, objects, help, status)
+        (
+            ServerInfo::parse(server).unwrap(),
+            PrinterInfo::parse(printer).unwrap(),
+            objects,
+            help,
+            status,
+        )
+    }
+
+    fn typed(status: &Map<String, Value>) -> SummaryObjects {
+        SummaryObjects::parse(status).unwrap()
     }
 
     #[test]
@@ -380,7 +377,7 @@ mod tests {
             Some(&printer),
             Some(&objects),
             Some(&help),
-            Some(&status),
+            Some(&typed(&status)),
         )
         .unwrap();
         assert_eq!(s.kinematics.as_deref(), Some("corexy"));
@@ -422,8 +419,9 @@ mod tests {
     #[test]
     fn klipper_not_ready_is_a_problem_with_its_message() {
         let (server, _, _, _, _) = answers();
-        let printer = json!({"state": "error", "state_message": "Option 'x' is not valid",
-                             "software_version": "v0.12"});
+        let printer = PrinterInfo::parse(json!({"state": "error",
+            "state_message": "Option 'x' is not valid", "software_version": "v0.12"}))
+        .unwrap();
         let s = Summary::from_answers(&server, Some(&printer), None, None, None).unwrap();
         let p = s.problem().unwrap();
         assert!(
@@ -441,15 +439,13 @@ mod tests {
             Some(&printer),
             Some(&objects),
             Some(&help),
-            Some(&status),
+            Some(&typed(&status)),
         )
         .unwrap();
         assert_eq!(s.heaters, ["heater_bed", "extruder"]);
         assert!(s.render().contains("Heaters         heater_bed, extruder"));
         status.insert("heaters".into(), json!({"available_heaters": "heater_bed"}));
-        let e = Summary::from_answers(&server, Some(&printer), None, None, Some(&status))
-            .unwrap_err()
-            .to_string();
+        let e = SummaryObjects::parse(&status).unwrap_err().to_string();
         assert!(e.contains("heaters object"), "{e}");
     }
 }

@@ -717,3 +717,190 @@ mod tests {
         }
     }
 }
+
+/// `printer.info`: Klipper's state and where its config is.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub struct PrinterInfo {
+    /// `ready`, `startup`, `error`, `shutdown`.
+    #[serde(deserialize_with = "text_or_null")]
+    pub state: String,
+    /// Klipper's words about its state.
+    #[serde(deserialize_with = "text_or_null")]
+    pub state_message: String,
+    /// Klipper's version.
+    #[serde(deserialize_with = "text_or_null")]
+    pub software_version: String,
+    /// The main config file, as Klipper read it.
+    pub config_file: Option<String>,
+    /// `Klipper`, or Kalico's name.
+    pub app: Option<String>,
+}
+
+impl PrinterInfo {
+    /// Parses the `printer.info` answer.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming what is malformed.
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad("printer.info answer", e))
+    }
+
+    /// Whether Klipper is ready.
+    #[must_use]
+    pub fn ready(&self) -> bool {
+        self.state == "ready"
+    }
+}
+
+/// `server.info`: Moonraker's version and what it knows of Klipper.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub struct ServerInfo {
+    /// Klipper's state as Moonraker sees it.
+    pub klippy_state: Option<String>,
+    /// Moonraker's version.
+    #[serde(deserialize_with = "text_or_null")]
+    pub moonraker_version: String,
+}
+
+impl ServerInfo {
+    /// Parses the `server.info` answer.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming what is malformed.
+    pub(crate) fn parse(v: Value) -> Result<Self, Error> {
+        serde_json::from_value(v).map_err(|e| bad_moonraker("server.info answer", e))
+    }
+}
+
+/// One of Moonraker's file roots (`/server/files/roots`).
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub struct FileRoot {
+    /// `config`, `gcodes`, …
+    pub name: String,
+    /// Its folder on the host.
+    pub path: String,
+}
+
+/// One file of a root's listing (`/server/files/list`).
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub struct ListedFile {
+    /// Relative to the root.
+    pub path: String,
+}
+
+/// Parses a list answer of Moonraker's file API (`what` names it in the error).
+///
+/// # Errors
+/// [`Error::Protocol`] naming what is malformed.
+pub(crate) fn parse_list<T: DeserializeOwned>(what: &str, v: Value) -> Result<Vec<T>, Error> {
+    serde_json::from_value(v).map_err(|e| bad_moonraker(what, e))
+}
+
+/// The objects the printer summary queries (`configfile` settings, `toolhead` limits,
+/// `heaters`, `print_stats`), each absent when Klipper has no such object.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub(crate) struct SummaryObjects {
+    /// `configfile`.
+    pub configfile: Option<SummaryConfig>,
+    /// `toolhead`.
+    pub toolhead: Option<ToolheadLimits>,
+    /// `heaters`.
+    pub heaters: Option<HeatersStatus>,
+    /// `print_stats`.
+    pub print_stats: Option<PrintStats>,
+}
+
+/// `configfile.settings`, the parts the summary shows.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct SummaryConfig {
+    /// The sections.
+    pub settings: SummarySettings,
+}
+
+/// The sections the summary shows.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct SummarySettings {
+    /// `[printer]`.
+    pub printer: Option<SummaryPrinter>,
+    /// `[stepper_x]`.
+    pub stepper_x: Option<SummaryStepper>,
+    /// `[stepper_y]`.
+    pub stepper_y: Option<SummaryStepper>,
+}
+
+/// `[printer]`'s kinematics.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub(crate) struct SummaryPrinter {
+    /// `corexy`, `cartesian`, …
+    pub kinematics: Option<String>,
+}
+
+/// A stepper's settings the summary shows.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct SummaryStepper {
+    /// mm.
+    pub rotation_distance: Option<f64>,
+    /// Microsteps.
+    pub microsteps: Option<u64>,
+    /// Full steps per rotation.
+    pub full_steps_per_rotation: Option<u64>,
+    /// mm.
+    pub position_min: Option<f64>,
+    /// mm.
+    pub position_max: Option<f64>,
+}
+
+/// `toolhead`'s limits.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(default)]
+pub(crate) struct ToolheadLimits {
+    /// X, Y, Z, E, mm.
+    pub axis_minimum: Option<Vec<f64>>,
+    /// X, Y, Z, E, mm.
+    pub axis_maximum: Option<Vec<f64>>,
+}
+
+/// `print_stats`' state.
+#[derive(Debug, Clone, Default, Deserialize, PartialEq, Eq)]
+#[serde(default)]
+pub(crate) struct PrintStats {
+    /// `standby`, `printing`, `paused`, `complete`, …
+    pub state: Option<String>,
+}
+
+impl SummaryObjects {
+    /// Parses the summary's objects query, each object on its own.
+    ///
+    /// # Errors
+    /// [`Error::Protocol`] naming the object and what is malformed.
+    pub(crate) fn parse(st: &Map<String, Value>) -> Result<Self, Error> {
+        fn object<T: DeserializeOwned>(
+            st: &Map<String, Value>,
+            name: &str,
+        ) -> Result<Option<T>, Error> {
+            st.get(name)
+                .map(|v| {
+                    serde_json::from_value(v.clone()).map_err(|e| bad(&format!("{name} object"), e))
+                })
+                .transpose()
+        }
+        Ok(Self {
+            configfile: object(st, "configfile")?,
+            toolhead: object(st, "toolhead")?,
+            heaters: st
+                .get("heaters")
+                .cloned()
+                .map(HeatersStatus::parse)
+                .transpose()?,
+            print_stats: object(st, "print_stats")?,
+        })
+    }
+}

@@ -6,7 +6,9 @@ use std::time::Duration;
 
 use serde_json::{json, Map, Value};
 
-use super::answers::{BedMeshStatus, ConfigFile, HeaterStatus, WebcamList};
+use super::answers::{
+    BedMeshStatus, ConfigFile, HeaterStatus, PrinterInfo, ServerInfo, WebcamList,
+};
 use super::{Error, Moonraker};
 
 impl Moonraker {
@@ -35,16 +37,16 @@ impl Moonraker {
     ///
     /// # Errors
     /// As [`Moonraker::call`].
-    pub(crate) async fn server_info(&self) -> Result<Value, Error> {
-        self.call("server.info", Value::Null).await
+    pub(crate) async fn server_info(&self) -> Result<ServerInfo, Error> {
+        ServerInfo::parse(self.call("server.info", Value::Null).await?)
     }
 
     /// `printer.info`.
     ///
     /// # Errors
     /// As [`Moonraker::call`].
-    pub async fn printer_info(&self) -> Result<Value, Error> {
-        self.call("printer.info", Value::Null).await
+    pub async fn printer_info(&self) -> Result<PrinterInfo, Error> {
+        PrinterInfo::parse(self.call("printer.info", Value::Null).await?)
     }
 
     /// `printer.objects.list`: the names of every printer object.

@@ -1014,7 +1014,7 @@ async fn an_edit_klipper_rejects_is_rolled_back_byte_for_byte() {
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     let info = m.printer_info().await.unwrap();
-    assert_eq!(info["state"], "ready", "{info}");
+    assert_eq!(info.state, "ready", "{info:?}");
     assert_eq!(session(&bench).await["state"], "solved");
 }
 

@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 
 use crate::klipper::{self, Config, MemFiles};
+use crate::moonraker::answers::{parse_list, FileRoot, ListedFile, PrinterInfo};
 use crate::moonraker::{Event, Files, Moonraker};
 
 /// The loaded config and where its files live.
@@ -52,7 +53,7 @@ pub struct ApplyReport {
 
 /// `printer.info`, waiting up to 15 s while Moonraker is still reconnecting to Klipper (it
 /// answers "Klippy Host not connected" for a moment after a restart reports ready).
-async fn printer_info_settled(m: &Moonraker) -> anyhow::Result<serde_json::Value> {
+async fn printer_info_settled(m: &Moonraker) -> anyhow::Result<PrinterInfo> {
     let deadline = tokio::time::Instant::now() + Duration::from_secs(15);
     loop {
         match m.printer_info().await {
@@ -76,28 +77,28 @@ async fn printer_info_settled(m: &Moonraker) -> anyhow::Result<serde_json::Value
 /// # Errors
 /// Moonraker failures, or a config Klipper's own rules reject.
 pub async fn fetch(m: &Moonraker, files: &Files) -> anyhow::Result<PrinterConfig> {
-    let roots = files.get("/server/files/roots").await?;
+    let roots: Vec<FileRoot> = parse_list("file roots", files.get("/server/files/roots").await?)?;
     let root = roots
-        .as_array()
-        .and_then(|a| a.iter().find(|r| r["name"] == "config"))
-        .and_then(|r| r["path"].as_str())
-        .map(PathBuf::from)
+        .into_iter()
+        .find(|r| r.name == "config")
+        .map(|r| PathBuf::from(r.path))
         .ok_or_else(|| anyhow!("Moonraker has no `config` root"))?;
     let info = printer_info_settled(m).await?;
-    let main = info["config_file"]
-        .as_str()
+    let main = info
+        .config_file
+        .as_deref()
         .map(PathBuf::from)
         .ok_or_else(|| anyhow!("printer.info names no config_file"))?;
-    let list = files.get("/server/files/list?root=config").await?;
-    let listed: Vec<String> = list
-        .as_array()
-        .into_iter()
-        .flatten()
-        .filter_map(|item| item["path"].as_str().map(str::to_string))
-        .collect();
+    let listed: Vec<String> = parse_list::<ListedFile>(
+        "config file list",
+        files.get("/server/files/list?root=config").await?,
+    )?
+    .into_iter()
+    .map(|f| f.path)
+    .collect();
     let mut remote = Listed::new(&root, &listed);
     // Kalico reads references, value includes and recursive include globs.
-    let dialect = klipper::Dialect::of_app(info["app"].as_str());
+    let dialect = klipper::Dialect::of_app(info.app.as_deref());
     // Load; every file the loader asked for and did not have is downloaded, then load again
     // (each round reaches one include level deeper).
     loop {
@@ -282,10 +283,7 @@ impl PrinterConfig {
 
 async fn klipper_state(m: &Moonraker) -> Option<(String, String)> {
     let info = m.printer_info().await.ok()?;
-    Some((
-        info["state"].as_str().unwrap_or("").to_string(),
-        info["state_message"].as_str().unwrap_or("").to_string(),
-    ))
+    Some((info.state, info.state_message))
 }
 
 /// Runs a G-code that restarts Klipper (`FIRMWARE_RESTART`, `SAVE_CONFIG`) and waits until

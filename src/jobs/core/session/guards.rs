@@ -10,11 +10,15 @@ impl Core {
     /// A user error saying what the printer is doing; Moonraker failures.
     pub(crate) async fn printer_idle(&self) -> anyhow::Result<()> {
         let info = self.inner.m.printer_info().await?;
-        if info["state"] != "ready" {
+        if !info.ready() {
             return Err(user(format!(
                 "Klipper is not ready ({}): {}",
-                info["state"].as_str().unwrap_or("?"),
-                info["state_message"].as_str().unwrap_or("").trim()
+                if info.state.is_empty() {
+                    "?"
+                } else {
+                    &info.state
+                },
+                info.state_message.trim()
             )));
         }
         let st = self
@@ -33,7 +37,7 @@ impl Core {
 
     /// Whether Klipper answers ready.
     pub(crate) async fn klipper_ready(&self) -> bool {
-        matches!(self.inner.m.printer_info().await, Ok(i) if i["state"] == "ready")
+        matches!(self.inner.m.printer_info().await, Ok(i) if i.ready())
     }
 
     /// Heaters off, and Klipper's idle timeout back to its configured value (a session may
