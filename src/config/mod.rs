@@ -171,11 +171,7 @@ impl Config {
         self.http.validate()?;
         self.mesh.validate()?;
         self.soak.validate()?;
-        self.backlash
-            .params()
-            .validate()
-            .and_then(|()| self.backlash.guide().validate())
-            .map_err(|e| Error::Backlash(e.to_string()))?;
+        self.backlash.validate().map_err(Error::Backlash)?;
         self.log.validate()
     }
 

@@ -203,7 +203,7 @@ impl Backlash {
         req: &CameraRequest,
     ) -> anyhow::Result<super::answers::AxisStarted> {
         let axis = req.axis;
-        let cycles = req.cycles.unwrap_or(self.settings.cycles);
+        let cycles = req.cycles.unwrap_or(self.settings.guide.cycles);
         super::cycles_allowed(cycles)?;
         self.core.refuse_other_kind(KIND)?;
         if let Some(s) = self.active()? {
@@ -353,7 +353,7 @@ impl Backlash {
             }
         };
         let key = result_key(axis, carriage);
-        let approach = self.settings.approach_mm;
+        let approach = self.settings.guide.approach_mm;
         let mut report = CameraReport {
             webcam: cam.clone(),
             scale: None,
