@@ -18,9 +18,10 @@
 //!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
 //!   trait, the session envelope and its `SessionState` trait, the typed status); one folder per calibration (`jobs::ab`, `jobs::mesh`: capture, import, follow,
 //!   check; `jobs::backlash`: guide, dual carriage, apply, the camera — its steps, `webcam`,
-//!   `frames` — and the click flow); and `jobs::registry`, the one module
-//!   that lists the calibrations (routing, status, cancel, resume, the hold watchdog). The
-//!   calibrations import the core, never the registry.
+//!   `frames` — and the click flow); `jobs::call`, the one parse of a method or path into a
+//!   typed `Call`; and `jobs::registry`, the one module that lists the calibrations (matching
+//!   the call, status, cancel, resume, the hold watchdog). The calibrations import the core,
+//!   never the registry.
 //! - [`calib`], [`gcode`], [`klipper`], [`layout`], [`plots`]: PURE, the `klipcal-core` crate
 //!   (crates/klipcal-core), re-exported here under the paths the daemon has always used. Its
 //!   dependencies have no I/O crate (a test walks Cargo.lock): the calibration math (statistics,
