@@ -47,8 +47,9 @@ pub trait Declare {
     fn session_status(&self, s: &Self::Session) -> anyhow::Result<SessionStatus>;
 }
 
-/// A calibration's declaration as the registry reads it through `dyn Calibration`; written
-/// once, for every [`Declare`].
+/// A calibration's declaration as the registry reads it for every kind at once
+/// (`&dyn Declared`: its kind, states and status; no call goes through it); written once,
+/// for every [`Declare`].
 pub trait Declared {
     /// [`Declare::KIND`].
     fn kind(&self) -> &'static str;
