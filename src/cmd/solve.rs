@@ -127,7 +127,6 @@ pub(crate) fn run(args: &SolveArgs) -> anyhow::Result<ExitCode> {
 
 /// Human-readable solution.
 #[must_use]
-#[allow(clippy::too_many_lines)] // 131 lines: to be split along its steps
 pub(crate) fn format_solution(s: &Solution) -> String {
     use std::fmt::Write as _;
     let mut o = String::new();
@@ -144,24 +143,7 @@ pub(crate) fn format_solution(s: &Solution) -> String {
         s.fit.chi2,
         s.fit.dof
     );
-    for g in &s.groups {
-        let pairs: Vec<String> = g
-            .pairs
-            .iter()
-            .map(|p| format!("{} {:.3} mm", p.pair, p.centre_mm))
-            .collect();
-        let _ = writeln!(
-            o,
-            "  group {:<3} {:>+6.1}°  α {:.6} ± {:.6}  fitted {:.6}{}  ({})",
-            g.group,
-            g.direction_deg,
-            g.scale,
-            g.uncertainty,
-            g.fitted,
-            if g.flagged { "  FLAGGED" } else { "" },
-            pairs.join(", ")
-        );
-    }
+    write_groups(&mut o, s);
     for (name, st) in [("stepper_x", &s.stepper_x), ("stepper_y", &s.stepper_y)] {
         let _ = writeln!(
             o,
@@ -175,47 +157,7 @@ pub(crate) fn format_solution(s: &Solution) -> String {
             st.steps_per_mm_new
         );
     }
-    let sk = &s.skew;
-    if !sk.observed {
-        let _ = writeln!(
-            o,
-            "skew: not observed by this layout{}",
-            if s.kinematics == Kinematics::CoreXy {
-                " (on a CoreXY the A/B correction removes the shear anyway)"
-            } else {
-                " (print the `full` layout to fit it)"
-            }
-        );
-    } else {
-        let _ = writeln!(
-            o,
-            "skew: measured shear {:+.3}° ± {:.3}° ({} by Prusa's thresholds 0.12°/0.25°)",
-            sk.measured_shear_deg.unwrap_or(0.0),
-            sk.measured_shear_uncertainty_deg.unwrap_or(0.0),
-            match sk.class {
-                Some(SkewClass::Extreme) => "extreme",
-                Some(SkewClass::Mild) => "mild",
-                _ => "perfect",
-            }
-        );
-        match &sk.set_skew {
-            Some(cmd) => {
-                let _ = writeln!(
-                    o,
-                    "  set: {cmd}   (xy factor {:.6} ± {:.6}, {:+.3}°), then SKEW_PROFILE SAVE=… and SAVE_CONFIG",
-                    sk.xy_factor.unwrap_or(0.0),
-                    sk.uncertainty.unwrap_or(0.0),
-                    sk.angle_deg.unwrap_or(0.0)
-                );
-            }
-            None => {
-                let _ = writeln!(
-                    o,
-                    "  absorbed by the A/B rotation distances: leave skew correction off"
-                );
-            }
-        }
-    }
+    write_skew(&mut o, s);
     if let (Some(v), Some(u)) = (s.anisotropy.value, s.anisotropy.uncertainty) {
         let _ = writeln!(
             o,
@@ -260,6 +202,75 @@ pub(crate) fn format_solution(s: &Solution) -> String {
         let _ = writeln!(o, "warning: {w}");
     }
     o
+}
+
+/// A line per group: its scale, the fitted one and its pairs' centres.
+fn write_groups(o: &mut String, s: &Solution) {
+    use std::fmt::Write as _;
+    for g in &s.groups {
+        let pairs: Vec<String> = g
+            .pairs
+            .iter()
+            .map(|p| format!("{} {:.3} mm", p.pair, p.centre_mm))
+            .collect();
+        let _ = writeln!(
+            o,
+            "  group {:<3} {:>+6.1}°  α {:.6} ± {:.6}  fitted {:.6}{}  ({})",
+            g.group,
+            g.direction_deg,
+            g.scale,
+            g.uncertainty,
+            g.fitted,
+            if g.flagged { "  FLAGGED" } else { "" },
+            pairs.join(", ")
+        );
+    }
+}
+
+/// The skew: measured, and the command that sets it or why it is left off.
+fn write_skew(o: &mut String, s: &Solution) {
+    use std::fmt::Write as _;
+    let sk = &s.skew;
+    if !sk.observed {
+        let _ = writeln!(
+            o,
+            "skew: not observed by this layout{}",
+            if s.kinematics == Kinematics::CoreXy {
+                " (on a CoreXY the A/B correction removes the shear anyway)"
+            } else {
+                " (print the `full` layout to fit it)"
+            }
+        );
+    } else {
+        let _ = writeln!(
+            o,
+            "skew: measured shear {:+.3}° ± {:.3}° ({} by Prusa's thresholds 0.12°/0.25°)",
+            sk.measured_shear_deg.unwrap_or(0.0),
+            sk.measured_shear_uncertainty_deg.unwrap_or(0.0),
+            match sk.class {
+                Some(SkewClass::Extreme) => "extreme",
+                Some(SkewClass::Mild) => "mild",
+                _ => "perfect",
+            }
+        );
+        match &sk.set_skew {
+            Some(cmd) => {
+                let _ = writeln!(
+                    o,
+                    "  set: {cmd}   (xy factor {:.6} ± {:.6}, {:+.3}°), then SKEW_PROFILE SAVE=… and SAVE_CONFIG",
+                    sk.xy_factor.unwrap_or(0.0),
+                    sk.uncertainty.unwrap_or(0.0),
+                    sk.angle_deg.unwrap_or(0.0)
+                );
+            }
+            None => {
+                let _ = writeln!(
+                    o,
+                    "  absorbed by the A/B rotation distances: leave skew correction off"
+                );
+            }
+        }
+    }
 }
 
 #[cfg(test)]

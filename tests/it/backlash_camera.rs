@@ -510,12 +510,104 @@ const READ_FIGURE: &str = "(() => {
         spread: (document.querySelector('.camera[data-key=\"x\"] tr.spread td') || {}).textContent};
 })()";
 
+/// The served frame is a JPEG; the guard stands before it as before the page (an address
+/// outside trusted_clients is refused); a frame no longer kept, or a number that is not one, is
+/// said.
+async fn the_frame_is_served_guarded_and_its_misses_said(base: &str, seq: u64) {
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
+        .await
+        .unwrap();
+    assert_eq!(r.headers()["content-type"], "image/jpeg");
+    assert!(r.bytes().await.unwrap().starts_with(&[0xff, 0xd8]));
+    // The guard stands before it as before the page: an address outside trusted_clients is
+    // refused.
+    let r = crate::http::client_from("127.0.0.2")
+        .get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 403);
+    // A frame no longer kept, or a number that is not one, is said.
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=1"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 404);
+    assert!(r.text().await.unwrap().contains("no longer kept"));
+    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=x"))
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+}
+
+/// The page's figure at `size` (`f`, read by READ_FIGURE) shows the frame `seq` of the status
+/// `s`: the mark at the detector's finding `found`, which is where the bench drew the nozzle
+/// (`want`), over that point of the picture on the screen; each approach marked; the cycles,
+/// median and spread as the status gives them.
+fn the_figure_shows_what_the_status_says(
+    size: &str,
+    f: &Value,
+    s: &Value,
+    seq: u64,
+    found: [f64; 2],
+    want: [f64; 2],
+) {
+    assert_eq!(f["seq"], json!(seq.to_string()), "{f}");
+    assert_eq!((f["w"].as_u64(), f["h"].as_u64()), (Some(640), Some(480)));
+    let at = |k: &str, i: usize| f[k][i].as_f64().unwrap();
+    for i in 0..2 {
+        // The mark is the detector's finding, which is where the bench drew the nozzle…
+        assert!(
+            (at("mark", i) - found[i]).abs() < 1e-3,
+            "{f} {}",
+            s["snapshot"]
+        );
+        assert!(
+            (found[i] - want[i]).abs() < 0.3,
+            "found {found:?}, drawn {want:?}"
+        );
+        // … and on the screen it sits over that point of the picture.
+        assert!(
+            (at("screen", i) - want[i]).abs() < 1.5,
+            "{size}: the mark is drawn at {:?} of the picture, the nozzle at {want:?}",
+            f["screen"]
+        );
+    }
+    assert!(
+        f["caption"]
+            .as_str()
+            .unwrap()
+            .contains(&format!("nozzle at ({:.2}, {:.2}) px", found[0], found[1])),
+        "{f}"
+    );
+    // Each cycle's two approaches are marked; the table says what the status says.
+    assert_eq!(f["approaches"], json!(6), "{f}");
+    let cycles: Vec<String> = s["camera"]["x"]["cycles"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| format!("{:.4}", c["backlash_mm"].as_f64().unwrap()))
+        .collect();
+    assert_eq!(f["cycles"], json!(cycles), "{f}");
+    let r = &s["results"]["x"];
+    assert_eq!(
+        f["median"],
+        json!(format!(
+            "{:.4} ± {:.4}",
+            r["backlash_mm"].as_f64().unwrap(),
+            r["uncertainty_mm"].as_f64().unwrap()
+        ))
+    );
+    assert_eq!(
+        f["spread"],
+        json!(format!("{:.4}", r["spread_mm"].as_f64().unwrap()))
+    );
+}
+
 /// Issue 27 Build 4: klipcal's page shows the camera measurement — the newest frame, served by
 /// klipcal itself, with the nozzle marked where the detector found it (which is where the bench
 /// drew it), each approach's position, and the per-cycle values with their median and spread
 /// as the status gives them; at a desktop's and a phone's size, in Chromium.
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 142 lines: to be split along its steps
 async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() {
     let camera = json!({"look": "ring", "px_per_mm": 80, "rotation_deg": 15,
         "offset_px": [12, -8], "centre_mm": [100, 100], "seed": 3});
@@ -572,30 +664,7 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
         first["seq"].as_str().unwrap().parse::<u64>().unwrap() < seq,
         "{first} {snap}"
     );
-    // The served frame is a JPEG of the size the status gives.
-    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
-        .await
-        .unwrap();
-    assert_eq!(r.headers()["content-type"], "image/jpeg");
-    assert!(r.bytes().await.unwrap().starts_with(&[0xff, 0xd8]));
-    // The guard stands before it as before the page: an address outside trusted_clients is
-    // refused.
-    let r = crate::http::client_from("127.0.0.2")
-        .get(format!("{base}/api/backlash/snapshot.jpg?seq={seq}"))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 403);
-    // A frame no longer kept, or a number that is not one, is said.
-    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=1"))
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 404);
-    assert!(r.text().await.unwrap().contains("no longer kept"));
-    let r = reqwest::get(format!("{base}/api/backlash/snapshot.jpg?seq=x"))
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 400);
+    the_frame_is_served_guarded_and_its_misses_said(&base, seq).await;
     let truth = crate::backlash::nozzle(&bench);
     let want = drawn_px(&camera, [truth[0], truth[1]]);
     let found = [
@@ -623,52 +692,7 @@ async fn the_page_shows_the_newest_frame_with_the_found_nozzle_and_the_cycles() 
             crate::browser::doc_image(&section, "backlash-camera.png", 800);
         }
         eprintln!("{size}: {f}; status {found:?}; drawn {want:?}");
-        assert_eq!(f["seq"], json!(seq.to_string()), "{f}");
-        assert_eq!((f["w"].as_u64(), f["h"].as_u64()), (Some(640), Some(480)));
-        let at = |k: &str, i: usize| f[k][i].as_f64().unwrap();
-        for i in 0..2 {
-            // The mark is the detector's finding, which is where the bench drew the nozzle…
-            assert!((at("mark", i) - found[i]).abs() < 1e-3, "{f} {snap}");
-            assert!(
-                (found[i] - want[i]).abs() < 0.3,
-                "found {found:?}, drawn {want:?}"
-            );
-            // … and on the screen it sits over that point of the picture.
-            assert!(
-                (at("screen", i) - want[i]).abs() < 1.5,
-                "{size}: the mark is drawn at {:?} of the picture, the nozzle at {want:?}",
-                f["screen"]
-            );
-        }
-        assert!(
-            f["caption"]
-                .as_str()
-                .unwrap()
-                .contains(&format!("nozzle at ({:.2}, {:.2}) px", found[0], found[1])),
-            "{f}"
-        );
-        // Each cycle's two approaches are marked; the table says what the status says.
-        assert_eq!(f["approaches"], json!(6), "{f}");
-        let cycles: Vec<String> = s["camera"]["x"]["cycles"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| format!("{:.4}", c["backlash_mm"].as_f64().unwrap()))
-            .collect();
-        assert_eq!(f["cycles"], json!(cycles), "{f}");
-        let r = &s["results"]["x"];
-        assert_eq!(
-            f["median"],
-            json!(format!(
-                "{:.4} ± {:.4}",
-                r["backlash_mm"].as_f64().unwrap(),
-                r["uncertainty_mm"].as_f64().unwrap()
-            ))
-        );
-        assert_eq!(
-            f["spread"],
-            json!(format!("{:.4}", r["spread_mm"].as_f64().unwrap()))
-        );
+        the_figure_shows_what_the_status_says(size, &f, s, seq, found, want);
     }
 }
 

@@ -37,8 +37,82 @@ fn choose(seen_mm: f64, crossing: bool) -> &'static str {
     }
 }
 
+/// Bad arguments to the start and the jog are refused by name.
+async fn bad_start_and_jog_arguments_are_refused_by_name(files: &klipcal::moonraker::Files) {
+    let e = extension_request(files, "klipcal_backlash_start", json!({"axis": "Q"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains('Q'), "{e}");
+    let e = extension_request(files, "klipcal_backlash_jog", json!({"press": "sideways"}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.to_lowercase().contains("sideways") || e.contains("no backlash axis"),
+        "{e}"
+    );
+}
+
+/// A jog press does not repeat the dialog on the console (issue 9 item 23): one dialog per
+/// approach, one per crossing (after Centred: Short, Centred, Past) and one for the second
+/// look after the first Past — 6 per cycle, 3 cycles, the first shown by the start — not one
+/// per press; and no raw JSON.
+async fn one_dialog_per_approach_not_per_press(m: &Moonraker) {
+    let h = crate::mainsail::history(m).await;
+    let dialogs = h
+        .iter()
+        .filter(|(k, msg)| {
+            k == "response"
+                && msg.starts_with("// action:prompt_begin Y")
+                && msg.contains(" only · backlash ")
+        })
+        .count();
+    assert!(
+        (1..=18).contains(&dialogs),
+        "{dialogs} jog dialogs for Y: {h:#?}"
+    );
+    assert!(
+        !h.iter().any(|(_, msg)| msg.starts_with("klipcal {")),
+        "raw JSON on the console: {h:#?}"
+    );
+}
+
+/// While a print runs, apply is refused and nothing changes.
+async fn apply_is_refused_while_a_print_runs(files: &klipcal::moonraker::Files, m: &Moonraker) {
+    files
+        .upload(
+            "gcodes",
+            "other.gcode",
+            b"BENCH_SLEEP SECONDS=60\n".to_vec(),
+        )
+        .await
+        .unwrap();
+    m.print_start("other.gcode").await.unwrap();
+    let printing = crate::bench::poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] == "printing").then_some(())
+    })
+    .await;
+    assert!(printing.is_some(), "the other print did not start");
+    let e = extension_request(files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("a print is printing"), "{e}");
+    m.gcode("CANCEL_PRINT").await.unwrap();
+    let idle = crate::bench::poll(Duration::from_secs(30), || async {
+        let st = m
+            .objects_query(json!({"print_stats": ["state"]}))
+            .await
+            .ok()?;
+        (st["print_stats"]["state"] != "printing").then_some(())
+    })
+    .await;
+    assert!(idle.is_some());
+}
+
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 158 lines: to be split along its steps
 async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_applied() {
     let bench = Bench::start_args(
         "cartesian",
@@ -57,18 +131,7 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
     extension_request(&files, "klipcal_backlash_set_point", json!({}))
         .await
         .unwrap();
-    // Bad arguments are refused by name.
-    let e = extension_request(&files, "klipcal_backlash_start", json!({"axis": "Q"}))
-        .await
-        .unwrap_err();
-    assert!(e.contains('Q'), "{e}");
-    let e = extension_request(&files, "klipcal_backlash_jog", json!({"press": "sideways"}))
-        .await
-        .unwrap_err();
-    assert!(
-        e.to_lowercase().contains("sideways") || e.contains("no backlash axis"),
-        "{e}"
-    );
+    bad_start_and_jog_arguments_are_refused_by_name(&files).await;
 
     let r = extension_request(
         &files,
@@ -134,63 +197,11 @@ async fn a_guided_x_and_y_measurement_survives_kill_9_matches_the_play_and_is_ap
         "{shown:?}"
     );
     let measured = play_axis(&bench, &d, GuideAxis::Y, mark, &mut rng).await;
-    // A jog press does not repeat the dialog on the console (issue 9 item 23): one dialog per
-    // approach, one per crossing (after Centred: Short, Centred, Past) and one for the second
-    // look after the first Past — 6 per cycle, 3 cycles, the first shown by the start — not
-    // one per press.
-    let h = crate::mainsail::history(&m).await;
-    let dialogs = h
-        .iter()
-        .filter(|(k, msg)| {
-            k == "response"
-                && msg.starts_with("// action:prompt_begin Y")
-                && msg.contains(" only · backlash ")
-        })
-        .count();
-    assert!(
-        (1..=18).contains(&dialogs),
-        "{dialogs} jog dialogs for Y: {h:#?}"
-    );
-    assert!(
-        !h.iter().any(|(_, msg)| msg.starts_with("klipcal {")),
-        "raw JSON on the console: {h:#?}"
-    );
+    one_dialog_per_approach_not_per_press(&m).await;
     let by = assert_found(&measured, "y", TRUE_Y_MM);
     assert_found(&measured, "x", TRUE_X_MM);
 
-    // While a print runs, apply is refused and nothing changes.
-    files
-        .upload(
-            "gcodes",
-            "other.gcode",
-            b"BENCH_SLEEP SECONDS=60\n".to_vec(),
-        )
-        .await
-        .unwrap();
-    m.print_start("other.gcode").await.unwrap();
-    let printing = crate::bench::poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()?;
-        (st["print_stats"]["state"] == "printing").then_some(())
-    })
-    .await;
-    assert!(printing.is_some(), "the other print did not start");
-    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
-        .await
-        .unwrap_err();
-    assert!(e.contains("a print is printing"), "{e}");
-    m.gcode("CANCEL_PRINT").await.unwrap();
-    let idle = crate::bench::poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()?;
-        (st["print_stats"]["state"] != "printing").then_some(())
-    })
-    .await;
-    assert!(idle.is_some());
+    apply_is_refused_while_a_print_runs(&files, &m).await;
 
     // Apply: SET_BACKLASH_COMPENSATION with its reply checked, and the value in the config.
     let r = crate::backlash::apply_done(&bench, &d).await;
@@ -505,7 +516,6 @@ async fn a_backlash_write_klipper_rejects_is_rolled_back_byte_for_byte() {
 }
 
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 136 lines: to be split along its steps
 async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_argument() {
     let bench = Bench::start_args("cartesian", &["--play", r#"{"x": 0.07}"#]);
     let d = Daemon::ready(&bench, "[backlash]\ncycles = 3\n").await;
@@ -521,8 +531,41 @@ async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_ar
     extension_request(&files, "klipcal_backlash_set_point", json!({}))
         .await
         .unwrap();
-    // (operation, arguments, what the refusal names, the same through its macro).
-    let cases: &[crate::bench::BadCall] = &[
+    let cases = bad_backlash_calls();
+    crate::bench::assert_refused_everywhere(&bench, &d, &m, "backlash", &cases).await;
+    // Nothing started.
+    assert!(crate::session::session(&bench).await.is_null());
+
+    // Neither branch: measured and reported all the same, apply refused with what is missing.
+    let mut rng = fastrand::Rng::with_seed(9);
+    start_axis(&bench, json!({"axis": "X"})).await;
+    let measured = play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
+    assert_found(&measured, "x", 0.07);
+    assert!(
+        measured["results"]["x"]["compensate"] == json!(true),
+        "{measured}"
+    );
+    let st = crate::session::session(&bench).await;
+    assert_eq!(st["branch"]["branch"], "neither", "{st}");
+    let printer_before = std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap();
+    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("cannot apply") && e.contains("no SET_BACKLASH_COMPENSATION command"),
+        "{e}"
+    );
+    assert_eq!(
+        std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap(),
+        printer_before
+    );
+    assert_eq!(crate::session::session(&bench).await["state"], "measured");
+}
+
+/// The backlash operations' bad calls: (operation, arguments, what the refusal names, the same
+/// through its macro).
+fn bad_backlash_calls() -> Vec<crate::bench::BadCall<'static>> {
+    vec![
         (
             "set_point",
             json!({"x": 1}),
@@ -619,35 +662,7 @@ async fn without_a_module_it_measures_and_reports_refuses_apply_and_every_bad_ar
             "nothing measured to apply",
             Some("KLIPCAL_BACKLASH_APPLY"),
         ),
-    ];
-    crate::bench::assert_refused_everywhere(&bench, &d, &m, "backlash", cases).await;
-    // Nothing started.
-    assert!(crate::session::session(&bench).await.is_null());
-
-    // Neither branch: measured and reported all the same, apply refused with what is missing.
-    let mut rng = fastrand::Rng::with_seed(9);
-    start_axis(&bench, json!({"axis": "X"})).await;
-    let measured = play_axis(&bench, &d, GuideAxis::X, mark, &mut rng).await;
-    assert_found(&measured, "x", 0.07);
-    assert!(
-        measured["results"]["x"]["compensate"] == json!(true),
-        "{measured}"
-    );
-    let st = crate::session::session(&bench).await;
-    assert_eq!(st["branch"]["branch"], "neither", "{st}");
-    let printer_before = std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap();
-    let e = extension_request(&files, "klipcal_backlash_apply", json!({}))
-        .await
-        .unwrap_err();
-    assert!(
-        e.contains("cannot apply") && e.contains("no SET_BACKLASH_COMPENSATION command"),
-        "{e}"
-    );
-    assert_eq!(
-        std::fs::read(bench.dir.path().join("config/printer.cfg")).unwrap(),
-        printer_before
-    );
-    assert_eq!(crate::session::session(&bench).await["state"], "measured");
+    ]
 }
 
 /// Runs KLIPCAL_BACKLASH_APPLY as a user does and waits for its answer on the console (the

@@ -508,7 +508,235 @@ async fn wait_klipper(bench: &Bench, state: &str, limit: Duration) {
     assert!(ok.is_some(), "Klipper never {state}");
 }
 
-#[allow(clippy::too_many_lines)] // 260 lines: to be split along its steps
+/// Before the fault: a heater on is bounded by Klipper's idle timeout (`told`, s), no longer
+/// than the phase's limit (while the print runs, the print owns its heaters; the idle timeout
+/// then bounds what follows it).
+async fn heaters_bounded_by_the_idle_timeout(
+    bench: &Bench,
+    phase: Phase,
+    fault: Fault,
+    told: Option<f64>,
+) {
+    if let Some((_, bed, ext)) = heaters(bench).await {
+        if bed > 0.0 || ext > 0.0 {
+            // While the print runs, the print owns its heaters; the idle timeout then bounds
+            // what follows it.
+            let bound = told.unwrap_or(3600.0);
+            assert!(
+                bound <= phase.limit_s(fault) + 1.0,
+                "heaters on with Klipper's idle timeout at {bound} s, over the phase's limit \
+             {} s",
+                phase.limit_s(fault)
+            );
+        }
+    }
+}
+
+/// Moonraker stopped for `secs`: sampled through Klipper's socket meanwhile, a heater on past
+/// the idle timeout Klipper was `told` at `told_at` has no owner; when the hold limit passes
+/// during the outage, Klipper alone turns the bed off. Returns when it did (s after it was
+/// told its idle timeout).
+async fn moonraker_down(
+    bench: &Bench,
+    phase: Phase,
+    fault: Fault,
+    secs: u64,
+    told: Option<f64>,
+    told_at: Instant,
+) -> Option<f64> {
+    let t0 = Instant::now();
+    let mut klipper_off: Option<f64> = None;
+    blocking(|| bench.stop_one("moonraker"));
+    let end = t0 + Duration::from_secs(secs);
+    // Sampled through Klipper's socket while Moonraker is down: the daemon's own page
+    // answers; a heater on past the phase's limit has no owner.
+    let mut was_on = false;
+    while Instant::now() < end {
+        if let Some((_, bed, ext)) = heaters(bench).await {
+            let since = told_at.elapsed().as_secs_f64();
+            let bound = told.unwrap_or(3600.0);
+            assert!(
+                (bed <= 0.0 && ext <= 0.0) || since <= bound + 15.0,
+                "heaters on ({bed}, {ext}) {since:.0} s after Klipper was told to hold \
+                 them for {bound} s, with Moonraker down"
+            );
+            let on = bed > 0.0 || ext > 0.0;
+            if was_on && !on && klipper_off.is_none() {
+                klipper_off = Some(since);
+            }
+            was_on |= on;
+        }
+        tokio::time::sleep(Duration::from_secs(2)).await;
+    }
+    // The hold limit passed during this outage: Klipper alone turned the bed off.
+    if phase.hold_max_s(fault) < secs as f64 {
+        assert!(
+            klipper_off.is_some(),
+            "the hold limit ({} s) passed with Moonraker down, yet Klipper never turned \
+             the bed off",
+            phase.hold_max_s(fault)
+        );
+    }
+    blocking(|| bench.start_one("moonraker"));
+    klipper_off
+}
+
+/// Waits until the session went on (its next step happened) or ended after the fault, `t_back`
+/// when klipcal was back; fails the case when it did neither.
+async fn settled(phase: Phase, d: &Daemon, before_meshes: u64, t_back: Instant) -> Value {
+    let settle_s = if phase == Phase::Capture { 400 } else { 150 };
+    let settled = poll(Duration::from_secs(settle_s), || async {
+        let s = case_session(phase, d).await;
+        let st = s["state"].as_str().unwrap_or("");
+        let on = match phase {
+            Phase::Soak => {
+                // Still heating or soaking well after the fault (a soak that lost its bed
+                // notices within a poll or two).
+                t_back.elapsed() > Duration::from_secs(10) && matches!(st, "heating" | "soaking")
+            }
+            Phase::Print | Phase::Hold => matches!(st, "measuring"),
+            Phase::Measuring => st == "measuring" && t_back.elapsed() > Duration::from_secs(5),
+            Phase::Capture => {
+                s["meshes"].as_u64().unwrap_or(0) > before_meshes
+                    || matches!(st, "writing" | "done")
+            }
+            Phase::Follow => {
+                s["follow"]["following"] == json!(true)
+                    && s["follow"]["loaded"]
+                        .as_str()
+                        .is_some_and(|l| l.starts_with("klipcal_"))
+            }
+        };
+        let ended = matches!(st, "failed" | "cancelled")
+            || (phase == Phase::Follow && s["follow"]["stopped"].is_string());
+        (on || ended).then_some(s)
+    })
+    .await;
+    let Some(after) = settled else {
+        panic!(
+            "the session neither went on nor ended in {settle_s} s: {}\n{}",
+            case_session(phase, d).await,
+            d.log_text()
+        )
+    };
+    after
+}
+
+/// Said: an end with its reason on the console and in the status; going on after an outage
+/// that stopped a running step, said on the console; a step resumed after kill -9, in the log.
+async fn said_on_the_console(
+    bench: &Bench,
+    d: &Daemon,
+    phase: Phase,
+    fault: Fault,
+    after: &Value,
+    ended: bool,
+) -> bool {
+    poll(Duration::from_secs(20), || async {
+        let lines = console(bench).await;
+        let ok = if ended {
+            // The status has the reason; the console says the session ended, and how.
+            let reason = after["reason"]
+                .as_str()
+                .or_else(|| after["follow"]["stopped"].as_str())
+                .unwrap_or("");
+            let title = if phase.mesh() {
+                "thermal mesh"
+            } else {
+                "A/B calibration"
+            };
+            !reason.is_empty()
+                && lines.iter().any(|l| {
+                    // As Klipper shows a RESPOND: "klipcal …", or "!! klipcal: …" for an error.
+                    (l.starts_with("klipcal") || l.starts_with("!! klipcal"))
+                        && l.contains(title)
+                        && (l.contains("failed")
+                            || l.contains("cancelled")
+                            || l.contains("stopped"))
+                })
+        } else if matches!(fault, Fault::MoonrakerDown(secs) if secs > REQUEST_TIMEOUT_S)
+            && matches!(phase, Phase::Soak | Phase::Print | Phase::Capture)
+        {
+            // A running step stopped on the outage (a shorter one only delays its next call,
+            // which waits for the connection up to the request timeout).
+            lines
+                .iter()
+                .any(|l| l.contains("Moonraker was unreachable for"))
+        } else if matches!(fault, Fault::Kill9 | Fault::Kill9PrintCancelled)
+            && matches!(
+                phase,
+                Phase::Soak | Phase::Print | Phase::Hold | Phase::Capture
+            )
+        {
+            // A running step resumed (the restarted daemon's log; its status shows the state).
+            d.log_text().contains("resuming")
+        } else {
+            true
+        };
+        ok.then_some(())
+    })
+    .await
+    .is_some()
+}
+
+/// The case's outcome in words: how it ended, or what it kept going on.
+fn outcome(phase: Phase, after: &Value, state: &str, ended: bool, before_meshes: u64) -> String {
+    if ended {
+        format!(
+            "ended {state}: {}",
+            after["reason"]
+                .as_str()
+                .or_else(|| after["follow"]["stopped"].as_str())
+                .unwrap_or("")
+        )
+    } else {
+        match phase {
+            Phase::Measuring => format!(
+                "goes on: {state}, {} readings kept",
+                after["readings"].as_object().map_or(0, |m| m
+                    .values()
+                    .map(|v| v.as_array().map_or(0, Vec::len))
+                    .sum::<usize>())
+            ),
+            Phase::Capture => format!(
+                "goes on: {state}, {} meshes kept, {} now",
+                before_meshes, after["meshes"]
+            ),
+            Phase::Follow => format!("goes on: following, {} loaded", after["follow"]["loaded"]),
+            _ => format!("goes on: {state}"),
+        }
+    }
+}
+
+/// After the fault nothing entered is lost (the readings, the meshes), and no heater is on
+/// without an owner, now and a moment later.
+async fn nothing_lost_and_no_unowned_heater(
+    bench: &Bench,
+    d: &Daemon,
+    phase: Phase,
+    before: &Value,
+    after: &Value,
+) {
+    if phase == Phase::Measuring {
+        assert_eq!(after["readings"], before["readings"], "readings lost");
+    }
+    if phase == Phase::Capture {
+        let b: Vec<f64> = serde_json::from_value(before["frame_c"].clone()).unwrap();
+        let a: Vec<f64> = serde_json::from_value(after["frame_c"].clone()).unwrap();
+        assert!(
+            a.len() >= b.len() && a[..b.len()] == b[..],
+            "meshes lost: {b:?} → {a:?}"
+        );
+    }
+    // No heater without an owner, now and a moment later.
+    for _ in 0..3 {
+        if let Some(why) = unowned_heater(bench, phase, Some(d)).await {
+            panic!("after the fault: {why}\n{}", d.log_text());
+        }
+        tokio::time::sleep(Duration::from_secs(1)).await;
+    }
+}
+
 async fn run_case(phase: Phase, fault: Fault) -> String {
     let t_setup = Instant::now();
     let (bench, mut d) = setup(phase, fault).await;
@@ -522,19 +750,7 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
     if let Some(why) = unowned_heater(&bench, phase, Some(&d)).await {
         panic!("before the fault: {why}");
     }
-    if let Some((_, bed, ext)) = heaters(&bench).await {
-        if bed > 0.0 || ext > 0.0 {
-            // While the print runs, the print owns its heaters; the idle timeout then bounds
-            // what follows it.
-            let bound = told.unwrap_or(3600.0);
-            assert!(
-                bound <= phase.limit_s(fault) + 1.0,
-                "heaters on with Klipper's idle timeout at {bound} s, over the phase's limit \
-                 {} s",
-                phase.limit_s(fault)
-            );
-        }
-    }
+    heaters_bounded_by_the_idle_timeout(&bench, phase, fault, told).await;
     let m_fault = {
         let (m, c) = bench.client(json!({}));
         m.wait_connected(Duration::from_secs(30)).await.unwrap();
@@ -547,38 +763,7 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
     let mut klipper_off: Option<f64> = None;
     match fault {
         Fault::MoonrakerDown(secs) => {
-            blocking(|| bench.stop_one("moonraker"));
-            let end = t0 + Duration::from_secs(secs);
-            // Sampled through Klipper's socket while Moonraker is down: the daemon's own page
-            // answers; a heater on past the phase's limit has no owner.
-            let mut was_on = false;
-            while Instant::now() < end {
-                if let Some((_, bed, ext)) = heaters(&bench).await {
-                    let since = told_at.elapsed().as_secs_f64();
-                    let bound = told.unwrap_or(3600.0);
-                    assert!(
-                        (bed <= 0.0 && ext <= 0.0) || since <= bound + 15.0,
-                        "heaters on ({bed}, {ext}) {since:.0} s after Klipper was told to hold \
-                         them for {bound} s, with Moonraker down"
-                    );
-                    let on = bed > 0.0 || ext > 0.0;
-                    if was_on && !on && klipper_off.is_none() {
-                        klipper_off = Some(since);
-                    }
-                    was_on |= on;
-                }
-                tokio::time::sleep(Duration::from_secs(2)).await;
-            }
-            // The hold limit passed during this outage: Klipper alone turned the bed off.
-            if phase.hold_max_s(fault) < secs as f64 {
-                assert!(
-                    klipper_off.is_some(),
-                    "the hold limit ({} s) passed with Moonraker down, yet Klipper never turned \
-                     the bed off",
-                    phase.hold_max_s(fault)
-                );
-            }
-            blocking(|| bench.start_one("moonraker"));
+            klipper_off = moonraker_down(&bench, phase, fault, secs, told, told_at).await;
         }
         Fault::MoonrakerDownPrintCancelled => {
             blocking(|| bench.stop_one("moonraker"));
@@ -623,41 +808,7 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
     let t_back = Instant::now();
     // Settled: the session ended, or its next step happened.
     let before_meshes = before["meshes"].as_u64().unwrap_or(0);
-    let settle_s = if phase == Phase::Capture { 400 } else { 150 };
-    let settled = poll(Duration::from_secs(settle_s), || async {
-        let s = case_session(phase, &d).await;
-        let st = s["state"].as_str().unwrap_or("");
-        let on = match phase {
-            Phase::Soak => {
-                // Still heating or soaking well after the fault (a soak that lost its bed
-                // notices within a poll or two).
-                t_back.elapsed() > Duration::from_secs(10) && matches!(st, "heating" | "soaking")
-            }
-            Phase::Print | Phase::Hold => matches!(st, "measuring"),
-            Phase::Measuring => st == "measuring" && t_back.elapsed() > Duration::from_secs(5),
-            Phase::Capture => {
-                s["meshes"].as_u64().unwrap_or(0) > before_meshes
-                    || matches!(st, "writing" | "done")
-            }
-            Phase::Follow => {
-                s["follow"]["following"] == json!(true)
-                    && s["follow"]["loaded"]
-                        .as_str()
-                        .is_some_and(|l| l.starts_with("klipcal_"))
-            }
-        };
-        let ended = matches!(st, "failed" | "cancelled")
-            || (phase == Phase::Follow && s["follow"]["stopped"].is_string());
-        (on || ended).then_some(s)
-    })
-    .await;
-    let Some(after) = settled else {
-        panic!(
-            "the session neither went on nor ended in {settle_s} s: {}\n{}",
-            case_session(phase, &d).await,
-            d.log_text()
-        )
-    };
+    let after = settled(phase, &d, before_meshes, t_back).await;
     // The same session.
     if !phase.mesh() || phase == Phase::Capture {
         assert_eq!(after["id"], id, "another session: {after}");
@@ -665,71 +816,10 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
     let state = after["state"].as_str().unwrap_or("").to_string();
     let ended = matches!(state.as_str(), "failed" | "cancelled")
         || (phase == Phase::Follow && after["follow"]["stopped"].is_string());
-    // Nothing lost.
-    if phase == Phase::Measuring {
-        assert_eq!(after["readings"], before["readings"], "readings lost");
-    }
-    if phase == Phase::Capture {
-        let b: Vec<f64> = serde_json::from_value(before["frame_c"].clone()).unwrap();
-        let a: Vec<f64> = serde_json::from_value(after["frame_c"].clone()).unwrap();
-        assert!(
-            a.len() >= b.len() && a[..b.len()] == b[..],
-            "meshes lost: {b:?} → {a:?}"
-        );
-    }
-    // No heater without an owner, now and a moment later.
-    for _ in 0..3 {
-        if let Some(why) = unowned_heater(&bench, phase, Some(&d)).await {
-            panic!("after the fault: {why}\n{}", d.log_text());
-        }
-        tokio::time::sleep(Duration::from_secs(1)).await;
-    }
+    nothing_lost_and_no_unowned_heater(&bench, &d, phase, &before, &after).await;
     // Said: an end with its reason on the console and in the status; going on after an outage
     // that stopped a running step, said on the console.
-    let said = poll(Duration::from_secs(20), || async {
-        let lines = console(&bench).await;
-        let ok = if ended {
-            // The status has the reason; the console says the session ended, and how.
-            let reason = after["reason"]
-                .as_str()
-                .or_else(|| after["follow"]["stopped"].as_str())
-                .unwrap_or("");
-            let title = if phase.mesh() {
-                "thermal mesh"
-            } else {
-                "A/B calibration"
-            };
-            !reason.is_empty()
-                && lines.iter().any(|l| {
-                    // As Klipper shows a RESPOND: "klipcal …", or "!! klipcal: …" for an error.
-                    (l.starts_with("klipcal") || l.starts_with("!! klipcal"))
-                        && l.contains(title)
-                        && (l.contains("failed")
-                            || l.contains("cancelled")
-                            || l.contains("stopped"))
-                })
-        } else if matches!(fault, Fault::MoonrakerDown(secs) if secs > REQUEST_TIMEOUT_S)
-            && matches!(phase, Phase::Soak | Phase::Print | Phase::Capture)
-        {
-            // A running step stopped on the outage (a shorter one only delays its next call,
-            // which waits for the connection up to the request timeout).
-            lines
-                .iter()
-                .any(|l| l.contains("Moonraker was unreachable for"))
-        } else if matches!(fault, Fault::Kill9 | Fault::Kill9PrintCancelled)
-            && matches!(
-                phase,
-                Phase::Soak | Phase::Print | Phase::Hold | Phase::Capture
-            )
-        {
-            // A running step resumed (the restarted daemon's log; its status shows the state).
-            d.log_text().contains("resuming")
-        } else {
-            true
-        };
-        ok.then_some(())
-    })
-    .await;
+    let said = said_on_the_console(&bench, &d, phase, fault, &after, ended).await;
     let by_klipper = klipper_off
         .map(|t| {
             format!(
@@ -738,34 +828,10 @@ async fn run_case(phase: Phase, fault: Fault) -> String {
             )
         })
         .unwrap_or_default();
-    let outcome = if ended {
-        format!(
-            "ended {state}: {}",
-            after["reason"]
-                .as_str()
-                .or_else(|| after["follow"]["stopped"].as_str())
-                .unwrap_or("")
-        )
-    } else {
-        match phase {
-            Phase::Measuring => format!(
-                "goes on: {state}, {} readings kept",
-                after["readings"].as_object().map_or(0, |m| m
-                    .values()
-                    .map(|v| v.as_array().map_or(0, Vec::len))
-                    .sum::<usize>())
-            ),
-            Phase::Capture => format!(
-                "goes on: {state}, {} meshes kept, {} now",
-                before_meshes, after["meshes"]
-            ),
-            Phase::Follow => format!("goes on: following, {} loaded", after["follow"]["loaded"]),
-            _ => format!("goes on: {state}"),
-        }
-    };
+    let outcome = outcome(phase, &after, &state, ended, before_meshes);
     let outcome = format!("{outcome}{by_klipper}");
     assert!(
-        said.is_some(),
+        said,
         "{outcome}, but the console does not say so: {:?}\n{}",
         console(&bench)
             .await

@@ -33,80 +33,24 @@ async fn post(c: &reqwest::Client, url: &str, body: &str) -> (u16, Value) {
     (code, r.json().await.unwrap_or(Value::Null))
 }
 
-#[tokio::test]
-#[allow(clippy::too_many_lines)] // 199 lines: to be split along its steps
-async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
-    let bench = Bench::start("corexy");
-    let d = Daemon::ready(
-        &bench,
-        "[http]\nbind = \"127.0.0.1:0\"\ntrusted_clients = [\"127.0.0.1/32\"]\napi_key = \"k3y\"\n",
-    )
-    .await;
-    let base = d.page_url().await;
-    let me = client_from("127.0.0.1");
-
-    // Status: the same document the remote method answers.
-    let st: Value = me
-        .get(format!("{base}/api/status"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    assert_eq!(st["ok"], json!(true), "{st}");
-    let via_moonraker = extension_request(&bench.files(), "klipcal_status", json!({}))
-        .await
-        .unwrap();
-    assert_eq!(
-        st["printer"]["kinematics"],
-        via_moonraker["printer"]["kinematics"]
-    );
-    assert_eq!(st["printer"]["kinematics"], "corexy");
-
-    // A user's mistake carries the console's message, as a JSON error with 400.
-    let (code, v) = post(
-        &me,
-        &format!("{base}/api/ab/measure"),
-        r#"{"pair": "A-D1", "values": [10.02]}"#,
-    )
-    .await;
-    let console = extension_request(
-        &bench.files(),
-        "klipcal_measure",
-        json!({"pair": "A-D1", "values": [10.02]}),
-    )
-    .await
-    .unwrap_err();
-    assert_eq!(code, 400, "{v}");
-    assert_eq!(v["ok"], json!(false));
-    assert_eq!(v["error"]["message"].as_str().unwrap(), console);
-    // An unknown argument is refused by name, as from a macro.
-    let (code, v) = post(&me, &format!("{base}/api/ab/start"), r#"{"bde": 60}"#).await;
-    assert_eq!(code, 400);
-    assert!(
-        v["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("unknown argument BDE"),
-        "{v}"
-    );
-
-    // Malformed input: clear JSON errors, never a crash.
+/// Malformed input gets a clear JSON error, never a crash: bad JSON, an unknown path or
+/// session, a huge body (413, naming the limit), a method the path does not take (405 saying
+/// what it takes).
+async fn malformed_requests_get_clear_json_errors(me: &reqwest::Client, base: &str) {
     for (body, want) in [
         ("{not json", "not valid JSON"),
         ("[1, 2]", "JSON object"),
         ("\"A-D1\"", "JSON object"),
         ("{\"pair\": {\"x\": [1]}, \"values\": null}", ""),
     ] {
-        let (code, v) = post(&me, &format!("{base}/api/ab/measure"), body).await;
+        let (code, v) = post(me, &format!("{base}/api/ab/measure"), body).await;
         assert_eq!(code, 400, "{body}: {v}");
         assert!(
             v["error"]["message"].as_str().unwrap().contains(want),
             "{body}: {v}"
         );
     }
-    let (code, v) = post(&me, &format!("{base}/api/ab/nonsense"), "{}").await;
+    let (code, v) = post(me, &format!("{base}/api/ab/nonsense"), "{}").await;
     assert_eq!(code, 404);
     assert!(
         v["error"]["message"]
@@ -161,7 +105,11 @@ async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
             "{method} {path}: {v}"
         );
     }
+}
 
+/// Not JSON (what a cross-site form sends) and a cross-origin POST are refused; another
+/// loopback address is outside trusted_clients (403, the page too) unless it brings the key.
+async fn the_guard_refuses_cross_site_and_untrusted_clients(me: &reqwest::Client, base: &str) {
     // Not JSON (what a cross-site form sends) and a cross-origin POST: refused.
     let r = me
         .post(format!("{base}/api/cancel"))
@@ -221,6 +169,69 @@ async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
         .await
         .unwrap();
     assert_eq!(r.status().as_u16(), 403);
+}
+
+#[tokio::test]
+async fn the_api_answers_like_the_remote_methods_and_its_guard_holds() {
+    let bench = Bench::start("corexy");
+    let d = Daemon::ready(
+        &bench,
+        "[http]\nbind = \"127.0.0.1:0\"\ntrusted_clients = [\"127.0.0.1/32\"]\napi_key = \"k3y\"\n",
+    )
+    .await;
+    let base = d.page_url().await;
+    let me = client_from("127.0.0.1");
+
+    // Status: the same document the remote method answers.
+    let st: Value = me
+        .get(format!("{base}/api/status"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(st["ok"], json!(true), "{st}");
+    let via_moonraker = extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    assert_eq!(
+        st["printer"]["kinematics"],
+        via_moonraker["printer"]["kinematics"]
+    );
+    assert_eq!(st["printer"]["kinematics"], "corexy");
+
+    // A user's mistake carries the console's message, as a JSON error with 400.
+    let (code, v) = post(
+        &me,
+        &format!("{base}/api/ab/measure"),
+        r#"{"pair": "A-D1", "values": [10.02]}"#,
+    )
+    .await;
+    let console = extension_request(
+        &bench.files(),
+        "klipcal_measure",
+        json!({"pair": "A-D1", "values": [10.02]}),
+    )
+    .await
+    .unwrap_err();
+    assert_eq!(code, 400, "{v}");
+    assert_eq!(v["ok"], json!(false));
+    assert_eq!(v["error"]["message"].as_str().unwrap(), console);
+    // An unknown argument is refused by name, as from a macro.
+    let (code, v) = post(&me, &format!("{base}/api/ab/start"), r#"{"bde": 60}"#).await;
+    assert_eq!(code, 400);
+    assert!(
+        v["error"]["message"]
+            .as_str()
+            .unwrap()
+            .contains("unknown argument BDE"),
+        "{v}"
+    );
+
+    malformed_requests_get_clear_json_errors(&me, &base).await;
+
+    the_guard_refuses_cross_site_and_untrusted_clients(&me, &base).await;
 
     // The bed plot from Moonraker's temperature store, with the detector replayed over it.
     let r = me
@@ -273,56 +284,24 @@ fn click_save(pair: &str) -> String {
     format!("document.querySelector('fieldset.pair[data-pair=\"{pair}\"] button.save').click()")
 }
 
-#[tokio::test]
-#[allow(clippy::too_many_lines)] // 227 lines: to be split along its steps
-async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_solved() {
-    let bench = Bench::start_with("corexy", Some(PLANT));
-    let (d, s) = measuring_session(&bench).await;
-    let base = d.page_url().await;
-    let mut b = Browser::start().await;
-    b.open(&format!("{base}/")).await;
-    assert!(
-        b.wait_for(
-            "document.querySelectorAll('fieldset.pair').length > 0",
-            Duration::from_secs(10)
-        )
-        .await
-    );
-    b.screenshot(&artifact("page-measuring.png")).await;
-    let pairs = s["pairs"].as_array().unwrap().clone();
-    assert_eq!(
-        b.eval("document.querySelectorAll('fieldset.pair').length")
-            .await,
-        json!(pairs.len())
-    );
-    // The pylon diagram is inline, and focusing a field highlights its pair.
-    let first = pairs[0]["id"].as_str().unwrap().to_string();
-    let per_pair = s["readings_per_pair"].as_u64().unwrap() as usize;
-    assert_eq!(b.eval(&type_into(&first, &[])).await, json!(per_pair));
-    b.eval(&format!(
-        "document.querySelector('fieldset.pair[data-pair=\"{first}\"] input.reading').focus()"
-    ))
-    .await;
-    assert!(
-        b.wait_for(
-            &format!("document.querySelector('.diagram .pair.hl').dataset.pair === '{first}'"),
-            Duration::from_secs(5)
-        )
-        .await,
-        "the diagram does not highlight the pair"
-    );
-
-    // A field holds one reading: the comma in the second is its decimal mark. A reading
-    // without its decimals in the third is refused beside that field, and the pair's message
-    // does not say "nothing saved" before Save is pressed (issue 25, C1 and C3).
-    let good: Vec<String> = simulated_readings(&pairs[0])
+/// A field holds one reading: the comma in the second is its decimal mark. A reading without
+/// its decimals in the third is refused beside that field, and the pair's message does not
+/// say "nothing saved" before Save is pressed (issue 25, C1 and C3); after Save, nothing is
+/// saved and what the user typed stays to correct.
+async fn a_bad_field_is_refused_beside_it(
+    b: &mut Browser,
+    bench: &Bench,
+    first: &str,
+    pair: &Value,
+) {
+    let good: Vec<String> = simulated_readings(pair)
         .iter()
         .map(|v| format!("{v:.2}"))
         .collect();
     let mut bad = good.clone();
     bad[1] = good[1].replace('.', ",");
     bad[2] = good[2].split('.').next().unwrap().to_string();
-    b.eval(&type_into(&first, &bad)).await;
+    b.eval(&type_into(first, &bad)).await;
     let field = |k: usize| {
         format!("document.querySelectorAll('fieldset.pair[data-pair=\"{first}\"] .field')[{k}]")
     };
@@ -351,7 +330,7 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         before_save.contains("field 3") && !before_save.contains("nothing saved"),
         "{before_save}"
     );
-    b.eval(&click_save(&first)).await;
+    b.eval(&click_save(first)).await;
     assert!(
         b.wait_for(
             &format!(
@@ -364,7 +343,7 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         b.eval(&format!("{msg}.outerHTML")).await
     );
     assert!(
-        session(&bench).await["readings"][&first].is_null(),
+        session(bench).await["readings"][&first].is_null(),
         "a refused entry was saved"
     );
     // What the user typed is still there to correct.
@@ -373,9 +352,17 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         json!(good[0])
     );
     b.screenshot(&artifact("page-refused.png")).await;
+}
 
-    // Every pair entered through the form: saved, and the page shows each as complete.
-    for p in &pairs {
+/// Every pair entered through the form (the second reading with a decimal comma, as typed in
+/// Europe): saved, and the page shows each as complete.
+async fn every_pair_is_entered_through_the_form(
+    b: &mut Browser,
+    bench: &Bench,
+    pairs: &[Value],
+    per_pair: usize,
+) {
+    for p in pairs {
         let id = p["id"].as_str().unwrap();
         // As typed in Europe: the second reading with a decimal comma.
         let mut values: Vec<String> = simulated_readings(p)
@@ -402,36 +389,16 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
             b.wait_for(&format!("document.querySelector('fieldset.pair[data-pair=\"{id}\"] legend').textContent.includes('{per_pair} of {per_pair} saved')"), Duration::from_secs(15)).await,
             "{id} not shown as saved"
         );
-        let saved = session(&bench).await["readings"][id].clone();
+        let saved = session(bench).await["readings"][id].clone();
         assert_eq!(saved, json!(simulated_readings(p)), "{id}");
     }
-    // Solve from the page: the state changes and the page shows the solution with Apply.
-    assert!(
-        b.wait_for(
-            "!document.querySelector('button[data-op=\"ab/solve\"]').disabled",
-            Duration::from_secs(10)
-        )
-        .await
-    );
-    b.eval("document.querySelector('button[data-op=\"ab/solve\"]').click()")
-        .await;
-    wait_state(&bench, "solved", Duration::from_secs(30)).await;
-    assert!(
-        b.wait_for(
-            "document.querySelector('#solution button[data-op=\"ab/apply\"]')",
-            Duration::from_secs(15)
-        )
-        .await,
-        "the page does not show the solution"
-    );
-    let table = b
-        .eval("document.querySelector('#solution table').textContent")
-        .await;
-    assert!(table.as_str().unwrap().contains("stepper_x"), "{table}");
-    b.screenshot(&artifact("page-solved.png")).await;
-    // Issue 26 B.6: on a phone (390×844) the rounds and solution tables fit, or scroll inside
-    // their own box: nothing of them lies outside the window, no cell is cut, and the page
-    // itself does not scroll sideways.
+}
+
+/// Issue 26 B.6: on a phone (390×844) the rounds and solution tables fit, or scroll inside
+/// their own box: nothing of them lies outside the window, no cell is cut, and the page itself
+/// does not scroll sideways. The documentation's phone picture and convergence plot are made
+/// here.
+async fn the_tables_fit_on_a_phone(b: &mut Browser, bench: &Bench, base: &str) {
     b.set_viewport(390, 844, true).await;
     b.open(&format!("{base}/")).await;
     assert!(
@@ -493,6 +460,74 @@ async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_so
         assert_eq!(t["cut"], json!([]), "#{id}: cells cut on a phone: {fit}");
     }
     b.set_viewport(1280, 800, false).await;
+}
+
+#[tokio::test]
+async fn in_a_real_browser_readings_are_entered_refused_next_to_the_field_and_solved() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let (d, s) = measuring_session(&bench).await;
+    let base = d.page_url().await;
+    let mut b = Browser::start().await;
+    b.open(&format!("{base}/")).await;
+    assert!(
+        b.wait_for(
+            "document.querySelectorAll('fieldset.pair').length > 0",
+            Duration::from_secs(10)
+        )
+        .await
+    );
+    b.screenshot(&artifact("page-measuring.png")).await;
+    let pairs = s["pairs"].as_array().unwrap().clone();
+    assert_eq!(
+        b.eval("document.querySelectorAll('fieldset.pair').length")
+            .await,
+        json!(pairs.len())
+    );
+    // The pylon diagram is inline, and focusing a field highlights its pair.
+    let first = pairs[0]["id"].as_str().unwrap().to_string();
+    let per_pair = s["readings_per_pair"].as_u64().unwrap() as usize;
+    assert_eq!(b.eval(&type_into(&first, &[])).await, json!(per_pair));
+    b.eval(&format!(
+        "document.querySelector('fieldset.pair[data-pair=\"{first}\"] input.reading').focus()"
+    ))
+    .await;
+    assert!(
+        b.wait_for(
+            &format!("document.querySelector('.diagram .pair.hl').dataset.pair === '{first}'"),
+            Duration::from_secs(5)
+        )
+        .await,
+        "the diagram does not highlight the pair"
+    );
+
+    a_bad_field_is_refused_beside_it(&mut b, &bench, &first, &pairs[0]).await;
+
+    every_pair_is_entered_through_the_form(&mut b, &bench, &pairs, per_pair).await;
+    // Solve from the page: the state changes and the page shows the solution with Apply.
+    assert!(
+        b.wait_for(
+            "!document.querySelector('button[data-op=\"ab/solve\"]').disabled",
+            Duration::from_secs(10)
+        )
+        .await
+    );
+    b.eval("document.querySelector('button[data-op=\"ab/solve\"]').click()")
+        .await;
+    wait_state(&bench, "solved", Duration::from_secs(30)).await;
+    assert!(
+        b.wait_for(
+            "document.querySelector('#solution button[data-op=\"ab/apply\"]')",
+            Duration::from_secs(15)
+        )
+        .await,
+        "the page does not show the solution"
+    );
+    let table = b
+        .eval("document.querySelector('#solution table').textContent")
+        .await;
+    assert!(table.as_str().unwrap().contains("stepper_x"), "{table}");
+    b.screenshot(&artifact("page-solved.png")).await;
+    the_tables_fit_on_a_phone(&mut b, &bench, &base).await;
     // Solving saved the rounds' plot under the config root and named it.
     let id = s["id"].as_i64().unwrap();
     let plot = bench

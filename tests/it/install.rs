@@ -325,41 +325,119 @@ fn starts(bench: &Bench) -> (usize, usize) {
     )
 }
 
+/// Runs the klipcal binary with `args` and HOME at `home`: whether it succeeded, and its
+/// stdout and stderr.
+fn klipcal_cli(home: &Path, args: &[&str]) -> (bool, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+        .args(args)
+        .env("HOME", home)
+        .output()
+        .unwrap();
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out.status.success(), text)
+}
+
+/// The port of the bench's Moonraker.
+fn moonraker_port(b: &Bench) -> String {
+    b.ws_url()
+        .split(':')
+        .nth(2)
+        .unwrap()
+        .split('/')
+        .next()
+        .unwrap()
+        .to_string()
+}
+
+/// The daemon install set up for `b`, started as the service would start it.
+fn start_installed(b: &Bench, home: &Path) -> Daemon {
+    let log = b.dir.path().join("klipcal-installed.log");
+    let child = Command::new(env!("CARGO_BIN_EXE_klipcal"))
+        .args([
+            "--config",
+            b.dir.path().join("config/klipcal.toml").to_str().unwrap(),
+            "serve",
+        ])
+        .env("HOME", home)
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    Daemon {
+        child,
+        log,
+        url: None,
+    }
+}
+
+/// The daemon `d` is the one agent of its printer's Moonraker, connected to that printer's
+/// port, with its database in that printer's data folder.
+async fn talks_only_to_its_printer(b: &Bench, d: &Daemon) {
+    let files = b.files();
+    let listed = poll(Duration::from_secs(30), || async {
+        crate::bench::agent_listed(&files).await.then_some(())
+    })
+    .await;
+    assert!(listed.is_some(), "not connected:\n{}", d.log_text());
+    let agents = files.get("/server/extensions/list").await.unwrap();
+    assert_eq!(agents["agents"].as_array().unwrap().len(), 1, "{agents}");
+    assert!(
+        d.log_text().contains(&format!(
+            "url=ws://127.0.0.1:{}/websocket",
+            moonraker_port(b)
+        )),
+        "{}",
+        d.log_text()
+    );
+    assert!(b
+        .dir
+        .path()
+        .join("klipcal")
+        .join("klipcal.sqlite")
+        .is_file());
+}
+
+/// Uninstall's output names each folder it leaves in `p2` with what it holds, and a daemon
+/// still connected; it says nothing of the other printer (`other_pd`).
+fn uninstall_names_what_it_leaves(out: &str, p2: &Path, other_pd: &str) {
+    for (dir, words) in [
+        (p2.join("klipcal"), "database"),
+        (p2.join("config/klipcal"), "pictures"),
+        (p2.join("config/klipcal_backups"), "copies of config files"),
+        (p2.join("gcodes/klipcal"), "G-code"),
+    ] {
+        let line = out
+            .lines()
+            .find(|l| l.contains(&format!("{} (", dir.display())))
+            .unwrap_or_else(|| panic!("uninstall does not name {}: {out}", dir.display()));
+        assert!(line.contains(words), "{line}");
+    }
+    assert!(out.contains("600 KB"), "{out}");
+    assert!(out.contains("still connected"), "{out}");
+    assert!(
+        !out.contains(other_pd),
+        "uninstall spoke of the other printer: {out}"
+    );
+}
+
 /// Issue 25 D: two printers on one host (two Moonrakers on their own ports). Install reads
 /// each printer's Moonraker from its own moonraker.conf (no --moonraker), checks and restarts
 /// only that printer, and writes a klipcal.toml with its URL, its own data folder and page
 /// port; each daemon talks only to its printer; uninstalling one names what it leaves and a
 /// daemon still connected, and leaves the other printer's files byte for byte.
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 185 lines: to be split along its steps
 async fn two_printers_on_one_host_each_get_their_own_klipcal() {
     let b1 = Bench::start("corexy");
     let b2 = Bench::start("corexy");
     let home = tempfile::tempdir().unwrap();
-    let klipcal = |args: &[&str]| -> (bool, String) {
-        let out = Command::new(env!("CARGO_BIN_EXE_klipcal"))
-            .args(args)
-            .env("HOME", home.path())
-            .output()
-            .unwrap();
-        let text = format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        );
-        (out.status.success(), text)
-    };
+    let klipcal = |args: &[&str]| klipcal_cli(home.path(), args);
     let pd = |b: &Bench| b.dir.path().display().to_string();
-    let port = |b: &Bench| {
-        b.ws_url()
-            .split(':')
-            .nth(2)
-            .unwrap()
-            .split('/')
-            .next()
-            .unwrap()
-            .to_string()
-    };
+    let port = moonraker_port;
     // D2: --moonraker is what the written settings name (a note says it is not the folder's).
     let (ok, out) = klipcal(&[
         "--moonraker",
@@ -417,49 +495,11 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
     assert_ne!(http_ports[0], http_ports[1], "both pages on one port");
 
     // Each daemon, started as the service would start it, talks only to its printer.
-    let start = |b: &Bench| {
-        let log = b.dir.path().join("klipcal-installed.log");
-        let child = Command::new(env!("CARGO_BIN_EXE_klipcal"))
-            .args([
-                "--config",
-                b.dir.path().join("config/klipcal.toml").to_str().unwrap(),
-                "serve",
-            ])
-            .env("HOME", home.path())
-            .stdin(std::process::Stdio::null())
-            .stdout(std::process::Stdio::null())
-            .stderr(std::fs::File::create(&log).unwrap())
-            .spawn()
-            .unwrap();
-        Daemon {
-            child,
-            log,
-            url: None,
-        }
-    };
+    let start = |b: &Bench| start_installed(b, home.path());
     let d1 = start(&b1);
     let d2 = start(&b2);
     for (b, d) in [(&b1, &d1), (&b2, &d2)] {
-        let files = b.files();
-        let listed = poll(Duration::from_secs(30), || async {
-            crate::bench::agent_listed(&files).await.then_some(())
-        })
-        .await;
-        assert!(listed.is_some(), "not connected:\n{}", d.log_text());
-        let agents = files.get("/server/extensions/list").await.unwrap();
-        assert_eq!(agents["agents"].as_array().unwrap().len(), 1, "{agents}");
-        assert!(
-            d.log_text()
-                .contains(&format!("url=ws://127.0.0.1:{}/websocket", port(b))),
-            "{}",
-            d.log_text()
-        );
-        assert!(b
-            .dir
-            .path()
-            .join("klipcal")
-            .join("klipcal.sqlite")
-            .is_file());
+        talks_only_to_its_printer(b, d).await;
     }
     for (d, p) in [(&d1, http_ports[0]), (&d2, http_ports[1])] {
         assert!(
@@ -490,25 +530,7 @@ async fn two_printers_on_one_host_each_get_their_own_klipcal() {
     let starts_before = starts(&b1);
     let (ok, out) = klipcal(&["uninstall", "--printer-data", &pd(&b2), "--no-systemd"]);
     assert!(ok, "{out}");
-    let p2 = b2.dir.path();
-    for (dir, words) in [
-        (p2.join("klipcal"), "database"),
-        (p2.join("config/klipcal"), "pictures"),
-        (p2.join("config/klipcal_backups"), "copies of config files"),
-        (p2.join("gcodes/klipcal"), "G-code"),
-    ] {
-        let line = out
-            .lines()
-            .find(|l| l.contains(&format!("{} (", dir.display())))
-            .unwrap_or_else(|| panic!("uninstall does not name {}: {out}", dir.display()));
-        assert!(line.contains(words), "{line}");
-    }
-    assert!(out.contains("600 KB"), "{out}");
-    assert!(out.contains("still connected"), "{out}");
-    assert!(
-        !out.contains(&pd(&b1)),
-        "uninstall spoke of the other printer: {out}"
-    );
+    uninstall_names_what_it_leaves(&out, b2.dir.path(), &pd(&b1));
     let restarted = poll(Duration::from_secs(60), || async {
         (starts(&b2).1 > 2).then_some(())
     })

@@ -6,6 +6,7 @@
 
 use std::time::Duration;
 
+use klipcal::moonraker::Moonraker;
 use serde_json::{json, Value};
 
 use crate::bench::{extension_request, poll, Bench, Daemon};
@@ -31,8 +32,58 @@ pub async fn mesh_session(bench: &Bench) -> Value {
         .unwrap_or(Value::Null)
 }
 
+/// Bad arguments to the capture and the follower are refused by name; following needs a
+/// capture first.
+async fn bad_capture_and_follow_arguments_are_refused_by_name(files: &klipcal::moonraker::Files) {
+    let e = extension_request(files, "klipcal_mesh_capture", json!({"bde": 60}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("unknown argument BDE"), "{e}");
+    let e = extension_request(files, "klipcal_mesh_follow", json!({"enable": "yes"}))
+        .await
+        .unwrap_err();
+    assert!(e.contains("ENABLE=yes"), "{e}");
+    let e = extension_request(files, "klipcal_mesh_follow", json!({}))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("KLIPCAL_MESH_CAPTURE"),
+        "following needs a capture first: {e}"
+    );
+}
+
+/// Klipper knows a `klipcal_<T>` profile for each temperature of the result.
+async fn klipper_knows_the_profiles(m: &Moonraker, temps: &[f64]) {
+    let st = m
+        .objects_query(json!({"bed_mesh": ["profiles"]}))
+        .await
+        .unwrap();
+    let known: Vec<String> = st["bed_mesh"]["profiles"]
+        .as_object()
+        .unwrap()
+        .keys()
+        .cloned()
+        .collect();
+    for t in temps {
+        let name = format!("klipcal_{t:.2}");
+        assert!(known.contains(&name), "{name} not in {known:?}");
+    }
+}
+
+/// The klipcal profile Klipper has loaded, once it has one within `limit`.
+async fn klipcal_profile_loaded(m: &Moonraker, limit: Duration) -> Option<String> {
+    poll(limit, || async {
+        let st = m
+            .objects_query(json!({"bed_mesh": ["profile_name"]}))
+            .await
+            .ok()?;
+        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
+        name.starts_with("klipcal_").then_some(name)
+    })
+    .await
+}
+
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 126 lines: to be split along its steps
 async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     let bench = Bench::start_args("corexy", &["--variant", "mesh", "--plant-json", PLANT]);
     // The capture below ends at mesh.max_meshes while the frame still warms: following right
@@ -44,22 +95,7 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     )
     .await;
     let files = bench.files();
-    // Bad arguments are refused by name.
-    let e = extension_request(&files, "klipcal_mesh_capture", json!({"bde": 60}))
-        .await
-        .unwrap_err();
-    assert!(e.contains("unknown argument BDE"), "{e}");
-    let e = extension_request(&files, "klipcal_mesh_follow", json!({"enable": "yes"}))
-        .await
-        .unwrap_err();
-    assert!(e.contains("ENABLE=yes"), "{e}");
-    let e = extension_request(&files, "klipcal_mesh_follow", json!({}))
-        .await
-        .unwrap_err();
-    assert!(
-        e.contains("KLIPCAL_MESH_CAPTURE"),
-        "following needs a capture first: {e}"
-    );
+    bad_capture_and_follow_arguments_are_refused_by_name(&files).await;
 
     extension_request(&files, "klipcal_mesh_capture", json!({}))
         .await
@@ -89,20 +125,7 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     );
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    let st = m
-        .objects_query(json!({"bed_mesh": ["profiles"]}))
-        .await
-        .unwrap();
-    let known: Vec<String> = st["bed_mesh"]["profiles"]
-        .as_object()
-        .unwrap()
-        .keys()
-        .cloned()
-        .collect();
-    for t in &temps {
-        let name = format!("klipcal_{t:.2}");
-        assert!(known.contains(&name), "{name} not in {known:?}");
-    }
+    klipper_knows_the_profiles(&m, &temps).await;
     // The heaters went off at the end of the capture.
     let hb = m
         .objects_query(json!({"heater_bed": ["target"]}))
@@ -114,15 +137,7 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     extension_request(&files, "klipcal_mesh_follow", json!({"enable": "1"}))
         .await
         .unwrap();
-    let loaded = poll(Duration::from_secs(30), || async {
-        let st = m
-            .objects_query(json!({"bed_mesh": ["profile_name"]}))
-            .await
-            .ok()?;
-        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
-        name.starts_with("klipcal_").then_some(name)
-    })
-    .await;
+    let loaded = klipcal_profile_loaded(&m, Duration::from_secs(30)).await;
     assert!(
         loaded.is_some(),
         "no klipcal profile loaded: {}\n{}",
@@ -134,15 +149,7 @@ async fn capture_fit_profiles_follow_and_check_on_the_bench() {
     // Klipper restarted mid-follow: the restart drops the mesh; the follower loads it again.
     bench.stop_one("klippy");
     bench.start_one("klippy");
-    let again = poll(Duration::from_secs(60), || async {
-        let st = m
-            .objects_query(json!({"bed_mesh": ["profile_name"]}))
-            .await
-            .ok()?;
-        let name = st["bed_mesh"]["profile_name"].as_str()?.to_string();
-        name.starts_with("klipcal_").then_some(name)
-    })
-    .await;
+    let again = klipcal_profile_loaded(&m, Duration::from_secs(60)).await;
     assert!(
         again.is_some(),
         "no klipcal profile after the restart\n{}",
@@ -600,15 +607,39 @@ async fn following_sets_the_kept_bed_mesh_offset_again_after_each_load() {
 }
 
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 156 lines: to be split along its steps
 async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
     let bench = Bench::start("corexy");
     let d = Daemon::ready(&bench, "").await;
     let files = bench.files();
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    // (remote method, arguments, what the refusal names, the same through its macro).
-    let cases: &[crate::bench::BadCall] = &[
+    let cases = bad_mesh_calls();
+    crate::bench::assert_refused_everywhere(&bench, &d, &m, "mesh", &cases).await;
+    // Positional arguments name the command and say what is expected.
+    let e = extension_request(&files, "klipcal_mesh_capture", json!([60]))
+        .await
+        .unwrap_err();
+    assert!(
+        e.contains("KLIPCAL_MESH_CAPTURE: arguments must be named"),
+        "{e}"
+    );
+    the_offset_macro_refuses_what_bed_mesh_offset_would_not_take(&m).await;
+    // Nothing was started: no session, the bed cold, no mesh loaded.
+    assert_eq!(mesh_session(&bench).await, Value::Null);
+    let st = m
+        .objects_query(json!({"heater_bed": ["target"], "bed_mesh": ["profile_name"]}))
+        .await
+        .unwrap();
+    assert_eq!(st["heater_bed"]["target"], json!(0.0));
+    assert_eq!(st["bed_mesh"]["profile_name"], json!(""));
+    assert!(!d.log_text().contains("following the frame temperature"));
+    drop(d);
+}
+
+/// The mesh methods' bad calls: (remote method, arguments, what the refusal names, the same
+/// through its macro).
+fn bad_mesh_calls() -> Vec<crate::bench::BadCall<'static>> {
+    vec![
         (
             "capture",
             json!({"bde": 60}),
@@ -717,17 +748,12 @@ async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
             "unknown argument X; it takes no arguments",
             Some("KLIPCAL_MESH_CHECK X=1"),
         ),
-    ];
-    crate::bench::assert_refused_everywhere(&bench, &d, &m, "mesh", cases).await;
-    // Positional arguments name the command and say what is expected.
-    let e = extension_request(&files, "klipcal_mesh_capture", json!([60]))
-        .await
-        .unwrap_err();
-    assert!(
-        e.contains("KLIPCAL_MESH_CAPTURE: arguments must be named"),
-        "{e}"
-    );
-    // klipcal.cfg's offset macro refuses what BED_MESH_OFFSET would ignore or not parse.
+    ]
+}
+
+/// klipcal.cfg's offset macro refuses what BED_MESH_OFFSET would ignore or not parse, and
+/// keeps nothing.
+async fn the_offset_macro_refuses_what_bed_mesh_offset_would_not_take(m: &Moonraker) {
     let e = m.gcode("KLIPCAL_MESH_OFFSET X=1 Z=2").await.unwrap_err();
     assert!(
         e.to_string().contains("unknown argument Z; it takes X, Y"),
@@ -753,16 +779,6 @@ async fn every_bad_argument_to_the_mesh_methods_is_refused_by_name() {
         st["gcode_macro KLIPCAL_MESH_OFFSET"],
         json!({"x": 0.0, "y": 0.0})
     );
-    // Nothing was started: no session, the bed cold, no mesh loaded.
-    assert_eq!(mesh_session(&bench).await, Value::Null);
-    let st = m
-        .objects_query(json!({"heater_bed": ["target"], "bed_mesh": ["profile_name"]}))
-        .await
-        .unwrap();
-    assert_eq!(st["heater_bed"]["target"], json!(0.0));
-    assert_eq!(st["bed_mesh"]["profile_name"], json!(""));
-    assert!(!d.log_text().contains("following the frame temperature"));
-    drop(d);
 }
 
 /// Klipper's bed_mesh status: the active profile and every profile's points.

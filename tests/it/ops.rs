@@ -87,7 +87,6 @@ async fn wait_print_state(m: &Moonraker, want: &str, limit: Duration) -> bool {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[allow(clippy::too_many_lines)] // 129 lines: to be split along its steps
 async fn every_operation_is_reachable_on_each_road_and_refuses_an_unknown_argument_by_name() {
     let bench = Bench::start("corexy");
     let d = Daemon::ready(&bench, "").await;
@@ -101,64 +100,8 @@ async fn every_operation_is_reachable_on_each_road_and_refuses_an_unknown_argume
 
     // Idle: the unknown argument on every road, then typical and edge arguments.
     for op in ops {
-        let unknown = format!("{} ZZTOP=1", op.macro_name);
-        let want = "unknown argument ZZTOP";
-        match (op.method, op.body) {
-            (Some(method), _) => {
-                let e = extension_request(&files, method, json!({"zztop": 1}))
-                    .await
-                    .expect_err(&format!("{method} took ZZTOP"));
-                assert!(e.contains(want), "{method}: {e}");
-                let path = op.http.expect("a remote operation has an HTTP path");
-                let r = http
-                    .post(format!("{base}/api/{path}"))
-                    .header("content-type", "application/json")
-                    .body(json!({"zztop": 1}).to_string())
-                    .send()
-                    .await
-                    .unwrap();
-                assert_eq!(r.status().as_u16(), 400, "/api/{path}");
-                let v: Value = r.json().await.unwrap();
-                assert_eq!(v["error"]["message"], json!(e), "/api/{path}");
-                let (err, lines) = run(&m, &unknown, Duration::from_secs(10), |l| {
-                    l.iter().any(|l| l.contains(want))
-                })
-                .await;
-                assert_eq!(err, None, "{unknown}: Klipper raised an error");
-                assert!(
-                    lines
-                        .iter()
-                        .any(|l| l.starts_with("!! klipcal: ") && l.contains(want)),
-                    "{unknown}: no refusal by name on the console: {lines:#?}"
-                );
-            }
-            (None, MacroBody::Local(_)) => {
-                // A macro that runs in Klipper alone refuses the parameter itself.
-                let (err, _) = run(&m, &unknown, Duration::ZERO, |_| true).await;
-                assert!(
-                    err.as_deref().is_some_and(|e| e.contains(want)),
-                    "{unknown}: {err:?}"
-                );
-            }
-            (None, MacroBody::Remote { .. }) => {
-                panic!("{}: remote without a method", op.macro_name)
-            }
-        }
-        for line in [
-            op.macro_name.to_string(),
-            typical(op, false),
-            typical(op, true),
-        ] {
-            let remote = op.method.is_some();
-            let (err, lines) = run(&m, &line, Duration::from_secs(10), answered_if(remote)).await;
-            assert_eq!(err, None, "{line}: Klipper raised an error");
-            if op.method.is_some() {
-                assert!(
-                    klipcal_answered(&lines),
-                    "{line}: klipcal did not answer: {lines:#?}"
-                );
-            }
-        }
+        refuses_an_unknown_argument_on_every_road(op, &files, &http, &base, &m).await;
+        typical_calls_are_answered(op, &m).await;
     }
     // Whatever the typical calls started ends here, heaters off.
     let _ = extension_request(&files, "klipcal_cancel", json!({})).await;
@@ -182,47 +125,128 @@ async fn every_operation_is_reachable_on_each_road_and_refuses_an_unknown_argume
                 "the user's print did not start"
             );
         }
-        let line = typical(op, false);
-        let pauses = matches!(op.body, MacroBody::Remote { after, .. }
-            if after.iter().any(|l| l.trim() == "PAUSE"));
+        leaves_a_users_print_alone(op, &files, &m).await;
+    }
+    m.gcode("CANCEL_PRINT").await.ok();
+}
+
+/// Idle, an unknown argument is refused by name on every road: the remote method, the API
+/// (400, the same message) and the macro (klipcal's refusal on the console; a macro that runs
+/// in Klipper alone refuses it itself).
+async fn refuses_an_unknown_argument_on_every_road(
+    op: &OpSpec,
+    files: &klipcal::moonraker::Files,
+    http: &reqwest::Client,
+    base: &str,
+    m: &Moonraker,
+) {
+    let unknown = format!("{} ZZTOP=1", op.macro_name);
+    let want = "unknown argument ZZTOP";
+    match (op.method, op.body) {
+        (Some(method), _) => {
+            let e = extension_request(files, method, json!({"zztop": 1}))
+                .await
+                .expect_err(&format!("{method} took ZZTOP"));
+            assert!(e.contains(want), "{method}: {e}");
+            let path = op.http.expect("a remote operation has an HTTP path");
+            let r = http
+                .post(format!("{base}/api/{path}"))
+                .header("content-type", "application/json")
+                .body(json!({"zztop": 1}).to_string())
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status().as_u16(), 400, "/api/{path}");
+            let v: Value = r.json().await.unwrap();
+            assert_eq!(v["error"]["message"], json!(e), "/api/{path}");
+            let (err, lines) = run(m, &unknown, Duration::from_secs(10), |l| {
+                l.iter().any(|l| l.contains(want))
+            })
+            .await;
+            assert_eq!(err, None, "{unknown}: Klipper raised an error");
+            assert!(
+                lines
+                    .iter()
+                    .any(|l| l.starts_with("!! klipcal: ") && l.contains(want)),
+                "{unknown}: no refusal by name on the console: {lines:#?}"
+            );
+        }
+        (None, MacroBody::Local(_)) => {
+            // A macro that runs in Klipper alone refuses the parameter itself.
+            let (err, _) = run(m, &unknown, Duration::ZERO, |_| true).await;
+            assert!(
+                err.as_deref().is_some_and(|e| e.contains(want)),
+                "{unknown}: {err:?}"
+            );
+        }
+        (None, MacroBody::Remote { .. }) => {
+            panic!("{}: remote without a method", op.macro_name)
+        }
+    }
+}
+
+/// Idle, the macro bare and with its typical arguments (upper and lower case) raises no
+/// Klipper error, and klipcal answers a remote one.
+async fn typical_calls_are_answered(op: &OpSpec, m: &Moonraker) {
+    for line in [
+        op.macro_name.to_string(),
+        typical(op, false),
+        typical(op, true),
+    ] {
         let remote = op.method.is_some();
-        let (err, lines) = run(&m, &line, Duration::from_secs(10), answered_if(remote)).await;
-        assert_eq!(err, None, "{line} in a print: Klipper raised an error");
+        let (err, lines) = run(m, &line, Duration::from_secs(10), answered_if(remote)).await;
+        assert_eq!(err, None, "{line}: Klipper raised an error");
         if op.method.is_some() {
             assert!(
                 klipcal_answered(&lines),
-                "{line} in a print: klipcal did not answer: {lines:#?}"
+                "{line}: klipcal did not answer: {lines:#?}"
             );
         }
-        if pauses {
-            let paused = poll(Duration::from_secs(10), || async {
-                matches!(print_state(&m).await.as_str(), "paused" | "cancelled").then_some(())
-            })
-            .await;
-            assert!(paused.is_some(), "{line}: the print was not paused");
-            assert!(
-                lines.iter().all(|l| !l.contains("Malformed")),
-                "{line}: {lines:#?}"
-            );
-        } else {
-            assert_eq!(
-                print_state(&m).await,
-                "printing",
-                "{line} disturbed the user's print: {lines:#?}"
-            );
-        }
-        let st = extension_request(&files, "klipcal_status", json!({}))
-            .await
-            .unwrap();
+    }
+}
+
+/// Inside a print klipcal does not own, the typical call leaves it printing (the mesh check's
+/// macro pauses it for klipcal) and starts no session.
+async fn leaves_a_users_print_alone(op: &OpSpec, files: &klipcal::moonraker::Files, m: &Moonraker) {
+    let line = typical(op, false);
+    let pauses = matches!(op.body, MacroBody::Remote { after, .. }
+        if after.iter().any(|l| l.trim() == "PAUSE"));
+    let remote = op.method.is_some();
+    let (err, lines) = run(m, &line, Duration::from_secs(10), answered_if(remote)).await;
+    assert_eq!(err, None, "{line} in a print: Klipper raised an error");
+    if op.method.is_some() {
         assert!(
-            st["session"].is_null()
-                || matches!(
-                    st["session"]["state"].as_str(),
-                    Some("cancelled" | "failed" | "converged" | "applied")
-                ),
-            "{line} started a session in a print: {}",
-            st["session"]
+            klipcal_answered(&lines),
+            "{line} in a print: klipcal did not answer: {lines:#?}"
         );
     }
-    m.gcode("CANCEL_PRINT").await.ok();
+    if pauses {
+        let paused = poll(Duration::from_secs(10), || async {
+            matches!(print_state(m).await.as_str(), "paused" | "cancelled").then_some(())
+        })
+        .await;
+        assert!(paused.is_some(), "{line}: the print was not paused");
+        assert!(
+            lines.iter().all(|l| !l.contains("Malformed")),
+            "{line}: {lines:#?}"
+        );
+    } else {
+        assert_eq!(
+            print_state(m).await,
+            "printing",
+            "{line} disturbed the user's print: {lines:#?}"
+        );
+    }
+    let st = extension_request(files, "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    assert!(
+        st["session"].is_null()
+            || matches!(
+                st["session"]["state"].as_str(),
+                Some("cancelled" | "failed" | "converged" | "applied")
+            ),
+        "{line} started a session in a print: {}",
+        st["session"]
+    );
 }

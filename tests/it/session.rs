@@ -94,33 +94,10 @@ fn steppers_cfg(bench: &Bench) -> String {
     std::fs::read_to_string(bench.dir.path().join("config/steppers.cfg")).unwrap()
 }
 
-#[tokio::test]
-#[allow(clippy::too_many_lines)] // 247 lines: to be split along its steps
-async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_truth() {
-    let bench = Bench::start_with("corexy", Some(PLANT));
-    let d = started(&bench, 600.0).await;
-    let files = bench.files();
-    let before = steppers_cfg(&bench);
-
-    // The running daemon's settings file is edited (as in Mainsail's file editor): the soak
-    // reads `[soak]` again when it starts, no restart ([soak] is the file's last section).
-    let cfg = bench.dir.path().join("klipcal.toml");
-    let mut text = std::fs::read_to_string(&cfg).unwrap();
-    assert!(text.trim_end().ends_with("bed = \"bare-plate\""), "{text}");
-    text.push_str("frame = \"open\"\n");
-    std::fs::write(&cfg, text).unwrap();
-
-    let r = extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
-        .await
-        .unwrap();
-    assert_eq!(r["state"], "preflight", "{r}");
-    // A second start while one runs is refused.
-    let again = extension_request(&files, "klipcal_ab_start", json!({}))
-        .await
-        .unwrap_err();
-    assert!(again.contains("KLIPCAL_CANCEL"), "{again}");
-
-    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+/// The soak reaches the console (issue 9 item 6): a line when it starts, progress that never
+/// goes back, and how long it took; its derivation (the decay ruled out, the coupling) in the
+/// log.
+async fn the_soak_reaches_the_console(d: &Daemon, m: &klipcal::moonraker::Moonraker) {
     let log = d.log_text();
     assert!(
         log.contains("bed soaking") || log.contains("bed stable"),
@@ -128,9 +105,7 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     );
     // The soak reaches the console (issue 9 item 6): a line when it starts, progress that
     // never goes back, and how long it took.
-    let (m, _c) = bench.client(json!({}));
-    m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    let console: Vec<String> = crate::mainsail::history(&m)
+    let console: Vec<String> = crate::mainsail::history(m)
         .await
         .into_iter()
         .map(|(_, msg)| msg)
@@ -190,8 +165,15 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         percents.windows(2).all(|w| w[1] >= w[0]),
         "the soak's progress went back: {percents:?}"
     );
-    let pairs = s["pairs"].as_array().unwrap().clone();
-    assert_eq!(pairs.len(), 4, "{s}");
+}
+
+/// The soak's plot and the layout are saved where Mainsail's file browser shows them, each
+/// with a PNG twin, and the measuring step links the layout's.
+async fn the_pictures_are_saved_and_linked(
+    bench: &Bench,
+    s: &Value,
+    m: &klipcal::moonraker::Moonraker,
+) {
     // The soak was saved as a picture where Mainsail's file browser shows it.
     let soak_svg = bench
         .dir
@@ -214,8 +196,6 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
             "{name}"
         );
     }
-    let (m, _c) = bench.client(json!({}));
-    m.wait_connected(Duration::from_secs(30)).await.unwrap();
     let store = m
         .call("server.gcode_store", json!({"count": 200}))
         .await
@@ -225,6 +205,142 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         console.contains(&format!("config/klipcal/ab-s{id}-r1.png")),
         "the measuring step does not link the picture"
     );
+}
+
+/// Klipper runs the new values, the file differs only in those two values, and the backup is
+/// the original byte for byte.
+async fn klipper_runs_the_new_values_and_only_they_changed(
+    bench: &Bench,
+    m: &klipcal::moonraker::Moonraker,
+    sol: &Value,
+    before: &str,
+) {
+    // Klipper runs the new values, and the file differs only in those two values.
+    let new_x = sol["stepper_x"]["rotation_distance_new"].as_f64().unwrap();
+    let cf = m.configfile().await.unwrap();
+    let running = cf
+        .settings
+        .option("stepper_x", "rotation_distance")
+        .and_then(Value::as_f64)
+        .unwrap();
+    assert!((running - new_x).abs() < 1e-5, "{running} vs {new_x}");
+    let after = steppers_cfg(bench);
+    let changed: Vec<(&str, &str)> = before
+        .lines()
+        .zip(after.lines())
+        .filter(|(a, b)| a != b)
+        .collect();
+    assert_eq!(before.lines().count(), after.lines().count());
+    assert_eq!(changed.len(), 2, "{changed:?}");
+    for (old, new) in changed {
+        assert!(old.contains("rotation_distance") && new.contains("rotation_distance"));
+        let strip = |l: &str| l.split(['=', ':']).next().unwrap().to_string();
+        assert_eq!(strip(old), strip(new));
+    }
+    // The backup is the original, byte for byte.
+    let backups = bench.dir.path().join("config/klipcal_backups");
+    let stamp = std::fs::read_dir(&backups)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert_eq!(
+        std::fs::read_to_string(stamp.join("steppers.cfg")).unwrap(),
+        before
+    );
+}
+
+/// Not converged: the bed heats again at once after the apply's restart (issue 26 A.2), and
+/// round 2 starts on it without sending its target a second time (issue 26 B.7).
+async fn the_bed_reheats_for_round_2_and_its_target_is_sent_once(
+    bench: &Bench,
+    m: &klipcal::moonraker::Moonraker,
+) {
+    let bed_target = || async {
+        m.objects_query(json!({"heater_bed": ["target"]}))
+            .await
+            .ok()
+            .and_then(|v| v["heater_bed"]["target"].as_f64())
+    };
+    let reheated = poll(Duration::from_secs(30), || async {
+        (bed_target().await == Some(60.0)).then_some(())
+    })
+    .await;
+    assert!(reheated.is_some(), "the bed stayed off after the apply");
+    let st = extension_request(&bench.files(), "klipcal_status", json!({}))
+        .await
+        .unwrap();
+    assert_eq!(st["session"]["state"], "applied", "{st}");
+    // Round 2 starts on the preheated bed: its target is not sent a second time (issue 26
+    // B.7: the console showed SET_HEATER_TEMPERATURE twice).
+    let heater_commands = |h: &[(String, String)]| {
+        h.iter()
+            .filter(|(k, msg)| k == "command" && msg.contains("SET_HEATER_TEMPERATURE"))
+            .count()
+    };
+    let sent_before = heater_commands(&crate::mainsail::history(m).await);
+    extension_request(&bench.files(), "klipcal_ab_start", json!({}))
+        .await
+        .unwrap();
+    let warm = poll(Duration::from_secs(60), || async {
+        let s = session(bench).await;
+        matches!(
+            s["state"].as_str(),
+            Some("heating" | "soaking" | "printing")
+        )
+        .then_some(s)
+    })
+    .await;
+    assert!(
+        warm.is_some(),
+        "round 2 never heated: {}",
+        session(bench).await
+    );
+    let h = crate::mainsail::history(m).await;
+    assert_eq!(
+        heater_commands(&h),
+        sent_before,
+        "round 2 sent the bed's target again: {:#?}",
+        h.iter()
+            .filter(|(_, msg)| msg.contains("SET_HEATER_TEMPERATURE"))
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(bed_target().await, Some(60.0));
+}
+
+#[tokio::test]
+async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_truth() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    let d = started(&bench, 600.0).await;
+    let files = bench.files();
+    let before = steppers_cfg(&bench);
+
+    // The running daemon's settings file is edited (as in Mainsail's file editor): the soak
+    // reads `[soak]` again when it starts, no restart ([soak] is the file's last section).
+    let cfg = bench.dir.path().join("klipcal.toml");
+    let mut text = std::fs::read_to_string(&cfg).unwrap();
+    assert!(text.trim_end().ends_with("bed = \"bare-plate\""), "{text}");
+    text.push_str("frame = \"open\"\n");
+    std::fs::write(&cfg, text).unwrap();
+
+    let r = extension_request(&files, "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    assert_eq!(r["state"], "preflight", "{r}");
+    // A second start while one runs is refused.
+    let again = extension_request(&files, "klipcal_ab_start", json!({}))
+        .await
+        .unwrap_err();
+    assert!(again.contains("KLIPCAL_CANCEL"), "{again}");
+
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    the_soak_reaches_the_console(&d, &m).await;
+    let pairs = s["pairs"].as_array().unwrap().clone();
+    assert_eq!(pairs.len(), 4, "{s}");
+    the_pictures_are_saved_and_linked(&bench, &s, &m).await;
     // The bed is still hot for the readings.
     let hb = m
         .objects_query(json!({"heater_bed": ["target"]}))
@@ -263,40 +379,7 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
         "{applied}"
     );
 
-    // Klipper runs the new values, and the file differs only in those two values.
-    let new_x = sol["stepper_x"]["rotation_distance_new"].as_f64().unwrap();
-    let cf = m.configfile().await.unwrap();
-    let running = cf
-        .settings
-        .option("stepper_x", "rotation_distance")
-        .and_then(Value::as_f64)
-        .unwrap();
-    assert!((running - new_x).abs() < 1e-5, "{running} vs {new_x}");
-    let after = steppers_cfg(&bench);
-    let changed: Vec<(&str, &str)> = before
-        .lines()
-        .zip(after.lines())
-        .filter(|(a, b)| a != b)
-        .collect();
-    assert_eq!(before.lines().count(), after.lines().count());
-    assert_eq!(changed.len(), 2, "{changed:?}");
-    for (old, new) in changed {
-        assert!(old.contains("rotation_distance") && new.contains("rotation_distance"));
-        let strip = |l: &str| l.split(['=', ':']).next().unwrap().to_string();
-        assert_eq!(strip(old), strip(new));
-    }
-    // The backup is the original, byte for byte.
-    let backups = bench.dir.path().join("config/klipcal_backups");
-    let stamp = std::fs::read_dir(&backups)
-        .unwrap()
-        .next()
-        .unwrap()
-        .unwrap()
-        .path();
-    assert_eq!(
-        std::fs::read_to_string(stamp.join("steppers.cfg")).unwrap(),
-        before
-    );
+    klipper_runs_the_new_values_and_only_they_changed(&bench, &m, sol, &before).await;
     // Not converged (the truth is 0.5 % off): the restart turned the bed off, and it heats
     // again at once so that round 2 starts warm (issue 26 A.2), owned by the session.
     assert_eq!(applied["state"], "applied", "{applied}");
@@ -307,56 +390,13 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
             .contains("so that round 2 starts warm"),
         "{applied}"
     );
+    the_bed_reheats_for_round_2_and_its_target_is_sent_once(&bench, &m).await;
     let bed_target = || async {
         m.objects_query(json!({"heater_bed": ["target"]}))
             .await
             .ok()
             .and_then(|v| v["heater_bed"]["target"].as_f64())
     };
-    let reheated = poll(Duration::from_secs(30), || async {
-        (bed_target().await == Some(60.0)).then_some(())
-    })
-    .await;
-    assert!(reheated.is_some(), "the bed stayed off after the apply");
-    let st = extension_request(&files, "klipcal_status", json!({}))
-        .await
-        .unwrap();
-    assert_eq!(st["session"]["state"], "applied", "{st}");
-    // Round 2 starts on the preheated bed: its target is not sent a second time (issue 26
-    // B.7: the console showed SET_HEATER_TEMPERATURE twice).
-    let heater_commands = |h: &[(String, String)]| {
-        h.iter()
-            .filter(|(k, msg)| k == "command" && msg.contains("SET_HEATER_TEMPERATURE"))
-            .count()
-    };
-    let sent_before = heater_commands(&crate::mainsail::history(&m).await);
-    extension_request(&files, "klipcal_ab_start", json!({}))
-        .await
-        .unwrap();
-    let warm = poll(Duration::from_secs(60), || async {
-        let s = session(&bench).await;
-        matches!(
-            s["state"].as_str(),
-            Some("heating" | "soaking" | "printing")
-        )
-        .then_some(s)
-    })
-    .await;
-    assert!(
-        warm.is_some(),
-        "round 2 never heated: {}",
-        session(&bench).await
-    );
-    let h = crate::mainsail::history(&m).await;
-    assert_eq!(
-        heater_commands(&h),
-        sent_before,
-        "round 2 sent the bed's target again: {:#?}",
-        h.iter()
-            .filter(|(_, msg)| msg.contains("SET_HEATER_TEMPERATURE"))
-            .collect::<Vec<_>>()
-    );
-    assert_eq!(bed_target().await, Some(60.0));
     // Ending the session turns the heaters off, and its status says so (issue 26 B.7: the
     // text said "heaters off" while `heaters_off` stayed false).
     let r = extension_request(&files, "klipcal_cancel", json!({}))
@@ -376,11 +416,73 @@ async fn a_whole_session_over_http_applies_values_within_the_uncertainty_of_the_
     assert_eq!(s["heaters_off"], json!(true), "{s}");
 }
 
+/// CLEAR over the daemon's API (`ab/clear`) and through the macro, as Mainsail sends it, after
+/// readings entered the same ways; each removal logged (three with the first one's).
+async fn clear_works_over_the_api_and_the_macro(
+    bench: &Bench,
+    d: &Daemon,
+    m: &klipcal::moonraker::Moonraker,
+    id: &str,
+    good: &[f64],
+) {
+    let base = d.page_url().await;
+    let http = reqwest::Client::new();
+    let post = |op: &str, body: Value| {
+        http.post(format!("{base}/api/{op}"))
+            .header("content-type", "application/json")
+            .body(body.to_string())
+            .send()
+    };
+    let cleared = |st: &Value| st["readings"][&id].is_null();
+    post(
+        "ab/measure",
+        json!({"pair": id, "values": [good[0], good[1]]}),
+    )
+    .await
+    .unwrap();
+    assert!(!cleared(&session(bench).await));
+    let r: Value = post("ab/clear", json!({"pair": id}))
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(r.to_string().contains("removed"), "{r}");
+    assert!(cleared(&session(bench).await), "HTTP clear left readings");
+    m.gcode(&format!(
+        "KLIPCAL_MEASURE PAIR={id} VALUES={:.2},{:.2}",
+        good[0], good[1]
+    ))
+    .await
+    .unwrap();
+    poll(Duration::from_secs(10), || async {
+        (!cleared(&session(bench).await)).then_some(())
+    })
+    .await
+    .expect("the macro's readings were not saved");
+    m.gcode(&format!("KLIPCAL_MEASURE PAIR={id} CLEAR=1"))
+        .await
+        .unwrap();
+    let st = poll(Duration::from_secs(10), || async {
+        let st = session(bench).await;
+        cleared(&st).then_some(st)
+    })
+    .await
+    .expect("the macro's CLEAR=1 left readings");
+    assert_eq!(
+        st["notes"]
+            .to_string()
+            .matches("removed by CLEAR=1")
+            .count(),
+        3,
+        "each removal is logged: {st}"
+    );
+}
+
 /// Issue 9, items 1–3: an entry is taken whole or refused whole (a comma decimal is named), a
 /// pair's readings can be seen and cleared (logged), and a change after solving drops the
 /// solution so apply never writes one computed from other readings.
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 153 lines: to be split along its steps
 async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
     let bench = Bench::start_with("corexy", Some(PLANT));
     let (d, s) = measuring_session(&bench).await;
@@ -441,60 +543,9 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
         "{notes}"
     );
     // The same over the daemon's own API and through the macro, as Mainsail sends it.
-    let base = d.page_url().await;
-    let http = reqwest::Client::new();
-    let post = |op: &str, body: Value| {
-        http.post(format!("{base}/api/{op}"))
-            .header("content-type", "application/json")
-            .body(body.to_string())
-            .send()
-    };
-    let cleared = |st: &Value| st["readings"][&id].is_null();
-    post(
-        "ab/measure",
-        json!({"pair": id, "values": [good[0], good[1]]}),
-    )
-    .await
-    .unwrap();
-    assert!(!cleared(&session(&bench).await));
-    let r: Value = post("ab/clear", json!({"pair": id}))
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
-    assert!(r.to_string().contains("removed"), "{r}");
-    assert!(cleared(&session(&bench).await), "HTTP clear left readings");
     let (m, _c) = bench.client(json!({}));
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    m.gcode(&format!(
-        "KLIPCAL_MEASURE PAIR={id} VALUES={:.2},{:.2}",
-        good[0], good[1]
-    ))
-    .await
-    .unwrap();
-    poll(Duration::from_secs(10), || async {
-        (!cleared(&session(&bench).await)).then_some(())
-    })
-    .await
-    .expect("the macro's readings were not saved");
-    m.gcode(&format!("KLIPCAL_MEASURE PAIR={id} CLEAR=1"))
-        .await
-        .unwrap();
-    let st = poll(Duration::from_secs(10), || async {
-        let st = session(&bench).await;
-        cleared(&st).then_some(st)
-    })
-    .await
-    .expect("the macro's CLEAR=1 left readings");
-    assert_eq!(
-        st["notes"]
-            .to_string()
-            .matches("removed by CLEAR=1")
-            .count(),
-        3,
-        "each removal is logged: {st}"
-    );
+    clear_works_over_the_api_and_the_macro(&bench, &d, &m, &id, &good).await;
     // The plausibility window follows the pair's nominal and the change limit (item 4): 2.5 %
     // off the 150 mm pair (3.75 mm, beyond the absolute 2 mm tolerance) is within the 3 %
     // max_change_pct and taken; 5 % is not.
@@ -549,25 +600,10 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
     drop(d);
 }
 
-#[tokio::test]
-#[allow(clippy::too_many_lines)] // 264 lines: to be split along its steps
-async fn a_session_driven_through_the_macros_answers_on_the_console() {
-    let bench = Bench::start_with("corexy", Some(PLANT));
-    // A cool-down after the print, so its console line is seen (issue 26 A.7: "cools on the
-    // hot bed" with BED=0).
-    let d = Daemon::ready(
-        &bench,
-        &settings(600.0).replace("cooldown_s = 0.0", "cooldown_s = 1.0"),
-    )
-    .await;
-    let (m, _c) = bench.client(json!({}));
-    m.wait_connected(Duration::from_secs(30)).await.unwrap();
-    let mut rx = m.events();
-    m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
-    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
-    // The measuring step says what to measure and how (issue 9 items 5, 7), on an unheated
-    // bed without "hot bed".
-    let guide: Vec<String> = crate::mainsail::history(&m)
+/// The measuring step says what to measure and how (issue 9 items 5, 7), on an unheated bed
+/// without "hot bed", and gives the page's address (the phone path, issue 26 A.6).
+async fn the_guide_says_what_to_measure_and_where(d: &Daemon, m: &klipcal::moonraker::Moonraker) {
+    let guide: Vec<String> = crate::mainsail::history(m)
         .await
         .into_iter()
         .map(|(_, msg)| msg)
@@ -592,12 +628,11 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         guide.contains(&format!("or on klipcal's page, {page}/")),
         "the guide does not give the page's address {page}: {guide}"
     );
-    // A dialog never waits on input only the console can give (item 18): the measuring
-    // dialog's button closes it and says where to type, and readings do not reopen it.
-    // Issue 40 item 4: no measuring dialog (Mainsail's is modal and blocked the console the
-    // readings are typed in until it was closed): the console's guide and the page are the
-    // ways, and the console is free.
-    assert_eq!(crate::mainsail::after_reload(&m).await, None);
+}
+
+/// Every pair's readings typed as KLIPCAL_MEASURE lines are saved, and a reading does not
+/// reopen a dialog the user closed to type.
+async fn readings_through_the_macro(bench: &Bench, m: &klipcal::moonraker::Moonraker, s: &Value) {
     for (k, p) in s["pairs"].as_array().unwrap().iter().enumerate() {
         let vals: Vec<String> = simulated_readings(p)
             .iter()
@@ -612,14 +647,14 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
         .unwrap();
         if k == 0 {
             assert_eq!(
-                crate::mainsail::after_reload(&m).await,
+                crate::mainsail::after_reload(m).await,
                 None,
                 "a reading reopened the dialog the user closed to type"
             );
         }
     }
     let all = poll(Duration::from_secs(10), || async {
-        let s = session(&bench).await;
+        let s = session(bench).await;
         let n: usize = s["readings"]
             .as_object()?
             .values()
@@ -631,8 +666,150 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     assert!(
         all.is_some(),
         "readings via macros: {}",
-        session(&bench).await
+        session(bench).await
     );
+}
+
+/// The console reads well after a reload (issue 9 item 23): each answer before its dialog,
+/// one script per call.
+fn answers_come_before_their_dialogs(h: &[(String, String)]) {
+    let pos = |pred: &dyn Fn(&(String, String)) -> bool, what: &str| -> usize {
+        h.iter()
+            .position(pred)
+            .unwrap_or_else(|| panic!("no {what} in the console: {h:#?}"))
+    };
+    let response = |needle: &'static str| {
+        move |(k, msg): &(String, String)| k == "response" && msg.contains(needle)
+    };
+    let last_saved = h
+        .iter()
+        .rposition(|(k, msg)| k == "response" && msg.contains("5 reading(s) saved"))
+        .expect("readings saved");
+    let measured = pos(
+        &response("prompt_begin Round 1 · all pairs measured"),
+        "Solve dialog",
+    );
+    assert!(
+        last_saved < measured,
+        "the last reading's answer comes after its dialog: {h:#?}"
+    );
+    let answer = pos(
+        &response("klipcal stepper_x: rotation_distance"),
+        "solve answer",
+    );
+    let dialog = pos(
+        &response("prompt_begin Round 1 · new values"),
+        "Apply dialog",
+    );
+    assert!(
+        answer < dialog,
+        "the solve answer comes after its dialog: {h:#?}"
+    );
+    let solve = pos(
+        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_SOLVE",
+        "solve",
+    );
+    let apply = pos(
+        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_APPLY",
+        "apply",
+    );
+    let scripts = h[solve + 1..apply]
+        .iter()
+        .filter(|(k, _)| k == "command")
+        .count();
+    assert_eq!(scripts, 1, "one console script for the solve call: {h:#?}");
+}
+
+/// Dialogs do not repeat the console and close once; the console speaks of no heating with
+/// BED=0, says the cool-down, and the apply answer once; no soak plot was saved.
+fn dialogs_do_not_repeat_the_console(bench: &Bench, h: &[(String, String)]) {
+    let texts: Vec<&String> = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_text"))
+        .map(|(_, msg)| msg)
+        .collect();
+    assert!(
+        texts
+            .iter()
+            .all(|t| !t.contains("KLIPCAL_MEASURE PAIR=") && !t.contains("plot of the rounds")),
+        "a dialog repeats what the console says: {texts:#?}"
+    );
+    let prompt_lines = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_"))
+        .count();
+    let answer_lines = h
+        .iter()
+        .filter(|(k, msg)| k == "response" && msg.starts_with("klipcal "))
+        .count();
+    assert!(
+        prompt_lines < answer_lines,
+        "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"
+    );
+    assert!(
+        h.iter()
+            .all(|(_, msg)| !msg.contains("hot bed") && !msg.contains("heating the bed")),
+        "BED=0 but the console speaks of heating: {h:#?}"
+    );
+    assert!(
+        h.iter()
+            .any(|(_, msg)| msg.contains("the part cools on the bed")),
+        "no cool-down line: {h:#?}"
+    );
+    // No soak happened: no soak plot (issue 26 A.7).
+    let pictures: Vec<String> = std::fs::read_dir(bench.dir.path().join("config/klipcal"))
+        .map(|rd| {
+            rd.flatten()
+                .map(|e| e.file_name().to_string_lossy().to_string())
+                .collect()
+        })
+        .unwrap_or_default();
+    assert!(
+        pictures.iter().all(|p| !p.contains("-soak.")),
+        "BED=0 saved a soak plot: {pictures:?}"
+    );
+    // The apply answer appears once (item 7).
+    let applied = h
+        .iter()
+        .filter(|(k, msg)| {
+            k == "response" && msg.contains("rotation_distance") && msg.contains("applied")
+        })
+        .count();
+    assert_eq!(applied, 1, "{h:#?}");
+    let mut closed = false;
+    for (k, msg) in h {
+        if k == "response" && msg == "// action:prompt_end" {
+            assert!(!closed, "a dialog closed twice: {h:#?}");
+            closed = true;
+        } else if k == "response" && msg.starts_with("// action:prompt_begin") {
+            closed = false;
+        }
+    }
+}
+
+#[tokio::test]
+async fn a_session_driven_through_the_macros_answers_on_the_console() {
+    let bench = Bench::start_with("corexy", Some(PLANT));
+    // A cool-down after the print, so its console line is seen (issue 26 A.7: "cools on the
+    // hot bed" with BED=0).
+    let d = Daemon::ready(
+        &bench,
+        &settings(600.0).replace("cooldown_s = 0.0", "cooldown_s = 1.0"),
+    )
+    .await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    let mut rx = m.events();
+    m.gcode("KLIPCAL_AB_START BED=0").await.unwrap();
+    let s = wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    the_guide_says_what_to_measure_and_where(&d, &m).await;
+    // A dialog never waits on input only the console can give (item 18): the measuring
+    // dialog's button closes it and says where to type, and readings do not reopen it.
+    // Issue 40 item 4: no measuring dialog (Mainsail's is modal and blocked the console the
+    // readings are typed in until it was closed): the console's guide and the page are the
+    // ways, and the console is free.
+    assert_eq!(crate::mainsail::after_reload(&m).await, None);
+    readings_through_the_macro(&bench, &m, &s).await;
     // A page reload (Mainsail rebuilds its dialog from the console history) shows the one
     // decision that is true now: Solve.
     let shown = crate::mainsail::after_reload_showing(&m, Duration::from_secs(10), |d| {
@@ -689,113 +866,8 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     // The console reads well after a reload (issue 9 item 23): each answer before its dialog,
     // one script per call, dialogs that do not repeat the console, no redundant closes.
     let h = crate::mainsail::history(&m).await;
-    let pos = |pred: &dyn Fn(&(String, String)) -> bool, what: &str| -> usize {
-        h.iter()
-            .position(pred)
-            .unwrap_or_else(|| panic!("no {what} in the console: {h:#?}"))
-    };
-    let response = |needle: &'static str| {
-        move |(k, msg): &(String, String)| k == "response" && msg.contains(needle)
-    };
-    let last_saved = h
-        .iter()
-        .rposition(|(k, msg)| k == "response" && msg.contains("5 reading(s) saved"))
-        .expect("readings saved");
-    let measured = pos(
-        &response("prompt_begin Round 1 · all pairs measured"),
-        "Solve dialog",
-    );
-    assert!(
-        last_saved < measured,
-        "the last reading's answer comes after its dialog: {h:#?}"
-    );
-    let answer = pos(
-        &response("klipcal stepper_x: rotation_distance"),
-        "solve answer",
-    );
-    let dialog = pos(
-        &response("prompt_begin Round 1 · new values"),
-        "Apply dialog",
-    );
-    assert!(
-        answer < dialog,
-        "the solve answer comes after its dialog: {h:#?}"
-    );
-    let solve = pos(
-        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_SOLVE",
-        "solve",
-    );
-    let apply = pos(
-        &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_APPLY",
-        "apply",
-    );
-    let scripts = h[solve + 1..apply]
-        .iter()
-        .filter(|(k, _)| k == "command")
-        .count();
-    assert_eq!(scripts, 1, "one console script for the solve call: {h:#?}");
-    let texts: Vec<&String> = h
-        .iter()
-        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_text"))
-        .map(|(_, msg)| msg)
-        .collect();
-    assert!(
-        texts
-            .iter()
-            .all(|t| !t.contains("KLIPCAL_MEASURE PAIR=") && !t.contains("plot of the rounds")),
-        "a dialog repeats what the console says: {texts:#?}"
-    );
-    let prompt_lines = h
-        .iter()
-        .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_"))
-        .count();
-    let answer_lines = h
-        .iter()
-        .filter(|(k, msg)| k == "response" && msg.starts_with("klipcal "))
-        .count();
-    assert!(
-        prompt_lines < answer_lines,
-        "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"
-    );
-    assert!(
-        h.iter()
-            .all(|(_, msg)| !msg.contains("hot bed") && !msg.contains("heating the bed")),
-        "BED=0 but the console speaks of heating: {h:#?}"
-    );
-    assert!(
-        h.iter()
-            .any(|(_, msg)| msg.contains("the part cools on the bed")),
-        "no cool-down line: {h:#?}"
-    );
-    // No soak happened: no soak plot (issue 26 A.7).
-    let pictures: Vec<String> = std::fs::read_dir(bench.dir.path().join("config/klipcal"))
-        .map(|rd| {
-            rd.flatten()
-                .map(|e| e.file_name().to_string_lossy().to_string())
-                .collect()
-        })
-        .unwrap_or_default();
-    assert!(
-        pictures.iter().all(|p| !p.contains("-soak.")),
-        "BED=0 saved a soak plot: {pictures:?}"
-    );
-    // The apply answer appears once (item 7).
-    let applied = h
-        .iter()
-        .filter(|(k, msg)| {
-            k == "response" && msg.contains("rotation_distance") && msg.contains("applied")
-        })
-        .count();
-    assert_eq!(applied, 1, "{h:#?}");
-    let mut closed = false;
-    for (k, msg) in &h {
-        if k == "response" && msg == "// action:prompt_end" {
-            assert!(!closed, "a dialog closed twice: {h:#?}");
-            closed = true;
-        } else if k == "response" && msg.starts_with("// action:prompt_begin") {
-            closed = false;
-        }
-    }
+    answers_come_before_their_dialogs(&h);
+    dialogs_do_not_repeat_the_console(&bench, &h);
     // The daemon's answers reached the console.
     let mut lines = Vec::new();
     while let Ok(e) = rx.try_recv() {

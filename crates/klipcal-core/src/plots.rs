@@ -115,7 +115,6 @@ fn fit_meets_data(fit: &DecayCurve, samples: &[BedSample]) -> bool {
 ///
 /// # Errors
 /// No samples, or plotters failed (the message says which).
-#[allow(clippy::too_many_lines)] // 136 lines: to be split along its steps
 pub fn soak_svg(
     samples: &[BedSample],
     fit: Option<DecayCurve>,
@@ -131,19 +130,7 @@ pub fn soak_svg(
     let span_s = last.t_s - t0;
     let ahead_s = eta_s.unwrap_or(0.0).clamp(0.0, span_s.max(120.0));
     let x1 = ((last.t_s - t0 + ahead_s) / 60.0).max(1.0);
-    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
-    for s in samples {
-        for v in [s.temp_c, s.target_c] {
-            if v.is_finite() {
-                lo = lo.min(v);
-                hi = hi.max(v);
-            }
-        }
-    }
-    if !(lo.is_finite() && hi.is_finite()) {
-        return Err("plot: no finite temperatures".into());
-    }
-    let (lo, hi) = ((lo - 2.0).floor(), (hi + 2.0).ceil());
+    let (lo, hi) = temperature_axis(samples)?;
     let max_power = samples
         .iter()
         .map(|s| s.power)
@@ -228,39 +215,63 @@ pub fn soak_svg(
                 true,
             ));
         }
-        // The legend: two rows under the plot, a short line and the words for each series.
-        let (w, _) = legend.dim_in_pixel();
-        let col = i32::try_from(w / 2).unwrap_or(300);
-        let row = i32::try_from(TEXT_PT + 6).unwrap_or(28);
-        for (k, (words, colour, dashed)) in keys.iter().enumerate() {
-            let k = i32::try_from(k).unwrap_or(0);
-            let (x, y) = (12 + (k % 2) * col, 6 + (k / 2) * row + row / 2);
-            let style = colour.stroke_width(if *dashed { 2 } else { 3 });
-            if *dashed {
-                for seg in 0..3 {
-                    legend
-                        .draw(&PathElement::new(
-                            vec![(x + seg * 10, y), (x + seg * 10 + 6, y)],
-                            style,
-                        ))
-                        .map_err(err)?;
-                }
-            } else {
-                legend
-                    .draw(&PathElement::new(vec![(x, y), (x + 26, y)], style))
-                    .map_err(err)?;
-            }
-            legend
-                .draw(&Text::new(
-                    words.clone(),
-                    (x + 34, y - i32::try_from(TEXT_PT).unwrap_or(22) * 2 / 5),
-                    text,
-                ))
-                .map_err(err)?;
-        }
+        draw_legend(&legend, &keys)?;
         root.present().map_err(err)?;
     }
     Ok(out)
+}
+
+/// The bed axis: the temperatures and targets, 2 °C of room each side, whole degrees.
+fn temperature_axis(samples: &[BedSample]) -> Result<(f64, f64), String> {
+    let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+    for s in samples {
+        for v in [s.temp_c, s.target_c] {
+            if v.is_finite() {
+                lo = lo.min(v);
+                hi = hi.max(v);
+            }
+        }
+    }
+    if !(lo.is_finite() && hi.is_finite()) {
+        return Err("plot: no finite temperatures".into());
+    }
+    Ok(((lo - 2.0).floor(), (hi + 2.0).ceil()))
+}
+
+/// The legend: two rows under the plot, a short line (dashed for the fit) and the words for
+/// each series.
+fn draw_legend(
+    area: &DrawingArea<SVGBackend<'_>, plotters::coord::Shift>,
+    keys: &[(String, RGBColor, bool)],
+) -> Result<(), String> {
+    let text = ("sans-serif", TEXT_PT);
+    let (w, _) = area.dim_in_pixel();
+    let col = i32::try_from(w / 2).unwrap_or(300);
+    let row = i32::try_from(TEXT_PT + 6).unwrap_or(28);
+    for (k, (words, colour, dashed)) in keys.iter().enumerate() {
+        let k = i32::try_from(k).unwrap_or(0);
+        let (x, y) = (12 + (k % 2) * col, 6 + (k / 2) * row + row / 2);
+        let style = colour.stroke_width(if *dashed { 2 } else { 3 });
+        if *dashed {
+            for seg in 0..3 {
+                area.draw(&PathElement::new(
+                    vec![(x + seg * 10, y), (x + seg * 10 + 6, y)],
+                    style,
+                ))
+                .map_err(err)?;
+            }
+        } else {
+            area.draw(&PathElement::new(vec![(x, y), (x + 26, y)], style))
+                .map_err(err)?;
+        }
+        area.draw(&Text::new(
+            words.clone(),
+            (x + 34, y - i32::try_from(TEXT_PT).unwrap_or(22) * 2 / 5),
+            text,
+        ))
+        .map_err(err)?;
+    }
+    Ok(())
 }
 
 /// The convergence plot: each round's residual scale error per axis with its uncertainty.

@@ -30,9 +30,9 @@ use crate::config::Config;
 use files::{diff, expand, read_opt, tilde, write_atomic};
 use host::{
     ask, layout, nix_is_root, not_printing, printer, printer_config, restart, systemctl,
-    systemd_available, taken_http_ports, target_asset, unit_text,
+    systemd_available, taken_http_ports, target_asset, unit_text, Printer,
 };
-use manifest::{load_manifest, manifest_path, Change, Entry};
+use manifest::{load_manifest, manifest_path, Change, Entry, Manifest};
 use webcam::webcam_plan;
 
 /// The Klipper macros users include (replaced on every install: users don't edit it).
@@ -98,7 +98,6 @@ pub struct UninstallArgs {
 ///
 /// # Errors
 /// No printer_data layout, a print running, a conflict (named), or an I/O failure.
-#[allow(clippy::too_many_lines)] // 299 lines: to be split along its steps
 pub(crate) async fn install(
     a: &InstallArgs,
     config: &Config,
@@ -115,279 +114,67 @@ pub(crate) async fn install(
     );
     let moonraker = not_printing(config).await?;
     let manifest = load_manifest(&pd)?.unwrap_or_default();
-    let cfg_dir = pd.join("config");
     let bin_dir = expand(a.bin_dir.as_deref().unwrap_or(&match &p.instance {
         None => "~/klipcal".to_string(),
         Some(i) => format!("~/klipcal-{i}"),
     }));
     let asset = target_asset();
-    let bin = bin_dir.join(&asset);
+    let t = Target {
+        cfg_dir: pd.join("config"),
+        bin: bin_dir.join(&asset),
+        pd,
+        p,
+        bin_dir,
+        asset,
+    };
 
-    let mut changes: Vec<Change> = Vec::new();
-    let mut push = |path: PathBuf,
-                    before: Option<String>,
-                    after: String,
-                    added: Vec<String>,
-                    section: Option<String>| {
-        if before.as_deref() != Some(after.as_str()) {
-            changes.push(Change {
-                path,
-                before,
-                after,
-                added_lines: added,
-                section,
-            });
-        }
-    };
-    // The macros, replaced on upgrade; the settings only when absent.
-    let macros = cfg_dir.join("klipcal.cfg");
-    push(
-        macros.clone(),
-        read_opt(&macros)?,
-        crate::jobs::registry::macros_cfg(),
-        vec![],
-        None,
-    );
-    let settings = cfg_dir.join("klipcal.toml");
-    // The settings the daemon will run with (for the page's address).
-    let mut settings_text = read_opt(&settings)?;
-    if let Some(before) = read_opt(&settings)? {
-        match Config::parse(&before) {
-            Err(e) => println!(
-                "note: {} is kept as it is, but klipcal cannot read it: {e}",
-                settings.display()
-            ),
-            Ok(c) if c.moonraker.url != p.url => println!(
-                "note: {} is kept as it is, but its moonraker.url {} is not this printer's \
-                 Moonraker ({}); edit it",
-                settings.display(),
-                c.moonraker.url,
-                p.url
-            ),
-            Ok(_) => {}
-        }
-    } else {
-        // This printer's Moonraker, its own data folder and a page port of its own.
-        let port = plan::http_port(p.port, &taken_http_ports(&pd));
-        let text = plan::settings(SETTINGS, &p.url, &tilde(&pd.join("klipcal")), port);
-        settings_text = Some(text.clone());
-        push(settings, None, text, vec![], None);
-    }
-    // printer.cfg: the include (and [respond]), checked against what Klipper reads now.
-    let printer_cfg = cfg_dir.join("printer.cfg");
-    let text = read_opt(&printer_cfg)?.unwrap_or_default();
-    let loaded = crate::klipper::Config::load(&crate::fsio::FsFiles, &printer_cfg)
-        .map_err(|e| anyhow!("reading the printer's config as Klipper would: {e}"))?;
-    // Kalico loads `respond` without a section (Klipper's printer.info says which it is; the
-    // running RESPOND itself says nothing of the file, which may have changed since).
-    let respond_by_default = match &moonraker {
-        Some(f) => f.get("/printer/info").await.is_ok_and(|i| {
-            crate::klipper::Dialect::of_app(i["app"].as_str()) == crate::klipper::Dialect::Kalico
-        }),
-        None => false,
-    };
-    let add_respond = if plan::has_respond(&loaded) || respond_by_default {
-        false
-    } else if a.yes || a.dry_run {
-        true
-    } else if std::io::stdin().is_terminal() {
-        ask("Klipper has no [respond]; klipcal answers on the console with RESPOND. Add [respond] to printer.cfg?")
-    } else {
-        println!("note: printer.cfg has no [respond]; klipcal's console answers need it (run with --yes to add it)");
-        false
-    };
-    if let Some(after) = plan::printer_cfg(
-        &text,
-        &loaded,
-        &crate::jobs::registry::macros_cfg(),
-        add_respond,
-    )? {
-        let added: Vec<String> = [plan::INCLUDE_LINE, plan::RESPOND_LINE]
-            .iter()
-            .filter(|l| {
-                after.lines().filter(|x| x.trim() == **l).count()
-                    > text.lines().filter(|x| x.trim() == **l).count()
-            })
-            .map(|l| (*l).to_string())
-            .collect();
-        push(printer_cfg.clone(), Some(text.clone()), after, added, None);
-    }
-    // moonraker.conf: the update_manager entry Moonraker can update a binary with.
-    let conf = cfg_dir.join("moonraker.conf");
-    let conf_text = read_opt(&conf)?.unwrap_or_default();
-    let section = plan::update_manager_section(&bin_dir.display().to_string(), &a.repo, &p.service);
-    let ours = manifest
-        .files
-        .get(&conf)
-        .is_some_and(|e| e.section.is_some());
-    if let Some(after) = plan::moonraker_conf(&conf_text, &section, ours)? {
-        push(
-            conf.clone(),
-            Some(conf_text),
-            after,
-            vec![],
-            Some(format!("[update_manager {}]", p.service)),
-        );
-    }
-    // moonraker.asvc: Moonraker may restart klipcal (its update_manager needs that).
-    let asvc = pd.join("moonraker.asvc");
-    let asvc_before = read_opt(&asvc)?;
-    if let Some(after) = plan::asvc(
-        asvc_before.as_deref(),
-        MOONRAKER_DEFAULT_SERVICES,
-        &p.service,
-    ) {
-        push(
-            asvc.clone(),
-            asvc_before,
-            after,
-            vec![p.service.clone()],
-            None,
-        );
-    }
-    // release_info.json next to the binary: what Moonraker's executable type reads.
-    let (owner, name) = a
-        .repo
-        .split_once('/')
-        .ok_or_else(|| anyhow!("--repo {:?}: expected owner/name", a.repo))?;
-    let rinfo = bin_dir.join("release_info.json");
-    let rinfo_text = serde_json::to_string_pretty(&json!({
-        "project_name": name, "project_owner": owner,
-        "version": format!("v{}", env!("CARGO_PKG_VERSION")), "asset_name": asset,
-    }))? + "\n";
-    push(rinfo.clone(), read_opt(&rinfo)?, rinfo_text, vec![], None);
+    let mut changes = Changes::default();
+    let settings_text = t.plan_settings(&mut changes)?;
+    t.plan_printer_cfg(a, moonraker.as_ref(), &mut changes)
+        .await?;
+    let rinfo = t.plan_moonraker(a, &manifest, &mut changes)?;
+    let changes = changes.0;
 
     let exe = std::env::current_exe().context("finding klipcal's own binary")?;
     let exe_bytes = std::fs::read(&exe).with_context(|| format!("reading {}", exe.display()))?;
-    let copy_binary = std::fs::read(&bin).ok().as_deref() != Some(exe_bytes.as_slice());
-    let unit_path = PathBuf::from(format!("/etc/systemd/system/{}.service", p.service));
-    let use_systemd = !a.no_systemd && systemd_available();
-    let unit = unit_text(&bin, &p);
-    let write_unit =
-        use_systemd && read_opt(&unit_path).ok().flatten().as_deref() != Some(unit.as_str());
-
+    let copy_binary = std::fs::read(&t.bin).ok().as_deref() != Some(exe_bytes.as_slice());
+    let unit = Unit::plan(a, &t);
     let webcam = webcam_plan(a, moonraker.as_ref(), &manifest, settings_text.as_deref()).await;
 
-    if changes.is_empty() && !copy_binary && !write_unit && webcam.is_none() {
+    if changes.is_empty() && !copy_binary && !unit.write && webcam.is_none() {
         println!(
             "klipcal is installed in {}; nothing to change",
-            pd.display()
+            t.pd.display()
         );
         return Ok(ExitCode::SUCCESS);
     }
     if a.dry_run {
-        for c in &changes {
-            print!("{}", diff(&c.path, c.before.as_deref(), Some(&c.after)));
-        }
-        if copy_binary {
-            println!("copy {} -> {}", exe.display(), bin.display());
-        }
-        if write_unit {
-            print!(
-                "{}",
-                diff(
-                    &unit_path,
-                    read_opt(&unit_path).ok().flatten().as_deref(),
-                    Some(&unit)
-                )
-            );
-            println!(
-                "systemctl daemon-reload && systemctl enable --now {}",
-                p.service
-            );
-        }
-        if let Some(w) = &webcam {
-            println!("{}", w.describe());
-        }
-        println!("(dry run: nothing written)");
+        t.print_dry_run(
+            &changes,
+            copy_binary.then_some(&exe),
+            &unit,
+            webcam.as_ref(),
+        );
         return Ok(ExitCode::SUCCESS);
     }
 
-    // Back up every file about to be edited, then write.
-    let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
-        .to_string()
-        .replace(':', "-");
-    let backup = cfg_dir.join(format!("klipcal_backups/install-{stamp}"));
     let mut manifest = manifest;
     manifest.version = env!("CARGO_PKG_VERSION").into();
-    for c in &changes {
-        if let Some(before) = &c.before {
-            let name = c
-                .path
-                .file_name()
-                .map(|n| n.to_os_string())
-                .unwrap_or_default();
-            write_atomic(&backup.join(name), before.as_bytes())?;
-        }
-    }
-    for c in &changes {
-        write_atomic(&c.path, c.after.as_bytes())?;
-        let e = manifest
-            .files
-            .entry(c.path.clone())
-            .or_insert_with(|| Entry {
-                original: c.before.clone(),
-                installed: String::new(),
-                added_lines: vec![],
-                section: None,
-            });
-        e.installed = c.after.clone();
-        for l in &c.added_lines {
-            if !e.added_lines.contains(l) {
-                e.added_lines.push(l.clone());
-            }
-        }
-        if c.section.is_some() {
-            e.section = c.section.clone();
-        }
-        println!(
-            "{} {}",
-            if c.before.is_some() {
-                "edited "
-            } else {
-                "created"
-            },
-            c.path.display()
-        );
-    }
+    let backup = t.write_changes(&changes, &mut manifest)?;
     if copy_binary {
-        write_atomic(&bin, &exe_bytes)?;
+        write_atomic(&t.bin, &exe_bytes)?;
         use std::os::unix::fs::PermissionsExt;
-        std::fs::set_permissions(&bin, std::fs::Permissions::from_mode(0o755))?;
-        println!("copied  {}", bin.display());
+        std::fs::set_permissions(&t.bin, std::fs::Permissions::from_mode(0o755))?;
+        println!("copied  {}", t.bin.display());
     }
     // The binary and release_info.json are klipcal's own files: removed on uninstall.
     manifest.files.remove(&rinfo);
-    for p in [&bin, &rinfo] {
+    for p in [&t.bin, &rinfo] {
         if !manifest.created.contains(p) {
             manifest.created.push(p.clone());
         }
     }
-    if write_unit {
-        let tmp = std::env::temp_dir().join("klipcal.service");
-        std::fs::write(&tmp, &unit)?;
-        let st = std::process::Command::new(if nix_is_root() { "cp" } else { "sudo" })
-            .args(if nix_is_root() { vec![] } else { vec!["cp"] })
-            .arg(&tmp)
-            .arg(&unit_path)
-            .status()?;
-        if !st.success() {
-            bail!("could not write {}", unit_path.display());
-        }
-        manifest.unit = Some(unit_path.clone());
-        systemctl(&["daemon-reload"])?;
-        systemctl(&["enable", "--now", &p.service])?;
-        if copy_binary {
-            systemctl(&["restart", &p.service])?;
-        }
-        println!("service  {} enabled and started", p.service);
-    } else if a.no_systemd || !systemd_available() {
-        println!(
-            "note: no systemd service installed; start it with: {} --config {} serve",
-            bin.display(),
-            pd.join("config/klipcal.toml").display()
-        );
-    }
+    t.install_unit(a, &unit, copy_binary, &mut manifest)?;
     if let (Some(w), Some(files)) = (&webcam, &moonraker) {
         match webcam::register(files, w.uid.as_deref(), &w.url).await {
             Ok(uid) => {
@@ -402,7 +189,7 @@ pub(crate) async fn install(
         }
     }
     write_atomic(
-        &manifest_path(&pd),
+        &manifest_path(&t.pd),
         serde_json::to_string_pretty(&manifest)?.as_bytes(),
     )?;
     if !changes.is_empty() {
@@ -412,9 +199,344 @@ pub(crate) async fn install(
         restart(
             files,
             &changes.iter().map(|c| c.path.clone()).collect::<Vec<_>>(),
-            &pd,
+            &t.pd,
         )
         .await;
     }
     Ok(ExitCode::SUCCESS)
+}
+
+/// Where install puts things on this printer.
+struct Target {
+    /// The printer_data folder.
+    pd: PathBuf,
+    p: Printer,
+    /// `printer_data/config`.
+    cfg_dir: PathBuf,
+    /// The binary's folder (the update_manager's `path`), the release asset's name, and the
+    /// binary's path in that folder.
+    bin_dir: PathBuf,
+    asset: String,
+    bin: PathBuf,
+}
+
+/// The text changes install plans, each only when it changes the file.
+#[derive(Default)]
+struct Changes(Vec<Change>);
+
+impl Changes {
+    fn push(
+        &mut self,
+        path: PathBuf,
+        before: Option<String>,
+        after: String,
+        added: Vec<String>,
+        section: Option<String>,
+    ) {
+        if before.as_deref() != Some(after.as_str()) {
+            self.0.push(Change {
+                path,
+                before,
+                after,
+                added_lines: added,
+                section,
+            });
+        }
+    }
+}
+
+/// The systemd unit: its path and text, and whether it is to be written.
+struct Unit {
+    path: PathBuf,
+    text: String,
+    write: bool,
+}
+
+impl Unit {
+    fn plan(a: &InstallArgs, t: &Target) -> Unit {
+        let path = PathBuf::from(format!("/etc/systemd/system/{}.service", t.p.service));
+        let use_systemd = !a.no_systemd && systemd_available();
+        let text = unit_text(&t.bin, &t.p);
+        let write = use_systemd && read_opt(&path).ok().flatten().as_deref() != Some(text.as_str());
+        Unit { path, text, write }
+    }
+}
+
+impl Target {
+    /// The macros, replaced on upgrade; the settings only when absent (this printer's
+    /// Moonraker, its own data folder and a page port of its own). Returns the settings the
+    /// daemon will run with (for the page's address).
+    fn plan_settings(&self, changes: &mut Changes) -> anyhow::Result<Option<String>> {
+        let macros = self.cfg_dir.join("klipcal.cfg");
+        changes.push(
+            macros.clone(),
+            read_opt(&macros)?,
+            crate::jobs::registry::macros_cfg(),
+            vec![],
+            None,
+        );
+        let settings = self.cfg_dir.join("klipcal.toml");
+        let mut settings_text = read_opt(&settings)?;
+        if let Some(before) = read_opt(&settings)? {
+            match Config::parse(&before) {
+                Err(e) => println!(
+                    "note: {} is kept as it is, but klipcal cannot read it: {e}",
+                    settings.display()
+                ),
+                Ok(c) if c.moonraker.url != self.p.url => println!(
+                    "note: {} is kept as it is, but its moonraker.url {} is not this printer's \
+                     Moonraker ({}); edit it",
+                    settings.display(),
+                    c.moonraker.url,
+                    self.p.url
+                ),
+                Ok(_) => {}
+            }
+        } else {
+            let port = plan::http_port(self.p.port, &taken_http_ports(&self.pd));
+            let text = plan::settings(
+                SETTINGS,
+                &self.p.url,
+                &tilde(&self.pd.join("klipcal")),
+                port,
+            );
+            settings_text = Some(text.clone());
+            changes.push(settings, None, text, vec![], None);
+        }
+        Ok(settings_text)
+    }
+
+    /// printer.cfg: the include (and `[respond]`, asked for when Klipper lacks it), checked
+    /// against what Klipper reads now.
+    async fn plan_printer_cfg(
+        &self,
+        a: &InstallArgs,
+        moonraker: Option<&crate::moonraker::Files>,
+        changes: &mut Changes,
+    ) -> anyhow::Result<()> {
+        let printer_cfg = self.cfg_dir.join("printer.cfg");
+        let text = read_opt(&printer_cfg)?.unwrap_or_default();
+        let loaded = crate::klipper::Config::load(&crate::fsio::FsFiles, &printer_cfg)
+            .map_err(|e| anyhow!("reading the printer's config as Klipper would: {e}"))?;
+        // Kalico loads `respond` without a section (Klipper's printer.info says which it is;
+        // the running RESPOND itself says nothing of the file, which may have changed since).
+        let respond_by_default = match moonraker {
+            Some(f) => f.get("/printer/info").await.is_ok_and(|i| {
+                crate::klipper::Dialect::of_app(i["app"].as_str())
+                    == crate::klipper::Dialect::Kalico
+            }),
+            None => false,
+        };
+        let add_respond = if plan::has_respond(&loaded) || respond_by_default {
+            false
+        } else if a.yes || a.dry_run {
+            true
+        } else if std::io::stdin().is_terminal() {
+            ask("Klipper has no [respond]; klipcal answers on the console with RESPOND. Add [respond] to printer.cfg?")
+        } else {
+            println!("note: printer.cfg has no [respond]; klipcal's console answers need it (run with --yes to add it)");
+            false
+        };
+        if let Some(after) = plan::printer_cfg(
+            &text,
+            &loaded,
+            &crate::jobs::registry::macros_cfg(),
+            add_respond,
+        )? {
+            let added: Vec<String> = [plan::INCLUDE_LINE, plan::RESPOND_LINE]
+                .iter()
+                .filter(|l| {
+                    after.lines().filter(|x| x.trim() == **l).count()
+                        > text.lines().filter(|x| x.trim() == **l).count()
+                })
+                .map(|l| (*l).to_string())
+                .collect();
+            changes.push(printer_cfg.clone(), Some(text.clone()), after, added, None);
+        }
+        Ok(())
+    }
+
+    /// moonraker.conf's update_manager entry Moonraker can update a binary with;
+    /// moonraker.asvc, so Moonraker may restart klipcal; release_info.json next to the binary
+    /// (what Moonraker's executable type reads), whose path is returned.
+    fn plan_moonraker(
+        &self,
+        a: &InstallArgs,
+        manifest: &Manifest,
+        changes: &mut Changes,
+    ) -> anyhow::Result<PathBuf> {
+        let p = &self.p;
+        let conf = self.cfg_dir.join("moonraker.conf");
+        let conf_text = read_opt(&conf)?.unwrap_or_default();
+        let section =
+            plan::update_manager_section(&self.bin_dir.display().to_string(), &a.repo, &p.service);
+        let ours = manifest
+            .files
+            .get(&conf)
+            .is_some_and(|e| e.section.is_some());
+        if let Some(after) = plan::moonraker_conf(&conf_text, &section, ours)? {
+            changes.push(
+                conf.clone(),
+                Some(conf_text),
+                after,
+                vec![],
+                Some(format!("[update_manager {}]", p.service)),
+            );
+        }
+        let asvc = self.pd.join("moonraker.asvc");
+        let asvc_before = read_opt(&asvc)?;
+        if let Some(after) = plan::asvc(
+            asvc_before.as_deref(),
+            MOONRAKER_DEFAULT_SERVICES,
+            &p.service,
+        ) {
+            changes.push(
+                asvc.clone(),
+                asvc_before,
+                after,
+                vec![p.service.clone()],
+                None,
+            );
+        }
+        let (owner, name) = a
+            .repo
+            .split_once('/')
+            .ok_or_else(|| anyhow!("--repo {:?}: expected owner/name", a.repo))?;
+        let rinfo = self.bin_dir.join("release_info.json");
+        let rinfo_text = serde_json::to_string_pretty(&json!({
+            "project_name": name, "project_owner": owner,
+            "version": format!("v{}", env!("CARGO_PKG_VERSION")), "asset_name": self.asset,
+        }))? + "\n";
+        changes.push(rinfo.clone(), read_opt(&rinfo)?, rinfo_text, vec![], None);
+        Ok(rinfo)
+    }
+
+    /// `--dry-run`: every change as a diff, the copy (`copy`: the binary to copy), the unit
+    /// and the webcam; nothing written.
+    fn print_dry_run(
+        &self,
+        changes: &[Change],
+        copy: Option<&PathBuf>,
+        unit: &Unit,
+        webcam: Option<&webcam::WebcamChange>,
+    ) {
+        for c in changes {
+            print!("{}", diff(&c.path, c.before.as_deref(), Some(&c.after)));
+        }
+        if let Some(exe) = copy {
+            println!("copy {} -> {}", exe.display(), self.bin.display());
+        }
+        if unit.write {
+            print!(
+                "{}",
+                diff(
+                    &unit.path,
+                    read_opt(&unit.path).ok().flatten().as_deref(),
+                    Some(&unit.text)
+                )
+            );
+            println!(
+                "systemctl daemon-reload && systemctl enable --now {}",
+                self.p.service
+            );
+        }
+        if let Some(w) = webcam {
+            println!("{}", w.describe());
+        }
+        println!("(dry run: nothing written)");
+    }
+
+    /// Backs up every file about to be edited, then writes the changes, each recorded in the
+    /// manifest. Returns the backup folder.
+    fn write_changes(
+        &self,
+        changes: &[Change],
+        manifest: &mut Manifest,
+    ) -> anyhow::Result<PathBuf> {
+        let stamp = humantime::format_rfc3339_seconds(std::time::SystemTime::now())
+            .to_string()
+            .replace(':', "-");
+        let backup = self
+            .cfg_dir
+            .join(format!("klipcal_backups/install-{stamp}"));
+        for c in changes {
+            if let Some(before) = &c.before {
+                let name = c
+                    .path
+                    .file_name()
+                    .map(|n| n.to_os_string())
+                    .unwrap_or_default();
+                write_atomic(&backup.join(name), before.as_bytes())?;
+            }
+        }
+        for c in changes {
+            write_atomic(&c.path, c.after.as_bytes())?;
+            let e = manifest
+                .files
+                .entry(c.path.clone())
+                .or_insert_with(|| Entry {
+                    original: c.before.clone(),
+                    installed: String::new(),
+                    added_lines: vec![],
+                    section: None,
+                });
+            e.installed = c.after.clone();
+            for l in &c.added_lines {
+                if !e.added_lines.contains(l) {
+                    e.added_lines.push(l.clone());
+                }
+            }
+            if c.section.is_some() {
+                e.section = c.section.clone();
+            }
+            println!(
+                "{} {}",
+                if c.before.is_some() {
+                    "edited "
+                } else {
+                    "created"
+                },
+                c.path.display()
+            );
+        }
+        Ok(backup)
+    }
+
+    /// The systemd unit written, enabled and started (restarted when the binary changed);
+    /// without systemd, how to start klipcal.
+    fn install_unit(
+        &self,
+        a: &InstallArgs,
+        unit: &Unit,
+        copied: bool,
+        manifest: &mut Manifest,
+    ) -> anyhow::Result<()> {
+        let service = &self.p.service;
+        if unit.write {
+            let tmp = std::env::temp_dir().join("klipcal.service");
+            std::fs::write(&tmp, &unit.text)?;
+            let st = std::process::Command::new(if nix_is_root() { "cp" } else { "sudo" })
+                .args(if nix_is_root() { vec![] } else { vec!["cp"] })
+                .arg(&tmp)
+                .arg(&unit.path)
+                .status()?;
+            if !st.success() {
+                bail!("could not write {}", unit.path.display());
+            }
+            manifest.unit = Some(unit.path.clone());
+            systemctl(&["daemon-reload"])?;
+            systemctl(&["enable", "--now", service])?;
+            if copied {
+                systemctl(&["restart", service])?;
+            }
+            println!("service  {service} enabled and started");
+        } else if a.no_systemd || !systemd_available() {
+            println!(
+                "note: no systemd service installed; start it with: {} --config {} serve",
+                self.bin.display(),
+                self.pd.join("config/klipcal.toml").display()
+            );
+        }
+        Ok(())
+    }
 }

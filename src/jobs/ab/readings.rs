@@ -55,7 +55,6 @@ impl Ab {
     ///
     /// # Errors
     /// No session waiting for readings, an unknown pair, or an entry refused (nothing saved).
-    #[allow(clippy::too_many_lines)] // 128 lines: to be split along its steps
     pub(crate) async fn measure(&self, req: &MeasureRequest) -> anyhow::Result<Saved> {
         let s = self.measuring()?;
         let (pair, window) = pair_window(&s, &req.pair)?;
@@ -65,80 +64,11 @@ impl Ab {
             entry::parse(&req.values, &pair.id, &window)
                 .map_err(|e| user(format!("{}: nothing saved; {}", pair.id, e.0)))?
         };
-        let n = s.rounds.len() as i64;
         let per_pair = s.options.readings_per_pair;
         if !req.clear && !values.is_empty() {
-            // The last entry sent again (a re-sent console line, a double tap) would double the
-            // pair's readings: refused, with the way to replace them. A new reading that
-            // happens to equal an earlier one is not an entry sent again.
-            let have = self.readings(&s)?.remove(&pair.id).unwrap_or_default();
-            let again = s.last_entry.as_ref().is_some_and(|(p, last)| {
-                *p == pair.id
-                    && last.len() == values.len()
-                    && last.iter().zip(&values).all(|(a, b)| (a - b).abs() < 1e-9)
-            });
-            if again && have.len() + values.len() > per_pair {
-                return Err(user(format!(
-                    "{}: nothing saved: these {} reading(s) are already saved (the same entry \
-                     sent again?), {} of {per_pair} in all. To enter the pair again, replace its \
-                     readings: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
-                    pair.id,
-                    values.len(),
-                    have.len(),
-                    pair.id
-                )));
-            }
+            self.refuse_sent_again(&s, &pair.id, &values)?;
         }
-        let mut notes = Vec::new();
-        if req.clear {
-            let old: Vec<String> = self
-                .readings(&s)?
-                .remove(&pair.id)
-                .unwrap_or_default()
-                .iter()
-                .map(|v| entry::fmt_mm(*v))
-                .collect();
-            self.core.store().clear_readings(s.id, n, &pair.id)?;
-            notes.push(format!(
-                "{}: readings removed by CLEAR=1: {}",
-                pair.id,
-                if old.is_empty() {
-                    "none".to_string()
-                } else {
-                    old.join(", ")
-                }
-            ));
-        }
-        if !values.is_empty() {
-            self.core.store().add_readings(s.id, n, &pair.id, &values)?;
-        }
-        let was_solved = s.state == State::Solved;
-        if was_solved {
-            notes.push(
-                "the readings changed after solving: the solution was dropped; solve again".into(),
-            );
-        }
-        let logged = notes.clone();
-        let entry = (!values.is_empty()).then(|| (pair.id.clone(), values.clone()));
-        self.update(s.id, |s| {
-            s.notes.extend(logged);
-            if entry.is_some() || req.clear {
-                s.last_entry.clone_from(&entry);
-            }
-            if s.state == State::Solved {
-                s.state = State::Measuring;
-                s.progress = "waiting for caliper readings".into();
-                if let Some(r) = s.rounds.last_mut() {
-                    r.solution = None;
-                }
-            }
-            Ok(())
-        })
-        .await?;
-        if was_solved {
-            // The Apply prompt is no longer true.
-            self.core.prompt_end().await;
-        }
+        let notes = self.save_entry(&s, req, &pair.id, &values).await?;
         let s = self.load(s.id)?;
         let have = self.readings(&s)?;
         let count = have.get(&pair.id).map_or(0, Vec::len);
@@ -197,6 +127,96 @@ impl Ab {
             missing,
             message,
         })
+    }
+
+    /// The last entry sent again (a re-sent console line, a double tap) would double the
+    /// pair's readings: refused, with the way to replace them.
+    fn refuse_sent_again(&self, s: &Session, pair: &str, values: &[f64]) -> anyhow::Result<()> {
+        let per_pair = s.options.readings_per_pair;
+        // The last entry sent again (a re-sent console line, a double tap) would double the
+        // pair's readings: refused, with the way to replace them. A new reading that
+        // happens to equal an earlier one is not an entry sent again.
+        let have = self.readings(s)?.remove(pair).unwrap_or_default();
+        let again = s.last_entry.as_ref().is_some_and(|(p, last)| {
+            *p == pair
+                && last.len() == values.len()
+                && last.iter().zip(values).all(|(a, b)| (a - b).abs() < 1e-9)
+        });
+        if again && have.len() + values.len() > per_pair {
+            return Err(user(format!(
+                "{}: nothing saved: these {} reading(s) are already saved (the same entry \
+                 sent again?), {} of {per_pair} in all. To enter the pair again, replace its \
+                 readings: KLIPCAL_MEASURE PAIR={} CLEAR=1 VALUES=…",
+                pair,
+                values.len(),
+                have.len(),
+                pair
+            )));
+        }
+        Ok(())
+    }
+
+    /// Saves the entry (after removing the pair's readings with CLEAR=1) and drops a solution
+    /// the readings no longer match. Returns the notes logged in the session.
+    async fn save_entry(
+        &self,
+        s: &Session,
+        req: &MeasureRequest,
+        pair: &str,
+        values: &[f64],
+    ) -> anyhow::Result<Vec<String>> {
+        let n = s.rounds.len() as i64;
+        let mut notes = Vec::new();
+        if req.clear {
+            let old: Vec<String> = self
+                .readings(s)?
+                .remove(pair)
+                .unwrap_or_default()
+                .iter()
+                .map(|v| entry::fmt_mm(*v))
+                .collect();
+            self.core.store().clear_readings(s.id, n, pair)?;
+            notes.push(format!(
+                "{}: readings removed by CLEAR=1: {}",
+                pair,
+                if old.is_empty() {
+                    "none".to_string()
+                } else {
+                    old.join(", ")
+                }
+            ));
+        }
+        if !values.is_empty() {
+            self.core.store().add_readings(s.id, n, pair, values)?;
+        }
+        let was_solved = s.state == State::Solved;
+        if was_solved {
+            notes.push(
+                "the readings changed after solving: the solution was dropped; solve again".into(),
+            );
+        }
+        let logged = notes.clone();
+        let entry = (!values.is_empty()).then(|| (pair.to_string(), values.to_vec()));
+        self.update(s.id, |s| {
+            s.notes.extend(logged);
+            if entry.is_some() || req.clear {
+                s.last_entry.clone_from(&entry);
+            }
+            if s.state == State::Solved {
+                s.state = State::Measuring;
+                s.progress = "waiting for caliper readings".into();
+                if let Some(r) = s.rounds.last_mut() {
+                    r.solution = None;
+                }
+            }
+            Ok(())
+        })
+        .await?;
+        if was_solved {
+            // The Apply prompt is no longer true.
+            self.core.prompt_end().await;
+        }
+        Ok(notes)
     }
 
     /// `klipcal_ab_check`: judges an entry by the rules [`Ab::measure`] applies, field by field

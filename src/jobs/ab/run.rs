@@ -238,107 +238,19 @@ impl Ab {
         None
     }
 
-    #[allow(clippy::too_many_lines)] // 158 lines: to be split along its steps
+    /// The round's preflight: the printer has what the calibration needs, the skew is cleared
+    /// for the print, the pylon job is generated and uploaded with its picture, and the round
+    /// is stored.
     pub(super) async fn preflight(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         self.core.printer_idle().await?;
         let pc = printer_config::fetch(self.core.m(), self.core.files()).await?;
         let facts = PrinterFacts::from_config(&pc.config)?;
-        let mut missing = Vec::new();
-        if !facts.has_virtual_sdcard {
-            missing.push("[virtual_sdcard] (with path: ~/printer_data/gcodes)");
-        }
-        // What Klipper runs, not the config text: Kalico loads both without a section, and can
-        // switch either off while its section stays.
         let running = crate::printer::running_features(self.core.m()).await?;
-        if !running.respond {
-            missing.push(if facts.has_respond {
-                "[respond] (it is in the config, but Klipper has no RESPOND command: \
-                 enable_respond: False?)"
-            } else {
-                "[respond]"
-            });
-        }
-        if !running.exclude_object {
-            missing.push(if facts.has_exclude_object {
-                "[exclude_object] (it is in the config, but Klipper has no EXCLUDE_OBJECT_DEFINE \
-                 command: enable_exclude_object: False?)"
-            } else {
-                "[exclude_object]"
-            });
-        }
-        if s.options.shear_to == "klipper_skew" && !facts.has_skew_correction {
-            missing.push("[skew_correction] (ab.shear_to = \"klipper_skew\")");
-        }
-        if !facts.has_heater_bed && s.options.bed_temp_c > 0.0 {
-            missing.push("[heater_bed] (or start with BED=0)");
-        }
-        if !missing.is_empty() {
-            return Err(user(format!(
-                "the printer config lacks what the calibration needs; add to printer.cfg: {}",
-                missing.join(", ")
-            )));
-        }
-        let kinematics = match facts.kinematics {
-            klipper::Kinematics::CoreXy => "corexy",
-            klipper::Kinematics::Cartesian => "cartesian",
-            klipper::Kinematics::Other(ref k) => {
-                return Err(user(format!(
-                    "kinematics `{k}`: klipcal calibrates corexy and cartesian printers"
-                )))
-            }
-        };
+        let kinematics = check_printer(&s, &facts, &running)?;
         let mut notes = Vec::new();
-        let mut skew_before = s.skew_before;
-        if facts.has_skew_correction {
-            let xy = self.current_skew().await.unwrap_or(0.0);
-            if s.rounds.is_empty() {
-                skew_before = Some(xy);
-            }
-            if xy != 0.0 {
-                notes.push(format!(
-                    "skew correction (XY factor {xy:.6}) cleared for the calibration print; it is restored afterwards"
-                ));
-            }
-            self.core.m().gcode("SET_SKEW CLEAR=1").await?;
-        }
-        let gk = if kinematics == "corexy" {
-            gcode::Kinematics::CoreXy
-        } else {
-            gcode::Kinematics::Cartesian
-        };
-        let machine = gcode::Machine::from_config(
-            &pc.config,
-            Some(gk),
-            None,
-            None,
-            Some(s.options.start_macro.as_str()),
-        )
-        .map_err(|e| user(e.to_string()))?;
-        let opts = gcode::Options {
-            layout: if s.options.layout == "full" {
-                LayoutKind::Full
-            } else {
-                LayoutKind::Paper
-            },
-            bed_temp_c: s.options.bed_temp_c,
-            nozzle_temp_c: s.options.nozzle_temp_c,
-            generated_at_unix_s: now_unix() as i64,
-            ..gcode::Options::default()
-        };
-        let job = match gcode::generate(&machine, &opts) {
-            Ok(j) => j,
-            Err(gcode::Error::DoesNotFit {
-                suggested_d2_mm: Some(d2),
-                message,
-            }) => {
-                notes.push(format!(
-                    "the default D2 does not fit this bed; using D2 = {d2} mm ({message})"
-                ));
-                gcode::generate(&machine, &gcode::Options { d2_mm: d2, ..opts })?
-            }
-            Err(e) => return Err(user(e.to_string())),
-        };
+        let skew_before = self.clear_skew(&s, &facts, &mut notes).await?;
+        let job = pylon_job(&s, &pc, kinematics, &mut notes)?;
         let n = s.rounds.len() as u32 + 1;
         let file = format!("klipcal/ab-s{id}-r{n}.gcode");
         let stepper = |st: &klipper::Stepper| StepperDoc {
@@ -401,7 +313,33 @@ impl Ab {
         Ok(())
     }
 
-    #[allow(clippy::too_many_lines)] // 123 lines: to be split along its steps
+    /// With `[skew_correction]`: the skew Klipper runs, cleared for the calibration print (a
+    /// note says so when it was set). Returns the session's skew from before it (the first
+    /// round's, restored at the end).
+    async fn clear_skew(
+        &self,
+        s: &Session,
+        facts: &PrinterFacts,
+        notes: &mut Vec<String>,
+    ) -> anyhow::Result<Option<f64>> {
+        let mut skew_before = s.skew_before;
+        if facts.has_skew_correction {
+            let xy = self.current_skew().await.unwrap_or(0.0);
+            if s.rounds.is_empty() {
+                skew_before = Some(xy);
+            }
+            if xy != 0.0 {
+                notes.push(format!(
+                    "skew correction (XY factor {xy:.6}) cleared for the calibration print; it is restored afterwards"
+                ));
+            }
+            self.core.m().gcode("SET_SKEW CLEAR=1").await?;
+        }
+        Ok(skew_before)
+    }
+
+    /// The round's print: started (the heaters held for it), or followed when klipcal already
+    /// started it, to its end.
     pub(super) async fn print(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         let round = s
@@ -435,29 +373,39 @@ impl Ab {
             ));
         }
         if !follow {
-            self.core.printer_idle().await?;
-            // Klipper keeps the heaters on while it prints; once the print ends, it turns them
-            // off by itself after the hold limit if klipcal is not there to do it.
-            // Said in the same script as the hold (one console row fewer; issue 26 A.4).
-            self.core
-                .hold_heaters_with(
-                    s.options.hold_max_s,
-                    &crate::jobs::core::console::respond_line(&format!(
-                        "A/B calibration: printing {}",
-                        round.file
-                    )),
-                )
-                .await?;
-            self.core.m().print_start(&round.file).await?;
-            let now = now_unix();
-            self.update(id, |s| {
-                if let Some(r) = s.rounds.last_mut() {
-                    r.print_started_unix = Some(now);
-                }
-                Ok(())
-            })
-            .await?;
+            self.start_print(&s, round).await?;
         }
+        self.follow_print(id).await
+    }
+
+    /// Starts the round's print. Klipper keeps the heaters on while it prints; once the print
+    /// ends, it turns them off by itself after the hold limit if klipcal is not there to do it.
+    async fn start_print(&self, s: &Session, round: &Round) -> anyhow::Result<()> {
+        self.core.printer_idle().await?;
+        // Said in the same script as the hold (one console row fewer; issue 26 A.4).
+        self.core
+            .hold_heaters_with(
+                s.options.hold_max_s,
+                &crate::jobs::core::console::respond_line(&format!(
+                    "A/B calibration: printing {}",
+                    round.file
+                )),
+            )
+            .await?;
+        self.core.m().print_start(&round.file).await?;
+        let now = now_unix();
+        self.update(s.id, |s| {
+            if let Some(r) = s.rounds.last_mut() {
+                r.print_started_unix = Some(now);
+            }
+            Ok(())
+        })
+        .await
+    }
+
+    /// Follows the print to its end: complete (the part holds on the bed), cancelled (heaters
+    /// off, the session ends), an error, or Klipper gone from under it.
+    async fn follow_print(&self, id: i64) -> anyhow::Result<()> {
         let mut standby = 0;
         loop {
             tokio::time::sleep(Duration::from_millis(500)).await;
@@ -483,36 +431,8 @@ impl Ab {
             };
             let ps = &st["print_stats"];
             match ps["state"].as_str().unwrap_or("") {
-                "complete" => {
-                    self.update(id, |s| {
-                        s.state = State::Holding;
-                        s.print_done_unix = Some(now_unix());
-                        s.progress = if s.options.bed_temp_c > 0.0 {
-                            "print done; the part cools on the hot bed"
-                        } else {
-                            "print done; the part cools on the bed"
-                        }
-                        .into();
-                        Ok(())
-                    })
-                    .await?;
-                    return Ok(());
-                }
-                "cancelled" => {
-                    let off = self.core.heaters_off().await.is_ok();
-                    self.update(id, |s| {
-                        s.heaters_off |= off;
-                        s.state = State::Cancelled;
-                        s.reason = Some("the calibration print was cancelled".into());
-                        s.progress = "cancelled".into();
-                        Ok(())
-                    })
-                    .await?;
-                    self.core
-                        .console("A/B calibration cancelled: the print was cancelled; heaters off")
-                        .await;
-                    return Ok(());
-                }
+                "complete" => return self.print_complete(id).await,
+                "cancelled" => return self.print_cancelled(id).await,
                 "error" => {
                     let msg = ps["message"].as_str().unwrap_or("Klipper error");
                     // PRINT_START heating an uncalibrated MPC heater: what to run, not Kalico's text.
@@ -536,6 +456,37 @@ impl Ab {
                 _ => standby = 0,
             }
         }
+    }
+
+    async fn print_complete(&self, id: i64) -> anyhow::Result<()> {
+        self.update(id, |s| {
+            s.state = State::Holding;
+            s.print_done_unix = Some(now_unix());
+            s.progress = if s.options.bed_temp_c > 0.0 {
+                "print done; the part cools on the hot bed"
+            } else {
+                "print done; the part cools on the bed"
+            }
+            .into();
+            Ok(())
+        })
+        .await
+    }
+
+    async fn print_cancelled(&self, id: i64) -> anyhow::Result<()> {
+        let off = self.core.heaters_off().await.is_ok();
+        self.update(id, |s| {
+            s.heaters_off |= off;
+            s.state = State::Cancelled;
+            s.reason = Some("the calibration print was cancelled".into());
+            s.progress = "cancelled".into();
+            Ok(())
+        })
+        .await?;
+        self.core
+            .console("A/B calibration cancelled: the print was cancelled; heaters off")
+            .await;
+        Ok(())
     }
 
     /// `klipcal_ab_start`: starts a session (or the next round of an applied one).
@@ -615,5 +566,104 @@ impl Ab {
             state: State::Preflight.name(),
             message,
         })
+    }
+}
+
+/// What the calibration needs of the printer, as Klipper runs it (not the config text: Kalico
+/// loads `respond` and `exclude_object` without a section, and can switch either off while its
+/// section stays), all named when something lacks. Returns the kinematics' name.
+fn check_printer(
+    s: &Session,
+    facts: &PrinterFacts,
+    running: &crate::printer::Features,
+) -> anyhow::Result<&'static str> {
+    let mut missing = Vec::new();
+    if !facts.has_virtual_sdcard {
+        missing.push("[virtual_sdcard] (with path: ~/printer_data/gcodes)");
+    }
+    if !running.respond {
+        missing.push(if facts.has_respond {
+            "[respond] (it is in the config, but Klipper has no RESPOND command: \
+             enable_respond: False?)"
+        } else {
+            "[respond]"
+        });
+    }
+    if !running.exclude_object {
+        missing.push(if facts.has_exclude_object {
+            "[exclude_object] (it is in the config, but Klipper has no EXCLUDE_OBJECT_DEFINE \
+             command: enable_exclude_object: False?)"
+        } else {
+            "[exclude_object]"
+        });
+    }
+    if s.options.shear_to == "klipper_skew" && !facts.has_skew_correction {
+        missing.push("[skew_correction] (ab.shear_to = \"klipper_skew\")");
+    }
+    if !facts.has_heater_bed && s.options.bed_temp_c > 0.0 {
+        missing.push("[heater_bed] (or start with BED=0)");
+    }
+    if !missing.is_empty() {
+        return Err(user(format!(
+            "the printer config lacks what the calibration needs; add to printer.cfg: {}",
+            missing.join(", ")
+        )));
+    }
+    match facts.kinematics {
+        klipper::Kinematics::CoreXy => Ok("corexy"),
+        klipper::Kinematics::Cartesian => Ok("cartesian"),
+        klipper::Kinematics::Other(ref k) => Err(user(format!(
+            "kinematics `{k}`: klipcal calibrates corexy and cartesian printers"
+        ))),
+    }
+}
+
+/// The round's pylon job for this printer and the session's settings; when the default D2
+/// does not fit the bed, the one suggested (a note says so).
+fn pylon_job(
+    s: &Session,
+    pc: &printer_config::PrinterConfig,
+    kinematics: &str,
+    notes: &mut Vec<String>,
+) -> anyhow::Result<gcode::Job> {
+    let gk = if kinematics == "corexy" {
+        gcode::Kinematics::CoreXy
+    } else {
+        gcode::Kinematics::Cartesian
+    };
+    let machine = gcode::Machine::from_config(
+        &pc.config,
+        Some(gk),
+        None,
+        None,
+        Some(s.options.start_macro.as_str()),
+    )
+    .map_err(|e| user(e.to_string()))?;
+    let opts = gcode::Options {
+        layout: if s.options.layout == "full" {
+            LayoutKind::Full
+        } else {
+            LayoutKind::Paper
+        },
+        bed_temp_c: s.options.bed_temp_c,
+        nozzle_temp_c: s.options.nozzle_temp_c,
+        generated_at_unix_s: now_unix() as i64,
+        ..gcode::Options::default()
+    };
+    match gcode::generate(&machine, &opts) {
+        Ok(j) => Ok(j),
+        Err(gcode::Error::DoesNotFit {
+            suggested_d2_mm: Some(d2),
+            message,
+        }) => {
+            notes.push(format!(
+                "the default D2 does not fit this bed; using D2 = {d2} mm ({message})"
+            ));
+            Ok(gcode::generate(
+                &machine,
+                &gcode::Options { d2_mm: d2, ..opts },
+            )?)
+        }
+        Err(e) => Err(user(e.to_string())),
     }
 }

@@ -161,7 +161,8 @@ impl Mesh {
         })
     }
 
-    #[allow(clippy::too_many_lines)] // 132 lines: to be split along its steps
+    /// Follows the frame sensor once a second until cancelled: each reading pushed to the
+    /// follower, and what it decides done (a profile loaded, following stopped).
     pub(super) async fn follow_loop(
         &self,
         token: CancellationToken,
@@ -182,41 +183,15 @@ impl Mesh {
             let t = t0.elapsed().as_secs_f64();
             // A Klipper restart (or a manual load) replaces the mesh the follower loaded: start
             // over, so the right profile is loaded again.
-            if let Some((phase, temp_c)) = f.loaded() {
-                let active = self
-                    .core
-                    .m()
-                    .bed_mesh(&["profile_name"])
-                    .await
-                    .ok()
-                    .and_then(|bm| bm.profile_name);
-                if active.is_some_and(|a| a != direction_profile_name(phase, temp_c)) {
-                    info!("the active mesh changed under the follower (Klipper restarted?); reloading");
-                    f = fresh();
-                }
+            if self.mesh_changed_under(&f).await {
+                info!("the active mesh changed under the follower (Klipper restarted?); reloading");
+                f = fresh();
             }
             let busy = self.busy().await;
             let d = match self.frame_temp(&sensor).await {
                 Ok(temp) => {
                     let d = f.push(t, temp, busy);
-                    if let Ok(mut st) = self.follow_status.lock() {
-                        let residual_um = match &d {
-                            Decision::Keep { residual_um, .. }
-                            | Decision::Load { residual_um, .. } => Some(*residual_um),
-                            _ => None,
-                        };
-                        *st = FollowStatus {
-                            following: true,
-                            stopped: None,
-                            reading: Some(FollowReading {
-                                frame_c: temp,
-                                trend: f.trend(),
-                                loaded: f.loaded().map(|(p, t)| direction_profile_name(p, t)),
-                                offset_mm: [offset_mm.0, offset_mm.1],
-                                residual_um,
-                            }),
-                        };
-                    }
+                    self.show_reading(&f, temp, offset_mm, &d);
                     d
                 }
                 // Moonraker away (longer than a call waits for it): no reading is not a stale
@@ -244,29 +219,8 @@ impl Mesh {
                     residual_um,
                     ..
                 } => {
-                    let name = direction_profile_name(phase, temp_c);
-                    // The load drops BED_MESH_OFFSET: the one kept by KLIPCAL_MESH_OFFSET is
-                    // set again in the same script.
-                    let kept = self.kept_offset().await.unwrap_or((0.0, 0.0));
-                    match bed_mesh::load_script(&name, kept) {
-                        Ok(script) => match self.core.m().gcode(&script).await {
-                            Ok(()) => {
-                                offset_mm = kept;
-                                info!(profile = %name, residual_um, offset_x_mm = kept.0,
-                                      offset_y_mm = kept.1, "mesh profile loaded");
-                            }
-                            Err(e) => {
-                                warn!(profile = %name, error = %e, "mesh profile load failed");
-                            }
-                        },
-                        Err(e) => {
-                            self.core
-                                .console_error(&format!(
-                                    "{TITLE}: {OFFSET_MACRO} holds an offset klipcal cannot send \
-                                     ({e}); {name} not loaded"
-                                ))
-                                .await;
-                        }
+                    if let Some(kept) = self.load_profile(phase, temp_c, residual_um).await {
+                        offset_mm = kept;
                     }
                 }
                 Decision::RefuseJump {
@@ -279,33 +233,125 @@ impl Mesh {
                     } else {
                         &heating
                     };
-                    let name = set
-                        .temps_c
-                        .get(index)
-                        .map_or_else(String::new, |&t| direction_profile_name(phase, t));
-                    self.core
-                        .console_error(&format!(
-                            "{TITLE}: loading {} would change the mesh by {jump_um:.0} µm (limit {:.0} µm, \
-                             mesh.jump_limit_um): following stopped — was it switched on mid-print, or did the \
-                             frame sensor jump?",
-                            name,
-                            policy.jump_limit_um
-                        ))
+                    self.refuse_jump(set, phase, index, jump_um, policy.jump_limit_um)
                         .await;
-                    self.stop_following("a jump over the limit").await;
                     return;
                 }
                 Decision::Stopped { reason } => {
-                    self.core.console_error(&format!("{TITLE}: {reason}")).await;
-                    if let Ok(mut st) = self.follow_status.lock() {
-                        *st = FollowStatus::stopped(&reason);
-                    }
-                    if let Ok(mut fl) = self.follow.lock() {
-                        fl.take();
-                    }
+                    self.follower_stopped(&reason).await;
                     return;
                 }
             }
+        }
+    }
+
+    /// A Klipper restart (or a manual load) replaced the mesh the follower loaded.
+    async fn mesh_changed_under(&self, f: &Follower) -> bool {
+        let Some((phase, temp_c)) = f.loaded() else {
+            return false;
+        };
+        let active = self
+            .core
+            .m()
+            .bed_mesh(&["profile_name"])
+            .await
+            .ok()
+            .and_then(|bm| bm.profile_name);
+        active.is_some_and(|a| a != direction_profile_name(phase, temp_c))
+    }
+
+    /// The follower's status (the page's and STATUS's): the reading, the trend, the profile
+    /// loaded, the offset kept and the residual of the decision `d`.
+    fn show_reading(&self, f: &Follower, temp: f64, offset_mm: (f64, f64), d: &Decision) {
+        if let Ok(mut st) = self.follow_status.lock() {
+            let residual_um = match d {
+                Decision::Keep { residual_um, .. } | Decision::Load { residual_um, .. } => {
+                    Some(*residual_um)
+                }
+                _ => None,
+            };
+            *st = FollowStatus {
+                following: true,
+                stopped: None,
+                reading: Some(FollowReading {
+                    frame_c: temp,
+                    trend: f.trend(),
+                    loaded: f.loaded().map(|(p, t)| direction_profile_name(p, t)),
+                    offset_mm: [offset_mm.0, offset_mm.1],
+                    residual_um,
+                }),
+            };
+        }
+    }
+
+    /// Loads the profile for `temp_c` in `phase`. The load drops BED_MESH_OFFSET: the one kept
+    /// by KLIPCAL_MESH_OFFSET is set again in the same script. Returns that offset when the
+    /// profile was loaded.
+    async fn load_profile(
+        &self,
+        phase: Phase,
+        temp_c: f64,
+        residual_um: f64,
+    ) -> Option<(f64, f64)> {
+        let name = direction_profile_name(phase, temp_c);
+        let kept = self.kept_offset().await.unwrap_or((0.0, 0.0));
+        match bed_mesh::load_script(&name, kept) {
+            Ok(script) => match self.core.m().gcode(&script).await {
+                Ok(()) => {
+                    info!(profile = %name, residual_um, offset_x_mm = kept.0,
+                          offset_y_mm = kept.1, "mesh profile loaded");
+                    Some(kept)
+                }
+                Err(e) => {
+                    warn!(profile = %name, error = %e, "mesh profile load failed");
+                    None
+                }
+            },
+            Err(e) => {
+                self.core
+                    .console_error(&format!(
+                        "{TITLE}: {OFFSET_MACRO} holds an offset klipcal cannot send \
+                         ({e}); {name} not loaded"
+                    ))
+                    .await;
+                None
+            }
+        }
+    }
+
+    /// A profile `index` of `set` would change the mesh by more than the limit: said on the
+    /// console, and following stops.
+    async fn refuse_jump(
+        &self,
+        set: &Branch,
+        phase: Phase,
+        index: usize,
+        jump_um: f64,
+        limit_um: f64,
+    ) {
+        let name = set
+            .temps_c
+            .get(index)
+            .map_or_else(String::new, |&t| direction_profile_name(phase, t));
+        self.core
+            .console_error(&format!(
+                "{TITLE}: loading {} would change the mesh by {jump_um:.0} µm (limit {:.0} µm, \
+                 mesh.jump_limit_um): following stopped — was it switched on mid-print, or did the \
+                 frame sensor jump?",
+                name, limit_um
+            ))
+            .await;
+        self.stop_following("a jump over the limit").await;
+    }
+
+    /// The follower stopped itself (`reason` on the console and in its status).
+    async fn follower_stopped(&self, reason: &str) {
+        self.core.console_error(&format!("{TITLE}: {reason}")).await;
+        if let Ok(mut st) = self.follow_status.lock() {
+            *st = FollowStatus::stopped(reason);
+        }
+        if let Ok(mut fl) = self.follow.lock() {
+            fl.take();
         }
     }
 

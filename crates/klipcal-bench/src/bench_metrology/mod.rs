@@ -174,20 +174,32 @@ impl Default for BenchConfig {
 
 const UM_PER_100MM: f64 = 1e5;
 
+/// What the machines of one scenario gave: the residuals after the first correction (per
+/// report direction, then the shear), the common method's per motor axis, the prints to
+/// converge, and the first estimate's error against the noiseless one.
+struct Tally {
+    residual: Vec<Vec<f64>>,
+    common: Vec<Vec<f64>>,
+    prints: Vec<f64>,
+    not_converged: usize,
+    failures: usize,
+    est_err: Vec<Vec<f64>>,
+}
+
 /// Runs one scenario (kinematics × layout) over `cfg.machines` random machines.
 #[must_use]
-#[allow(clippy::too_many_lines)] // 153 lines: to be split along its steps
 pub(crate) fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> ScenarioReport {
     let p = &cfg.params;
     let layout = simulated_layout(kin, full, p.d_mm.0, p.d_mm.1);
-    let facts = facts(kin);
     let mut rng = StdRng::seed_from_u64(cfg.seed ^ (u64::from(full) << 1) ^ (kin as u64) << 2);
-    let mut residual: Vec<Vec<f64>> = vec![Vec::new(); REPORT_DIRECTIONS.len() + 1];
-    let mut common: Vec<Vec<f64>> = vec![Vec::new(); 2];
-    let mut prints = Vec::new();
-    let mut not_converged = 0;
-    let mut failures = 0;
-    let mut est_err: Vec<Vec<f64>> = vec![Vec::new(); 3];
+    let mut tally = Tally {
+        residual: vec![Vec::new(); REPORT_DIRECTIONS.len() + 1],
+        common: vec![Vec::new(); 2],
+        prints: Vec::new(),
+        not_converged: 0,
+        failures: 0,
+        est_err: vec![Vec::new(); 3],
+    };
     for _ in 0..cfg.machines {
         let r = p.motor_scale_range;
         let alpha = [
@@ -197,76 +209,150 @@ pub(crate) fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> Sc
         let phi = uniform(&mut rng, -p.frame_skew_deg, p.frame_skew_deg).to_radians();
         let shrink = uniform(&mut rng, p.shrink.0, p.shrink.1);
         let m_true = machine_matrix(kin, alpha, phi);
-        // closed loop
-        let mut cfg_scale = [1.0, 1.0];
-        let mut xy = 0.0;
-        let mut converged_at = None;
-        for print in 1..=cfg.max_prints {
-            let m_eff = corrected_matrix(kin, &m_true, cfg_scale, xy);
-            let drift = p.bed_cte_per_k * uniform(&mut rng, -p.bed_band_k, p.bed_band_k);
-            let raw = print_and_measure(&layout, &m_eff, shrink, drift, p, &mut rng);
-            let opts = SolveOptions {
-                current_xy_factor: xy,
-                ..SolveOptions::default()
-            };
-            let Ok(sol) = solve(&layout, &raw, &facts, &opts) else {
-                failures += 1;
-                break;
-            };
-            if sol.converged {
-                converged_at = Some(print);
-                break;
-            }
-            let k = [sol.stepper_x.scale, sol.stepper_y.scale];
-            if print == 1 {
-                // noiseless estimate on the same machine, for the spread
-                let exact = exact_corrections(kin, &layout, &m_eff);
-                est_err[0].push(k[0] - exact[0]);
-                est_err[1].push(k[1] - exact[1]);
-                if let Some(f) = sol.skew.xy_factor.filter(|_| sol.skew.applied) {
-                    est_err[2].push(f - exact[2]);
-                }
-            }
-            cfg_scale = [cfg_scale[0] * k[0], cfg_scale[1] * k[1]];
-            if sol.skew.applied {
-                xy = sol.skew.xy_factor.unwrap_or(xy);
-            }
-            if print == 1 {
-                let after = corrected_matrix(kin, &m_true, cfg_scale, xy);
-                for (i, (_, deg)) in REPORT_DIRECTIONS.iter().enumerate() {
-                    residual[i].push((motion_scale(&after, *deg) - 1.0) * UM_PER_100MM);
-                }
-                let g = after.transpose() * after;
-                residual[REPORT_DIRECTIONS.len()]
-                    .push(g[(0, 1)] / (g[(0, 0)] * g[(1, 1)]).sqrt() * UM_PER_100MM);
-            }
+        match closed_loop(kin, &layout, &m_true, shrink, cfg, &mut rng, &mut tally) {
+            Some(n) => tally.prints.push(n as f64),
+            None => tally.not_converged += 1,
         }
-        match converged_at {
-            Some(n) => prints.push(n as f64),
-            None => not_converged += 1,
-        }
-        // The common method: scale = measured outer size of a 100 mm part / 100 along each motor.
-        let drift = p.bed_cte_per_k * uniform(&mut rng, -p.bed_band_k, p.bed_band_k);
-        let extrusion = p.extrusion_mm * normal(&mut rng);
-        let axes = kin.motor_axes();
-        let mut k = [1.0, 1.0];
-        for (i, u) in axes.iter().enumerate() {
-            let deg = u[1].atan2(u[0]).to_degrees();
-            let size = 100.0 * face_scale(&m_true, deg) * (1.0 - shrink) + extrusion;
-            let mut rd: Vec<f64> = (0..p.readings_per_pair)
-                .map(|_| size * (1.0 + drift) + p.caliper_sigma_mm * normal(&mut rng))
-                .collect();
-            rd.sort_by(f64::total_cmp);
-            k[i] = rd[rd.len() / 2] / 100.0;
-        }
-        let after = corrected_matrix(kin, &m_true, k, 0.0);
-        for (i, u) in axes.iter().enumerate() {
-            let deg = u[1].atan2(u[0]).to_degrees();
-            common[i].push((motion_scale(&after, deg) - 1.0) * UM_PER_100MM);
+        let after = common_method(kin, &m_true, shrink, p, &mut rng);
+        for (i, v) in after.into_iter().enumerate() {
+            tally.common[i].push(v);
         }
     }
-    // Cramér–Rao: Gaussian noise of the same size, best unbiased centre (the mean, σ²/n),
-    // width scatter of the two far pylons, and the bed drift as a common scale.
+    let crb = crb_lines(kin, full, p, &tally.est_err);
+    let mut residual_named: Vec<(String, Stats)> = REPORT_DIRECTIONS
+        .iter()
+        .zip(&tally.residual)
+        .map(|((name, _), v)| ((*name).to_string(), stats(v)))
+        .collect();
+    residual_named.push((
+        "shear".into(),
+        stats(&tally.residual[REPORT_DIRECTIONS.len()]),
+    ));
+    let (na, nb) = kin.motor_names();
+    let ideal = coverage(kin, full, cfg, p);
+    let human = coverage(
+        kin,
+        full,
+        cfg,
+        &SimParams {
+            human: Some(HumanReader::default()),
+            ..*p
+        },
+    );
+    ScenarioReport {
+        kinematics: kin,
+        full,
+        machines: cfg.machines,
+        d_mm: p.d_mm,
+        failures: tally.failures,
+        residual: residual_named,
+        prints: stats(&tally.prints),
+        not_converged: tally.not_converged,
+        crb,
+        common_method: vec![
+            (na.into(), stats(&tally.common[0])),
+            (nb.into(), stats(&tally.common[1])),
+        ],
+        coverage: vec![
+            ("stepper_x".into(), ideal[0], human[0]),
+            ("stepper_y".into(), ideal[1], human[1]),
+        ],
+    }
+}
+
+/// One machine's closed loop: print, measure, solve, correct, until converged or
+/// `cfg.max_prints`. The first print's estimate error and the residuals after its correction
+/// go to the tally (a failed solve counts there too). Returns the print that converged.
+fn closed_loop(
+    kin: Kinematics,
+    layout: &Layout,
+    m_true: &Matrix2<f64>,
+    shrink: f64,
+    cfg: &BenchConfig,
+    rng: &mut StdRng,
+    tally: &mut Tally,
+) -> Option<usize> {
+    let p = &cfg.params;
+    let facts = facts(kin);
+    let mut cfg_scale = [1.0, 1.0];
+    let mut xy = 0.0;
+    for print in 1..=cfg.max_prints {
+        let m_eff = corrected_matrix(kin, m_true, cfg_scale, xy);
+        let drift = p.bed_cte_per_k * uniform(rng, -p.bed_band_k, p.bed_band_k);
+        let raw = print_and_measure(layout, &m_eff, shrink, drift, p, rng);
+        let opts = SolveOptions {
+            current_xy_factor: xy,
+            ..SolveOptions::default()
+        };
+        let Ok(sol) = solve(layout, &raw, &facts, &opts) else {
+            tally.failures += 1;
+            return None;
+        };
+        if sol.converged {
+            return Some(print);
+        }
+        let k = [sol.stepper_x.scale, sol.stepper_y.scale];
+        if print == 1 {
+            // noiseless estimate on the same machine, for the spread
+            let exact = exact_corrections(kin, layout, &m_eff);
+            tally.est_err[0].push(k[0] - exact[0]);
+            tally.est_err[1].push(k[1] - exact[1]);
+            if let Some(f) = sol.skew.xy_factor.filter(|_| sol.skew.applied) {
+                tally.est_err[2].push(f - exact[2]);
+            }
+        }
+        cfg_scale = [cfg_scale[0] * k[0], cfg_scale[1] * k[1]];
+        if sol.skew.applied {
+            xy = sol.skew.xy_factor.unwrap_or(xy);
+        }
+        if print == 1 {
+            let after = corrected_matrix(kin, m_true, cfg_scale, xy);
+            for (i, (_, deg)) in REPORT_DIRECTIONS.iter().enumerate() {
+                tally.residual[i].push((motion_scale(&after, *deg) - 1.0) * UM_PER_100MM);
+            }
+            let g = after.transpose() * after;
+            tally.residual[REPORT_DIRECTIONS.len()]
+                .push(g[(0, 1)] / (g[(0, 0)] * g[(1, 1)]).sqrt() * UM_PER_100MM);
+        }
+    }
+    None
+}
+
+/// The common method on the same machine: scale = measured outer size of a 100 mm part / 100
+/// along each motor. Returns the residual along each motor after that correction, µm/100 mm.
+fn common_method(
+    kin: Kinematics,
+    m_true: &Matrix2<f64>,
+    shrink: f64,
+    p: &SimParams,
+    rng: &mut StdRng,
+) -> [f64; 2] {
+    let drift = p.bed_cte_per_k * uniform(rng, -p.bed_band_k, p.bed_band_k);
+    let extrusion = p.extrusion_mm * normal(rng);
+    let axes = kin.motor_axes();
+    let mut k = [1.0, 1.0];
+    for (i, u) in axes.iter().enumerate() {
+        let deg = u[1].atan2(u[0]).to_degrees();
+        let size = 100.0 * face_scale(m_true, deg) * (1.0 - shrink) + extrusion;
+        let mut rd: Vec<f64> = (0..p.readings_per_pair)
+            .map(|_| size * (1.0 + drift) + p.caliper_sigma_mm * normal(rng))
+            .collect();
+        rd.sort_by(f64::total_cmp);
+        k[i] = rd[rd.len() / 2] / 100.0;
+    }
+    let after = corrected_matrix(kin, m_true, k, 0.0);
+    let mut out = [0.0; 2];
+    for (i, u) in axes.iter().enumerate() {
+        let deg = u[1].atan2(u[0]).to_degrees();
+        out[i] = (motion_scale(&after, deg) - 1.0) * UM_PER_100MM;
+    }
+    out
+}
+
+/// Cramér–Rao: Gaussian noise of the same size, best unbiased centre (the mean, σ²/n), width
+/// scatter of the two far pylons, and the bed drift as a common scale; beside the spread of
+/// the first estimates' errors.
+fn crb_lines(kin: Kinematics, full: bool, p: &SimParams, est_err: &[Vec<f64>]) -> Vec<CrbLine> {
     let (d1, d2) = p.d_mm;
     let var_pair = p.caliper_sigma_mm.powi(2) / p.readings_per_pair as f64;
     let var_width = 2.0 * (p.width_scatter_mm / 2.0).powi(2);
@@ -300,42 +386,7 @@ pub(crate) fn run_scenario(kin: Kinematics, full: bool, cfg: &BenchConfig) -> Sc
             });
         }
     }
-    let mut residual_named: Vec<(String, Stats)> = REPORT_DIRECTIONS
-        .iter()
-        .zip(&residual)
-        .map(|((name, _), v)| ((*name).to_string(), stats(v)))
-        .collect();
-    residual_named.push(("shear".into(), stats(&residual[REPORT_DIRECTIONS.len()])));
-    let (na, nb) = kin.motor_names();
-    let ideal = coverage(kin, full, cfg, p);
-    let human = coverage(
-        kin,
-        full,
-        cfg,
-        &SimParams {
-            human: Some(HumanReader::default()),
-            ..*p
-        },
-    );
-    ScenarioReport {
-        kinematics: kin,
-        full,
-        machines: cfg.machines,
-        d_mm: p.d_mm,
-        failures,
-        residual: residual_named,
-        prints: stats(&prints),
-        not_converged,
-        crb,
-        common_method: vec![
-            (na.into(), stats(&common[0])),
-            (nb.into(), stats(&common[1])),
-        ],
-        coverage: vec![
-            ("stepper_x".into(), ideal[0], human[0]),
-            ("stepper_y".into(), ideal[1], human[1]),
-        ],
-    }
+    crb
 }
 
 /// The solver's corrections from noiseless readings on machine `m` (its own limit).

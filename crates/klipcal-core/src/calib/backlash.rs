@@ -426,17 +426,8 @@ fn jog_slope(cycles: &[Cycle], outliers: &[usize]) -> Option<(f64, f64, f64)> {
     Some((sqd / sqq, qm, sqq))
 }
 
-/// Statistics of one axis's cycles.
-///
-/// # Errors
-/// No cycles, or a reading that is not a finite number.
-#[allow(clippy::too_many_lines)] // 187 lines: to be split along its steps
-pub fn analyse(
-    axis: &str,
-    cycles: &[Cycle],
-    max_accel_mm_s2: Option<f64>,
-    params: &BacklashParams,
-) -> Result<AxisResult, Error> {
+/// Every cycle read and finite.
+fn check_cycles(axis: &str, cycles: &[Cycle]) -> Result<(), Error> {
     if cycles.is_empty() {
         return Err(Error::BacklashReadings(format!(
             "axis {axis} has no cycles; expected at least one [x1_mm, x2_mm] pair"
@@ -450,27 +441,28 @@ pub fn analyse(
             )));
         }
     }
-    let d: Vec<f64> = cycles.iter().map(Cycle::backlash_mm).collect();
-    let n = d.len();
-    // Each cycle corrected to a zero jog where two jog sizes allow it.
-    let corrected = |slope: f64| -> Vec<f64> {
-        cycles
-            .iter()
-            .map(|c| c.backlash_mm() - slope * c.fine_mm.unwrap_or(0.0))
-            .collect()
-    };
-    let slope0 = jog_slope(cycles, &[]).map_or(0.0, |s| s.0);
-    let e = corrected(slope0);
-    // Each cycle's jog (the resolution it was read at) and the variance that jog's lattice
-    // adds to it: per approach the reading is the middle of two edges each known to within a
-    // jog (uniform, q²/12 each, at most q²/12 for their mean when the two fall alike), so at
-    // most q²/6 for X1 − X2. With the guide's dither it differs from cycle to cycle and
-    // averages down.
-    let qs: Vec<f64> = cycles
+    Ok(())
+}
+
+/// Each cycle's backlash corrected to a zero jog by the jog-size `slope`.
+fn corrected(cycles: &[Cycle], slope: f64) -> Vec<f64> {
+    cycles
         .iter()
-        .map(|c| c.fine_mm.unwrap_or(params.jog_resolution_mm))
-        .collect();
-    let quant = |i: usize| qs[i] * qs[i] / 6.0;
+        .map(|c| c.backlash_mm() - slope * c.fine_mm.unwrap_or(0.0))
+        .collect()
+}
+
+/// The outlier cycles (1-based) and, with inlier cycles at two or more jog sizes, the jog-size
+/// line ([`jog_slope`]) fitted without the cycles beyond the plain limit. `qs`: each cycle's
+/// jog.
+fn outliers(
+    cycles: &[Cycle],
+    qs: &[f64],
+    params: &BacklashParams,
+) -> (Vec<usize>, Option<(f64, f64, f64)>) {
+    let n = cycles.len();
+    let slope0 = jog_slope(cycles, &[]).map_or(0.0, |s| s.0);
+    let e = corrected(cycles, slope0);
     let q_sd = (qs.iter().map(|q| q * q).sum::<f64>() / n as f64 / 6.0).sqrt();
     let med_all = median(&e);
     let mad = median(&e.iter().map(|x| (x - med_all).abs()).collect::<Vec<_>>());
@@ -515,7 +507,72 @@ pub fn analyse(
         });
     }
     let fit = jog_slope(cycles, &beyond(1.0));
-    let e = corrected(fit.map_or(0.0, |s| s.0));
+    (outliers, fit)
+}
+
+/// With two jog sizes: each kept cycle's (`keep`, indices into `qs`) estimated variance beyond
+/// its lattice share, σ₀² + κ·q² ([`scatter_beyond`] from the line's `residuals`, leverages `lev`
+/// and typical lattice shares `typ`), widened by the t factor of the degrees of freedom each jog
+/// size's residuals hold (Satterthwaite over the sizes' shares of the value's variance, `a`
+/// each cycle's weight in the value).
+fn line_scatter(
+    keep: &[usize],
+    qs: &[f64],
+    residuals: &[f64],
+    lev: &[f64],
+    typ: &[f64],
+    a: &dyn Fn(f64) -> f64,
+) -> Vec<f64> {
+    let qk: Vec<f64> = keep.iter().map(|&i| qs[i]).collect();
+    let (s, k) = scatter_beyond(residuals, lev, typ, &qk);
+    let est: Vec<f64> = qk.iter().map(|q| s + k * q * q).collect();
+    // Per jog size: its share of the value's estimated variance, and its residuals'
+    // degrees of freedom.
+    let mut sizes: BTreeMap<u64, (f64, f64)> = BTreeMap::new();
+    for (j, &i) in keep.iter().enumerate() {
+        let e = sizes.entry(jog_key(qs[i])).or_default();
+        e.0 += a(qs[i]).powi(2) * est[j];
+        e.1 += 1.0 - lev[j];
+    }
+    let total: f64 = sizes.values().map(|v| v.0).sum();
+    let den: f64 = sizes
+        .values()
+        .map(|(v, nu)| v * v / nu.max(f64::MIN_POSITIVE))
+        .sum();
+    let nu = if den > 0.0 {
+        total * total / den
+    } else {
+        f64::INFINITY
+    };
+    let t = t975_between(nu).min(20.0) / 1.96;
+    est.iter().map(|v| t * t * v).collect()
+}
+
+/// Statistics of one axis's cycles.
+///
+/// # Errors
+/// No cycles, or a reading that is not a finite number.
+pub fn analyse(
+    axis: &str,
+    cycles: &[Cycle],
+    max_accel_mm_s2: Option<f64>,
+    params: &BacklashParams,
+) -> Result<AxisResult, Error> {
+    check_cycles(axis, cycles)?;
+    let d: Vec<f64> = cycles.iter().map(Cycle::backlash_mm).collect();
+    let n = d.len();
+    // Each cycle's jog (the resolution it was read at) and the variance that jog's lattice
+    // adds to it: per approach the reading is the middle of two edges each known to within a
+    // jog (uniform, q²/12 each, at most q²/12 for their mean when the two fall alike), so at
+    // most q²/6 for X1 − X2. With the guide's dither it differs from cycle to cycle and
+    // averages down.
+    let qs: Vec<f64> = cycles
+        .iter()
+        .map(|c| c.fine_mm.unwrap_or(params.jog_resolution_mm))
+        .collect();
+    let quant = |i: usize| qs[i] * qs[i] / 6.0;
+    let (outliers, fit) = outliers(cycles, &qs, params);
+    let e = corrected(cycles, fit.map_or(0.0, |s| s.0));
     let keep: Vec<usize> = (0..n).filter(|i| !outliers.contains(&(i + 1))).collect();
     let inliers: Vec<f64> = keep.iter().map(|&i| e[i]).collect();
     let m = inliers.len() as f64;
@@ -595,29 +652,7 @@ pub fn analyse(
             .map(|&i| 1.0 / m + (qs[i] - qbar).powi(2) / sqq)
             .collect();
         let typ: Vec<f64> = keep.iter().map(|&i| typical(i)).collect();
-        let qk: Vec<f64> = keep.iter().map(|&i| qs[i]).collect();
-        let (s, k) = scatter_beyond(&residuals, &lev, &typ, &qk);
-        let est: Vec<f64> = qk.iter().map(|q| s + k * q * q).collect();
-        // Per jog size: its share of the value's estimated variance, and its residuals'
-        // degrees of freedom.
-        let mut sizes: BTreeMap<u64, (f64, f64)> = BTreeMap::new();
-        for (j, &i) in keep.iter().enumerate() {
-            let e = sizes.entry(jog_key(qs[i])).or_default();
-            e.0 += a(qs[i]).powi(2) * est[j];
-            e.1 += 1.0 - lev[j];
-        }
-        let total: f64 = sizes.values().map(|v| v.0).sum();
-        let den: f64 = sizes
-            .values()
-            .map(|(v, nu)| v * v / nu.max(f64::MIN_POSITIVE))
-            .sum();
-        let nu = if den > 0.0 {
-            total * total / den
-        } else {
-            f64::INFINITY
-        };
-        let t = t975_between(nu).min(20.0) / 1.96;
-        est.iter().map(|v| t * t * v).collect()
+        line_scatter(&keep, &qs, &residuals, &lev, &typ, &a)
     } else {
         let s2 = residuals.iter().map(|x| x * x).sum::<f64>() / dof as f64;
         let t = t975(dof).min(20.0) / 1.96;

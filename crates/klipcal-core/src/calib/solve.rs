@@ -228,7 +228,6 @@ fn check_facts(name: &str, s: &StepperFacts) -> Result<(), Error> {
 /// Readings for pairs the layout lacks or missing for pairs it has, non-numbers, non-positive
 /// readings, fewer than 3 per pair, a far pair not reading longer, a scale beyond ±5 %, a
 /// layout whose kinematics differs from the printer's, or unusable printer facts.
-#[allow(clippy::too_many_lines)] // 331 lines: to be split along its steps
 pub fn solve(
     layout: &Layout,
     raw: &RawReadings,
@@ -238,6 +237,87 @@ pub fn solve(
     check_facts("stepper_x", &facts.stepper_x)?;
     check_facts("stepper_y", &facts.stepper_y)?;
     let kin = facts.kinematics;
+    check_layout(layout, raw, kin)?;
+    let mut warnings = Vec::new();
+    let scales = group_scales(layout, raw, opts, &mut warnings)?;
+    let dirs: Vec<DirectionScale> = scales
+        .iter()
+        .map(|(g, _)| DirectionScale {
+            group: g.group.clone(),
+            direction_deg: g.direction_deg,
+            scale: g.scale,
+            uncertainty: g.uncertainty,
+        })
+        .collect();
+    let fit = metric::fit_metric(kin, &dirs)?;
+    let shear_to = shear_target(opts.shear_to, &fit, kin, &mut warnings);
+    let corr: Corrections = metric::corrections(&fit, shear_to, opts.current_xy_factor);
+
+    // Error budgets per group.
+    let budgets: Vec<ErrorBudget> = scales
+        .iter()
+        .map(|(g, centres)| group_budget(kin, facts, opts, g, centres))
+        .collect();
+    let worst = budgets
+        .iter()
+        .copied()
+        .max_by(|a, b| a.precision.total_cmp(&b.precision))
+        .unwrap_or_else(|| error_budget(&opts.budget));
+    let groups = group_results(&scales, &budgets, &fit, &mut warnings);
+
+    let (na, nb) = kin.motor_names();
+    let stepper_x = stepper_result(na, &facts.stepper_x, &corr.stepper_scale[0]);
+    let stepper_y = stepper_result(nb, &facts.stepper_y, &corr.stepper_scale[1]);
+    for s in [&stepper_x, &stepper_y] {
+        if (s.scale - 1.0).abs() > differential::SCALE_LIMIT {
+            return Err(Error::ScaleOutOfRange {
+                group: s.direction.clone(),
+                pairs: "all groups (fitted)".into(),
+                scale: s.scale,
+                pct: (s.scale - 1.0) * 100.0,
+                limit_pct: differential::SCALE_LIMIT * 100.0,
+            });
+        }
+    }
+    let skew = skew_result(&corr, kin, &mut warnings);
+    let anisotropy = anisotropy_result(&corr, worst.precision, &mut warnings);
+    let converged = is_converged(
+        kin,
+        &scales,
+        &budgets,
+        worst.precision,
+        opts,
+        [&stepper_x, &stepper_y],
+        &skew,
+    );
+    if let Some(prev) = &opts.previous {
+        let now: Vec<(String, f64)> = groups.iter().map(|g| (g.group.clone(), g.scale)).collect();
+        if let Some(w) =
+            differential::swap_warning(prev, &now, worst.precision, &format!("{na} and {nb}"))
+        {
+            warnings.push(w);
+        }
+    }
+    Ok(Solution {
+        kinematics: kin,
+        stepper_x,
+        stepper_y,
+        skew,
+        anisotropy,
+        error_budget: worst,
+        converged,
+        groups,
+        fit: FitSummary {
+            full: fit.full,
+            chi2: fit.chi2,
+            dof: fit.dof,
+        },
+        warnings,
+    })
+}
+
+/// The layout is for this printer's kinematics and names every pair read.
+fn check_layout(layout: &Layout, raw: &RawReadings, kin: Kinematics) -> Result<(), Error> {
     let layout_kin = Kinematics::parse(&layout.kinematics).map_err(|_| {
         Error::Layout(format!(
             "kinematics `{}` is not corexy or cartesian",
@@ -264,15 +344,27 @@ pub fn solve(
             });
         }
     }
-    let mut warnings = Vec::new();
-    // Groups in layout order.
+    Ok(())
+}
+
+/// A group's scale and its pairs' centres with their nominal distances.
+type ScaledGroup = (GroupScale, Vec<(PairCentre, f64)>);
+
+/// Each group's scale from its pairs' readings, in layout order (the readings' warnings added
+/// to `warnings`).
+fn group_scales(
+    layout: &Layout,
+    raw: &RawReadings,
+    opts: &SolveOptions,
+    warnings: &mut Vec<String>,
+) -> Result<Vec<ScaledGroup>, Error> {
     let mut group_ids: Vec<&str> = Vec::new();
     for p in &layout.pairs {
         if !group_ids.contains(&p.group.as_str()) {
             group_ids.push(&p.group);
         }
     }
-    let mut scales: Vec<(GroupScale, Vec<(PairCentre, f64)>)> = Vec::new();
+    let mut scales: Vec<ScaledGroup> = Vec::new();
     for gid in &group_ids {
         let mut points = Vec::new();
         let mut centres = Vec::new();
@@ -302,19 +394,18 @@ pub fn solve(
         let g = differential::group_scale(gid, direction_deg, &points)?;
         scales.push((g, centres));
     }
-    let dirs: Vec<DirectionScale> = scales
-        .iter()
-        .map(|(g, _)| DirectionScale {
-            group: g.group.clone(),
-            direction_deg: g.direction_deg,
-            scale: g.scale,
-            uncertainty: g.uncertainty,
-        })
-        .collect();
-    let fit = metric::fit_metric(kin, &dirs)?;
-    let shear_to = if opts.shear_to == ShearTo::KlipperSkew
-        && (!fit.full || kin == Kinematics::Cartesian)
-    {
+    Ok(scales)
+}
+
+/// Where the shear goes: Klipper's skew only when the layout observes it and the printer is a
+/// CoreXY; else the motors (with a warning when the skew was asked for and not observed).
+fn shear_target(
+    asked: ShearTo,
+    fit: &metric::MetricFit,
+    kin: Kinematics,
+    warnings: &mut Vec<String>,
+) -> ShearTo {
+    if asked == ShearTo::KlipperSkew && (!fit.full || kin == Kinematics::Cartesian) {
         if !fit.full {
             warnings.push(
                 "shear to Klipper skew was asked for, but this layout does not observe skew (print the `full` layout)".into(),
@@ -322,67 +413,72 @@ pub fn solve(
         }
         ShearTo::Motors
     } else {
-        opts.shear_to
-    };
-    let corr: Corrections = metric::corrections(&fit, shear_to, opts.current_xy_factor);
+        asked
+    }
+}
 
-    // Error budgets per group.
+/// One group's error budget: the stepper it runs along (off the motor axes the coarser
+/// step), its span, distances and the readings' observed scatter.
+fn group_budget(
+    kin: Kinematics,
+    facts: &MotionFacts,
+    opts: &SolveOptions,
+    g: &GroupScale,
+    centres: &[(PairCentre, f64)],
+) -> ErrorBudget {
     let [ua, ub] = kin.motor_axes();
-    let budgets: Vec<ErrorBudget> = scales
+    let n = [
+        g.direction_deg.to_radians().cos(),
+        g.direction_deg.to_radians().sin(),
+    ];
+    let along = |u: [f64; 2]| (n[0] * u[0] + n[1] * u[1]).abs();
+    let stepper = if along(ua) > 0.99 {
+        facts.stepper_x
+    } else if along(ub) > 0.99 {
+        facts.stepper_y
+    } else {
+        // off the motor axes both motors move: charge the coarser step
+        let step = |s: &StepperFacts| {
+            s.rotation_distance_mm
+                / (f64::from(s.full_steps_per_rotation) * f64::from(s.microsteps) * s.gear_ratio)
+        };
+        if step(&facts.stepper_x) >= step(&facts.stepper_y) {
+            facts.stepper_x
+        } else {
+            facts.stepper_y
+        }
+    };
+    let observed = centres
         .iter()
-        .map(|(g, centres)| {
-            let n = [
-                g.direction_deg.to_radians().cos(),
-                g.direction_deg.to_radians().sin(),
-            ];
-            let along = |u: [f64; 2]| (n[0] * u[0] + n[1] * u[1]).abs();
-            let stepper = if along(ua) > 0.99 {
-                facts.stepper_x
-            } else if along(ub) > 0.99 {
-                facts.stepper_y
-            } else {
-                // off the motor axes both motors move: charge the coarser step
-                let step = |s: &StepperFacts| {
-                    s.rotation_distance_mm
-                        / (f64::from(s.full_steps_per_rotation)
-                            * f64::from(s.microsteps)
-                            * s.gear_ratio)
-                };
-                if step(&facts.stepper_x) >= step(&facts.stepper_y) {
-                    facts.stepper_x
-                } else {
-                    facts.stepper_y
-                }
-            };
-            let observed = centres
-                .iter()
-                .map(|(c, _)| c.observed_sigma_mm)
-                .fold(0.0, f64::max);
-            let n_min = centres.iter().map(|(c, _)| c.n_used).min().unwrap_or(1);
-            error_budget(&BudgetInputs {
-                bed_length_mm: g.span_mm / 2.0,
-                observed_sigma_mm: Some(observed),
-                caliper_resolution_mm: opts.rules.resolution_mm,
-                readings_per_pair: n_min,
-                rotation_distance_mm: stepper.rotation_distance_mm,
-                full_steps_per_rotation: stepper.full_steps_per_rotation,
-                microsteps: stepper.microsteps,
-                gear_ratio: stepper.gear_ratio,
-                d1_mm: g.d1_mm,
-                d2_mm: g.d2_mm,
-                ..opts.budget
-            })
-        })
-        .collect();
-    let worst = budgets
-        .iter()
-        .copied()
-        .max_by(|a, b| a.precision.total_cmp(&b.precision))
-        .unwrap_or_else(|| error_budget(&opts.budget));
+        .map(|(c, _)| c.observed_sigma_mm)
+        .fold(0.0, f64::max);
+    let n_min = centres.iter().map(|(c, _)| c.n_used).min().unwrap_or(1);
+    error_budget(&BudgetInputs {
+        bed_length_mm: g.span_mm / 2.0,
+        observed_sigma_mm: Some(observed),
+        caliper_resolution_mm: opts.rules.resolution_mm,
+        readings_per_pair: n_min,
+        rotation_distance_mm: stepper.rotation_distance_mm,
+        full_steps_per_rotation: stepper.full_steps_per_rotation,
+        microsteps: stepper.microsteps,
+        gear_ratio: stepper.gear_ratio,
+        d1_mm: g.d1_mm,
+        d2_mm: g.d2_mm,
+        ..opts.budget
+    })
+}
 
+/// Each group's result; a warning for each group the fit flags (with one redundant group,
+/// one warning naming them all: which one is bad is unknown).
+fn group_results(
+    scales: &[ScaledGroup],
+    budgets: &[ErrorBudget],
+    fit: &metric::MetricFit,
+    warnings: &mut Vec<String>,
+) -> Vec<GroupResult> {
     let groups: Vec<GroupResult> = scales
         .iter()
-        .zip(&budgets)
+        .zip(budgets)
         .zip(&fit.residuals)
         .map(|(((g, centres), b), r)| {
             if r.flagged && fit.dof >= 2 {
@@ -415,7 +511,6 @@ pub fn solve(
             }
         })
         .collect();
-
     // With one redundant group every residual is the same size: which group is bad is unknown.
     if fit.dof == 1 && fit.residuals.iter().any(|r| r.flagged) {
         warnings.push(format!(
@@ -425,8 +520,12 @@ pub fn solve(
             groups.iter().map(|g| g.group.as_str()).collect::<Vec<_>>().join(", ")
         ));
     }
-    let (na, nb) = kin.motor_names();
-    let stepper = |dir: &str, s: &StepperFacts, e: &Estimate| StepperResult {
+    groups
+}
+
+/// A motor's correction: its scale `e` applied to its rotation_distance.
+fn stepper_result(dir: &str, s: &StepperFacts, e: &Estimate) -> StepperResult {
+    StepperResult {
         direction: dir.into(),
         rotation_distance_old: s.rotation_distance_mm,
         rotation_distance_new: differential::new_rotation_distance(s.rotation_distance_mm, e.value),
@@ -444,22 +543,13 @@ pub fn solve(
             s.gear_ratio,
             s.rotation_distance_mm * e.value,
         ),
-    };
-    let stepper_x = stepper(na, &facts.stepper_x, &corr.stepper_scale[0]);
-    let stepper_y = stepper(nb, &facts.stepper_y, &corr.stepper_scale[1]);
-    for s in [&stepper_x, &stepper_y] {
-        if (s.scale - 1.0).abs() > differential::SCALE_LIMIT {
-            return Err(Error::ScaleOutOfRange {
-                group: s.direction.clone(),
-                pairs: "all groups (fitted)".into(),
-                scale: s.scale,
-                pct: (s.scale - 1.0) * 100.0,
-                limit_pct: differential::SCALE_LIMIT * 100.0,
-            });
-        }
     }
+}
 
-    let skew = match (&corr.shear_factor, &corr.xy_factor) {
+/// The skew: measured when the layout observes it, applied when the shear goes to Klipper's
+/// skew (a Cartesian printer's `paper` layout is warned about: it cannot see skew).
+fn skew_result(corr: &Corrections, kin: Kinematics, warnings: &mut Vec<String>) -> SkewResult {
+    match (&corr.shear_factor, &corr.xy_factor) {
         (None, _) => {
             if kin == Kinematics::Cartesian {
                 warnings.push(
@@ -502,11 +592,19 @@ pub fn solve(
                 class: Some(skew::classify_skew(shear_deg)),
             }
         }
-    };
-    let anisotropy = match corr.anisotropy {
+    }
+}
+
+/// X/Y anisotropy when observed: significant beyond 3 σ and the precision bound, warned about
+/// when the correction leaves it.
+fn anisotropy_result(
+    corr: &Corrections,
+    precision: f64,
+    warnings: &mut Vec<String>,
+) -> AnisotropyResult {
+    match corr.anisotropy {
         Some(a) => {
-            let significant =
-                a.value.abs() > 3.0 * a.uncertainty && a.value.abs() > worst.precision;
+            let significant = a.value.abs() > 3.0 * a.uncertainty && a.value.abs() > precision;
             if significant && corr.anisotropy_left {
                 warnings.push(format!(
                     "X/Y anisotropy {:+.4} % (± {:.4} %): X and Y travel differ by more than the noise, which A/B rotation distances cannot fix (a frame or belt-path issue)",
@@ -529,11 +627,25 @@ pub fn solve(
             significant: false,
             left_after_correction: false,
         },
-    };
+    }
+}
+
+/// Every stepper scale within the precision bound of the groups along its motor (else the
+/// worst group's), and an applied skew factor that no longer changes.
+fn is_converged(
+    kin: Kinematics,
+    scales: &[ScaledGroup],
+    budgets: &[ErrorBudget],
+    worst: f64,
+    opts: &SolveOptions,
+    [stepper_x, stepper_y]: [&StepperResult; 2],
+    skew: &SkewResult,
+) -> bool {
+    let [ua, ub] = kin.motor_axes();
     let prec_of = |dir: [f64; 2]| {
         scales
             .iter()
-            .zip(&budgets)
+            .zip(budgets)
             .filter(|((g, _), _)| {
                 let t = g.direction_deg.to_radians();
                 (t.cos() * dir[0] + t.sin() * dir[1]).abs() > 0.99
@@ -543,38 +655,14 @@ pub fn solve(
     };
     let px = prec_of(ua);
     let py = prec_of(ub);
-    let px = if px.is_nan() { worst.precision } else { px };
-    let py = if py.is_nan() { worst.precision } else { py };
+    let px = if px.is_nan() { worst } else { px };
+    let py = if py.is_nan() { worst } else { py };
     // an applied skew has converged when the factor to set no longer changes
-    let skew_settled = !skew.applied
-        || (skew.xy_factor.unwrap_or(0.0) - opts.current_xy_factor).abs() < worst.precision;
-    let converged = differential::converged(stepper_x.scale, px)
+    let skew_settled =
+        !skew.applied || (skew.xy_factor.unwrap_or(0.0) - opts.current_xy_factor).abs() < worst;
+    differential::converged(stepper_x.scale, px)
         && differential::converged(stepper_y.scale, py)
-        && skew_settled;
-    if let Some(prev) = &opts.previous {
-        let now: Vec<(String, f64)> = groups.iter().map(|g| (g.group.clone(), g.scale)).collect();
-        if let Some(w) =
-            differential::swap_warning(prev, &now, worst.precision, &format!("{na} and {nb}"))
-        {
-            warnings.push(w);
-        }
-    }
-    Ok(Solution {
-        kinematics: kin,
-        stepper_x,
-        stepper_y,
-        skew,
-        anisotropy,
-        error_budget: worst,
-        converged,
-        groups,
-        fit: FitSummary {
-            full: fit.full,
-            chi2: fit.chi2,
-            dof: fit.dof,
-        },
-        warnings,
-    })
+        && skew_settled
 }
 
 #[cfg(test)]

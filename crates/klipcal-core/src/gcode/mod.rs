@@ -422,8 +422,17 @@ fn check(name: &'static str, value: f64, ok: bool, expected: &str) -> Result<(),
     }
 }
 
-#[allow(clippy::too_many_lines)] // 197 lines: to be split along its steps
+/// Every setting in its range, checked in this order (the first wrong one is reported): the
+/// printer, the pylons' shape, the motion, the print's temperatures and placement.
 fn validate(m: &Machine, o: &Options) -> Result<(), Error> {
+    validate_machine(m)?;
+    validate_shape(m, o)?;
+    validate_motion(o)?;
+    validate_print(m, o)
+}
+
+/// The printer's nozzle, filament and axis limits.
+fn validate_machine(m: &Machine) -> Result<(), Error> {
     check(
         "--nozzle-diameter",
         m.nozzle_diameter_mm,
@@ -448,6 +457,11 @@ fn validate(m: &Machine, o: &Options) -> Result<(), Error> {
         m.y_max_mm > m.y_min_mm,
         "greater than stepper_y position_min",
     )?;
+    Ok(())
+}
+
+/// The lines, layers, pylons, chamfer and distances.
+fn validate_shape(m: &Machine, o: &Options) -> Result<(), Error> {
     let w = o.line_width(m);
     check(
         "line width",
@@ -515,6 +529,11 @@ fn validate(m: &Machine, o: &Options) -> Result<(), Error> {
         o.d2_mm >= min_d2,
         &format!("at least --d1 + 20 mm ({min_d2:.1} mm)"),
     )?;
+    Ok(())
+}
+
+/// Flow, speeds, acceleration, retraction and hops.
+fn validate_motion(o: &Options) -> Result<(), Error> {
     check(
         "flow",
         o.flow,
@@ -563,6 +582,11 @@ fn validate(m: &Machine, o: &Options) -> Result<(), Error> {
         (0.0..=5.0).contains(&o.z_hop_mm),
         "between 0 and 5 mm",
     )?;
+    Ok(())
+}
+
+/// Temperatures, filament, placement on the bed, soak and perimeters.
+fn validate_print(m: &Machine, o: &Options) -> Result<(), Error> {
     check(
         "--bed-temp",
         o.bed_temp_c,

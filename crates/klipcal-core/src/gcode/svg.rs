@@ -212,20 +212,49 @@ fn unit(v: P) -> P {
 /// bottom. The drawing shows the pylons' part of the bed (so they and their texts are large);
 /// under it stand the front, the nominal distances, and a map of the whole bed with the origin
 /// and the part drawn.
-#[allow(clippy::too_many_lines)] // 407 lines: to be split along its steps
 pub fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout) -> String {
+    let pairings = pairings(o, placed, layout);
+    let fr = Frame::new(m, o, placed, &pairings);
+    let mut obstacles = fr.obstacles(m, o, placed, &pairings);
+    let names = fr.place_names(placed, o.pylon_length_mm, &mut obstacles);
+    let pair_ids = fr.place_pair_ids(&pairings, &mut obstacles);
+    let entries: Vec<String> = pairings.iter().map(|q| entry(layout, q)).collect();
+    let (front, legend, y) = fr.legend(&pairings, &entries);
+    let map = BedMap::new(m, &fr, y);
+    let width = fr.width.max(map.area_box.x1 + 0.5 * fr.f);
+    let height = map.origin_box.y1.max(map.map.y1).max(map.area_box.y1) + 0.5 * fr.f;
+
+    let mut s = String::new();
+    fr.write_head(&mut s, m, o, width, height);
+    fr.write_pylons(&mut s, o, placed, &names);
+    for (i, q) in pairings.iter().enumerate() {
+        fr.write_pair(&mut s, q, &pair_ids[i], &entries[i], &legend[i]);
+    }
+    let _ = writeln!(
+        s,
+        "{}",
+        text_element("FRONT", &front, fr.f, "#212529", "front")
+    );
+    map.write(&mut s, m, &fr, width);
+    s.push_str("</svg>\n");
+    s
+}
+
+/// One measured pair as drawn, in printer millimetres.
+struct Pairing {
+    id: String,
+    group: usize,
+    a: P,
+    b: P,
+    /// The two extension lines, pylon end → arrow end.
+    ext: [(P, P); 2],
+}
+
+/// Each pair's dimension line, from the outer face of one pylon to the outer face of the
+/// other, past the pylons' ends (the short pair's outside the long one's).
+fn pairings(o: &Options, placed: &Placed, layout: &Layout) -> Vec<Pairing> {
     let t = o.pylon_thickness_mm;
     let l = o.pylon_length_mm;
-
-    // what is drawn, in printer millimetres: the pylons' footprints and each pair's lines
-    struct Pairing {
-        id: String,
-        group: usize,
-        a: P,
-        b: P,
-        /// The two extension lines, pylon end → arrow end.
-        ext: [(P, P); 2],
-    }
     let mut pairings: Vec<Pairing> = Vec::new();
     for pair in &layout.pairs {
         let (Some(from), Some(to)) = (
@@ -262,198 +291,397 @@ pub fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout) -> Str
             ext: [(near(a, from), a), (near(b, to), b)],
         });
     }
-    let mut pts: Vec<P> = Vec::new();
-    for p in &placed.pylons {
-        for (sa, sn) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
-            pts.push([
-                p.center[0] + p.axis[0] * sa * l / 2.0 + p.normal[0] * sn * t / 2.0,
-                p.center[1] + p.axis[1] * sa * l / 2.0 + p.normal[1] * sn * t / 2.0,
-            ]);
-        }
-    }
-    for q in &pairings {
-        pts.extend([q.a, q.b, q.ext[0].0, q.ext[1].0]);
-    }
-    let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-    for p in &pts {
-        for k in 0..2 {
-            lo[k] = lo[k].min(p[k]);
-            hi[k] = hi[k].max(p[k]);
-        }
-    }
-    if pts.is_empty() {
-        (lo, hi) = ([m.x_min_mm, m.y_min_mm], [m.x_max_mm, m.y_max_mm]);
-    }
-    // the text size: 1/WIDTH_IN_TEXTS of the drawing's width, the drawing the content plus 2.5
-    // texts of room on each side
-    let f = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(20.0) / (WIDTH_IN_TEXTS - 5.0);
-    let margin = 2.5 * f;
-    let (lo, hi) = (
-        [lo[0] - margin, lo[1] - margin],
-        [hi[0] + margin, hi[1] + margin],
-    );
-    let width = (hi[0] - lo[0]).max(WIDTH_IN_TEXTS * f);
-    let lo = [(lo[0] + hi[0] - width) / 2.0, lo[1]];
-    let draw_h = hi[1] - lo[1];
-    let sx = |x: f64| x - lo[0];
-    let sy = |y: f64| hi[1] - y;
-    let at = |p: P| [sx(p[0]), sy(p[1])];
-    let dir = |v: P| unit([v[0], -v[1]]);
-    let box_h = 1.02 * f;
-    let text_box = |text: &str| (text_em(text) * f + 0.3 * f, box_h);
-    let stroke = 0.06 * f;
-    let view = TextBox {
-        x0: 0.0,
-        y0: 0.0,
-        x1: width,
-        y1: draw_h,
-    };
+    pairings
+}
 
-    let mut obstacles = Obstacles::default();
-    let bed = TextBox {
-        x0: sx(m.x_min_mm),
-        y0: sy(m.y_max_mm),
-        x1: sx(m.x_max_mm),
-        y1: sy(m.y_min_mm),
-    };
-    obstacles.segments.extend([
-        ([bed.x0, bed.y0], [bed.x1, bed.y0]),
-        ([bed.x1, bed.y0], [bed.x1, bed.y1]),
-        ([bed.x1, bed.y1], [bed.x0, bed.y1]),
-        ([bed.x0, bed.y1], [bed.x0, bed.y0]),
-    ]);
-    for p in &placed.pylons {
-        let (a, b) = p.core(l, t);
-        obstacles.slabs.push((at(a), at(b), t / 2.0 + 0.1 * f));
+/// A pair's entry in the legend: its id and nominal distance.
+fn entry(layout: &Layout, q: &Pairing) -> String {
+    let nominal = layout
+        .pairs
+        .iter()
+        .find(|p| p.id == q.id)
+        .map_or(f64::NAN, |p| p.nominal_mm);
+    format!("{} {nominal:.2} mm", q.id)
+}
+
+/// The drawing's frame: the part of the bed drawn (printer millimetres) and the text size.
+struct Frame {
+    /// The drawn part's lower left and upper right corners, printer mm.
+    lo: P,
+    hi: P,
+    /// The text size, SVG units.
+    f: f64,
+    /// The drawing's width and height, SVG units.
+    width: f64,
+    draw_h: f64,
+}
+
+impl Frame {
+    /// The pylons and the pairs' lines, with 2.5 texts of room on each side; the text
+    /// 1/WIDTH_IN_TEXTS of the drawing's width.
+    fn new(m: &Machine, o: &Options, placed: &Placed, pairings: &[Pairing]) -> Frame {
+        let t = o.pylon_thickness_mm;
+        let l = o.pylon_length_mm;
+        let mut pts: Vec<P> = Vec::new();
+        for p in &placed.pylons {
+            for (sa, sn) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
+                pts.push([
+                    p.center[0] + p.axis[0] * sa * l / 2.0 + p.normal[0] * sn * t / 2.0,
+                    p.center[1] + p.axis[1] * sa * l / 2.0 + p.normal[1] * sn * t / 2.0,
+                ]);
+            }
+        }
+        for q in pairings {
+            pts.extend([q.a, q.b, q.ext[0].0, q.ext[1].0]);
+        }
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        for p in &pts {
+            for k in 0..2 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        if pts.is_empty() {
+            (lo, hi) = ([m.x_min_mm, m.y_min_mm], [m.x_max_mm, m.y_max_mm]);
+        }
+        // the text size: 1/WIDTH_IN_TEXTS of the drawing's width, the drawing the content plus
+        // 2.5 texts of room on each side
+        let f = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(20.0) / (WIDTH_IN_TEXTS - 5.0);
+        let margin = 2.5 * f;
+        let (lo, hi) = (
+            [lo[0] - margin, lo[1] - margin],
+            [hi[0] + margin, hi[1] + margin],
+        );
+        let width = (hi[0] - lo[0]).max(WIDTH_IN_TEXTS * f);
+        let lo = [(lo[0] + hi[0] - width) / 2.0, lo[1]];
+        let draw_h = hi[1] - lo[1];
+        Frame {
+            lo,
+            hi,
+            f,
+            width,
+            draw_h,
+        }
     }
-    for q in &pairings {
-        obstacles.segments.push((at(q.a), at(q.b)));
+    fn sx(&self, x: f64) -> f64 {
+        x - self.lo[0]
+    }
+    fn sy(&self, y: f64) -> f64 {
+        self.hi[1] - y
+    }
+    fn at(&self, p: P) -> P {
+        [self.sx(p[0]), self.sy(p[1])]
+    }
+    fn box_h(&self) -> f64 {
+        1.02 * self.f
+    }
+    fn text_box(&self, text: &str) -> (f64, f64) {
+        (text_em(text) * self.f + 0.3 * self.f, self.box_h())
+    }
+    fn stroke(&self) -> f64 {
+        0.06 * self.f
+    }
+    fn bed(&self, m: &Machine) -> TextBox {
+        TextBox {
+            x0: self.sx(m.x_min_mm),
+            y0: self.sy(m.y_max_mm),
+            x1: self.sx(m.x_max_mm),
+            y1: self.sy(m.y_min_mm),
+        }
+    }
+    fn view(&self) -> TextBox {
+        TextBox {
+            x0: 0.0,
+            y0: 0.0,
+            x1: self.width,
+            y1: self.draw_h,
+        }
+    }
+
+    /// What the texts keep clear of: the bed's edges, the pylons, the pairs' lines.
+    fn obstacles(
+        &self,
+        m: &Machine,
+        o: &Options,
+        placed: &Placed,
+        pairings: &[Pairing],
+    ) -> Obstacles {
+        let mut obstacles = Obstacles::default();
+        let bed = self.bed(m);
+        obstacles.segments.extend([
+            ([bed.x0, bed.y0], [bed.x1, bed.y0]),
+            ([bed.x1, bed.y0], [bed.x1, bed.y1]),
+            ([bed.x1, bed.y1], [bed.x0, bed.y1]),
+            ([bed.x0, bed.y1], [bed.x0, bed.y0]),
+        ]);
+        let t = o.pylon_thickness_mm;
+        for p in &placed.pylons {
+            let (a, b) = p.core(o.pylon_length_mm, t);
+            obstacles
+                .slabs
+                .push((self.at(a), self.at(b), t / 2.0 + 0.1 * self.f));
+        }
+        for q in pairings {
+            obstacles.segments.push((self.at(q.a), self.at(q.b)));
+            obstacles
+                .segments
+                .extend(q.ext.iter().map(|(x, y)| (self.at(*x), self.at(*y))));
+        }
         obstacles
-            .segments
-            .extend(q.ext.iter().map(|(x, y)| (at(*x), at(*y))));
     }
 
-    // each pylon's name beside it: the free spot nearest to it, nearer to it than to any other
-    // pylon, preferring its middle to its ends
-    let step = 0.25 * f;
-    let slabs_at = obstacles.slabs.clone();
-    let mut names: Vec<TextBox> = Vec::new();
-    for (i, p) in placed.pylons.iter().enumerate() {
-        let size = text_box(&p.id);
-        let c = at(p.center);
-        let ax = dir(p.axis);
-        // nearest first; farther only when nothing near is free
-        let mut bx = None;
-        for limit in [1.5 * f, 3.0 * f] {
-            let reach = l / 2.0 + limit + size.0;
-            let region = TextBox::around(c, 2.0 * reach, 2.0 * reach);
-            let cost = |b: &TextBox| {
-                let d =
-                    |k: usize| b.distance_to_segment(slabs_at[k].0, slabs_at[k].1) - slabs_at[k].2;
-                let mine = d(i);
-                let clear = (0..slabs_at.len()).all(|k| k == i || d(k) > mine + 0.2 * f);
-                let centre = [(b.x0 + b.x1) / 2.0 - c[0], (b.y0 + b.y1) / 2.0 - c[1]];
-                let along = (centre[0] * ax[0] + centre[1] * ax[1]).abs();
-                (clear && mine <= limit).then_some(mine + 0.1 * along)
-            };
-            let (b, free) = place(&obstacles, &view, size, &region, step, &cost);
-            bx = Some(b);
-            if free {
-                break;
+    /// Each pylon's name beside it: the free spot nearest to it, nearer to it than to any
+    /// other pylon, preferring its middle to its ends.
+    fn place_names(&self, placed: &Placed, l: f64, obstacles: &mut Obstacles) -> Vec<TextBox> {
+        let f = self.f;
+        let step = 0.25 * f;
+        let view = self.view();
+        let slabs_at = obstacles.slabs.clone();
+        let mut names: Vec<TextBox> = Vec::new();
+        for (i, p) in placed.pylons.iter().enumerate() {
+            let size = self.text_box(&p.id);
+            let c = self.at(p.center);
+            let ax = unit([p.axis[0], -p.axis[1]]);
+            // nearest first; farther only when nothing near is free
+            let mut bx = None;
+            for limit in [1.5 * f, 3.0 * f] {
+                let reach = l / 2.0 + limit + size.0;
+                let region = TextBox::around(c, 2.0 * reach, 2.0 * reach);
+                let cost = |b: &TextBox| {
+                    let d = |k: usize| {
+                        b.distance_to_segment(slabs_at[k].0, slabs_at[k].1) - slabs_at[k].2
+                    };
+                    let mine = d(i);
+                    let clear = (0..slabs_at.len()).all(|k| k == i || d(k) > mine + 0.2 * f);
+                    let centre = [(b.x0 + b.x1) / 2.0 - c[0], (b.y0 + b.y1) / 2.0 - c[1]];
+                    let along = (centre[0] * ax[0] + centre[1] * ax[1]).abs();
+                    (clear && mine <= limit).then_some(mine + 0.1 * along)
+                };
+                let (b, free) = place(obstacles, &view, size, &region, step, &cost);
+                bx = Some(b);
+                if free {
+                    break;
+                }
             }
+            let bx = bx.unwrap_or_else(|| TextBox::around(c, size.0, size.1));
+            obstacles.boxes.push(bx);
+            names.push(bx);
         }
-        let bx = bx.unwrap_or_else(|| TextBox::around(c, size.0, size.1));
-        obstacles.boxes.push(bx);
-        names.push(bx);
+        names
     }
 
-    // each pair's id beside its arrow: the free spot nearest to it, nearer to it than to any
-    // other arrow, preferring its middle
-    let arrows: Vec<(P, P)> = pairings.iter().map(|q| (at(q.a), at(q.b))).collect();
-    let mut pair_ids: Vec<TextBox> = Vec::new();
-    for (i, q) in pairings.iter().enumerate() {
-        let size = text_box(&q.id);
-        let (a, b) = arrows[i];
-        let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0];
-        let along = unit([b[0] - a[0], b[1] - a[1]]);
-        let mut bx = None;
-        // near and unambiguous first; then farther; last, nearer to it than to any other
-        // group's arrow (the same group's other arrow starts at the same face: the legend's
-        // distances and the pylon names tell the two apart)
-        for (limit, all) in [(2.0 * f, true), (3.5 * f, true), (3.5 * f, false)] {
-            let region = TextBox {
-                x0: a[0].min(b[0]) - limit - size.0,
-                y0: a[1].min(b[1]) - limit - size.1,
-                x1: a[0].max(b[0]) + limit + size.0,
-                y1: a[1].max(b[1]) + limit + size.1,
-            };
-            let cost = |bx: &TextBox| {
-                let mine = bx.distance_to_segment(a, b);
-                let clear = (0..arrows.len()).all(|k| {
-                    k == i
-                        || (!all && pairings[k].group == q.group)
-                        || bx.distance_to_segment(arrows[k].0, arrows[k].1) > mine + 0.05 * f
-                });
-                let centre = [
-                    (bx.x0 + bx.x1) / 2.0 - mid[0],
-                    (bx.y0 + bx.y1) / 2.0 - mid[1],
-                ];
-                let off = (centre[0] * along[0] + centre[1] * along[1]).abs();
-                (clear && mine <= limit).then_some(mine + 0.1 * off)
-            };
-            let (found, free) = place(&obstacles, &view, size, &region, step, &cost);
-            bx = Some(found);
-            if free {
-                break;
-            }
-        }
-        let bx = bx.unwrap_or_else(|| TextBox::around(mid, size.0, size.1));
-        obstacles.boxes.push(bx);
-        pair_ids.push(bx);
-    }
-
-    // under the drawing: the front, the nominal distances (a row per group), the bed map
-    let row = 1.4 * f;
-    let front = TextBox::around([width / 2.0, draw_h + 0.8 * f], text_box("FRONT").0, box_h);
-    let entry = |i: usize| {
-        let q = &pairings[i];
-        let nominal = layout
-            .pairs
+    /// Each pair's id beside its arrow: the free spot nearest to it, nearer to it than to any
+    /// other arrow, preferring its middle.
+    fn place_pair_ids(&self, pairings: &[Pairing], obstacles: &mut Obstacles) -> Vec<TextBox> {
+        let f = self.f;
+        let step = 0.25 * f;
+        let view = self.view();
+        let arrows: Vec<(P, P)> = pairings
             .iter()
-            .find(|p| p.id == q.id)
-            .map_or(f64::NAN, |p| p.nominal_mm);
-        format!("{} {nominal:.2} mm", q.id)
-    };
-    let left = f;
-    let mut legend: Vec<TextBox> = Vec::new();
-    let mut y = front.y1 + 0.6 * f + row / 2.0;
-    let mut x = left;
-    for i in 0..pairings.len() {
-        let (bw, bh) = text_box(&entry(i));
-        let new_group = i > 0 && pairings[i - 1].group != pairings[i].group;
-        if i > 0 && (new_group || x + bw > width - left) {
-            x = left;
-            y += row;
+            .map(|q| (self.at(q.a), self.at(q.b)))
+            .collect();
+        let mut pair_ids: Vec<TextBox> = Vec::new();
+        for (i, q) in pairings.iter().enumerate() {
+            let size = self.text_box(&q.id);
+            let (a, b) = arrows[i];
+            let mid = [(a[0] + b[0]) / 2.0, (a[1] + b[1]) / 2.0];
+            let along = unit([b[0] - a[0], b[1] - a[1]]);
+            let mut bx = None;
+            // near and unambiguous first; then farther; last, nearer to it than to any other
+            // group's arrow (the same group's other arrow starts at the same face: the
+            // legend's distances and the pylon names tell the two apart)
+            for (limit, all) in [(2.0 * f, true), (3.5 * f, true), (3.5 * f, false)] {
+                let region = TextBox {
+                    x0: a[0].min(b[0]) - limit - size.0,
+                    y0: a[1].min(b[1]) - limit - size.1,
+                    x1: a[0].max(b[0]) + limit + size.0,
+                    y1: a[1].max(b[1]) + limit + size.1,
+                };
+                let cost = |bx: &TextBox| {
+                    let mine = bx.distance_to_segment(a, b);
+                    let clear = (0..arrows.len()).all(|k| {
+                        k == i
+                            || (!all && pairings[k].group == q.group)
+                            || bx.distance_to_segment(arrows[k].0, arrows[k].1) > mine + 0.05 * f
+                    });
+                    let centre = [
+                        (bx.x0 + bx.x1) / 2.0 - mid[0],
+                        (bx.y0 + bx.y1) / 2.0 - mid[1],
+                    ];
+                    let off = (centre[0] * along[0] + centre[1] * along[1]).abs();
+                    (clear && mine <= limit).then_some(mine + 0.1 * off)
+                };
+                let (found, free) = place(obstacles, &view, size, &region, step, &cost);
+                bx = Some(found);
+                if free {
+                    break;
+                }
+            }
+            let bx = bx.unwrap_or_else(|| TextBox::around(mid, size.0, size.1));
+            obstacles.boxes.push(bx);
+            pair_ids.push(bx);
         }
-        legend.push(TextBox::around([x + bw / 2.0, y], bw, bh));
-        x += bw + f;
+        pair_ids
     }
-    // the bed map: the whole bed, the part drawn, the origin and the axes
-    let map_scale = 4.5 * f / (m.x_max_mm - m.x_min_mm).max(m.y_max_mm - m.y_min_mm);
-    let map = TextBox {
-        x0: left + 1.8 * f,
-        y0: y + row / 2.0 + 0.8 * f,
-        x1: left + 1.8 * f + (m.x_max_mm - m.x_min_mm) * map_scale,
-        y1: y + row / 2.0 + 0.8 * f + (m.y_max_mm - m.y_min_mm) * map_scale,
-    };
-    let mx = |x: f64| map.x0 + (x - m.x_min_mm) * map_scale;
-    let my = |y: f64| map.y1 - (y - m.y_min_mm) * map_scale;
-    let origin = [
-        mx(0.0_f64.clamp(m.x_min_mm, m.x_max_mm)),
-        my(0.0_f64.clamp(m.y_min_mm, m.y_max_mm)),
-    ];
-    let origin_text =
-        if (m.x_min_mm..=m.x_max_mm).contains(&0.0) && (m.y_min_mm..=m.y_max_mm).contains(&0.0) {
+
+    /// Under the drawing: the front, then the nominal distances (a row per group). Returns
+    /// their boxes and the last row's middle.
+    fn legend(&self, pairings: &[Pairing], entries: &[String]) -> (TextBox, Vec<TextBox>, f64) {
+        let f = self.f;
+        let row = 1.4 * f;
+        let front = TextBox::around(
+            [self.width / 2.0, self.draw_h + 0.8 * f],
+            self.text_box("FRONT").0,
+            self.box_h(),
+        );
+        let left = f;
+        let mut legend: Vec<TextBox> = Vec::new();
+        let mut y = front.y1 + 0.6 * f + row / 2.0;
+        let mut x = left;
+        for i in 0..pairings.len() {
+            let (bw, bh) = self.text_box(&entries[i]);
+            let new_group = i > 0 && pairings[i - 1].group != pairings[i].group;
+            if i > 0 && (new_group || x + bw > self.width - left) {
+                x = left;
+                y += row;
+            }
+            legend.push(TextBox::around([x + bw / 2.0, y], bw, bh));
+            x += bw + f;
+        }
+        (front, legend, y)
+    }
+
+    fn write_head(&self, s: &mut String, m: &Machine, o: &Options, width: f64, height: f64) {
+        let (f, draw_h, stroke) = (self.f, self.draw_h, self.stroke());
+        let _ = writeln!(
+            s,
+            r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width:.1} {height:.1}" width="{width:.1}mm" height="{height:.1}mm" font-family="sans-serif">"#,
+        );
+        let _ = writeln!(
+            s,
+            r##"<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="6" markerHeight="6" orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#333"/></marker><clipPath id="drawing"><rect x="0" y="0" width="{width:.2}" height="{draw_h:.2}"/></clipPath></defs>"##
+        );
+        let _ = writeln!(
+            s,
+            r##"<title>klipcal pylons: {} layout, {}, D1 = {} mm, D2 = {} mm</title>"##,
+            o.layout.as_str(),
+            m.kinematics.as_str(),
+            o.d1_mm,
+            o.d2_mm
+        );
+        let bed = self.bed(m);
+        let _ = writeln!(
+            s,
+            r##"<rect class="bed" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#f8f9fa" stroke="#495057" stroke-width="{:.2}" clip-path="url(#drawing)"/>"##,
+            bed.x0,
+            bed.y0,
+            bed.x1 - bed.x0,
+            bed.y1 - bed.y0,
+            1.5 * stroke
+        );
+        let _ = writeln!(
+            s,
+            r##"<rect class="drawn" x="0" y="0" width="{width:.2}" height="{draw_h:.2}" fill="none" stroke="#adb5bd" stroke-width="{:.2}" stroke-dasharray="{:.2} {:.2}"/>"##,
+            stroke,
+            0.4 * f,
+            0.3 * f
+        );
+    }
+
+    fn write_pylons(&self, s: &mut String, o: &Options, placed: &Placed, names: &[TextBox]) {
+        let t = o.pylon_thickness_mm;
+        let l = o.pylon_length_mm;
+        for p in &placed.pylons {
+            let deg = placed.groups[p.group].direction_deg;
+            let colour = COLOURS[p.group % COLOURS.len()];
+            let _ = writeln!(
+                s,
+                r##"<rect x="{:.3}" y="{:.3}" width="{t:.3}" height="{l:.3}" rx="{:.3}" fill="{colour}" fill-opacity="0.85" transform="translate({:.3} {:.3}) rotate({:.3})"><title>{}</title></rect>"##,
+                -t / 2.0,
+                -l / 2.0,
+                t / 2.0,
+                self.sx(p.center[0]),
+                self.sy(p.center[1]),
+                -deg,
+                p.id
+            );
+        }
+        for (p, b) in placed.pylons.iter().zip(names) {
+            let colour = COLOURS[p.group % COLOURS.len()];
+            let _ = writeln!(
+                s,
+                "{}",
+                text_element(&p.id, b, self.f, colour, "pylon-name")
+            );
+        }
+    }
+
+    /// One group per pair, so a page can highlight the pair being entered.
+    fn write_pair(&self, s: &mut String, q: &Pairing, id: &TextBox, entry: &str, at: &TextBox) {
+        let (f, stroke) = (self.f, self.stroke());
+        let colour = COLOURS[q.group % COLOURS.len()];
+        let _ = writeln!(s, r##"<g class="pair" data-pair="{}">"##, q.id);
+        for (x, y) in &q.ext {
+            let _ = writeln!(
+                s,
+                r##"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="{colour}" stroke-width="{:.3}"/>"##,
+                self.sx(x[0]),
+                self.sy(x[1]),
+                self.sx(y[0]),
+                self.sy(y[1]),
+                stroke
+            );
+        }
+        let _ = writeln!(
+            s,
+            r##"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="#333" stroke-width="{:.3}" marker-start="url(#arrow)" marker-end="url(#arrow)"/>"##,
+            self.sx(q.a[0]),
+            self.sy(q.a[1]),
+            self.sx(q.b[0]),
+            self.sy(q.b[1]),
+            stroke
+        );
+        let _ = writeln!(s, "{}", text_element(&q.id, id, f, "#212529", "pair-id"));
+        let _ = writeln!(s, "{}", text_element(entry, at, f, colour, "nominal"));
+        s.push_str("</g>\n");
+    }
+}
+
+/// The map of the whole bed under the legend: the part drawn, the origin, the axes and the
+/// bed's size.
+struct BedMap {
+    map: TextBox,
+    scale: f64,
+    origin: P,
+    origin_text: String,
+    origin_box: TextBox,
+    x_arrow: (P, P),
+    y_arrow: (P, P),
+    x_box: TextBox,
+    y_box: TextBox,
+    area: String,
+    area_box: TextBox,
+}
+
+impl BedMap {
+    /// The map under the legend's last row at `y`.
+    fn new(m: &Machine, fr: &Frame, y: f64) -> BedMap {
+        let f = fr.f;
+        let (row, left, box_h) = (1.4 * f, f, fr.box_h());
+        let scale = 4.5 * f / (m.x_max_mm - m.x_min_mm).max(m.y_max_mm - m.y_min_mm);
+        let map = TextBox {
+            x0: left + 1.8 * f,
+            y0: y + row / 2.0 + 0.8 * f,
+            x1: left + 1.8 * f + (m.x_max_mm - m.x_min_mm) * scale,
+            y1: y + row / 2.0 + 0.8 * f + (m.y_max_mm - m.y_min_mm) * scale,
+        };
+        let origin = [
+            map.x0 + (0.0_f64.clamp(m.x_min_mm, m.x_max_mm) - m.x_min_mm) * scale,
+            map.y1 - (0.0_f64.clamp(m.y_min_mm, m.y_max_mm) - m.y_min_mm) * scale,
+        ];
+        let origin_text = if (m.x_min_mm..=m.x_max_mm).contains(&0.0)
+            && (m.y_min_mm..=m.y_max_mm).contains(&0.0)
+        {
             "0,0".to_string()
         } else {
             format!(
@@ -462,188 +690,110 @@ pub fn render(m: &Machine, o: &Options, placed: &Placed, layout: &Layout) -> Str
                 m.y_min_mm.max(0.0).min(m.y_max_mm)
             )
         };
-    let origin_box = TextBox::around(
-        [
-            origin[0].max(text_box(&origin_text).0 / 2.0 + 0.2 * f),
-            origin[1] + 0.9 * f,
-        ],
-        text_box(&origin_text).0,
-        box_h,
-    );
-    let x_arrow = ([map.x1 + 0.6 * f, map.y1], [map.x1 + 2.6 * f, map.y1]);
-    let y_arrow = (
-        [map.x0 - 0.9 * f, map.y1 - 0.4 * f],
-        [map.x0 - 0.9 * f, map.y0],
-    );
-    let x_box = TextBox::around(
-        [x_arrow.1[0] + 0.7 * f, map.y1 - 0.35 * f],
-        text_box("X").0,
-        box_h,
-    );
-    let y_box = TextBox::around(
-        [y_arrow.0[0] - 0.75 * f, map.y0 + 0.5 * f],
-        text_box("Y").0,
-        box_h,
-    );
-    let area = format!(
-        "bed X {}..{}, Y {}..{} mm",
-        m.x_min_mm, m.x_max_mm, m.y_min_mm, m.y_max_mm
-    );
-    let area_box = TextBox::around(
-        [
-            x_box.x1 + 0.8 * f + text_box(&area).0 / 2.0,
-            (map.y0 + map.y1) / 2.0,
-        ],
-        text_box(&area).0,
-        box_h,
-    );
-    let width = width.max(area_box.x1 + 0.5 * f);
-    let height = origin_box.y1.max(map.y1).max(area_box.y1) + 0.5 * f;
-
-    // the SVG
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        r#"<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 {width:.1} {height:.1}" width="{width:.1}mm" height="{height:.1}mm" font-family="sans-serif">"#,
-    );
-    let _ = writeln!(
-        s,
-        r##"<defs><marker id="arrow" viewBox="0 0 10 10" refX="10" refY="5" markerWidth="6" markerHeight="6" orient="auto-start-reverse"><path d="M0,0 L10,5 L0,10 z" fill="#333"/></marker><clipPath id="drawing"><rect x="0" y="0" width="{width:.2}" height="{draw_h:.2}"/></clipPath></defs>"##
-    );
-    let _ = writeln!(
-        s,
-        r##"<title>klipcal pylons: {} layout, {}, D1 = {} mm, D2 = {} mm</title>"##,
-        o.layout.as_str(),
-        m.kinematics.as_str(),
-        o.d1_mm,
-        o.d2_mm
-    );
-    let _ = writeln!(
-        s,
-        r##"<rect class="bed" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#f8f9fa" stroke="#495057" stroke-width="{:.2}" clip-path="url(#drawing)"/>"##,
-        bed.x0,
-        bed.y0,
-        bed.x1 - bed.x0,
-        bed.y1 - bed.y0,
-        1.5 * stroke
-    );
-    let _ = writeln!(
-        s,
-        r##"<rect class="drawn" x="0" y="0" width="{width:.2}" height="{draw_h:.2}" fill="none" stroke="#adb5bd" stroke-width="{:.2}" stroke-dasharray="{:.2} {:.2}"/>"##,
-        stroke,
-        0.4 * f,
-        0.3 * f
-    );
-    for p in &placed.pylons {
-        let deg = placed.groups[p.group].direction_deg;
-        let colour = COLOURS[p.group % COLOURS.len()];
-        let _ = writeln!(
-            s,
-            r##"<rect x="{:.3}" y="{:.3}" width="{t:.3}" height="{l:.3}" rx="{:.3}" fill="{colour}" fill-opacity="0.85" transform="translate({:.3} {:.3}) rotate({:.3})"><title>{}</title></rect>"##,
-            -t / 2.0,
-            -l / 2.0,
-            t / 2.0,
-            sx(p.center[0]),
-            sy(p.center[1]),
-            -deg,
-            p.id
+        let origin_box = TextBox::around(
+            [
+                origin[0].max(fr.text_box(&origin_text).0 / 2.0 + 0.2 * f),
+                origin[1] + 0.9 * f,
+            ],
+            fr.text_box(&origin_text).0,
+            box_h,
         );
-    }
-    for (p, b) in placed.pylons.iter().zip(&names) {
-        let colour = COLOURS[p.group % COLOURS.len()];
-        let _ = writeln!(s, "{}", text_element(&p.id, b, f, colour, "pylon-name"));
-    }
-    for (i, q) in pairings.iter().enumerate() {
-        let colour = COLOURS[q.group % COLOURS.len()];
-        // One group per pair, so a page can highlight the pair being entered.
-        let _ = writeln!(s, r##"<g class="pair" data-pair="{}">"##, q.id);
-        for (x, y) in &q.ext {
-            let _ = writeln!(
-                s,
-                r##"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="{colour}" stroke-width="{:.3}"/>"##,
-                sx(x[0]),
-                sy(x[1]),
-                sx(y[0]),
-                sy(y[1]),
-                stroke
-            );
+        let x_arrow = ([map.x1 + 0.6 * f, map.y1], [map.x1 + 2.6 * f, map.y1]);
+        let y_arrow = (
+            [map.x0 - 0.9 * f, map.y1 - 0.4 * f],
+            [map.x0 - 0.9 * f, map.y0],
+        );
+        let x_box = TextBox::around(
+            [x_arrow.1[0] + 0.7 * f, map.y1 - 0.35 * f],
+            fr.text_box("X").0,
+            box_h,
+        );
+        let y_box = TextBox::around(
+            [y_arrow.0[0] - 0.75 * f, map.y0 + 0.5 * f],
+            fr.text_box("Y").0,
+            box_h,
+        );
+        let area = format!(
+            "bed X {}..{}, Y {}..{} mm",
+            m.x_min_mm, m.x_max_mm, m.y_min_mm, m.y_max_mm
+        );
+        let area_box = TextBox::around(
+            [
+                x_box.x1 + 0.8 * f + fr.text_box(&area).0 / 2.0,
+                (map.y0 + map.y1) / 2.0,
+            ],
+            fr.text_box(&area).0,
+            box_h,
+        );
+        BedMap {
+            map,
+            scale,
+            origin,
+            origin_text,
+            origin_box,
+            x_arrow,
+            y_arrow,
+            x_box,
+            y_box,
+            area,
+            area_box,
         }
+    }
+
+    /// The map, with the part drawn (`width` the picture's width) shaded.
+    fn write(&self, s: &mut String, m: &Machine, fr: &Frame, width: f64) {
+        let (f, stroke, map) = (fr.f, fr.stroke(), &self.map);
+        let mx = |x: f64| map.x0 + (x - m.x_min_mm) * self.scale;
+        let my = |y: f64| map.y1 - (y - m.y_min_mm) * self.scale;
         let _ = writeln!(
             s,
-            r##"<line x1="{:.3}" y1="{:.3}" x2="{:.3}" y2="{:.3}" stroke="#333" stroke-width="{:.3}" marker-start="url(#arrow)" marker-end="url(#arrow)"/>"##,
-            sx(q.a[0]),
-            sy(q.a[1]),
-            sx(q.b[0]),
-            sy(q.b[1]),
+            r##"<rect class="bed-map" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#f8f9fa" stroke="#495057" stroke-width="{:.2}"/>"##,
+            map.x0,
+            map.y0,
+            map.x1 - map.x0,
+            map.y1 - map.y0,
             stroke
         );
+        let drawn_lo = [fr.lo[0].max(m.x_min_mm), fr.lo[1].max(m.y_min_mm)];
+        let drawn_hi = [(fr.lo[0] + width).min(m.x_max_mm), fr.hi[1].min(m.y_max_mm)];
         let _ = writeln!(
             s,
-            "{}",
-            text_element(&q.id, &pair_ids[i], f, "#212529", "pair-id")
+            r##"<rect class="map-drawn" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#adb5bd" fill-opacity="0.5" stroke="#495057" stroke-width="{:.2}" stroke-dasharray="{:.2} {:.2}"/>"##,
+            mx(drawn_lo[0]),
+            my(drawn_hi[1]),
+            ((drawn_hi[0] - drawn_lo[0]) * self.scale).max(0.0),
+            ((drawn_hi[1] - drawn_lo[1]) * self.scale).max(0.0),
+            stroke,
+            0.2 * f,
+            0.15 * f
         );
         let _ = writeln!(
             s,
-            "{}",
-            text_element(&entry(i), &legend[i], f, colour, "nominal")
+            r##"<circle class="origin" cx="{:.2}" cy="{:.2}" r="{:.2}" fill="#212529"/>"##,
+            self.origin[0],
+            self.origin[1],
+            0.25 * f
         );
-        s.push_str("</g>\n");
+        for (a, b) in [self.x_arrow, self.y_arrow] {
+            let _ = writeln!(
+                s,
+                r##"<line x1="{:.2}" y1="{:.2}" x2="{:.2}" y2="{:.2}" stroke="#333" stroke-width="{:.2}" marker-end="url(#arrow)"/>"##,
+                a[0],
+                a[1],
+                b[0],
+                b[1],
+                1.5 * stroke
+            );
+        }
+        for (text, b, class) in [
+            (self.origin_text.as_str(), &self.origin_box, "origin"),
+            ("X", &self.x_box, "axis"),
+            ("Y", &self.y_box, "axis"),
+            (self.area.as_str(), &self.area_box, "bed-size"),
+        ] {
+            let _ = writeln!(s, "{}", text_element(text, b, f, "#212529", class));
+        }
     }
-    let _ = writeln!(
-        s,
-        "{}",
-        text_element("FRONT", &front, f, "#212529", "front")
-    );
-    let _ = writeln!(
-        s,
-        r##"<rect class="bed-map" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#f8f9fa" stroke="#495057" stroke-width="{:.2}"/>"##,
-        map.x0,
-        map.y0,
-        map.x1 - map.x0,
-        map.y1 - map.y0,
-        stroke
-    );
-    let drawn_lo = [lo[0].max(m.x_min_mm), lo[1].max(m.y_min_mm)];
-    let drawn_hi = [(lo[0] + width).min(m.x_max_mm), hi[1].min(m.y_max_mm)];
-    let _ = writeln!(
-        s,
-        r##"<rect class="map-drawn" x="{:.2}" y="{:.2}" width="{:.2}" height="{:.2}" fill="#adb5bd" fill-opacity="0.5" stroke="#495057" stroke-width="{:.2}" stroke-dasharray="{:.2} {:.2}"/>"##,
-        mx(drawn_lo[0]),
-        my(drawn_hi[1]),
-        ((drawn_hi[0] - drawn_lo[0]) * map_scale).max(0.0),
-        ((drawn_hi[1] - drawn_lo[1]) * map_scale).max(0.0),
-        stroke,
-        0.2 * f,
-        0.15 * f
-    );
-    let _ = writeln!(
-        s,
-        r##"<circle class="origin" cx="{:.2}" cy="{:.2}" r="{:.2}" fill="#212529"/>"##,
-        origin[0],
-        origin[1],
-        0.25 * f
-    );
-    for (a, b) in [x_arrow, y_arrow] {
-        let _ = writeln!(
-            s,
-            r##"<line x1="{:.2}" y1="{:.2}" x2="{:.2}" y2="{:.2}" stroke="#333" stroke-width="{:.2}" marker-end="url(#arrow)"/>"##,
-            a[0],
-            a[1],
-            b[0],
-            b[1],
-            1.5 * stroke
-        );
-    }
-    for (text, b, class) in [
-        (origin_text.as_str(), &origin_box, "origin"),
-        ("X", &x_box, "axis"),
-        ("Y", &y_box, "axis"),
-        (area.as_str(), &area_box, "bed-size"),
-    ] {
-        let _ = writeln!(s, "{}", text_element(text, b, f, "#212529", class));
-    }
-    s.push_str("</svg>\n");
-    s
 }
 
 /// A horizontal text centred in `b`, with a halo so it reads over anything behind it.

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use super::config::{Config, SAVE_CONFIG_MARKER};
-use super::edit::{set_values, ValueChange};
+use super::edit::{set_values, FileEdit, ValueChange};
 use super::facts::{parse_gear_ratio, py_float};
 use super::files::MemFiles;
 use super::Error;
@@ -65,7 +65,6 @@ pub struct WritePlan {
 /// # Errors
 /// As [`companion_values`] and [`set_values`]; [`Error::Protected`] when the main file itself
 /// is protected, or a value still would not win from the overrides file.
-#[allow(clippy::too_many_lines)] // 138 lines: to be split along its steps
 pub fn plan_values(
     config: &Config,
     values: &[(String, String, String)],
@@ -73,8 +72,7 @@ pub fn plan_values(
 ) -> Result<WritePlan, Error> {
     let (values, mut notes) = companion_values(config, values)?;
     let main = config.files()[0].path.clone();
-    let is_protected = |p: &Path| protected.iter().find(|x| x.path == p);
-    if let Some(p) = is_protected(&main) {
+    if let Some(p) = find_protected(protected, &main) {
         return Err(Error::Protected(format!(
             "the main config file {} is not klipcal's to change: {}",
             main.display(),
@@ -82,100 +80,136 @@ pub fn plan_values(
         )));
     }
     // Values whose definition is in a protected file move to the overrides file.
-    let mut moved: Vec<(&(String, String, String), &Protected, PathBuf)> = Vec::new();
+    let mut moved: Vec<Moved<'_>> = Vec::new();
     for v in &values {
         let origin = config.option(&v.0, &v.1).map(|o| o.origin.path.clone());
         if let Some(path) = origin {
-            if let Some(p) = is_protected(&path) {
+            if let Some(p) = find_protected(protected, &path) {
                 moved.push((v, p, path));
             }
         }
     }
-    let mut files = MemFiles::new();
-    for f in config.files() {
-        files.insert(&f.path, f.text.clone());
-    }
     let working = if moved.is_empty() {
         config.clone()
     } else {
-        let dir = main.parent().unwrap_or(Path::new("/"));
-        let over_path = dir.join(OVERRIDES_FILE);
-        let existing = config.files().iter().find(|f| f.path == over_path);
-        let mut over_text = match existing {
-            Some(f) => f.text.clone(),
-            None => "# Written by klipcal: values that cannot be changed where they are defined\n\
-                     # (another project's files). Included at the end of printer.cfg, so these\n\
-                     # definitions win. Edit them here.\n"
-                .to_string(),
-        };
-        if !over_text.is_empty() && !over_text.ends_with('\n') {
-            over_text.push('\n');
-        }
-        for ((section, key, _), _, _) in &moved {
-            let old = config.get(section, key).unwrap_or_default();
-            over_text.push_str(&format!("\n[{section}]\n{key}: {old}\n"));
-        }
-        files.insert(&over_path, over_text);
-        if existing.is_none() {
-            let new = add_include(
-                &config.files()[0].text,
-                OVERRIDES_FILE,
-                "klipcal: its overrides, read last so they win",
-            );
-            files.insert(&main, new);
-        }
-        let working = Config::load_as(&files, &main, config.dialect()).map_err(|e| {
-            Error::Protected(format!("adding {OVERRIDES_FILE} breaks the config: {e}"))
-        })?;
-        // Same effective config, only now defined in the overrides file.
-        let flat = |c: &Config| -> Vec<(String, String, String)> {
-            c.sections()
-                .iter()
-                .flat_map(|s| {
-                    s.options
-                        .iter()
-                        .map(move |o| (s.name.clone(), o.key.clone(), o.value.clone()))
-                })
-                .collect()
-        };
-        if flat(&working) != flat(config) {
-            return Err(Error::Protected(format!(
-                "adding {OVERRIDES_FILE} would change other settings; add `[include \
-                 {OVERRIDES_FILE}]` at the end of {} by hand",
-                main.display()
-            )));
-        }
-        for ((section, key, _), p, path) in &moved {
-            let now = working.option(section, key).map(|o| o.origin.path.clone());
-            if now.as_deref() != Some(over_path.as_path()) {
-                return Err(Error::Protected(format!(
-                    "[{section}] {key} is defined in {} ({}), and a definition in {} would not \
-                     win: a later one in {} does; move `[include {OVERRIDES_FILE}]` to the end \
-                     of {}",
-                    path.display(),
-                    p.reason,
-                    over_path.display(),
-                    now.map_or("?".into(), |p| p.display().to_string()),
-                    main.display()
-                )));
-            }
-            notes.push(format!(
-                "[{section}] {key} is defined in {}, which klipcal does not change: {}. The new \
-                 value is written to {} instead, included at the end of {} so Klipper reads it \
-                 last and it wins",
-                path.display(),
-                p.reason,
-                over_path.display(),
-                main.display()
-            ));
-        }
-        working
+        with_overrides(config, &moved, &mut notes)?
     };
     let triples: Vec<(&str, &str, &str)> = values
         .iter()
         .map(|(s, k, v)| (s.as_str(), k.as_str(), v.as_str()))
         .collect();
     let edits = set_values(&working, &triples)?;
+    let (files, changes) = planned_files(config, &working, &edits, protected)?;
+    Ok(WritePlan {
+        files,
+        changes,
+        values,
+        notes,
+    })
+}
+
+/// A value whose definition is in a protected file: the value, why the file is protected, the
+/// file.
+type Moved<'a> = (&'a (String, String, String), &'a Protected, PathBuf);
+
+fn find_protected<'a>(protected: &'a [Protected], path: &Path) -> Option<&'a Protected> {
+    protected.iter().find(|x| x.path == path)
+}
+
+/// The config with the `moved` values' current definitions copied into [`OVERRIDES_FILE`]
+/// (created and included at the end of the main file when needed): the same effective config,
+/// with those values now defined where they win. A note per value says so.
+fn with_overrides(
+    config: &Config,
+    moved: &[Moved<'_>],
+    notes: &mut Vec<String>,
+) -> Result<Config, Error> {
+    let main = config.files()[0].path.clone();
+    let mut files = MemFiles::new();
+    for f in config.files() {
+        files.insert(&f.path, f.text.clone());
+    }
+    let dir = main.parent().unwrap_or(Path::new("/"));
+    let over_path = dir.join(OVERRIDES_FILE);
+    let existing = config.files().iter().find(|f| f.path == over_path);
+    let mut over_text = match existing {
+        Some(f) => f.text.clone(),
+        None => "# Written by klipcal: values that cannot be changed where they are defined\n\
+                 # (another project's files). Included at the end of printer.cfg, so these\n\
+                 # definitions win. Edit them here.\n"
+            .to_string(),
+    };
+    if !over_text.is_empty() && !over_text.ends_with('\n') {
+        over_text.push('\n');
+    }
+    for ((section, key, _), _, _) in moved {
+        let old = config.get(section, key).unwrap_or_default();
+        over_text.push_str(&format!("\n[{section}]\n{key}: {old}\n"));
+    }
+    files.insert(&over_path, over_text);
+    if existing.is_none() {
+        let new = add_include(
+            &config.files()[0].text,
+            OVERRIDES_FILE,
+            "klipcal: its overrides, read last so they win",
+        );
+        files.insert(&main, new);
+    }
+    let working = Config::load_as(&files, &main, config.dialect())
+        .map_err(|e| Error::Protected(format!("adding {OVERRIDES_FILE} breaks the config: {e}")))?;
+    // Same effective config, only now defined in the overrides file.
+    let flat = |c: &Config| -> Vec<(String, String, String)> {
+        c.sections()
+            .iter()
+            .flat_map(|s| {
+                s.options
+                    .iter()
+                    .map(move |o| (s.name.clone(), o.key.clone(), o.value.clone()))
+            })
+            .collect()
+    };
+    if flat(&working) != flat(config) {
+        return Err(Error::Protected(format!(
+            "adding {OVERRIDES_FILE} would change other settings; add `[include \
+             {OVERRIDES_FILE}]` at the end of {} by hand",
+            main.display()
+        )));
+    }
+    for ((section, key, _), p, path) in moved {
+        let now = working.option(section, key).map(|o| o.origin.path.clone());
+        if now.as_deref() != Some(over_path.as_path()) {
+            return Err(Error::Protected(format!(
+                "[{section}] {key} is defined in {} ({}), and a definition in {} would not \
+                 win: a later one in {} does; move `[include {OVERRIDES_FILE}]` to the end \
+                 of {}",
+                path.display(),
+                p.reason,
+                over_path.display(),
+                now.map_or("?".into(), |p| p.display().to_string()),
+                main.display()
+            )));
+        }
+        notes.push(format!(
+            "[{section}] {key} is defined in {}, which klipcal does not change: {}. The new \
+             value is written to {} instead, included at the end of {} so Klipper reads it \
+             last and it wins",
+            path.display(),
+            p.reason,
+            over_path.display(),
+            main.display()
+        ));
+    }
+    Ok(working)
+}
+
+/// The files whose text the edits change (new ones included), in read order, and every value
+/// changed; refused when one of them is protected.
+fn planned_files(
+    config: &Config,
+    working: &Config,
+    edits: &[FileEdit],
+    protected: &[Protected],
+) -> Result<(Vec<PlannedFile>, Vec<ValueChange>), Error> {
     let mut planned = Vec::new();
     let mut changes = Vec::new();
     for (i, f) in working.files().iter().enumerate() {
@@ -192,7 +226,7 @@ pub fn plan_values(
             .find(|o| o.path == f.path)
             .map(|o| o.text.clone());
         if old_text.as_deref() != Some(new_text.as_str()) {
-            if is_protected(&f.path).is_some() {
+            if find_protected(protected, &f.path).is_some() {
                 return Err(Error::EditCheck(format!(
                     "the plan would write the protected file {}",
                     f.path.display()
@@ -205,12 +239,7 @@ pub fn plan_values(
             });
         }
     }
-    Ok(WritePlan {
-        files: planned,
-        changes,
-        values,
-        notes,
-    })
+    Ok((planned, changes))
 }
 
 /// `text` (a main config file) with `[include <file>]` after a `# <comment>` line appended at

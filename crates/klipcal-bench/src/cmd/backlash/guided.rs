@@ -187,7 +187,6 @@ struct Tally {
 ///
 /// # Errors
 /// None in practice.
-#[allow(clippy::too_many_lines)] // 228 lines: to be split along its steps
 pub(crate) fn bench(
     args: &BenchBacklashArgs,
     settings: &BacklashConfig,
@@ -226,12 +225,7 @@ pub(crate) fn bench(
         for person in PERSONS {
             println!("   person who {}:", person.name());
             let mut rng = fastrand::Rng::with_seed(args.seed ^ ((mi as u64) << 8));
-            // (label, cycles, two jog sizes and the crossing?)
-            let variants: [(&str, usize, bool); 3] = [
-                ("seed single pass (anchor)", 1, false),
-                ("without the crossing (anchor)", 5, false),
-                ("klipcal 5 cycles", 5, true),
-            ];
+            let variants = VARIANTS;
             let mut tallies: Vec<Tally> = variants.iter().map(|_| Tally::default()).collect();
             let mut cost: Vec<(usize, f64)> = vec![(0, 0.0); variants.len()];
             for _ in 0..axes {
@@ -246,180 +240,32 @@ pub(crate) fn bench(
                         crossing: *ours,
                         ..base.clone()
                     };
-                    let t = &mut tallies[k];
-                    let Some(run) = run_procedure(model, person, b, p, &mut rng) else {
-                        t.unfinished += 1;
-                        continue;
-                    };
-                    cost[k].0 += run.presses;
-                    cost[k].1 += run.presses as f64 * PRESS_S
-                        + run.moves as f64 * MOVE_OVERHEAD_S
-                        + run.travel_mm / JOG_MM_S;
-                    if !run.perfect.is_empty() {
-                        let n = run.perfect.len() as f64;
-                        t.bound.push(run.perfect.iter().sum::<f64>() / n - truth);
-                    }
-                    if run.perfect.len() == run.cycles.len() {
-                        let qs: Vec<f64> = run
-                            .cycles
-                            .iter()
-                            .map(|c| c.fine_mm.unwrap_or(0.0))
-                            .collect();
-                        t.bound_line.push(zero_jog_line(&run.perfect, &qs) - truth);
-                    }
-                    let cyc = run.cycles;
-                    // The motor's microstep, as the daemon reads it from Klipper's settings.
-                    let mp = BacklashParams {
-                        step_mm: model.step_mm,
-                        ..params.clone()
-                    };
-                    let est = if *cycles > 1 {
-                        match backlash::analyse("x", &cyc, None, &mp) {
-                            Ok(r) => {
-                                t.stated += 1;
-                                if (r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm {
-                                    t.covered += 1;
-                                }
-                                let more = r.more_cycles(MORE_CYCLES_TARGET_U_MM, 50);
-                                t.offered.push((
-                                    r.backlash_mm - truth,
-                                    r.uncertainty_mm,
-                                    more.is_some(),
-                                ));
-                                r.backlash_mm
-                            }
-                            Err(_) => {
-                                t.unfinished += 1;
-                                continue;
-                            }
-                        }
-                    } else {
-                        // The seed: x_backlash = abs(X2 − X1).
-                        (cyc[0].x2_mm - cyc[0].x1_mm).abs()
-                    };
-                    t.errors.push(est - truth);
-                    t.errors_b.push(est - b);
-                    let compensate = est >= params.compensate_from_mm;
-                    if truth <= params.none_needed_max_mm || truth >= params.needed_from_mm {
-                        t.graded += 1;
-                        let needed = truth >= params.needed_from_mm;
-                        if compensate != needed {
-                            t.wrong += 1;
-                        }
-                    }
+                    one_axis(
+                        (model, person, b, truth),
+                        p,
+                        &params,
+                        &mut rng,
+                        (&mut tallies[k], &mut cost[k]),
+                    );
                 }
             }
             // The camera's anchors are against b, as its own lines are.
             worst_g = worst_g.max(p95(&tallies[2].errors_b));
             worst_s = worst_s.max(p95(&tallies[0].errors_b));
-            for (k, ((label, _, ours), t)) in variants.iter().zip(&tallies).enumerate() {
-                let e95 = p95(&t.errors);
-                let wrong_pct = 100.0 * t.wrong as f64 / t.graded.max(1) as f64;
-                let bias = t.errors.iter().sum::<f64>() / t.errors.len().max(1) as f64;
-                let target = *ours;
-                let (e_ok, w_ok) = (e95 <= 0.005, wrong_pct <= 5.0);
-                let cover = 100.0 * t.covered as f64 / t.stated.max(1) as f64;
-                let (c_ok, c_text) = coverage(t.covered, t.stated);
-                if target {
-                    all_ok &= e_ok && w_ok && c_ok && t.unfinished == 0;
-                }
-                let mark = |ok: bool| {
-                    if !target {
-                        ""
-                    } else if ok {
-                        " PASS"
-                    } else {
-                        " FAIL"
-                    }
-                };
-                let done = (axes - t.unfinished).max(1) as f64;
-                let b_text = if model.slip_mm > 0.0 {
-                    format!(
-                        "   [against b alone: p95 {:.1} µm, mean {:+.1} µm]",
-                        1000.0 * p95(&t.errors_b),
-                        1000.0 * t.errors_b.iter().sum::<f64>() / t.errors_b.len().max(1) as f64
-                    )
-                } else {
-                    String::new()
-                };
-                let cover_text = match (t.stated, target) {
-                    (0, _) => String::new(),
-                    (_, true) => format!("   {c_text}"),
-                    (_, false) => format!("   ±2u covers {cover:4.1} %"),
-                };
-                let (b95, l95) = (p95(&t.bound), p95(&t.bound_line));
-                if target {
-                    bounds.extend(t.bound.iter().copied());
-                    lines.extend(t.bound_line.iter().copied());
-                }
-                let target_text = if !target {
-                    String::new()
-                } else if b95 > 0.005 {
-                    format!(
-                        " (target ≤ 5, bound {:.1}: the target is out of reach at {} cycles)",
-                        1000.0 * b95,
-                        variants[k].1
-                    )
-                } else {
-                    format!(
-                        " (target ≤ 5, bound {:.1}, through the zero-jog line {:.1})",
-                        1000.0 * b95,
-                        1000.0 * l95
-                    )
-                };
-                println!(
-                    "    {label:<30} p95 |error| {:4.1} µm{}{}   mean error {:+4.1} µm   wrong \
-                     verdicts {wrong_pct:4.1} %{}{}   presses/axis {:5.1}   time/axis {:5.1} min   \
-                     unfinished {}{cover_text}{b_text}",
-                    1000.0 * e95,
-                    target_text,
-                    mark(e_ok),
-                    1000.0 * bias,
-                    if target { " (target ≤ 5 %)" } else { "" },
-                    mark(w_ok),
-                    cost[k].0 as f64 / done,
-                    cost[k].1 / done / 60.0,
-                    t.unfinished
+            for (k, (&(label, cycles, ours), t)) in variants.iter().zip(&tallies).enumerate() {
+                all_ok &= variant_line(
+                    (label, cycles, ours),
+                    t,
+                    cost[k],
+                    axes,
+                    model,
+                    (&mut bounds, &mut lines),
                 );
-                if target && !t.offered.is_empty() {
-                    offered_line(&t.offered);
-                }
             }
             let seed = args.seed ^ ((mi as u64) << 8) ^ 0x10;
             more_cycles_line(model, person, (&base, &params), seed, axes);
         }
-        let b95 = p95(&bounds);
-        println!(
-            "   bound on model {}: p95 {:.1} µm over {} axes: the mean of 5 cycles read by a \
-             perfect eye at the moments the flow reads (the motor's true position less the \
-             nozzle's offset from the mark), so only what varies per reversal is left: {}",
-            mi + 1,
-            1000.0 * b95,
-            bounds.len(),
-            if b95 > 0.005 {
-                "above 5 µm, the target is out of reach at 5 cycles on this model"
-            } else {
-                "within the 5 µm target"
-            }
-        );
-        let l95 = p95(&lines);
-        let ratio = base.fine_mm / base.small_fine_mm;
-        println!(
-            "   bound through the zero-jog line on model {}: p95 {:.1} µm: the same perfect eye's \
-             cycles read as the flow reads its own (the line through the two jog sizes at a zero \
-             jog, which removes a person's lateness and weighs the small-jog cycles by {:.2} and \
-             the big ones by −{:.2} here, the jogs' ratio r giving r/(r − 1) and 1/(r − 1)): {}",
-            mi + 1,
-            1000.0 * l95,
-            ratio / (ratio - 1.0),
-            1.0 / (ratio - 1.0),
-            if l95 > 0.005 {
-                "above 5 µm, so with the lateness removed the target is out of reach at 5 cycles \
-                 on this model whatever the eye"
-            } else {
-                "within the 5 µm target"
-            }
-        );
+        bound_lines(mi, &bounds, &lines, &base);
         guided.push((model.name, worst_g, worst_s));
     }
     if !args.guided_only {
@@ -430,6 +276,203 @@ pub(crate) fn bench(
     } else {
         ExitCode::FAILURE
     })
+}
+
+/// The guided flow's variants: (label, cycles, two jog sizes and the crossing?).
+const VARIANTS: [(&str, usize, bool); 3] = [
+    ("seed single pass (anchor)", 1, false),
+    ("without the crossing (anchor)", 5, false),
+    ("klipcal 5 cycles", 5, true),
+];
+
+/// One simulated axis (true backlash `b`, `truth` what compensation must cancel) measured by
+/// the flow with `p` and analysed as the daemon does; the error, coverage, verdict, bound and
+/// cost go to the variant's tally and cost (presses, seconds).
+fn one_axis(
+    (model, person, b, truth): (&Model, Person, f64, f64),
+    p: GuideParams,
+    params: &BacklashParams,
+    rng: &mut fastrand::Rng,
+    (t, cost): (&mut Tally, &mut (usize, f64)),
+) {
+    let cycles = p.cycles;
+    let Some(run) = run_procedure(model, person, b, p, rng) else {
+        t.unfinished += 1;
+        return;
+    };
+    cost.0 += run.presses;
+    cost.1 += run.presses as f64 * PRESS_S
+        + run.moves as f64 * MOVE_OVERHEAD_S
+        + run.travel_mm / JOG_MM_S;
+    if !run.perfect.is_empty() {
+        let n = run.perfect.len() as f64;
+        t.bound.push(run.perfect.iter().sum::<f64>() / n - truth);
+    }
+    if run.perfect.len() == run.cycles.len() {
+        let qs: Vec<f64> = run
+            .cycles
+            .iter()
+            .map(|c| c.fine_mm.unwrap_or(0.0))
+            .collect();
+        t.bound_line.push(zero_jog_line(&run.perfect, &qs) - truth);
+    }
+    let cyc = run.cycles;
+    // The motor's microstep, as the daemon reads it from Klipper's settings.
+    let mp = BacklashParams {
+        step_mm: model.step_mm,
+        ..params.clone()
+    };
+    let est = if cycles > 1 {
+        match backlash::analyse("x", &cyc, None, &mp) {
+            Ok(r) => {
+                t.stated += 1;
+                if (r.backlash_mm - truth).abs() <= COVER_K * r.uncertainty_mm {
+                    t.covered += 1;
+                }
+                let more = r.more_cycles(MORE_CYCLES_TARGET_U_MM, 50);
+                t.offered
+                    .push((r.backlash_mm - truth, r.uncertainty_mm, more.is_some()));
+                r.backlash_mm
+            }
+            Err(_) => {
+                t.unfinished += 1;
+                return;
+            }
+        }
+    } else {
+        // The seed: x_backlash = abs(X2 − X1).
+        (cyc[0].x2_mm - cyc[0].x1_mm).abs()
+    };
+    t.errors.push(est - truth);
+    t.errors_b.push(est - b);
+    let compensate = est >= params.compensate_from_mm;
+    if truth <= params.none_needed_max_mm || truth >= params.needed_from_mm {
+        t.graded += 1;
+        let needed = truth >= params.needed_from_mm;
+        if compensate != needed {
+            t.wrong += 1;
+        }
+    }
+}
+
+/// A variant's line for one model and person: p95 error, bias, wrong verdicts, cost, coverage
+/// (the flow's own beside its target and its bound, whose cycles join `bounds` and `lines`).
+/// Returns whether the flow met its targets (the anchors always do).
+fn variant_line(
+    (label, cycles, ours): (&str, usize, bool),
+    t: &Tally,
+    cost: (usize, f64),
+    axes: usize,
+    model: &Model,
+    (bounds, lines): (&mut Vec<f64>, &mut Vec<f64>),
+) -> bool {
+    let e95 = p95(&t.errors);
+    let wrong_pct = 100.0 * t.wrong as f64 / t.graded.max(1) as f64;
+    let bias = t.errors.iter().sum::<f64>() / t.errors.len().max(1) as f64;
+    let target = ours;
+    let (e_ok, w_ok) = (e95 <= 0.005, wrong_pct <= 5.0);
+    let cover = 100.0 * t.covered as f64 / t.stated.max(1) as f64;
+    let (c_ok, c_text) = coverage(t.covered, t.stated);
+    let ok = !target || (e_ok && w_ok && c_ok && t.unfinished == 0);
+    let mark = |ok: bool| {
+        if !target {
+            ""
+        } else if ok {
+            " PASS"
+        } else {
+            " FAIL"
+        }
+    };
+    let done = (axes - t.unfinished).max(1) as f64;
+    let b_text = if model.slip_mm > 0.0 {
+        format!(
+            "   [against b alone: p95 {:.1} µm, mean {:+.1} µm]",
+            1000.0 * p95(&t.errors_b),
+            1000.0 * t.errors_b.iter().sum::<f64>() / t.errors_b.len().max(1) as f64
+        )
+    } else {
+        String::new()
+    };
+    let cover_text = match (t.stated, target) {
+        (0, _) => String::new(),
+        (_, true) => format!("   {c_text}"),
+        (_, false) => format!("   ±2u covers {cover:4.1} %"),
+    };
+    let (b95, l95) = (p95(&t.bound), p95(&t.bound_line));
+    if target {
+        bounds.extend(t.bound.iter().copied());
+        lines.extend(t.bound_line.iter().copied());
+    }
+    let target_text = if !target {
+        String::new()
+    } else if b95 > 0.005 {
+        format!(
+            " (target ≤ 5, bound {:.1}: the target is out of reach at {} cycles)",
+            1000.0 * b95,
+            cycles
+        )
+    } else {
+        format!(
+            " (target ≤ 5, bound {:.1}, through the zero-jog line {:.1})",
+            1000.0 * b95,
+            1000.0 * l95
+        )
+    };
+    println!(
+        "    {label:<30} p95 |error| {:4.1} µm{}{}   mean error {:+4.1} µm   wrong \
+         verdicts {wrong_pct:4.1} %{}{}   presses/axis {:5.1}   time/axis {:5.1} min   \
+         unfinished {}{cover_text}{b_text}",
+        1000.0 * e95,
+        target_text,
+        mark(e_ok),
+        1000.0 * bias,
+        if target { " (target ≤ 5 %)" } else { "" },
+        mark(w_ok),
+        cost.0 as f64 / done,
+        cost.1 / done / 60.0,
+        t.unfinished
+    );
+    if target && !t.offered.is_empty() {
+        offered_line(&t.offered);
+    }
+    ok
+}
+
+/// The model's bounds over every person's axes: the perfect eye's mean of 5 cycles, and the
+/// same cycles through the flow's zero-jog line.
+fn bound_lines(mi: usize, bounds: &[f64], lines: &[f64], base: &GuideParams) {
+    let b95 = p95(bounds);
+    println!(
+        "   bound on model {}: p95 {:.1} µm over {} axes: the mean of 5 cycles read by a \
+         perfect eye at the moments the flow reads (the motor's true position less the \
+         nozzle's offset from the mark), so only what varies per reversal is left: {}",
+        mi + 1,
+        1000.0 * b95,
+        bounds.len(),
+        if b95 > 0.005 {
+            "above 5 µm, the target is out of reach at 5 cycles on this model"
+        } else {
+            "within the 5 µm target"
+        }
+    );
+    let l95 = p95(lines);
+    let ratio = base.fine_mm / base.small_fine_mm;
+    println!(
+        "   bound through the zero-jog line on model {}: p95 {:.1} µm: the same perfect eye's \
+         cycles read as the flow reads its own (the line through the two jog sizes at a zero \
+         jog, which removes a person's lateness and weighs the small-jog cycles by {:.2} and \
+         the big ones by −{:.2} here, the jogs' ratio r giving r/(r − 1) and 1/(r − 1)): {}",
+        mi + 1,
+        1000.0 * l95,
+        ratio / (ratio - 1.0),
+        1.0 / (ratio - 1.0),
+        if l95 > 0.005 {
+            "above 5 µm, so with the lateness removed the target is out of reach at 5 cycles \
+             on this model whatever the eye"
+        } else {
+            "within the 5 µm target"
+        }
+    );
 }
 
 /// What the answer told the person (information): its stated u (median and 90th percentile)
