@@ -54,7 +54,9 @@ fn real_photos_are_found_or_refused_as_a_person_would() {
 }
 
 /// The pixel noise of a real, zoomed-in nozzle photo is a few grey levels, not the scene:
-/// TAMV's picture reads under 2 (its smooth-background residual is about 60).
+/// TAMV's picture reads under 2 (its smooth-background residual is about 60). With the
+/// detector's noise taken back from that residual (put back and run, issue 37) this test and
+/// the one above failed: every real nozzle refused ("344.2 grey levels, 702.5 needed").
 #[test]
 fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
     let photos = load().unwrap();
@@ -68,31 +70,29 @@ fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
 /// Known shifts of each real nozzle photo (Lanczos-3 sub-pixel moves up to ±3 px, re-encoded
 /// as JPEG 70–90, with noise, a brightness change and a little blur), read by registering the
 /// region round the tip against the reference frame; the region comes from the hand label (a
-/// click ±1 px), so the picture detection refuses (kTAMV's settings frame) is measured too.
-/// On the sharp photo (TAMV's, at three zooms): |found − known| ≤ 0.3 px on ≥ 90 % of the
-/// pairs, median ≤ 0.1 px, each coordinate within ±2 × its stated sd on 90–99 %. kTAMV's
-/// small defocused frames are not there yet (errors up to 0.6 px, the same without noise:
-/// systematic, see issue 37's report): they are held to 1 px.
+/// click ±0.5 px), so the picture detection refuses (TAMV's closest window, kTAMV's settings
+/// frame) is measured too. Issue 37's targets: |found − known| ≤ 0.3 px on ≥ 90 % of the
+/// pairs, median ≤ 0.1 px, each coordinate within ±2 × its stated sd on 93–97 % (held here to
+/// 90–99 %: 240 coordinates). Before the sub-pixel fit was the squared difference, kTAMV's
+/// small defocused frames had 42 % within 0.3 px, median 0.31, an unmoved copy read 0.37 px
+/// off (`register`'s step 4). With the reference's noise taken back from the smooth
+/// background's residual (the estimator before issue 37, put back and run), every photo's
+/// reference was refused ("179 grey levels, 487 needed" on TAMV's) and this test failed.
 #[test]
 fn known_shifts_of_real_photos_are_measured_by_registration() {
     let photos = load().unwrap();
-    let (sharp, soft): (Vec<Photo>, Vec<Photo>) =
-        photos.into_iter().partition(|p| p.name.starts_with("tamv"));
-    let t = known_shifts(&sharp, 12, 37);
-    let s = known_shifts(&soft, 12, 38);
-    for t in [&t, &s] {
-        eprintln!(
-            "within {:.1} % median {:.3} cover {:.1} % worst {:?} refused {:?}",
-            t.within_pct(),
-            t.median_px(),
-            t.cover_pct(),
-            t.worst,
-            t.refused
-        );
-    }
+    let t = known_shifts(&photos, 20, 37);
+    eprintln!(
+        "within {:.1} % median {:.3} cover {:.1} % worst {:?} refused {:?}",
+        t.within_pct(),
+        t.median_px(),
+        t.cover_pct(),
+        t.worst,
+        t.refused
+    );
     let n = t.errors_px.len();
     assert!(
-        n >= 36 && t.refused.is_empty(),
+        n >= 120 && t.refused.is_empty(),
         "{n} measured, refused {:?}",
         t.refused
     );
@@ -104,14 +104,7 @@ fn known_shifts_of_real_photos_are_measured_by_registration() {
     assert!(t.median_px() <= 0.1, "median {:.3}", t.median_px());
     let cov = t.cover_pct();
     assert!((90.0..=99.0).contains(&cov), "±2u covered {cov:.1} %");
-    assert!(
-        s.errors_px.len() >= 36 && s.refused.is_empty(),
-        "{:?}",
-        s.refused
-    );
-    assert!(
-        s.errors_px.last().is_some_and(|e| *e <= 1.0),
-        "{:?}",
-        s.worst
-    );
+    for (name, worst) in &t.worst {
+        assert!(*worst <= 0.3, "{name}: worst {worst:.3} px");
+    }
 }
