@@ -12,9 +12,10 @@ fn outcome(p: &Photo) -> Result<f64, Refusal> {
     })
 }
 
-/// Real nozzles are found where a person puts the tip (within max(3 px, the label's sd)): 4 of
-/// the 6 unambiguous pictures today (issue 37's target is 80 %, `klipcal bench backlash`
-/// reports it; kTAMV's settings frame and the closest TAMV window are refused), no position
+/// Real nozzles are found where a person puts the tip (within max(3 px, the label's sd)): 5 of
+/// the 6 unambiguous pictures (issue 37's target is 80 %, `klipcal bench backlash` reports it;
+/// kTAMV's settings frame, whose orifice is closed on 17 % of its round, is refused; the
+/// closest TAMV window is found since the vote retries at twice its scale), no position
 /// more than 10 px off is ever given, and every picture a person must refuse (no nozzle, a
 /// test card, two nozzles, a tiny faint tip among sparkles) is refused with a reason. With
 /// the noise taken from the smooth background's residual (the estimator before issue 37)
@@ -47,7 +48,7 @@ fn real_photos_are_found_or_refused_as_a_person_would() {
         }
     }
     assert!(want >= 5 && photos.len() >= 10, "{} pictures", photos.len());
-    if near < 4 {
+    if near < 5 {
         fails.push(format!("found near the label on {near} of {want}"));
     }
     assert!(fails.is_empty(), "{fails:?}");
@@ -106,5 +107,47 @@ fn known_shifts_of_real_photos_are_measured_by_registration() {
     assert!((90.0..=99.0).contains(&cov), "±2u covered {cov:.1} %");
     for (name, worst) in &t.worst {
         assert!(*worst <= 0.3, "{name}: worst {worst:.3} px");
+    }
+}
+
+/// TAMV's photo as a 1920×1080 snapshot (scaled ×3 bilinearly, the middle 1080 rows: the
+/// orifice's radius 66 px) is found where the scaling puts the hand label, and as a 320×240
+/// one (halved) too: issue 37's item 8, 320×240 to 1920×1080.
+#[test]
+fn a_real_photo_is_found_from_320x240_to_1920x1080() {
+    let photos = load().unwrap();
+    let tamv = photos.iter().find(|p| p.name == "tamv-nozzle").unwrap();
+    let (w, h) = (tamv.width, tamv.height);
+    let at = |x: f64, y: f64| {
+        let (x, y) = (x.clamp(0.0, (w - 1) as f64), y.clamp(0.0, (h - 1) as f64));
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let g = |i: usize, j: usize| f64::from(tamv.grey[j * w + i]);
+        (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x1, y0))
+            + fy * ((1.0 - fx) * g(x0, y1) + fx * g(x1, y1))
+    };
+    for (k, ow, oh, top) in [(3.0, 1920, 1080, 180.0), (0.5, 320, 240, 0.0)] {
+        let mut g = Vec::with_capacity(ow * oh);
+        for j in 0..oh {
+            for i in 0..ow {
+                let (x, y) = ((i as f64 + 0.5) / k - 0.5, (j as f64 + top + 0.5) / k - 0.5);
+                g.push(at(x, y).round() as u8);
+            }
+        }
+        let img = Gray {
+            width: ow,
+            height: oh,
+            data: &g,
+        };
+        let d = detect(&img, &DetectParams::default())
+            .unwrap_or_else(|e| panic!("{ow}×{oh}: refused: {e}"));
+        let t = tamv.tip_px.unwrap();
+        let want = [(t[0] + 0.5) * k - 0.5, (t[1] + 0.5) * k - 0.5 - top];
+        let off = (d.centre_px[0] - want[0]).hypot(d.centre_px[1] - want[1]);
+        assert!(
+            off <= 3.0f64.max(k * 1.0),
+            "{ow}×{oh}: {off:.2} px off, {d:?}"
+        );
     }
 }
