@@ -817,11 +817,19 @@ pub struct ClickReading {
 pub struct ClickReader {
     reference: Option<Result<Reference, ClickRefusal>>,
     params: RegisterParams,
+    /// The last reading, px: where a frame the detector refused is searched.
+    last_px: Option<[f64; 2]>,
 }
 
 impl ClickReader {
     /// Reads the click at `click_px` ± `click_sd_px` in `img`.
     pub fn read(&mut self, img: &Gray<'_>, click_px: [f64; 2], click_sd_px: f64) -> ClickReading {
+        let out = self.read_inner(img, click_px, click_sd_px);
+        self.last_px = Some(out.at_px);
+        out
+    }
+
+    fn read_inner(&mut self, img: &Gray<'_>, click_px: [f64; 2], click_sd_px: f64) -> ClickReading {
         let p = &self.params;
         let kept = |sd_px: f64, why: ClickRefusal| ClickReading {
             at_px: click_px,
@@ -859,6 +867,11 @@ impl ClickReader {
     }
 }
 
+/// Where a frame the detector refused is searched for, as a share of the picture's shorter
+/// side (1 sd about the last reading; the search reaches 3 of these): a 640×480 camera looks
+/// ±60 px round it, more than a ±0.5 mm scale move at 80 px/mm.
+const UNDETECTED_SEARCH_SHARE: f64 = 1.0 / 24.0;
+
 /// The precision a detected centre is taken to have when it stands for a click
 /// ([`ClickReader::read_detected`]), px: the detector's error on the bench's rendered families
 /// reaches 0.2 px (p95) where its own sd says less, and the registration's search and its check
@@ -879,6 +892,32 @@ impl ClickReader {
         sd_px: f64,
     ) -> ClickReading {
         self.read(img, centre_px, sd_px.max(DETECTED_CLICK_SD_PX))
+    }
+
+    /// A frame the detector refused, measured all the same (issue 37, item 2: finding the
+    /// nozzle only chooses the region): registered against the reference round the last
+    /// reading. `None` when there is no reference to register against (no frame read yet,
+    /// or the first one could not be a reference); otherwise the reading, or why the pictures
+    /// could not give one (a weak or ambiguous match, a nozzle at the edge).
+    pub fn read_undetected(
+        &mut self,
+        img: &Gray<'_>,
+    ) -> Option<Result<ClickReading, ClickRefusal>> {
+        let Some(Ok(r)) = &self.reference else {
+            return None;
+        };
+        let last = self.last_px?;
+        let sd = UNDETECTED_SEARCH_SHARE * img.width.min(img.height) as f64;
+        let got = r.refine(img, last, sd, &self.params).map(|f| ClickReading {
+            at_px: f.at_px,
+            sd_px: f.sd_px,
+            refined: true,
+            kept: None,
+        });
+        if let Ok(g) = &got {
+            self.last_px = Some(g.at_px);
+        }
+        Some(got)
     }
 }
 
@@ -1132,6 +1171,46 @@ mod tests {
             matches!(r.kept, Some(ClickRefusal::NothingAtClick { .. })),
             "{r:?}"
         );
+    }
+
+    /// Issue 37, item 2: a frame the detector refuses (a second nozzle-like thing came into
+    /// view: "two candidates") is still measured, by registering the region round the last
+    /// reading against the first frame's; without a reference there is nothing to register.
+    #[test]
+    fn a_frame_the_detector_refuses_is_measured_by_registration() {
+        let p = super::super::DetectParams::default();
+        let mut cam = Cam::new(Family::DarkTip, 11);
+        let mut rd = ClickReader::default();
+        let c0 = [150.0, 110.0];
+        let g0 = cam.frame(c0);
+        assert!(rd.read_undetected(&gray(&g0)).is_none());
+        let d0 = super::super::detect(&gray(&g0), &p).unwrap();
+        let first = rd.read_detected(&gray(&g0), d0.centre_px, d0.uncertainty_px);
+        cam.scene.nozzles_px = vec![c0, [c0[0] + 120.0, c0[1] + 70.0]];
+        let mut at = c0;
+        for step in [[0.4, -0.3], [6.2, 3.1], [-12.5, 0.7], [0.0, 0.0]] {
+            at = [at[0] + step[0], at[1] + step[1]];
+            let g = cam.frame(at);
+            let e = super::super::detect(&gray(&g), &p).unwrap_err();
+            assert!(
+                matches!(e, super::super::Refusal::TwoCandidates { .. }),
+                "{e}"
+            );
+            let r = rd
+                .read_undetected(&gray(&g))
+                .expect("a reference")
+                .unwrap_or_else(|e| panic!("{at:?}: {e}"));
+            let err = [
+                r.at_px[0] - first.at_px[0] - (at[0] - c0[0]),
+                r.at_px[1] - first.at_px[1] - (at[1] - c0[1]),
+            ];
+            assert!(r.refined && r.sd_px < 0.2, "{r:?}");
+            assert!(
+                err[0].abs().max(err[1].abs()) <= (3.0 * r.sd_px).max(0.1),
+                "{at:?}: off by {err:?}, sd {}",
+                r.sd_px
+            );
+        }
     }
 
     /// The camera's readings (issue 27): each frame's detected centre registered against the
