@@ -109,8 +109,8 @@ fn fixture(name: &str) -> std::path::PathBuf {
 
 /// Real snapshots (issue 37) through the binary: TAMV's published nozzle photo (640×480,
 /// zoomed in, the tip hand-labelled at (319.1, 254.4) ± 1 px) is found within 3 px; the same
-/// photo as a 320×240 snapshot (halved) is found where the scaling puts the tip (scaled ×3 to
-/// 1920×1080 it is still refused: issue 37's report); TAMV's standby test card is refused,
+/// photo as a 320×240 snapshot (halved) and as a 1920×1080 one (scaled ×3, the middle 1080
+/// rows, JPEG) is found where the scaling puts the tip; TAMV's standby test card is refused,
 /// exit 1, with the reason and what to do.
 #[test]
 fn backlash_image_reads_real_nozzle_photos_and_refuses_a_test_card() {
@@ -129,8 +129,10 @@ fn backlash_image_reads_real_nozzle_photos_and_refuses_a_test_card() {
 
     let dir = tempfile::tempdir().unwrap();
     let img = image::open(&tamv).unwrap().into_luma8();
-    {
-        let (name, w, h, scale, top) = ("small.png", 320u32, 240u32, 0.5f64, 0u32);
+    for (name, w, h, scale, top) in [
+        ("small.png", 320u32, 240u32, 0.5f64, 0u32),
+        ("big.jpg", 1920, 1080, 3.0, 180),
+    ] {
         let sw = (640.0 * scale) as u32;
         let sh = (480.0 * scale) as u32;
         let scaled = image::imageops::resize(&img, sw, sh, image::imageops::FilterType::Lanczos3);

@@ -73,10 +73,14 @@ pub(crate) struct Seen {
     pub kept: Option<String>,
 }
 
-/// Why a frame gave no reading.
+/// What a frame gave.
 pub(super) enum Look {
     /// The nozzle found, and with a [`Registration`] the frame read against its first frame.
     Found(Detection, Option<ClickReading>),
+    /// The detector refused the frame, but the region of the measurement's first frame was
+    /// found in it by registration round the last reading (issue 37, item 2): a reading all
+    /// the same, and the detector's reason.
+    Registered(ClickReading, Refusal),
     Refused(Refusal),
 }
 
@@ -168,7 +172,21 @@ impl Backlash {
                         });
                         Look::Found(d, r)
                     }
-                    Err(r) => Look::Refused(r),
+                    Err(refusal) => {
+                        let got = reg.and_then(|reg| {
+                            reg.lock()
+                                .unwrap_or_else(std::sync::PoisonError::into_inner)
+                                .read_undetected(&Gray {
+                                    width: w,
+                                    height: h,
+                                    data: &grey,
+                                })
+                        });
+                        match got {
+                            Some(Ok(r)) => Look::Registered(r, refusal),
+                            _ => Look::Refused(refusal),
+                        }
+                    }
                 },
             ))
         })
@@ -176,7 +194,11 @@ impl Backlash {
         if let Some((session, what)) = keep {
             let (found, refused) = match &look {
                 Look::Found(d, _) => (Some(d), None),
-                Look::Refused(r) => (None, Some(r.to_string())),
+                Look::Registered(_, r) | Look::Refused(r) => (None, Some(r.to_string())),
+            };
+            let registered = match &look {
+                Look::Registered(r, _) => Some(r),
+                _ => None,
             };
             self.frames.keep(
                 session,
@@ -186,10 +208,18 @@ impl Backlash {
                     width: w,
                     height: h,
                     what: what.to_string(),
-                    centre_px: found.map(|d| d.centre_px),
+                    centre_px: found.map(|d| d.centre_px).or(registered.map(|r| r.at_px)),
                     radius_px: found.map(|d| d.diagnostics.radius_px),
-                    uncertainty_px: found.map(|d| d.uncertainty_px),
-                    refused,
+                    uncertainty_px: found
+                        .map(|d| d.uncertainty_px)
+                        .or(registered.map(|r| r.sd_px)),
+                    refused: refused.map(|r| {
+                        if registered.is_some() {
+                            format!("{r} (read by registration against the first frame)")
+                        } else {
+                            r
+                        }
+                    }),
                     click: false,
                     hint_px: None,
                     zoom: None,
@@ -202,7 +232,8 @@ impl Backlash {
     /// The nozzle once it is still: waits out the move, then frames until three agree
     /// ([`settled`]); a refused frame is taken again (five in a row: the reason). Each frame is
     /// read against the measurement's first through `reg`; one the registration refuses is
-    /// kept as detected, and said so.
+    /// kept as detected, and said so; one the detector refuses is measured by registration
+    /// alone when the first frame's region is found in it round the last reading (issue 37).
     pub(super) async fn sight(
         &self,
         http: &reqwest::Client,
@@ -217,12 +248,20 @@ impl Backlash {
         let mut kept: Vec<Option<String>> = Vec::new();
         while frames < 14 {
             frames += 1;
-            match self.look(http, cam, Some((id, what)), Some(reg)).await? {
-                Look::Found(d, r) => {
+            let look = self.look(http, cam, Some((id, what)), Some(reg)).await?;
+            // A frame the detector refused but registration read counts as refused by
+            // detection, and is a reading.
+            refused += usize::from(matches!(look, Look::Registered(..)));
+            let seen = match look {
+                Look::Found(d, r) => Ok(r.map_or((d.centre_px, d.uncertainty_px, None), |r| {
+                    (r.at_px, r.sd_px, r.kept.map(|k| k.to_string()))
+                })),
+                Look::Registered(r, _) => Ok((r.at_px, r.sd_px, None)),
+                Look::Refused(r) => Err(r),
+            };
+            match seen {
+                Ok((at, sd, why)) => {
                     in_a_row = 0;
-                    let (at, sd, why) = r.map_or((d.centre_px, d.uncertainty_px, None), |r| {
-                        (r.at_px, r.sd_px, r.kept.map(|k| k.to_string()))
-                    });
                     last.push((at, sd));
                     kept.push(why);
                     if kept.len() > STILL_FRAMES {
@@ -245,7 +284,7 @@ impl Backlash {
                         });
                     }
                 }
-                Look::Refused(r) => {
+                Err(r) => {
                     refused += 1;
                     in_a_row += 1;
                     if in_a_row >= 5 {

@@ -67,8 +67,15 @@ fn sobel(rs: &[f32], w: usize, h: usize) -> (Vec<f32>, Vec<f32>) {
 /// The vote map of the smoothed picture `rs` (`w`×`h`), edges whose Sobel gradient exceeds
 /// `g_floor` voting at radii from 2 px to `r_max` px (of the full picture); peaks closer than
 /// `apart` px to the best are its own.
-pub(super) fn vote(rs: &[f32], w: usize, h: usize, g_floor: f64, r_max: f64) -> Option<Votes> {
-    let s = w.max(h).div_ceil(VOTE_SIDE).max(1);
+pub(super) fn vote(
+    rs: &[f32],
+    w: usize,
+    h: usize,
+    g_floor: f64,
+    r_max: f64,
+    coarse: usize,
+) -> Option<Votes> {
+    let s = w.max(h).div_ceil(VOTE_SIDE).max(1) * coarse.max(1);
     let (pooled, pw, ph) = if s > 1 {
         pool(rs, w, h, s)
     } else {

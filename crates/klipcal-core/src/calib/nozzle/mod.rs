@@ -254,8 +254,86 @@ pub struct Detection {
 ///
 /// # Errors
 /// A [`Refusal`] naming what is wrong with the picture and what is expected.
-#[allow(clippy::too_many_lines)] // 144 lines: to be split along its steps
 pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
+    let clipped = check_exposure(img, p)?;
+    let (w, h) = (img.width, img.height);
+    let (bg, _) = Background::fit(img);
+    let mut res = vec![0f32; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let i = y * w + x;
+            res[i] = (f64::from(img.data[i]) - bg.at(x as f64, y as f64)) as f32;
+        }
+    }
+    let rs = box3(&res, w, h);
+    // The pixel noise from the finest scale (issue 37), and what the 3×3 box leaves of it.
+    let pixel_noise = fine_noise_sd(img, None);
+    let noise = pixel_noise / 3.0;
+    let strongest = rs.iter().fold(0f32, |m, v| m.max(v.abs())) as f64;
+    let needed = p.min_contrast.max(p.min_snr * noise);
+    if strongest < needed {
+        return Err(Refusal::NoNozzle { strongest, needed });
+    }
+    let field = Field {
+        rs: &rs,
+        w,
+        h,
+        r_max: 0.45 * w.min(h) as f64,
+    };
+    // The vote at the picture's own scale and, when no tip is among its peaks, once at twice
+    // it: fine texture (a knurled ring, machining marks) can outvote a tip at full resolution
+    // where a coarser vote sees the tip's circles (issue 37: TAMV's photo cropped to 320×240
+    // had no vote peak near its tip). The fine scale's reason is the one given.
+    let tip = match field.find_tip(noise, 1, p) {
+        Err(e @ (Refusal::NoTip { .. } | Refusal::NoNozzle { .. })) => {
+            field.find_tip(noise, 2, p).map_err(|_| e)
+        }
+        other => other,
+    }
+    .map_err(|e| match e {
+        Refusal::NoNozzle { .. } => Refusal::NoNozzle { strongest, needed },
+        e => e,
+    })?;
+    let fit = &tip.fit;
+    // The fit's own covariance, and in quadrature what it leaves out (issue 27).
+    let u = (0.5 * (fit.cov[(0, 0)] + fit.cov[(1, 1)]))
+        .max(0.0)
+        .sqrt()
+        .hypot(UNMODELLED_SD_PX);
+    if !u.is_finite() || u > p.max_uncertainty_px {
+        return Err(Refusal::Uncertain {
+            uncertainty_px: u,
+            limit_px: p.max_uncertainty_px,
+        });
+    }
+    let [cx, cy] = fit.c;
+    if cx - fit.radius < 0.0
+        || cy - fit.radius < 0.0
+        || cx + fit.radius > (w - 1) as f64
+        || cy + fit.radius > (h - 1) as f64
+    {
+        return Err(Refusal::AtEdge { centre_px: fit.c });
+    }
+    Ok(Detection {
+        centre_px: fit.c,
+        uncertainty_px: u,
+        diagnostics: Diagnostics {
+            background: bg.at(cx, cy),
+            noise_sd: pixel_noise,
+            contrast: strongest,
+            polarity: Polarity::Dark,
+            radius_px: fit.radius,
+            scatter_px: fit.scatter,
+            candidates: tip.candidates,
+            clipped_fraction: clipped,
+            edge_pixels: fit.used,
+            centroid_px: tip.peak,
+        },
+    })
+}
+
+/// Step 1: the buffer's size, clipping and contrast; the clipped share (white + black).
+fn check_exposure(img: &Gray<'_>, p: &DetectParams) -> Result<f64, Refusal> {
     let (w, h) = (img.width, img.height);
     if w.checked_mul(h) != Some(img.data.len()) {
         return Err(Refusal::BadImage {
@@ -287,127 +365,15 @@ pub fn detect(img: &Gray<'_>, p: &DetectParams) -> Result<Detection, Refusal> {
             needed: p.min_contrast,
         });
     }
-    let (bg, _) = Background::fit(img);
-    let mut res = vec![0f32; n];
-    for y in 0..h {
-        for x in 0..w {
-            let i = y * w + x;
-            res[i] = (f64::from(img.data[i]) - bg.at(x as f64, y as f64)) as f32;
-        }
-    }
-    let rs = box3(&res, w, h);
-    // The pixel noise from the finest scale (issue 37), and what the 3×3 box leaves of it.
-    let pixel_noise = fine_noise_sd(img, None);
-    let noise = pixel_noise / 3.0;
-    let strongest = rs.iter().fold(0f32, |m, v| m.max(v.abs())) as f64;
-    let needed = p.min_contrast.max(p.min_snr * noise);
-    if strongest < needed {
-        return Err(Refusal::NoNozzle { strongest, needed });
-    }
-    // Gradients (Sobel) of the smoothed residual. Gradient of pure noise: Sobel of the
-    // smoothed noise has an sd of about 4·noise per axis; only edges well above it vote.
-    let g_floor = 3.0 * 4.0 * noise;
-    let r_max = 0.45 * w.min(h) as f64;
-    let Some(votes) = vote(&rs, w, h, g_floor, r_max) else {
-        return Err(Refusal::NoNozzle { strongest, needed });
-    };
-    let field = Field {
-        rs: &rs,
-        w,
-        h,
-        r_max,
-    };
-    // Each strong peak fitted; the tips (a dark edge closed all round), one per place,
-    // strongest vote first.
-    let top = votes.peaks[0].score;
-    let mut tips: Vec<(f64, Fit)> = Vec::new();
-    let (mut fitted, mut strongest_refusal) = (0, None);
-    for pk in &votes.peaks {
-        match field.fit_at(pk.c, p) {
-            Ok(fit) => {
-                fitted += 1;
-                let part_of =
-                    |f: &Fit| (f.c[0] - fit.c[0]).hypot(f.c[1] - fit.c[1]) < f.radius.max(3.0);
-                if fit.closed >= p.min_closed && !tips.iter().any(|(_, f)| part_of(f)) {
-                    tips.push((pk.score, fit));
-                }
-            }
-            Err(e) => {
-                if pk.c == votes.peaks[0].c {
-                    strongest_refusal = Some(e);
-                }
-            }
-        }
-    }
-    let Some((score, fit)) = tips.first().map(|t| (t.0, t.1.clone())) else {
-        // The strongest structure at the frame (a nozzle cut by it votes for its centre, just
-        // inside) says so; anything else is no tip.
-        let c = votes.peaks[0].c;
-        let near_frame = field.to_frame(c) < (0.05 * w.min(h) as f64).max(4.0);
-        return Err(match strongest_refusal {
-            Some(e @ Refusal::AtEdge { .. }) => e,
-            _ if near_frame => Refusal::AtEdge { centre_px: c },
-            _ => Refusal::NoTip { round: fitted },
-        });
-    };
-    if score < p.min_vote_share * top {
-        return Err(Refusal::Outshone {
-            centre_px: fit.c,
-            share_pct: 100.0 * score / top,
-        });
-    }
-    let rivals: Vec<[f64; 2]> = tips
-        .iter()
-        .filter(|t| t.0 >= p.second_candidate_ratio * score)
-        .map(|t| t.1.c)
-        .collect();
-    if rivals.len() >= 2 {
-        return Err(Refusal::TwoCandidates {
-            count: rivals.len(),
-            centres_px: rivals,
-        });
-    }
-    let c0 = votes.peaks[0].c;
-    let sign = 1.0;
-    // The fit's own covariance, and in quadrature what it leaves out (issue 27).
-    let u = (0.5 * (fit.cov[(0, 0)] + fit.cov[(1, 1)]))
-        .max(0.0)
-        .sqrt()
-        .hypot(UNMODELLED_SD_PX);
-    if !u.is_finite() || u > p.max_uncertainty_px {
-        return Err(Refusal::Uncertain {
-            uncertainty_px: u,
-            limit_px: p.max_uncertainty_px,
-        });
-    }
-    let [cx, cy] = fit.c;
-    if cx - fit.radius < 0.0
-        || cy - fit.radius < 0.0
-        || cx + fit.radius > (w - 1) as f64
-        || cy + fit.radius > (h - 1) as f64
-    {
-        return Err(Refusal::AtEdge { centre_px: fit.c });
-    }
-    Ok(Detection {
-        centre_px: fit.c,
-        uncertainty_px: u,
-        diagnostics: Diagnostics {
-            background: bg.at(cx, cy),
-            noise_sd: pixel_noise,
-            contrast: strongest,
-            polarity: if sign < 0.0 {
-                Polarity::Bright
-            } else {
-                Polarity::Dark
-            },
-            radius_px: fit.radius,
-            scatter_px: fit.scatter,
-            candidates: tips.len(),
-            clipped_fraction: white + black,
-            edge_pixels: fit.used,
-            centroid_px: c0,
-        },
-    })
+    Ok(white + black)
+}
+
+/// The tip a vote found: its fit, the strongest peak (the benchmark's anchor) and how many
+/// tips were in view.
+struct Tip {
+    fit: Fit,
+    peak: [f64; 2],
+    candidates: usize,
 }
 
 /// The smoothed residual, for fitting the nozzle about a vote's peak.
@@ -423,6 +389,75 @@ impl Field<'_> {
         c[0].min(c[1])
             .min((self.w - 1) as f64 - c[0])
             .min((self.h - 1) as f64 - c[1])
+    }
+
+    /// Steps 3–4: the vote (pooled `coarse` times more than its own scale), each strong peak
+    /// fitted, the tips (a dark edge closed all round) one per place, strongest vote first;
+    /// refused when none, when other round structure outshines it, or when two are alike.
+    fn find_tip(&self, noise: f64, coarse: usize, p: &DetectParams) -> Result<Tip, Refusal> {
+        let (w, h) = (self.w, self.h);
+        // Gradients (Sobel) of the smoothed residual. Gradient of pure noise: Sobel of the
+        // smoothed noise has an sd of about 4·noise per axis; only edges well above it vote.
+        let g_floor = 3.0 * 4.0 * noise;
+        let Some(votes) = vote(self.rs, w, h, g_floor, self.r_max, coarse) else {
+            return Err(Refusal::NoNozzle {
+                strongest: 0.0,
+                needed: 0.0,
+            });
+        };
+        let top = votes.peaks[0].score;
+        let mut tips: Vec<(f64, Fit)> = Vec::new();
+        let (mut fitted, mut strongest_refusal) = (0, None);
+        for pk in &votes.peaks {
+            match self.fit_at(pk.c, p) {
+                Ok(fit) => {
+                    fitted += 1;
+                    let part_of =
+                        |f: &Fit| (f.c[0] - fit.c[0]).hypot(f.c[1] - fit.c[1]) < f.radius.max(3.0);
+                    if fit.closed >= p.min_closed && !tips.iter().any(|(_, f)| part_of(f)) {
+                        tips.push((pk.score, fit));
+                    }
+                }
+                Err(e) => {
+                    if pk.c == votes.peaks[0].c {
+                        strongest_refusal = Some(e);
+                    }
+                }
+            }
+        }
+        let Some((score, fit)) = tips.first().map(|t| (t.0, t.1.clone())) else {
+            // The strongest structure at the frame (a nozzle cut by it votes for its centre,
+            // just inside) says so; anything else is no tip.
+            let c = votes.peaks[0].c;
+            let near_frame = self.to_frame(c) < (0.05 * w.min(h) as f64).max(4.0);
+            return Err(match strongest_refusal {
+                Some(e @ Refusal::AtEdge { .. }) => e,
+                _ if near_frame => Refusal::AtEdge { centre_px: c },
+                _ => Refusal::NoTip { round: fitted },
+            });
+        };
+        if score < p.min_vote_share * top {
+            return Err(Refusal::Outshone {
+                centre_px: fit.c,
+                share_pct: 100.0 * score / top,
+            });
+        }
+        let rivals: Vec<[f64; 2]> = tips
+            .iter()
+            .filter(|t| t.0 >= p.second_candidate_ratio * score)
+            .map(|t| t.1.c)
+            .collect();
+        if rivals.len() >= 2 {
+            return Err(Refusal::TwoCandidates {
+                count: rivals.len(),
+                centres_px: rivals,
+            });
+        }
+        Ok(Tip {
+            fit,
+            peak: votes.peaks[0].c,
+            candidates: tips.len(),
+        })
     }
 
     /// The innermost strong circle about `c0` ([`inner_edge`]), its centre by radial symmetry,

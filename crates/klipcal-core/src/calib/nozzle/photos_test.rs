@@ -12,9 +12,10 @@ fn outcome(p: &Photo) -> Result<f64, Refusal> {
     })
 }
 
-/// Real nozzles are found where a person puts the tip (within max(3 px, the label's sd)): 4 of
-/// the 6 unambiguous pictures today (issue 37's target is 80 %, `klipcal bench backlash`
-/// reports it; kTAMV's settings frame and the closest TAMV window are refused), no position
+/// Real nozzles are found where a person puts the tip (within max(3 px, the label's sd)): 5 of
+/// the 6 unambiguous pictures (issue 37's target is 80 %, `klipcal bench backlash` reports it;
+/// kTAMV's settings frame, whose orifice is closed on 17 % of its round, is refused; the
+/// closest TAMV window is found since the vote retries at twice its scale), no position
 /// more than 10 px off is ever given, and every picture a person must refuse (no nozzle, a
 /// test card, two nozzles, a tiny faint tip among sparkles) is refused with a reason. With
 /// the noise taken from the smooth background's residual (the estimator before issue 37)
@@ -47,14 +48,16 @@ fn real_photos_are_found_or_refused_as_a_person_would() {
         }
     }
     assert!(want >= 5 && photos.len() >= 10, "{} pictures", photos.len());
-    if near < 4 {
+    if near < 5 {
         fails.push(format!("found near the label on {near} of {want}"));
     }
     assert!(fails.is_empty(), "{fails:?}");
 }
 
 /// The pixel noise of a real, zoomed-in nozzle photo is a few grey levels, not the scene:
-/// TAMV's picture reads under 2 (its smooth-background residual is about 60).
+/// TAMV's picture reads under 2 (its smooth-background residual is about 60). With the
+/// detector's noise taken back from that residual (put back and run, issue 37) this test and
+/// the one above failed: every real nozzle refused ("344.2 grey levels, 702.5 needed").
 #[test]
 fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
     let photos = load().unwrap();
@@ -68,31 +71,29 @@ fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
 /// Known shifts of each real nozzle photo (Lanczos-3 sub-pixel moves up to ±3 px, re-encoded
 /// as JPEG 70–90, with noise, a brightness change and a little blur), read by registering the
 /// region round the tip against the reference frame; the region comes from the hand label (a
-/// click ±1 px), so the picture detection refuses (kTAMV's settings frame) is measured too.
-/// On the sharp photo (TAMV's, at three zooms): |found − known| ≤ 0.3 px on ≥ 90 % of the
-/// pairs, median ≤ 0.1 px, each coordinate within ±2 × its stated sd on 90–99 %. kTAMV's
-/// small defocused frames are not there yet (errors up to 0.6 px, the same without noise:
-/// systematic, see issue 37's report): they are held to 1 px.
+/// click ±0.5 px), so the picture detection refuses (TAMV's closest window, kTAMV's settings
+/// frame) is measured too. Issue 37's targets: |found − known| ≤ 0.3 px on ≥ 90 % of the
+/// pairs, median ≤ 0.1 px, each coordinate within ±2 × its stated sd on 93–97 % (held here to
+/// 90–99 %: 240 coordinates). Before the sub-pixel fit was the squared difference, kTAMV's
+/// small defocused frames had 42 % within 0.3 px, median 0.31, an unmoved copy read 0.37 px
+/// off (`register`'s step 4). With the reference's noise taken back from the smooth
+/// background's residual (the estimator before issue 37, put back and run), every photo's
+/// reference was refused ("179 grey levels, 487 needed" on TAMV's) and this test failed.
 #[test]
 fn known_shifts_of_real_photos_are_measured_by_registration() {
     let photos = load().unwrap();
-    let (sharp, soft): (Vec<Photo>, Vec<Photo>) =
-        photos.into_iter().partition(|p| p.name.starts_with("tamv"));
-    let t = known_shifts(&sharp, 12, 37);
-    let s = known_shifts(&soft, 12, 38);
-    for t in [&t, &s] {
-        eprintln!(
-            "within {:.1} % median {:.3} cover {:.1} % worst {:?} refused {:?}",
-            t.within_pct(),
-            t.median_px(),
-            t.cover_pct(),
-            t.worst,
-            t.refused
-        );
-    }
+    let t = known_shifts(&photos, 20, 37);
+    eprintln!(
+        "within {:.1} % median {:.3} cover {:.1} % worst {:?} refused {:?}",
+        t.within_pct(),
+        t.median_px(),
+        t.cover_pct(),
+        t.worst,
+        t.refused
+    );
     let n = t.errors_px.len();
     assert!(
-        n >= 36 && t.refused.is_empty(),
+        n >= 120 && t.refused.is_empty(),
         "{n} measured, refused {:?}",
         t.refused
     );
@@ -104,14 +105,49 @@ fn known_shifts_of_real_photos_are_measured_by_registration() {
     assert!(t.median_px() <= 0.1, "median {:.3}", t.median_px());
     let cov = t.cover_pct();
     assert!((90.0..=99.0).contains(&cov), "±2u covered {cov:.1} %");
-    assert!(
-        s.errors_px.len() >= 36 && s.refused.is_empty(),
-        "{:?}",
-        s.refused
-    );
-    assert!(
-        s.errors_px.last().is_some_and(|e| *e <= 1.0),
-        "{:?}",
-        s.worst
-    );
+    for (name, worst) in &t.worst {
+        assert!(*worst <= 0.3, "{name}: worst {worst:.3} px");
+    }
+}
+
+/// TAMV's photo as a 1920×1080 snapshot (scaled ×3 bilinearly, the middle 1080 rows: the
+/// orifice's radius 66 px) is found where the scaling puts the hand label, and as a 320×240
+/// one (halved) too: issue 37's item 8, 320×240 to 1920×1080.
+#[test]
+fn a_real_photo_is_found_from_320x240_to_1920x1080() {
+    let photos = load().unwrap();
+    let tamv = photos.iter().find(|p| p.name == "tamv-nozzle").unwrap();
+    let (w, h) = (tamv.width, tamv.height);
+    let at = |x: f64, y: f64| {
+        let (x, y) = (x.clamp(0.0, (w - 1) as f64), y.clamp(0.0, (h - 1) as f64));
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+        let (fx, fy) = (x - x0 as f64, y - y0 as f64);
+        let g = |i: usize, j: usize| f64::from(tamv.grey[j * w + i]);
+        (1.0 - fy) * ((1.0 - fx) * g(x0, y0) + fx * g(x1, y0))
+            + fy * ((1.0 - fx) * g(x0, y1) + fx * g(x1, y1))
+    };
+    for (k, ow, oh, top) in [(3.0, 1920, 1080, 180.0), (0.5, 320, 240, 0.0)] {
+        let mut g = Vec::with_capacity(ow * oh);
+        for j in 0..oh {
+            for i in 0..ow {
+                let (x, y) = ((i as f64 + 0.5) / k - 0.5, (j as f64 + top + 0.5) / k - 0.5);
+                g.push(at(x, y).round() as u8);
+            }
+        }
+        let img = Gray {
+            width: ow,
+            height: oh,
+            data: &g,
+        };
+        let d = detect(&img, &DetectParams::default())
+            .unwrap_or_else(|e| panic!("{ow}×{oh}: refused: {e}"));
+        let t = tamv.tip_px.unwrap();
+        let want = [(t[0] + 0.5) * k - 0.5, (t[1] + 0.5) * k - 0.5 - top];
+        let off = (d.centre_px[0] - want[0]).hypot(d.centre_px[1] - want[1]);
+        assert!(
+            off <= 3.0f64.max(k * 1.0),
+            "{ow}×{oh}: {off:.2} px off, {d:?}"
+        );
+    }
 }
