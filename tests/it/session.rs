@@ -1245,8 +1245,9 @@ fn primed_samples(d: &Daemon) -> Option<usize> {
 
 #[tokio::test]
 async fn a_daemon_restarted_mid_soak_goes_on_from_the_progress_it_had() {
-    // A slow plate so the soak lasts well past what Moonraker keeps (30 s here).
-    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 600.0, "tau_heater_s": 20.0}}"#;
+    // A slow plate (200 s of real time) so the soak lasts well past what Moonraker keeps (30 s
+    // here).
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 2000.0, "tau_heater_s": 20.0}}"#;
     let bench = Bench::start_with("corexy", Some(plant));
     short_temperature_store(&bench, 30);
     let mut d = started(&bench, 600.0).await;
@@ -1254,12 +1255,17 @@ async fn a_daemon_restarted_mid_soak_goes_on_from_the_progress_it_had() {
         .await
         .unwrap();
     wait_state(&bench, "soaking", Duration::from_secs(120)).await;
+    let soaking_since = std::time::Instant::now();
     // Soaked longer than the store holds, and far enough to show progress.
-    tokio::time::sleep(Duration::from_secs(45)).await;
-    let before = poll(Duration::from_secs(120), || async {
+    let before = poll(Duration::from_secs(240), || async {
         let s = session(&bench).await;
+        assert_eq!(
+            s["state"], "soaking",
+            "the soak ended before the restart: {s}"
+        );
         let p = s["progress"].as_str().and_then(percent_done)?;
-        (p >= 5.0).then_some((p, s["progress"].as_str().unwrap_or("").to_string()))
+        (p >= 5.0 && soaking_since.elapsed() >= Duration::from_secs(45))
+            .then_some((p, s["progress"].as_str().unwrap_or("").to_string()))
     })
     .await;
     let Some(before) = before else {

@@ -722,11 +722,15 @@ impl BedSoak {
         if self.detector.coupling_final() {
             if !self.coupling_told {
                 self.coupling_told = true;
-                super::bed_log::keep_coupling(
-                    core,
-                    self.detector.coupling(),
-                    self.detector.params(),
-                );
+                // Kept when identified here, not when carried (its age counts from the
+                // heat-up that identified it).
+                if self.carried.as_ref() != Some(self.detector.coupling()) {
+                    super::bed_log::keep_coupling(
+                        core,
+                        self.detector.coupling(),
+                        self.detector.params(),
+                    );
+                }
                 core.console(&format!("{title}: {}", self.detector.coupling().why))
                     .await;
             }
