@@ -195,6 +195,10 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     };
     if let Some(c) = cals.clone() {
         c.core().spawn(c.clone().hold_watchdog());
+        c.core().spawn(crate::jobs::core::bed_log::recorder(
+            c.core().clone(),
+            config.soak.skip_below_c,
+        ));
         c.core().spawn(c.core().clone().watch_closes());
         let m2 = m.clone();
         let c2 = c.clone();

@@ -1283,40 +1283,130 @@ async fn klipper_restarting_mid_print_fails_the_session_with_the_reason() {
     assert_eq!(s["heaters_off"], json!(true), "{s}");
 }
 
+/// Moonraker keeps only `seconds` of temperatures (`[data_store] temperature_store_size`,
+/// 20 min by default): on the accelerated bench that is what makes a soak outlast the store.
+fn short_temperature_store(bench: &Bench, seconds: u32) {
+    let path = bench.dir.path().join("config/moonraker.conf");
+    let text = std::fs::read_to_string(&path).unwrap();
+    bench.stop_one("moonraker");
+    std::fs::write(
+        &path,
+        format!("{text}\n[data_store]\ntemperature_store_size: {seconds}\n"),
+    )
+    .unwrap();
+    bench.start_one("moonraker");
+}
+
+/// The percentage a soak's progress line says ("bed soaking: 37 % done, …").
+fn percent_done(progress: &str) -> Option<f64> {
+    let head = progress.strip_prefix("bed soaking: ")?;
+    head.split(" % done").next()?.trim().parse().ok()
+}
+
+/// How many samples the daemon's soak replayed ("… samples=N …" in its log).
+fn primed_samples(d: &Daemon) -> Option<usize> {
+    let log = d.log_text();
+    let line = log.lines().find(|l| l.contains("soak detector primed"))?;
+    line.split("samples=")
+        .nth(1)?
+        .split_whitespace()
+        .next()?
+        .parse()
+        .ok()
+}
+
 #[tokio::test]
-async fn a_daemon_restarted_mid_soak_primes_the_detector_from_moonrakers_temperature_store() {
-    // A slower plate so the soak lasts long enough to kill the daemon in it.
-    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 200.0, "tau_heater_s": 20.0}}"#;
+async fn a_daemon_restarted_mid_soak_goes_on_from_the_progress_it_had() {
+    // A slow plate (200 s of real time) so the soak lasts well past what Moonraker keeps (30 s
+    // here).
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 2000.0, "tau_heater_s": 20.0}}"#;
     let bench = Bench::start_with("corexy", Some(plant));
+    short_temperature_store(&bench, 30);
     let mut d = started(&bench, 600.0).await;
     extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 60}))
         .await
         .unwrap();
     wait_state(&bench, "soaking", Duration::from_secs(120)).await;
-    tokio::time::sleep(Duration::from_secs(3)).await;
+    let soaking_since = std::time::Instant::now();
+    // Soaked longer than the store holds, and far enough to show progress.
+    let before = poll(Duration::from_secs(240), || async {
+        let s = session(&bench).await;
+        assert_eq!(
+            s["state"], "soaking",
+            "the soak ended before the restart: {s}"
+        );
+        let p = s["progress"].as_str().and_then(percent_done)?;
+        (p >= 5.0 && soaking_since.elapsed() >= Duration::from_secs(45))
+            .then_some((p, s["progress"].as_str().unwrap_or("").to_string()))
+    })
+    .await;
+    let Some(before) = before else {
+        panic!("no progress while soaking: {}", session(&bench).await)
+    };
     let _ = d.child.kill();
     let _ = d.child.wait();
     let d2 = started(&bench, 600.0).await;
-    let primed = poll(Duration::from_secs(30), || async {
-        let log = d2.log_text();
-        let line = log
-            .lines()
-            .find(|l| l.contains("soak detector primed"))?
-            .to_string();
-        Some(line)
+    let samples = poll(Duration::from_secs(30), || async { primed_samples(&d2) })
+        .await
+        .unwrap_or_else(|| panic!("no priming after the restart:\n{}", d2.log_text()));
+    // More than the 30 s Moonraker keeps: klipcal's own history of the bed carried it.
+    assert!(samples > 45, "primed with {samples} samples only");
+    // The resumed soak says its progress at once, not 0 % or "watching" from scratch; the
+    // first line it writes (a new one: the stored one is the killed daemon's).
+    let after = poll(Duration::from_secs(60), || async {
+        let s = session(&bench).await;
+        if s["state"] != "soaking" {
+            return Some((101.0, s.to_string()));
+        }
+        let text = s["progress"].as_str()?.to_string();
+        (text != before.1).then(|| (percent_done(&text).unwrap_or(0.0), text))
     })
-    .await
-    .unwrap_or_else(|| panic!("no priming after the restart:\n{}", d2.log_text()));
-    let samples: usize = primed
-        .split("samples=")
-        .nth(1)
-        .and_then(|r| r.split_whitespace().next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or(0);
-    assert!(samples >= 3, "{primed}");
+    .await;
+    let Some(after) = after else {
+        panic!("the soak said nothing new: {}", session(&bench).await)
+    };
+    assert!(
+        after.0 >= before.0 - 1.0,
+        "{:.0} % before the restart, then: {}",
+        before.0,
+        after.1
+    );
     // The session goes on to print after the restart.
-    wait_state(&bench, "measuring", Duration::from_secs(400)).await;
+    wait_state(&bench, "measuring", Duration::from_secs(600)).await;
     drop(d2);
+}
+
+#[tokio::test]
+async fn a_round_started_on_a_bed_held_hot_does_not_soak_again_from_zero() {
+    // The bed heated and held by hand (as after an apply, for round 2) longer than Moonraker
+    // keeps temperatures; klipcal running meanwhile keeps its own history of it.
+    let plant = r#"{"accel": 10, "bed": {"tau_plate_s": 600.0, "tau_heater_s": 20.0}}"#;
+    let bench = Bench::start_with("corexy", Some(plant));
+    short_temperature_store(&bench, 30);
+    let d = started(&bench, 600.0).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    m.gcode("SET_HEATER_TEMPERATURE HEATER=heater_bed TARGET=60")
+        .await
+        .unwrap();
+    // Six plate time constants: the bed has long settled.
+    tokio::time::sleep(Duration::from_secs(360)).await;
+    extension_request(&bench.files(), "klipcal_ab_start", json!({"bed": 60}))
+        .await
+        .unwrap();
+    wait_state(&bench, "printing", Duration::from_secs(300)).await;
+    let samples = primed_samples(&d).unwrap_or(0);
+    assert!(
+        samples > 200,
+        "primed with {samples} samples only:\n{}",
+        d.log_text()
+    );
+    // Settled at the first look: no soak began (its first line is logged when one does).
+    let log = d.log_text();
+    assert!(
+        !log.contains("bed soak begins"),
+        "soaked again on a bed held hot for 6 min:\n{log}"
+    );
 }
 
 #[tokio::test]

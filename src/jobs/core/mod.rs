@@ -10,6 +10,7 @@
 //! routing over them is `jobs::registry`.
 
 pub mod answer;
+pub mod bed_log;
 pub mod calibration;
 pub mod console;
 pub mod envelope;

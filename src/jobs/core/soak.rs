@@ -116,6 +116,14 @@ pub(crate) fn unset_build_words(p: &SoakParams) -> Option<String> {
     ))
 }
 
+/// What `[heater_bed]` tells the soak rule: Kalico's `control: mpc` and its calibration.
+fn heater_facts(
+    h: &crate::moonraker::answers::HeaterSettings,
+) -> Option<crate::calib::soak::HeaterFacts> {
+    (h.control == Some(crate::moonraker::answers::HeaterControl::Mpc))
+        .then(|| crate::calib::soak::HeaterFacts::mpc(h.block_heat_capacity, h.heater_power))
+}
+
 /// What one poll saw.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum SoakUpdate {
@@ -186,6 +194,8 @@ pub(crate) struct BedSoak {
     generation: u64,
     /// The core, once polled: the soak question ends with the soak.
     core: Option<Core>,
+    /// A coupling identified from this bed's earlier cold heat-up, used on a warm start.
+    carried: Option<crate::calib::soak::Coupling>,
 }
 
 impl Drop for BedSoak {
@@ -307,6 +317,7 @@ impl BedSoak {
             max_power: None,
             generation: 0,
             core: None,
+            carried: None,
         }
     }
 
@@ -335,12 +346,19 @@ impl BedSoak {
         }
         params.fixed_remaining = self.detector.params().fixed_remaining;
         params.no_identify = self.detector.params().no_identify;
+        params.heater = self.detector.params().heater;
         if params == *self.detector.params() {
             return;
         }
         let mut d = SoakDetector::new(params);
         if let Some(p) = self.max_power {
             d.set_max_power(p);
+        }
+        if let Some(name) = &self.chamber {
+            d = d.with_chamber(name);
+        }
+        if let Some(c) = &self.carried {
+            d.carry_coupling(c.clone());
         }
         for [t, p, temp, target] in &self.samples {
             d.push(*t, *p, *temp, *target);
@@ -370,12 +388,22 @@ impl BedSoak {
     }
 
     /// Once per soak, before the first live sample: the bed's `max_power` from Klipper's
-    /// settings (saturation is measured against it), and the detector primed with Moonraker's
-    /// temperature store (~20 min at 1 Hz), so a daemon restarted mid-soak goes on from what
-    /// the bed did instead of starting from zero. Returns how many samples were replayed.
+    /// settings (saturation is measured against it), the chamber thermometer, a coupling
+    /// identified from this bed's earlier cold heat-up (for a warm start), and the detector
+    /// primed with the bed's history at this target (klipcal's own, merged from Moonraker's
+    /// temperature store: [`super::bed_log`]), so a daemon restarted mid-soak, or a round
+    /// started on a bed held at its target since the apply, goes on from what the bed did
+    /// instead of starting from zero (issue 38 item 6). Returns how many samples were replayed.
     async fn prime(&mut self, core: &Core) -> usize {
         self.primed = true;
         if let Ok(cf) = core.m().configfile().await {
+            if let Some(facts) = cf.settings.heater_bed.as_ref().and_then(heater_facts) {
+                let params = SoakParams {
+                    heater: facts,
+                    ..self.detector.params().clone()
+                };
+                self.detector = SoakDetector::new(params);
+            }
             if let Some(p) = cf.settings.heater_bed.as_ref().and_then(|h| h.max_power) {
                 self.detector.set_max_power(p);
                 self.max_power = Some(p);
@@ -390,68 +418,43 @@ impl BedSoak {
                 self.detector = d.with_chamber(name);
             }
         }
-        let Ok(store) = core
-            .m()
-            .call(
-                "server.temperature_store",
-                json!({"include_monitors": false}),
-            )
-            .await
-        else {
-            return 0;
-        };
-        let bed = &store["heater_bed"];
-        let series = |k: &str| -> Vec<f64> {
-            bed[k]
-                .as_array()
-                .map(|a| a.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect())
-                .unwrap_or_default()
-        };
-        let (temps, targets, powers) =
-            (series("temperatures"), series("targets"), series("powers"));
-        let n = temps.len().min(targets.len()).min(powers.len());
-        if n == 0 {
-            return 0;
+        self.carried = super::bed_log::carried_coupling(core, self.detector.params());
+        if let Some(c) = &self.carried {
+            self.detector.carry_coupling(c.clone());
         }
-        // Only the stretch at the current target counts (before it the bed was doing
-        // something else). The store is 1 Hz with its last entry now, so the soak clock
-        // started that many seconds ago.
-        let last = targets[n - 1];
-        if !(last.is_finite() && (last - self.target_c).abs() < 0.5) {
+        let skip = self.detector.params().skip_below_c;
+        let read = match super::bed_log::record(core, skip).await {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::debug!(error = %e, "no bed history to prime the soak with");
+                return 0;
+            }
+        };
+        let history = read.log.at_target(self.target_c);
+        let Some(first) = history.first().map(|s| s[0]) else {
             tracing::debug!(
-                store_target = last,
                 target = self.target_c,
-                "temperature store not at this soak's target"
+                "no bed history at this soak's target"
             );
             return 0;
-        }
-        let from = (0..n)
-            .rev()
-            .take_while(|&i| (targets[i] - last).abs() < 0.05)
-            .last()
-            .unwrap_or(n - 1);
-        let k = n - from;
-        if let Some(start) = Instant::now().checked_sub(std::time::Duration::from_secs(k as u64)) {
+        };
+        // The soak's clock starts where the history does; its limit still counts from now.
+        let ago = (read.now_unix - first).max(0.0);
+        if let Some(start) = Instant::now().checked_sub(std::time::Duration::from_secs_f64(ago)) {
             self.start = start;
+            self.max_s += ago;
         }
-        // The chamber's stored readings on the same clock (the store's series end now).
-        let chamber: Vec<f64> = self
-            .chamber
-            .as_ref()
-            .and_then(|name| store[name.as_str()]["temperatures"].as_array())
-            .map(|a| a.iter().map(|v| v.as_f64().unwrap_or(f64::NAN)).collect())
-            .unwrap_or_default();
-        for i in from..n {
-            let t = (i - from) as f64;
-            if let Some(c) = (chamber.len() + i)
-                .checked_sub(n)
-                .and_then(|j| chamber.get(j))
-            {
-                self.detector.push_chamber(t, *c);
+        for s in history {
+            let t = s[0] - first;
+            if let Some(name) = &self.chamber {
+                if let Some(c) = super::bed_log::chamber_at(&read.store, name, read.now_unix, s[0])
+                {
+                    self.detector.push_chamber(t, c);
+                }
             }
-            self.push(t, powers[i], temps[i], targets[i]);
+            self.push(t, s[1], s[2], s[3]);
         }
-        k
+        history.len()
     }
 
     /// The heater was just set with [`BedSoak::heat`], whose bound covers this soak: the first
@@ -719,6 +722,15 @@ impl BedSoak {
         if self.detector.coupling_final() {
             if !self.coupling_told {
                 self.coupling_told = true;
+                // Kept when identified here, not when carried (its age counts from the
+                // heat-up that identified it).
+                if self.carried.as_ref() != Some(self.detector.coupling()) {
+                    super::bed_log::keep_coupling(
+                        core,
+                        self.detector.coupling(),
+                        self.detector.params(),
+                    );
+                }
                 core.console(&format!("{title}: {}", self.detector.coupling().why))
                     .await;
             }

@@ -4,6 +4,7 @@ pub mod backlash;
 pub mod bench;
 pub mod bench_camera;
 pub mod mesh_bench;
+pub(crate) mod par;
 pub mod soak_bench;
 pub mod soak_families;
 pub mod soak_four_node;

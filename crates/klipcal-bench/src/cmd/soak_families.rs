@@ -623,10 +623,11 @@ pub(crate) fn evaluate(
     let mut surfaces = Vec::new();
     let mut ratios = Vec::new();
     let mut over_bound = Vec::new();
-    for k in 0..beds {
-        let run = make(&mut rng);
+    // The beds are drawn in order (one random stream), then judged on every core.
+    let runs: Vec<Run> = (0..beds).map(|_| make(&mut rng)).collect();
+    let judged = crate::cmd::par::par_map(&runs, |run| declare(run, params));
+    for (k, (run, (declared, why, sigma, coupling))) in runs.iter().zip(judged).enumerate() {
         let moment = run.t_one_s;
-        let (declared, why, sigma, coupling) = declare(&run, params);
         if coupling.source == crate::calib::soak::CouplingSource::Identified {
             r.identified += 1;
             r.covered += usize::from(coupling.low <= run.g_true && run.g_true <= coupling.high);

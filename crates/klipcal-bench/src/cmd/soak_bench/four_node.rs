@@ -3,15 +3,15 @@
 
 use crate::calib::soak::SoakParams;
 use crate::cmd::soak_families::information_bound;
+use crate::cmd::soak_four_node::{run_bed, BedResult, Control, Kind, Knobs};
 
 use super::{median, pass};
 
 /// `klipcal bench soak`'s four-node family (see `soak_four_node`): per kind of bed, every rule
 /// judged on the simulated surface, then "never early" over a grid of the four-node knobs.
 /// True when klipcal's rule was never early.
-#[allow(clippy::too_many_lines)] // 567 lines: to be split along its steps
+#[allow(clippy::too_many_lines)] // 456 lines: to be split along its steps (the grid and the families' runs are apart)
 pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
-    use crate::cmd::soak_four_node::{run_bed, BedResult, Control, Kind, Knobs};
     let budget = params.surface_budget_c;
     println!(
         "  four-node beds (pad, aluminium plate, surface, air and frame; 220–400 mm, 150–900 W; \
@@ -58,38 +58,12 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
         }
     };
     let mut ok = ok_port & report_kalico_port(seed);
-    // Every kind under Klipper's PID, then under Kalico's MPC (the PID beds' seeds first, so
-    // their figures do not move with the MPC family).
-    let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
-        .into_iter()
-        .flat_map(|c| Kind::all().into_iter().map(move |k| (c, k)))
-        .collect();
-    for (k, (control, kind)) in families.into_iter().enumerate() {
+    for ((control, kind), res) in run_families(params, per_kind, seed) {
         // Open frames are also run with their soak.bed preset (on an open frame it says where the
         // thermistor is, which decides how much of a slow decay reaches the surface); the
         // timeliness target is the open-frame steel beds'.
         let steel_open = !kind.enclosed && !kind.glass;
         let open = !kind.enclosed;
-        let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + k as u64);
-        let until = if kind.enclosed {
-            5.0 * 3600.0
-        } else {
-            3.0 * 3600.0
-        };
-        let res: Vec<BedResult> = (0..per_kind)
-            .filter_map(|_| {
-                run_bed(
-                    kind,
-                    control,
-                    None,
-                    until,
-                    params,
-                    true,
-                    kind.enclosed,
-                    &mut rng,
-                )
-            })
-            .collect();
         let n = res.len().max(1) as f64;
         let early = |f: &dyn Fn(&BedResult) -> Option<f64>| {
             res.iter()
@@ -492,6 +466,55 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             );
         }
     }
+    ok && report_grid(params, seed)
+}
+
+/// Every kind under Klipper's PID, then under Kalico's MPC, `per_kind` beds each; each family
+/// draws from its own stream (the PID beds' seeds first, so their figures do not move with
+/// the MPC family) and the families run on every core, returned in order.
+fn run_families(
+    params: &SoakParams,
+    per_kind: usize,
+    seed: u64,
+) -> Vec<((Control, Kind), Vec<BedResult>)> {
+    let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
+        .into_iter()
+        .flat_map(|c| Kind::all().into_iter().map(move |k| (c, k)))
+        .collect();
+    // Each family draws from its own stream: they run on every core and print in order.
+    let indexed: Vec<(usize, Control, Kind)> = families
+        .iter()
+        .enumerate()
+        .map(|(k, (c, kind))| (k, *c, *kind))
+        .collect();
+    let results: Vec<Vec<BedResult>> = crate::cmd::par::par_map(&indexed, |(k, control, kind)| {
+        let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + *k as u64);
+        let until = if kind.enclosed {
+            5.0 * 3600.0
+        } else {
+            3.0 * 3600.0
+        };
+        (0..per_kind)
+            .filter_map(|_| {
+                run_bed(
+                    *kind,
+                    *control,
+                    None,
+                    until,
+                    params,
+                    true,
+                    kind.enclosed,
+                    &mut rng,
+                )
+            })
+            .collect()
+    });
+    families.into_iter().zip(results).collect()
+}
+
+/// "Never early" over a grid of the four-node knobs (coupling, plate thickness, enclosure,
+/// noise at their ends) on every kind, the beds run on every core; true when none was early.
+fn report_grid(params: &SoakParams, seed: u64) -> bool {
     // Never early over a grid of the knobs (coupling, plate thickness, enclosure, noise) on
     // every kind.
     let mut grid_early = Vec::new();
@@ -499,7 +522,9 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
     // Enclosed beds wrongly declared open: reported, not a failure (a user's error).
     let mut wrong_open: Vec<(f64, String)> = Vec::new();
     let mut enclosed_n = 0;
+    // The grid's beds, each with its own stream, run on every core and are read in order.
     let mut rng = fastrand::Rng::with_seed(seed + 9000);
+    let mut grid: Vec<(Kind, Knobs, u64)> = Vec::new();
     for kind in Kind::all() {
         for coupling in [0.0, 1.0] {
             for plate in [0.0, 1.0] {
@@ -515,67 +540,70 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
                         enclosure,
                         noise,
                     };
-                    let until = if kind.enclosed {
-                        5.0 * 3600.0
-                    } else {
-                        3.0 * 3600.0
-                    };
-                    if let Some(r) = run_bed(
-                        kind,
-                        Control::Pid,
-                        Some(knobs),
-                        until,
-                        params,
-                        !kind.enclosed,
-                        false,
-                        &mut rng,
-                    ) {
-                        grid_n += 1;
-                        if r.rule.is_some_and(|d| d < r.moment_s) {
-                            grid_early.push(format!(
-                                "{} {knobs:?}: declared {:.1} min, surface moment {:.1} min ({:.2} K left)",
-                                kind.name(),
-                                r.rule.unwrap_or(0.0) / 60.0,
-                                r.moment_s / 60.0,
-                                r.left_c
-                            ));
-                        }
-                        let open_early = r.open.is_some_and(|d| d < r.moment_s)
-                            || r.open_preset.is_some_and(|d| d < r.moment_s);
-                        if open_early {
-                            let line = format!(
-                                "{} {knobs:?} with soak.frame = \"open\": declared {:.1} min \
-                                 (with the preset {:.1}), surface moment {:.1} min ({:.2} K left; \
-                                 slowest clamped mode {:.0} min)",
-                                kind.name(),
-                                r.open.unwrap_or(f64::NAN) / 60.0,
-                                r.open_preset.unwrap_or(f64::NAN) / 60.0,
-                                r.moment_s / 60.0,
-                                r.open_left_c,
-                                r.slowest_s / 60.0
-                            );
-                            if kind.enclosed {
-                                wrong_open.push((r.open_left_c, line));
-                            } else {
-                                grid_early.push(line);
-                            }
-                        }
-                        if kind.enclosed {
-                            enclosed_n += 1;
-                        }
-                        if r.with_preset.is_some_and(|d| d < r.moment_s) {
-                            grid_early.push(format!(
-                                "{} {knobs:?} with soak.bed = {:?}: declared {:.1} min, surface \
-                                 moment {:.1} min",
-                                kind.name(),
-                                crate::cmd::soak_four_node::preset_name(kind),
-                                r.with_preset.unwrap_or(0.0) / 60.0,
-                                r.moment_s / 60.0,
-                            ));
-                        }
-                    }
+                    grid.push((kind, knobs, rng.u64(..)));
                 }
             }
+        }
+    }
+    let grid_runs = crate::cmd::par::par_map(&grid, |(kind, knobs, bed_seed)| {
+        let until = if kind.enclosed {
+            5.0 * 3600.0
+        } else {
+            3.0 * 3600.0
+        };
+        run_bed(
+            *kind,
+            Control::Pid,
+            Some(*knobs),
+            until,
+            params,
+            !kind.enclosed,
+            false,
+            &mut fastrand::Rng::with_seed(*bed_seed),
+        )
+    });
+    for ((kind, knobs, _), r) in grid.into_iter().zip(grid_runs) {
+        let Some(r) = r else { continue };
+        grid_n += 1;
+        if r.rule.is_some_and(|d| d < r.moment_s) {
+            grid_early.push(format!(
+                "{} {knobs:?}: declared {:.1} min, surface moment {:.1} min ({:.2} K left)",
+                kind.name(),
+                r.rule.unwrap_or(0.0) / 60.0,
+                r.moment_s / 60.0,
+                r.left_c
+            ));
+        }
+        let open_early =
+            r.open.is_some_and(|d| d < r.moment_s) || r.open_preset.is_some_and(|d| d < r.moment_s);
+        if open_early {
+            let line = format!(
+                "{} {knobs:?} with soak.frame = \"open\": declared {:.1} min (with the preset \
+                 {:.1}), surface moment {:.1} min ({:.2} K left; slowest clamped mode {:.0} min)",
+                kind.name(),
+                r.open.unwrap_or(f64::NAN) / 60.0,
+                r.open_preset.unwrap_or(f64::NAN) / 60.0,
+                r.moment_s / 60.0,
+                r.open_left_c,
+                r.slowest_s / 60.0
+            );
+            if kind.enclosed {
+                wrong_open.push((r.open_left_c, line));
+            } else {
+                grid_early.push(line);
+            }
+        }
+        if kind.enclosed {
+            enclosed_n += 1;
+        }
+        if r.with_preset.is_some_and(|d| d < r.moment_s) {
+            grid_early.push(format!(
+                "{} {knobs:?} with soak.bed = {:?}: declared {:.1} min, surface moment {:.1} min",
+                kind.name(),
+                crate::cmd::soak_four_node::preset_name(kind),
+                r.with_preset.unwrap_or(0.0) / 60.0,
+                r.moment_s / 60.0,
+            ));
         }
     }
     println!(
@@ -598,7 +626,7 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
     for (_, w) in &wrong_open {
         println!("      {w}");
     }
-    ok && grid_early.is_empty()
+    grid_early.is_empty()
 }
 
 /// The port of Kalico's MPC against Kalico's own Python on the same readings; true when they

@@ -271,6 +271,7 @@ pub(crate) fn run_bed(
         Some(k) => FourNode::new(kind, k, rng),
         None => FourNode::random(kind, rng),
     };
+    let mut with_facts = params.clone();
     let samples = match control {
         Control::Pid => {
             let gains = autotune(&bed, rng)?;
@@ -278,9 +279,15 @@ pub(crate) fn run_bed(
         }
         Control::Mpc => {
             let cal = super::kalico::calibrate(&bed, bed.p_max_w, rng).ok()?;
+            // What the daemon reads from Kalico's configfile: control: mpc and its calibration.
+            with_facts.heater = crate::calib::soak::HeaterFacts::mpc(
+                Some(cal.profile.block_heat_capacity),
+                Some(cal.profile.heater_power),
+            );
             super::kalico::heat_up(&bed, cal.profile, until_s, rng).0
         }
     };
+    let params = &with_facts;
     let mut r = judge(&bed, &samples, params);
     if chamber {
         r.chamber = with_chamber(&samples, params, rng);

@@ -552,10 +552,19 @@ mod tests {
                 continue;
             };
             let (samples, _) = heat_up(&bed, cal.profile, 3600.0, &mut rng);
+            // What the daemon reads from Kalico's configfile: control: mpc, its calibration.
+            let heater = crate::calib::soak::HeaterFacts::mpc(
+                Some(cal.profile.block_heat_capacity),
+                Some(cal.profile.heater_power),
+            );
             for params in [
-                SoakParams::default(),
+                SoakParams {
+                    heater,
+                    ..SoakParams::default()
+                },
                 SoakParams {
                     bed: super::super::preset_name(kind).into(),
+                    heater,
                     ..SoakParams::default()
                 },
             ] {

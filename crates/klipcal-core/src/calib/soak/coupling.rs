@@ -368,6 +368,17 @@ fn heat_capacity_low(bins: &[[f64; 4]]) -> Result<f64, String> {
     Ok(c)
 }
 
+/// Under Kalico's MPC (`control: mpc`) the heat-up's heat capacity is capped at the one
+/// MPC_CALIBRATE gave Kalico's model of the bed (`block_heat_capacity / heater_power`): the
+/// power's dip after the band can leave the heat-up's figure above the bed's, and a smaller
+/// capacity only lowers the G used (the safe side).
+fn mpc_capped(capacity: Result<f64, String>, params: &SoakParams) -> Result<f64, String> {
+    match (capacity, params.heater.mpc_heat_capacity) {
+        (Ok(c), Some(m)) if params.heater.mpc && m < c => Ok(m),
+        (c, _) => c,
+    }
+}
+
 /// A fall of the thermistor's reading over the last two minutes of the hold beyond which
 /// the bed is giving heat back (more than a PID's limit cycle and the readings' noise), K.
 const FALL_C: f64 = 0.15;
@@ -403,7 +414,7 @@ pub fn identify_coupling(bins: &[[f64; 4]], params: &SoakParams) -> Result<Coupl
         }
         Err(LagError::Other(_)) => None,
     };
-    let capacity = heat_capacity_low(bins);
+    let capacity = mpc_capped(heat_capacity_low(bins), params);
     let c = match (&capacity, lag) {
         (Ok(c), _) => *c,
         // Without a heat capacity only the lag and the build bound G from below.
@@ -461,6 +472,9 @@ pub fn identify_coupling(bins: &[[f64; 4]], params: &SoakParams) -> Result<Coupl
             1.0 / low,
             how,
             match &capacity {
+                Ok(c) if params.heater.mpc_heat_capacity == Some(*c) => format!(
+                    "bed heat capacity {c:.1} full power·s/K, MPC_CALIBRATE's (control: mpc)"
+                ),
                 Ok(c) => format!("bed heat capacity {c:.1} full power·s/K"),
                 Err(why) => format!("no heat capacity: {why}"),
             },

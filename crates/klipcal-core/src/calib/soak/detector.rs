@@ -256,6 +256,9 @@ pub struct SoakDetector {
     /// The print-now cost told last, K: a later one is never higher (the surface's warming
     /// still to come only shrinks while the bed is held), so the figure does not jump.
     print_now_told: Option<f64>,
+    /// A coupling identified from an earlier cold heat-up of this bed (see
+    /// [`super::carry::CarriedCoupling`]): used on a warm start instead of the fallback.
+    carried: Option<Coupling>,
 }
 
 impl SoakDetector {
@@ -320,7 +323,18 @@ impl SoakDetector {
             gate: None,
             lowest_c: None,
             print_now_told: None,
+            carried: None,
         }
+    }
+
+    /// A coupling identified from this bed's earlier cold heat-up, for a warm start (a bed
+    /// reheated after an apply, or first seen at its target): the rule uses it instead of
+    /// the preset or the weakest. A cold heat-up seen here is identified as always.
+    pub fn carry_coupling(&mut self, coupling: Coupling) {
+        if let Some(g) = self.gate.as_mut() {
+            g.stack.carry_coupling(coupling.clone());
+        }
+        self.carried = Some(coupling);
     }
 
     /// The most the print surface can still warm, K, whatever the fit: from where it can be
@@ -472,6 +486,10 @@ impl SoakDetector {
                 Ok(id) => id,
                 Err(why) => Coupling::fallback(&self.params, &format!("not identified: {why}")),
             },
+            Some((false, _)) | None if self.carried.is_some() => self
+                .carried
+                .clone()
+                .unwrap_or_else(|| Coupling::fallback(&self.params, "not identified")),
             Some((false, temp)) => Coupling::fallback(
                 &self.params,
                 &format!(
@@ -503,6 +521,7 @@ impl SoakDetector {
     /// Forgets everything but the thresholds and `max_power` (a new heat-up).
     pub fn reset(&mut self) {
         let (max_power, set) = (self.max_power, self.max_power_set);
+        let carried = self.carried.take();
         let gate = self.gate.take().map(|mut g| {
             g.stack.reset();
             g.status = SoakStatus::Heating;
@@ -512,6 +531,7 @@ impl SoakDetector {
         self.max_power = max_power;
         self.max_power_set = set;
         self.gate = gate;
+        self.carried = carried;
     }
 
     /// Feeds one sample: time `t_s` (any origin, increasing), heater `power` (0..1, held until
@@ -543,6 +563,9 @@ impl SoakDetector {
         });
         if self.max_power_set {
             stack.set_max_power(self.max_power);
+        }
+        if let Some(c) = &self.carried {
+            stack.carry_coupling(c.clone());
         }
         self.gate = Some(Box::new(ChamberGate::new(name, stack)));
         self

@@ -39,6 +39,7 @@
 use serde::{Deserialize, Serialize};
 
 pub mod ask;
+pub mod carry;
 mod chamber;
 mod coupling;
 mod detector;
@@ -108,6 +109,40 @@ pub struct SoakParams {
     /// The bench's comparison only: never identify the coupling (as after a warm start).
     #[serde(skip)]
     pub no_identify: bool,
+    /// What Klipper's config says of the bed's heater (`control: mpc` and its calibration):
+    /// facts read by the daemon (and given by the benchmarks), not a setting.
+    #[serde(skip)]
+    pub heater: HeaterFacts,
+}
+
+/// What Klipper's (Kalico's) config says of the bed's heater, for the soak rule.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct HeaterFacts {
+    /// `control: mpc` (Kalico's model-predictive control): after the band its power dips
+    /// below its final value and keeps a limit cycle, so a heat-up's last minutes do not
+    /// bound the bed's heat capacity by themselves.
+    pub mpc: bool,
+    /// MPC_CALIBRATE's `block_heat_capacity` over `heater_power`, full power·s/K: the heat
+    /// capacity Kalico's own model of the bed has.
+    pub mpc_heat_capacity: Option<f64>,
+}
+
+impl HeaterFacts {
+    /// From `[heater_bed]`'s `control` being `mpc`, its `block_heat_capacity` (J/K) and
+    /// `heater_power` (W); a capacity that is not finite and positive is left out.
+    #[must_use]
+    pub fn mpc(block_heat_capacity: Option<f64>, heater_power: Option<f64>) -> Self {
+        let c = match (block_heat_capacity, heater_power) {
+            (Some(c), Some(p)) if c.is_finite() && p.is_finite() && c > 0.0 && p > 0.0 => {
+                Some(c / p)
+            }
+            _ => None,
+        };
+        HeaterFacts {
+            mpc: true,
+            mpc_heat_capacity: c,
+        }
+    }
 }
 
 impl Default for SoakParams {
@@ -126,6 +161,7 @@ impl Default for SoakParams {
             chamber_sensor: String::new(),
             fixed_remaining: None,
             no_identify: false,
+            heater: HeaterFacts::default(),
         }
     }
 }
