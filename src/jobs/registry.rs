@@ -303,7 +303,7 @@ impl Calibrations {
                 continue;
             }
             info!(session = row.id, "hold limit reached: heaters off");
-            if self.core.heaters_off().await.is_ok() {
+            if self.core.heaters_off_reported("the hold limit").await {
                 on_kind!(self, kind, |c| c.heaters_turned_off(&row).await);
             }
         }

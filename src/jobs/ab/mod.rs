@@ -368,7 +368,11 @@ impl Ab {
         }
         // The status says the heaters are off when they are (issue 26 B.7: the cancel said so
         // while `heaters_off` stayed false).
-        if self.core.heaters_off().await.is_ok() {
+        if self
+            .core
+            .heaters_off_reported("A/B session cancelled")
+            .await
+        {
             let _ = self
                 .update(id, |d| {
                     d.heaters_off = true;

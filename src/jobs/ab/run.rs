@@ -474,7 +474,7 @@ impl Ab {
     }
 
     async fn print_cancelled(&self, id: i64) -> anyhow::Result<()> {
-        let off = self.core.heaters_off().await.is_ok();
+        let off = self.core.heaters_off_reported("A/B print cancelled").await;
         self.update(id, |s| {
             s.heaters_off |= off;
             s.state = State::Cancelled;
@@ -484,7 +484,11 @@ impl Ab {
         })
         .await?;
         self.core
-            .console("A/B calibration cancelled: the print was cancelled; heaters off")
+            .console(if off {
+                "A/B calibration cancelled: the print was cancelled; heaters off"
+            } else {
+                "A/B calibration cancelled: the print was cancelled"
+            })
             .await;
         Ok(())
     }
