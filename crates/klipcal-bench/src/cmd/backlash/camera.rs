@@ -626,7 +626,7 @@ fn bench_real_photos(seed: u64) -> anyhow::Result<bool> {
          refused {refused}/{must} (target all)   refusals {reasons:?}   {}",
         mark(good)
     );
-    let t = nozzle_photos::known_shifts(&photos, 12, seed);
+    let t = nozzle_photos::known_shifts(&photos, 20, seed);
     let cover = t.cover_pct();
     let good_shift = t.within_pct() >= 90.0
         && t.median_px() <= 0.1
