@@ -156,6 +156,7 @@ fn router(shared: Shared) -> Router {
         .route("/api/sessions/{id}/convergence.svg", get(convergence))
         .route("/api/plots/soak.svg", get(soak_plot))
         .route("/api/backlash/snapshot.jpg", get(backlash_snapshot))
+        .route("/api/backlash/live.jpg", get(backlash_live))
         .route("/api/{*op}", post(operation))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
@@ -394,6 +395,26 @@ async fn backlash_snapshot(
                     .to_string(),
             },
         ),
+    }
+}
+
+/// A frame taken now from the nozzle camera (`[backlash] webcam`), served by klipcal: the
+/// page's live picture beside its jog buttons, reachable where the webcam's own address is
+/// not (inside Mainsail's iframe, on a phone).
+async fn backlash_live(State(h): State<Shared>) -> Response {
+    let Some(cals) = &h.cals else {
+        return no_sessions();
+    };
+    match cals.live_jpeg().await {
+        Ok(jpeg) => (
+            [
+                (header::CONTENT_TYPE, "image/jpeg"),
+                (header::CACHE_CONTROL, "no-store"),
+            ],
+            jpeg,
+        )
+            .into_response(),
+        Err(e) => error(StatusCode::BAD_GATEWAY, &format!("{e:#}")),
     }
 }
 

@@ -127,6 +127,14 @@ impl Calibrations {
         self.backlash.snapshot_jpeg(seq)
     }
 
+    /// A frame taken now from the nozzle camera (`[backlash] webcam`), JPEG.
+    ///
+    /// # Errors
+    /// The webcam could not be chosen or did not answer (said which and why).
+    pub async fn live_jpeg(&self) -> anyhow::Result<Vec<u8>> {
+        self.backlash.live_jpeg().await
+    }
+
     /// Answers a typed call (except `klipcal_status`, which the agent builds with the printer
     /// summary around [`Calibrations::status`]).
     ///
@@ -163,11 +171,10 @@ impl Calibrations {
                 reply(Ok(Said {
                     message: format!(
                         "type readings on the console: KLIPCAL_MEASURE PAIR=... VALUES=... \
-                         (or on klipcal's page{})",
+                         (or on {})",
                         self.core
-                            .page()
-                            .map(|p| format!(", {p}"))
-                            .unwrap_or_default()
+                            .page_road()
+                            .unwrap_or_else(|| "klipcal's page".into())
                     ),
                 }))
             }

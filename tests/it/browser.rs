@@ -13,6 +13,12 @@ use tokio_tungstenite::tungstenite::Message;
 type Socket =
     tokio_tungstenite::WebSocketStream<tokio_tungstenite::MaybeTlsStream<tokio::net::TcpStream>>;
 
+/// How long Chromium may take to print its DevTools address and open its socket.
+const START_LIMIT: Duration = Duration::from_secs(60);
+/// How long one DevTools command may take: a page's script or a screenshot on a machine at
+/// load 13 took over the 30 s this once was.
+const ANSWER_LIMIT: Duration = Duration::from_secs(90);
+
 pub struct Browser {
     child: Child,
     ws: Socket,
@@ -24,8 +30,25 @@ pub struct Browser {
 }
 
 impl Browser {
-    /// Starts headless Chromium with an empty profile and opens one tab.
+    /// Starts headless Chromium with an empty profile and opens one tab. Under load (a CI run
+    /// beside other builds) Chromium can be slow to print its DevTools address or to answer
+    /// the first commands ("DevTools never answered" once at load 13): the start waits longer
+    /// and is tried again from scratch, up to three times, before the test fails.
     pub async fn start() -> Browser {
+        let mut why = Vec::new();
+        for attempt in 1..=3 {
+            match Self::try_start().await {
+                Ok(b) => return b,
+                Err(e) => {
+                    eprintln!("chromium start {attempt}/3 failed: {e}");
+                    why.push(e);
+                }
+            }
+        }
+        panic!("chromium never started: {why:?}");
+    }
+
+    async fn try_start() -> Result<Browser, String> {
         let profile = tempfile::tempdir().unwrap();
         let mut child = Command::new("chromium")
             .args([
@@ -53,12 +76,23 @@ impl Browser {
                 }
             }
         });
-        let url = rx
-            .recv_timeout(Duration::from_secs(30))
-            .expect("chromium never printed its DevTools address");
-        let (ws, _) = tokio_tungstenite::connect_async(url.as_str())
-            .await
-            .expect("DevTools websocket");
+        let fail = |mut child: Child, e: String| -> Result<Browser, String> {
+            let _ = child.kill();
+            let _ = child.wait();
+            Err(e)
+        };
+        let url = match rx.recv_timeout(START_LIMIT) {
+            Ok(url) => url,
+            Err(_) => return fail(child, "chromium never printed its DevTools address".into()),
+        };
+        let ws =
+            match tokio::time::timeout(START_LIMIT, tokio_tungstenite::connect_async(url.as_str()))
+                .await
+            {
+                Ok(Ok((ws, _))) => ws,
+                Ok(Err(e)) => return fail(child, format!("DevTools websocket: {e}")),
+                Err(_) => return fail(child, "DevTools websocket: no answer".into()),
+            };
         let mut b = Browser {
             child,
             ws,
@@ -67,22 +101,28 @@ impl Browser {
             viewport: (430, 900, true),
             _profile: profile,
         };
+        // The handshake: its errors and silences are the start's, tried again (the Browser's
+        // drop kills this Chromium).
         let target = b
-            .send(None, "Target.createTarget", json!({"url": "about:blank"}))
-            .await;
+            .try_send(None, "Target.createTarget", json!({"url": "about:blank"}))
+            .await?;
         let attached = b
-            .send(
+            .try_send(
                 None,
                 "Target.attachToTarget",
                 json!({"targetId": target["targetId"], "flatten": true}),
             )
-            .await;
-        b.session = attached["sessionId"].as_str().unwrap().to_string();
-        b.cmd("Page.enable", json!({})).await;
-        b.cmd("Runtime.enable", json!({})).await;
+            .await?;
+        b.session = attached["sessionId"]
+            .as_str()
+            .ok_or_else(|| format!("no session in {attached}"))?
+            .to_string();
+        let s = b.session.clone();
+        b.try_send(Some(&s), "Page.enable", json!({})).await?;
+        b.try_send(Some(&s), "Runtime.enable", json!({})).await?;
         // A phone-sized window.
         b.set_viewport(430, 900, true).await;
-        b
+        Ok(b)
     }
 
     /// Resizes the tab: `mobile` emulates a phone (its layout and touch).
@@ -150,14 +190,14 @@ impl Browser {
         self.ws
             .send(Message::Text(msg.to_string().into()))
             .await
-            .unwrap();
-        let deadline = tokio::time::Instant::now() + Duration::from_secs(30);
+            .map_err(|e| format!("DevTools {method} not sent: {e}"))?;
+        let deadline = tokio::time::Instant::now() + ANSWER_LIMIT;
         loop {
             let frame = tokio::time::timeout_at(deadline, self.ws.next())
                 .await
-                .unwrap_or_else(|_| panic!("DevTools never answered {method}"))
-                .expect("DevTools closed")
-                .unwrap();
+                .map_err(|_| format!("DevTools never answered {method} within {ANSWER_LIMIT:?}"))?
+                .ok_or_else(|| format!("DevTools closed before answering {method}"))?
+                .map_err(|e| format!("DevTools {method}: {e}"))?;
             let Message::Text(text) = frame else { continue };
             let v: Value = serde_json::from_str(&text).unwrap();
             if v["id"] == json!(id) {

@@ -22,6 +22,7 @@ mod mesh;
 mod mesh_job;
 mod ops;
 mod outage;
+mod page_phone;
 mod pylons;
 mod readings;
 mod realcfg;

@@ -16,7 +16,7 @@ use crate::moonraker::answers::WebcamList;
 use crate::moonraker::Files;
 
 /// The webcam's name in Moonraker, Mainsail and Fluidd.
-pub(crate) const NAME: &str = "klipcal";
+pub(crate) const NAME: &str = crate::jobs::core::session::PAGE_WEBCAM;
 /// Moonraker's service for a web page in a frame.
 pub(crate) const SERVICE: &str = "iframe";
 /// Portrait: the page is a form and plots, read on a phone.

@@ -24,6 +24,8 @@ figure[data-click="1"] .snap{cursor:crosshair;outline:3px solid #2b8a3e}#clicked
 #found circle,#found line{fill:none;stroke:#e03131;stroke-width:2}.approach.plus{fill:#1c7ed6}.approach.minus{fill:#f76707}
 form.inline{display:inline}figure{margin:.4em 0}figcaption{font-size:.9em}
 .saved{color:#495057;font-size:.9em}.scroll{overflow-x:auto}small{color:#495057}
+#jog .jogs{display:grid;grid-template-columns:repeat(auto-fill,minmax(7.5em,1fr));gap:.4em}#jog form{display:contents}#jog button{padding:.7em .4em;min-height:2.8em}
+#jog img{width:100%;max-height:45vh;object-fit:contain;background:#000;color:#dee2e6;display:block}
 @media (max-width:600px){main{padding:.3em}section{padding:.6em .5em}td,th{padding:.2em .25em;font-size:.88em}}
 "#;
 
@@ -112,5 +114,7 @@ if(fig&&fig.dataset.click==='1'){
     if(j.ok){say($('#clickhelp'),j.message,true);setInterval(poll,600)}
     else{delete fig.dataset.sent;c.style.display='none';say($('#clickhelp'),j.error.message,false)}});
 }
+const live=$('#live');if(live){let busy=false;live.addEventListener('load',()=>{busy=false});live.addEventListener('error',()=>{busy=false});
+  setInterval(()=>{if(!busy){busy=true;live.src='/api/backlash/live.jpg?t='+Date.now()}},1000)}
 const soak=$('#soak');if(soak)setInterval(()=>{soak.src='/api/plots/soak.svg?t='+Date.now()},15000);
 "#;

@@ -12,11 +12,12 @@ pub(super) fn backlash_section(h: &mut String, s: &Value) {
     if let Some(axis) = s["axis"].as_str() {
         let _ = write!(
             h,
-            "<p>measuring {} — cycle {}: use the prompt's jog buttons (or _KLIPCAL_BACKLASH_JOG) \
-             while looking through the camera</p>",
+            "<p>measuring {} — cycle {}: jog with the buttons below while watching the nozzle \
+             (the same as the dialog's, or _KLIPCAL_BACKLASH_JOG)</p>",
             esc(axis),
             text(&s["cycle"])
         );
+        jog_panel(h, s);
     }
     if s["snapshot"].is_object() {
         snapshot_figure(h, s);
@@ -61,6 +62,35 @@ pub(super) fn backlash_section(h: &mut String, s: &Value) {
         }
     }
     h.push_str("</section>");
+}
+
+/// The guided measurement's jog buttons beside the camera's live picture (issue 40 item 2: on
+/// a phone the dialog is full screen over the camera). Each button posts `backlash/jog` with
+/// its press, the operation the dialog's button runs; the page reloads with the next buttons.
+fn jog_panel(h: &mut String, s: &Value) {
+    let Some(buttons) = s["jog"].as_array().filter(|b| !b.is_empty()) else {
+        return;
+    };
+    h.push_str(
+        "<div id=\"jog\"><figure class=\"live\"><img id=\"live\" src=\"/api/backlash/live.jpg\" \
+         alt=\"the nozzle camera, live (no picture: [backlash] webcam names none that answers)\">\
+         </figure><div class=\"jogs\">",
+    );
+    for b in buttons {
+        let class = match b["style"].as_str() {
+            Some("secondary") => " class=\"quiet\"",
+            Some("warning") => " class=\"danger\"",
+            _ => "",
+        };
+        let _ = write!(
+            h,
+            "<form class=\"inline\"><input type=\"hidden\" name=\"press\" value=\"{}\">\
+             <button{class} data-op=\"backlash/jog\" data-out=\"jogmsg\">{}</button></form>",
+            text(&b["press"]),
+            text(&b["label"])
+        );
+    }
+    h.push_str("</div><p id=\"jogmsg\" class=\"msg\"></p></div>");
 }
 
 /// A number of px with 2 decimals.
@@ -269,6 +299,35 @@ mod tests {
         // No round in a backlash session's header (issue 40: "round measured").
         assert!(page.contains("session 9 <span"), "{page}");
         assert!(!page.contains("· round"), "{page}");
+    }
+
+    #[test]
+    fn a_guided_axis_shows_the_dialogs_jog_buttons_beside_the_live_camera() {
+        let mut st = json!({"ok": true, "session": {"kind": "backlash", "id": 9,
+            "state": "measuring", "progress": "measuring x", "axis": "x", "cycle": 2,
+            "jog": [{"label": "Coarse X+", "press": "coarse", "style": "secondary"},
+                    {"label": "Centred", "press": "centred", "style": "primary"},
+                    {"label": "Overshot - start over", "press": "overshot", "style": "warning"}]},
+            "last": {}});
+        let page = render(&st, None);
+        assert!(
+            page.contains("<img id=\"live\" src=\"/api/backlash/live.jpg\""),
+            "{page}"
+        );
+        for (press, label) in [("coarse", "Coarse X+"), ("centred", "Centred")] {
+            assert!(
+                page.contains(&format!(
+                    "<input type=\"hidden\" name=\"press\" value=\"{press}\">"
+                )) && page.contains(&format!(
+                    "data-op=\"backlash/jog\" data-out=\"jogmsg\">{label}<"
+                )),
+                "{page}"
+            );
+        }
+        assert!(page.contains("<button class=\"danger\" data-op=\"backlash/jog\""));
+        // No axis being jogged: no panel.
+        st["session"]["jog"] = json!([]);
+        assert!(!render(&st, None).contains("id=\"live\""));
     }
 
     #[test]

@@ -457,6 +457,11 @@ mod tests {
                 hint_px: Some([1.0, 2.0]),
                 zoom: Some(4.0),
             }),
+            jog: vec![crate::jobs::backlash::JogButton {
+                label: String::new(),
+                press: String::new(),
+                style: String::new(),
+            }],
         };
         let mut last = std::collections::BTreeMap::new();
         last.insert(

@@ -162,7 +162,11 @@ impl Backlash {
         Ok(())
     }
 
-    pub(super) fn prompt_for(s: &Session, step: &Step) -> Prompt {
+    /// The jog dialog for `step`. `page` ([`Core::page_road`]) is named in the approach's
+    /// dialog: a phone shows the dialog full screen over the camera, the page has the same
+    /// buttons beside the live picture (issue 40 item 2). Said inside a line the dialog has
+    /// anyway: each dialog line is a console row, and a jog sends one dialog per press.
+    pub(super) fn prompt_for(s: &Session, step: &Step, page: Option<&str>) -> Prompt {
         let Some(g) = &s.guide else {
             return Prompt::default();
         };
@@ -213,10 +217,12 @@ impl Backlash {
                     "Jog {axis}{sign} toward the camera mark, never back; fine jogs near it. At the first fine jog where the nozzle no longer looks short of the mark, say what you see: Centred, or Past if that one jog took it through the whole mark."
                 ),
                 format!(
-                    "Coarse {} mm, fine {} mm. Past the mark after a coarse jog, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.",
+                    "Coarse {} mm, fine {} mm. Past the mark after a coarse jog, or centred where the approach began? Press Overshot: it starts the approach over from {} mm back.{}",
                     g.params.coarse_mm,
                     g.fine_mm(),
-                    g.params.approach_mm
+                    g.params.approach_mm,
+                    page.map(|p| format!(" The same buttons beside the live camera: {p}."))
+                        .unwrap_or_default()
                 ),
             ],
             buttons: vec![
@@ -351,7 +357,13 @@ impl Backlash {
             })
             .await?;
         self.move_along(&s, &step).await?;
-        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        self.core
+            .prompt(&Self::prompt_for(
+                &s,
+                &step,
+                self.core.page_road().as_deref(),
+            ))
+            .await;
         let msg = format!(
             "{TITLE} session {}: {} from {} mm in −, jog only in + until centred{}",
             s.id,
@@ -372,8 +384,15 @@ impl Backlash {
     /// `klipcal_backlash_jog PRESS=coarse|fine|centred|past|short|overshot`.
     ///
     /// # Errors
-    /// No axis being measured, a bad PRESS, or a jog the procedure refuses (said why).
+    /// No axis being measured, a bad PRESS, a jog the procedure refuses (said why), a print
+    /// running or the axis not homed.
     pub(crate) async fn jog(&self, press: Press) -> anyhow::Result<Jogged> {
+        // A press moves the machine, from the dialog or from the page: never while a print
+        // runs, never along an axis that is not homed (a restart since the start unhomes it).
+        if let Some(g) = self.active()?.and_then(|s| s.body.guide) {
+            self.core.printer_idle().await?;
+            self.homed(g.axis).await?;
+        }
         // The press and its reading are saved before the machine moves.
         let (s, step) = {
             let _g = self.core.lock().await;
@@ -423,7 +442,13 @@ impl Backlash {
             });
         }
         self.move_along(&s, &step).await?;
-        self.core.prompt(&Self::prompt_for(&s, &step)).await;
+        self.core
+            .prompt(&Self::prompt_for(
+                &s,
+                &step,
+                self.core.page_road().as_deref(),
+            ))
+            .await;
         // A jog answers nothing on the console (the camera shows it); a recorded position and a
         // new approach are said in one line.
         let message = match (step.recorded, press) {

@@ -297,6 +297,47 @@ pub(crate) struct BacklashStatus {
     /// The newest camera frame of this session (kept in memory since klipcal started), with
     /// what the detector found in it: `GET /api/backlash/snapshot.jpg?seq=` serves it.
     pub snapshot: Option<snapshot::SnapshotInfo>,
+    /// The guided measurement's jog buttons as its dialog offers them now (the page shows
+    /// them beside the live camera; each posts `backlash/jog` with its press); empty when no
+    /// axis is being jogged.
+    pub jog: Vec<JogButton>,
+}
+
+/// One jog button of the guided measurement: its label, the press it sends, its colour.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub(crate) struct JogButton {
+    pub label: String,
+    pub press: String,
+    pub style: String,
+}
+
+impl JogButton {
+    /// The jog buttons of the dialog the guide shows now (none without a guide).
+    fn of(s: &Session) -> Vec<JogButton> {
+        let Some(g) = &s.guide else {
+            return Vec::new();
+        };
+        let now = Step {
+            moves_mm: Vec::new(),
+            phase: g.phase,
+            cycle: (g.cycles.len() + 1).min(g.params.cycles),
+            recorded: None,
+            crossing: g.entry_mm.is_some(),
+            past_once: g.answers.past_once,
+        };
+        Backlash::prompt_for(s, &now, None)
+            .buttons
+            .into_iter()
+            .filter_map(|b| {
+                let press = b.gcode.strip_prefix("_KLIPCAL_BACKLASH_JOG PRESS=")?;
+                Some(JogButton {
+                    press: press.to_string(),
+                    label: b.label,
+                    style: b.style,
+                })
+            })
+            .collect()
+    }
 }
 
 /// The backlash calibration.
@@ -392,7 +433,10 @@ impl Backlash {
                     }
                 }
                 if self.move_along(&s2, &step).await.is_ok() {
-                    self.core.prompt(&Self::prompt_for(&s2, &step)).await;
+                    let page = self.core.page_road();
+                    self.core
+                        .prompt(&Self::prompt_for(&s2, &step, page.as_deref()))
+                        .await;
                 }
             }
             State::Applying => {
@@ -577,8 +621,21 @@ impl Declare for Backlash {
                 }
                 f
             }),
+            jog: JogButton::of(s),
         };
         SessionStatus::new(KIND, s.head(), &body)
+    }
+}
+
+impl Backlash {
+    /// A frame taken now from the nozzle camera (`[backlash] webcam`), JPEG: the page's live
+    /// picture beside its jog buttons.
+    ///
+    /// # Errors
+    /// The webcam could not be chosen or did not answer (said which and why).
+    pub(crate) async fn live_jpeg(&self) -> anyhow::Result<Vec<u8>> {
+        let cam = self.webcam().await?;
+        self.fetch(&self.http()?, &cam).await
     }
 }
 

@@ -25,6 +25,10 @@ use crate::klipper::gcode_cmd;
 use crate::moonraker::{Files, Moonraker};
 use crate::store::{SessionRow, Store};
 
+/// The name of the webcam `klipcal install` adds for the page (Mainsail and Fluidd show it as
+/// a webcam tile, the way to the page on a phone).
+pub(crate) const PAGE_WEBCAM: &str = "klipcal";
+
 /// How long a session waits for Klipper to be ready once Moonraker is back after an outage,
 /// before its steps look at the printer as it is.
 const KLIPPY_BACK_LIMIT: std::time::Duration = std::time::Duration::from_secs(60);
@@ -224,6 +228,16 @@ impl Core {
     #[must_use]
     pub(crate) fn page(&self) -> Option<&str> {
         self.inner.page.get().map(String::as_str)
+    }
+
+    /// Where a user typing or jogging finds the page, for a dialog or an answer: "klipcal's
+    /// page, http://…, on a phone also its webcam tile 'klipcal'" (Mainsail's phone dashboard
+    /// has no console; the page is under nav → Webcam), or `None` when the page is off.
+    #[must_use]
+    pub(crate) fn page_road(&self) -> Option<String> {
+        self.page().map(|p| {
+            format!("klipcal's page, {p}, on a phone also its webcam tile '{PAGE_WEBCAM}'")
+        })
     }
 
     /// Names a kind for refusals ("an A/B calibration").

@@ -104,7 +104,7 @@ pub(crate) fn resolve_url(url: &str, moonraker_base: &str) -> String {
 }
 
 impl Backlash {
-    pub(super) fn http(&self) -> anyhow::Result<reqwest::Client> {
+    pub(in crate::jobs::backlash) fn http(&self) -> anyhow::Result<reqwest::Client> {
         reqwest::Client::builder()
             .timeout(Duration::from_secs(10))
             .build()
@@ -112,7 +112,7 @@ impl Backlash {
     }
 
     /// The nozzle camera from Moonraker's list.
-    pub(super) async fn webcam(&self) -> anyhow::Result<Webcam> {
+    pub(in crate::jobs::backlash) async fn webcam(&self) -> anyhow::Result<Webcam> {
         let list = self
             .core
             .m()
@@ -123,7 +123,7 @@ impl Backlash {
     }
 
     /// One snapshot's bytes.
-    pub(super) async fn fetch(
+    pub(in crate::jobs::backlash) async fn fetch(
         &self,
         http: &reqwest::Client,
         cam: &Webcam,
