@@ -487,7 +487,8 @@ pub(crate) const fn bed_arg(help: &'static str) -> ArgSpec {
 }
 
 /// The line every remote macro a user calls says first: if nothing follows, the service is not
-/// running. Helpers (`_KLIPCAL_…`, pressed in klipcal's dialogs) do not say it.
+/// running. Helpers (`_KLIPCAL_…`, pressed in klipcal's dialogs) and a press of a dialog's
+/// button (`ASK=n`) do not say it.
 pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
 
 /// `config/klipcal.cfg` for `ops`: one `[gcode_macro]` per operation, one
@@ -527,8 +528,15 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
                 // A helper (leading `_`) is pressed in one of klipcal's dialogs, which the
                 // service just sent: it says nothing first (issue 26 A.4: a backlash axis's
                 // ~130 jog presses added an "asking" row each).
+                // Nor does a macro pressed in a dialog (its button carries `ASK=n`, the number
+                // of the question klipcal just asked; issue 40 item 6: four "asking" rows a
+                // round); typed or from the macro panel it does.
                 if !op.macro_name.starts_with('_') {
-                    let _ = writeln!(out, "  {ASKING}");
+                    let _ = writeln!(
+                        out,
+                        "  {{% if '{ASK}' not in params %}}\n  {ASKING}\n  {{% endif %}}",
+                        ASK = crate::jobs::core::console::ASK_ARG
+                    );
                 }
                 let _ = writeln!(
                     out,
@@ -670,7 +678,8 @@ const HEADER: &str = "\
 # They become buttons in Mainsail and Fluidd. Each calls the klipcal daemon through
 # Moonraker (action_call_remote_method); klipcal answers on the console with RESPOND,
 # so [respond] must be enabled in printer.cfg. Each first says it asked the service: if
-# nothing follows, the klipcal service is not running (see docs/troubleshooting.md).
+# nothing follows, the klipcal service is not running (see docs/troubleshooting.md). A
+# button of klipcal's dialogs (ASK=n) does not: klipcal just asked it.
 # Every parameter sits on its own `{% set … = params.X|default(…) %}` line, so Mainsail
 # and Fluidd show a field for it; every parameter goes to klipcal, which refuses unknown
 # ones and bad values by name (a typo never falls back to a default).
