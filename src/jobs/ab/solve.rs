@@ -70,7 +70,9 @@ impl Ab {
         self.core
             .prompt(&Prompt {
                 title: format!("Round {} · new values", s.rounds.len()),
-                lines: decision.lines().map(str::to_string).collect(),
+                // One text row (each prompt line is a console row; issue 40 item 6): the
+                // answer above lists the same lines one by one.
+                lines: vec![decision.lines().collect::<Vec<_>>().join(" · ")],
                 buttons: vec![Button::new("Apply", "KLIPCAL_AB_APPLY", "primary")],
                 footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "info")],
             })
