@@ -633,10 +633,13 @@ async fn ab_round(kind: Kind) {
     let said = ui
         .wait_row("still waiting for your answer", Duration::from_secs(10))
         .await;
+    // Issue 40 item 3: and where a phone without a console answers it, the page.
     for words in [
         "KLIPCAL_SOAK_CHOICE CHOICE=print",
         "CHOICE=wait",
         "_KLIPCAL_PROMPT_BACK",
+        "or answer on klipcal's page, http://",
+        "on a phone also its webcam tile 'klipcal'",
     ] {
         assert!(said.contains(words), "{said}");
     }

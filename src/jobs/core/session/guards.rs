@@ -356,7 +356,12 @@ impl Core {
                 continue;
             };
             self.mark_closed();
-            console::say(&self.inner.m, &console::closed_notice(&p)).await;
+            // Where a phone answers without a console (issue 40 item 3): the page.
+            let mut notice = console::closed_notice(&p);
+            if let Some(road) = self.page_road() {
+                notice.push_str(&format!("; or answer on {road}"));
+            }
+            console::say(&self.inner.m, &notice).await;
             self.open().user_closed = Some(p);
         }
     }
