@@ -51,6 +51,18 @@ async fn widths(b: &mut Browser) -> (f64, f64) {
     (v[0].as_f64().unwrap(), v[1].as_f64().unwrap())
 }
 
+/// The page stays as it is while nothing changes: its poll (every 3 s) finds the status's
+/// signature equal to the one it was rendered with (a mismatch reloads it every poll).
+async fn stays(b: &mut Browser) {
+    b.eval("window.__stays = 1").await;
+    tokio::time::sleep(Duration::from_secs(4)).await;
+    assert_eq!(
+        b.eval("window.__stays === 1").await,
+        json!(true),
+        "the page reloaded by itself: its signature differs from the status's"
+    );
+}
+
 /// Taps the page's jog button `label` and waits until Klipper's toolhead left `from`; the
 /// position it stopped at.
 async fn tap_jog(
@@ -133,6 +145,7 @@ async fn the_pages_jog_buttons_move_the_nozzle_on_a_phone() {
     let mut b = Browser::start().await;
     b.set_viewport(390, 844, true).await;
     b.open(&format!("{base}/")).await;
+    stays(&mut b).await;
     let start = toolhead(&m).await;
     // The start took the nozzle about 1 mm (dithered) before the point: the approach is in +X.
     assert!(start[0] > 98.5 && start[0] < 99.5, "{start:?}");
@@ -225,6 +238,7 @@ async fn the_readings_form_works_in_mainsails_webcam_frame() {
     let mut b = Browser::start().await;
     b.set_viewport(366, 274, true).await;
     b.open(&format!("{base}/")).await;
+    stays(&mut b).await;
     let (scroll, client) = widths(&mut b).await;
     assert!(
         scroll <= client,

@@ -77,7 +77,7 @@ $$('button[data-op]').forEach(b=>b.addEventListener('click',async ev=>{ev.preven
 const sig=document.body.dataset.sig;
 async function poll(){
   try{const r=await fetch('/api/status');const j=await r.json();const s=j.session||{};
-    const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{}),Object.values(s.camera||{}).reduce((n,c)=>n+(c.cycles||[]).length,0)].join('|');
+    const now=[s.id,s.state,s.round,JSON.stringify(s.readings||{}),Object.values(s.camera||{}).reduce((n,c)=>n+(c.cycles||[]).length,0),(s.jog||[]).map(b=>b.press).join(','),s.cycle==null?'':s.cycle].join('|');
     const f=s.snapshot,fig=$('#snapshot');
     if(f&&!fig&&!dirty)location.reload();
     if(f&&fig&&(f.click||fig.dataset.click==='1')&&(String(f.seq)!==fig.dataset.seq||(f.click?'1':'0')!==fig.dataset.click)&&!dirty)location.reload();

@@ -325,6 +325,11 @@ mod tests {
             );
         }
         assert!(page.contains("<button class=\"danger\" data-op=\"backlash/jog\""));
+        // The page reloads when the buttons change (a press made in the dialog).
+        assert!(
+            page.contains("data-sig=\"9|measuring||{}|0|coarse,centred,overshot|2\""),
+            "{page}"
+        );
         // No axis being jogged: no panel.
         st["session"]["jog"] = json!([]);
         assert!(!render(&st, None).contains("id=\"live\""));
@@ -352,7 +357,7 @@ mod tests {
         assert!(page.contains("X cycle 1/5 &lt;b&gt;: nozzle at (300.25, 200.50) px ± 0.05 px"));
         assert!(page.contains("<td>0.0012</td><td>0.0814</td><td class=\"b\">0.0802</td>"));
         assert_eq!(page.matches("class=\"approach ").count(), 2);
-        assert!(page.contains("data-sig=\"9|measuring||{}|1\""), "{page}");
+        assert!(page.contains("data-sig=\"9|measuring||{}|1||\""), "{page}");
         // Waiting for a click: no detector's mark, the help and the zoom's hint.
         st["session"]["snapshot"]["click"] = json!(true);
         st["session"]["snapshot"]["hint_px"] = json!([310.0, 205.5]);

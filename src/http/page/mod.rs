@@ -55,7 +55,7 @@ pub(super) fn mm(v: f64) -> String {
 /// The signature the script compares with each poll to know when to reload.
 fn signature(session: &Value) -> String {
     if session.is_null() {
-        return "|||{}|0".into();
+        return "|||{}|0||".into();
     }
     let readings = if session["readings"].is_null() {
         "{}".to_string()
@@ -68,8 +68,16 @@ fn signature(session: &Value) -> String {
             .map(Vec::len)
             .sum()
     });
+    // The guided backlash's jog buttons and cycle: a press in the dialog changes what the
+    // page's buttons must offer.
+    let jog: Vec<&str> = session["jog"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|b| b["press"].as_str())
+        .collect();
     format!(
-        "{}|{}|{}|{}|{camera_cycles}",
+        "{}|{}|{}|{}|{camera_cycles}|{}|{}",
         session["id"]
             .as_i64()
             .map(|v| v.to_string())
@@ -79,7 +87,12 @@ fn signature(session: &Value) -> String {
             .as_i64()
             .map(|v| v.to_string())
             .unwrap_or_default(),
-        readings
+        readings,
+        jog.join(","),
+        session["cycle"]
+            .as_u64()
+            .map(|v| v.to_string())
+            .unwrap_or_default()
     )
 }
 
