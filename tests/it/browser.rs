@@ -229,6 +229,47 @@ impl Browser {
         r["result"]["value"].clone()
     }
 
+    /// Evaluates `js` inside the frame whose address starts with `url` (an iframe of the page,
+    /// e.g. klipcal's page as Mainsail's webcam), in a world of its own that sees the frame's
+    /// document; `None` while no such frame is there.
+    pub async fn eval_in_frame(&mut self, url: &str, js: &str) -> Option<Value> {
+        fn find(tree: &Value, url: &str) -> Option<String> {
+            if tree["frame"]["url"].as_str()?.starts_with(url)
+                && tree["frame"]["parentId"].is_string()
+            {
+                return tree["frame"]["id"].as_str().map(str::to_string);
+            }
+            tree["childFrames"]
+                .as_array()?
+                .iter()
+                .find_map(|c| find(c, url))
+        }
+        let tree = self.cmd("Page.getFrameTree", json!({})).await;
+        let frame = find(&tree["frameTree"], url)?;
+        let s = self.session.clone();
+        let world = self
+            .try_send(
+                Some(&s),
+                "Page.createIsolatedWorld",
+                json!({"frameId": frame, "worldName": "klipcal-test"}),
+            )
+            .await
+            .ok()?;
+        let r = self
+            .try_send(
+                Some(&s),
+                "Runtime.evaluate",
+                json!({"expression": js, "contextId": world["executionContextId"],
+                       "awaitPromise": true, "returnByValue": true}),
+            )
+            .await
+            .ok()?;
+        if r.get("exceptionDetails").is_some() {
+            return None;
+        }
+        Some(r["result"]["value"].clone())
+    }
+
     /// Opens `url` and waits until the document has loaded.
     pub async fn open(&mut self, url: &str) {
         self.cmd("Page.navigate", json!({"url": url})).await;

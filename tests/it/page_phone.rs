@@ -281,3 +281,163 @@ async fn the_readings_form_works_in_mainsails_webcam_frame() {
     assert!(scroll <= client, "after saving: {scroll} > {client}");
     drop(d);
 }
+
+/// Issue 40 item 2 where a phone user meets it: klipcal's page as Mainsail's iframe webcam
+/// (nav → Webcam, as `klipcal install` registers it) on a 390×844 phone; a press of the page's
+/// Coarse X+ inside the frame moves Klipper's toolhead by the coarse jog, and the jog dialog
+/// the user closed to see the page stays closed.
+#[tokio::test]
+async fn the_pages_jog_buttons_work_inside_mainsails_webcam_frame() {
+    use crate::frontends::{FrontEnd, Kind, Ui};
+    let camera = json!({"look": "ring", "seed": 8}).to_string();
+    let bench = Bench::start_args(
+        "cartesian",
+        &[
+            "--backlash-module",
+            "seed",
+            "--play",
+            r#"{"x": 0.08}"#,
+            "--camera",
+            &camera,
+            "--klipcal-bin",
+            crate::bench::klipcal_with_bench(),
+        ],
+    );
+    let d = Daemon::ready(&bench, "[backlash]\ncycles = 2\n").await;
+    let base = d.page_url().await;
+    let (m, _c) = crate::backlash::connect(&bench).await;
+    crate::backlash::set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
+    let files = bench.files();
+    // The page as an iframe webcam, as `klipcal install` registers it.
+    files
+        .post(
+            "/server/webcams/item",
+            &json!({"name": "klipcal", "service": "iframe", "stream_url": format!("{base}/"),
+                    "snapshot_url": ""}),
+        )
+        .await
+        .unwrap();
+    extension_request(&files, "klipcal_backlash_set_point", json!({}))
+        .await
+        .unwrap();
+    extension_request(&files, "klipcal_backlash_start", json!({"axis": "X"}))
+        .await
+        .unwrap();
+    let fe = FrontEnd::serve(Kind::Mainsail, &bench).await;
+    let mut b = Browser::start().await;
+    let mut ui = Ui::open(&mut b, &fe, "mainsail-page-jog").await;
+    ui.phone().await;
+    // The jog dialog covers a phone's screen: closed (✕) to watch the camera on the page.
+    ui.wait_dialog("backlash", Duration::from_secs(30)).await;
+    ui.dismiss().await;
+    ui.wait_no_dialog(Duration::from_secs(10)).await;
+    let b = &mut *ui.b;
+    b.eval("document.querySelector('#app').__vue__.$router.push('/cam').catch(() => {}), true")
+        .await;
+    let inside = format!("{base}/");
+    let (x, y) = frame_button(b, &inside, "Coarse X+").await;
+    b.screenshot(&artifact("page-phone/mainsail-webcam-jog.png"))
+        .await;
+    let start = toolhead(&m).await;
+    // The press: a click on the button in the frame's document (the page's own listener
+    // posts it from inside Mainsail's frame, to klipcal's origin, through its guard). A
+    // synthetic tap at (x, y), checked above to be the frame and this button, reached the
+    // frame once in three runs of headless Chromium's emulated phone, so it is not the
+    // test's road.
+    println!("Coarse X+ at ({x:.0}, {y:.0}) in the window");
+    let clicked = b
+        .eval_in_frame(
+            &inside,
+            "[...document.querySelectorAll('#jog button')]
+               .find(e => e.textContent.trim() === 'Coarse X+').click(), true",
+        )
+        .await;
+    assert_eq!(clicked, Some(json!(true)));
+    tokio::time::sleep(Duration::from_millis(800)).await;
+    let said = b
+        .eval_in_frame(
+            &inside,
+            "(document.querySelector('#jogmsg') || {}).textContent",
+        )
+        .await;
+    println!("the page says: {said:?}");
+    let moved = poll(Duration::from_secs(20), || async {
+        let now = toolhead(&m).await;
+        (now != start).then_some(now)
+    })
+    .await
+    .expect("a press of Coarse X+ inside Mainsail's webcam frame did not move the toolhead");
+    assert!(
+        (moved[0] - start[0] - 0.1).abs() < 1e-6 && moved[1] == start[1],
+        "Coarse X+ in the frame moved {start:?} → {moved:?}; expected +0.1 mm in X"
+    );
+    // The closed dialog stays closed over the page (_KLIPCAL_PROMPT_BACK brings it back).
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert_eq!(
+        ui.dialog().await,
+        None,
+        "the jog dialog came back over the page"
+    );
+    ui.shot("after-the-tap").await;
+    drop(d);
+}
+
+/// The window point of the button `label` of klipcal's page shown in the frame at `inside`
+/// (scrolled into view there once the live picture is in, whose height moves the buttons),
+/// checked to be the frame in Mainsail's page and the button inside the frame.
+async fn frame_button(b: &mut Browser, inside: &str, label: &str) -> (f64, f64) {
+    let find = format!(
+        "[...document.querySelectorAll('#jog button')].find(e => e.textContent.trim() === {})",
+        serde_json::to_string(label).unwrap()
+    );
+    let scroll = format!(
+        "(() => {{ const el = {find}; const img = document.querySelector('#live');
+           if (!el || !img || !img.complete || !img.naturalWidth) return null;
+           el.scrollIntoView({{block: 'center'}}); return true; }})()"
+    );
+    let mut found = false;
+    for _ in 0..60 {
+        if b.eval_in_frame(inside, &scroll).await == Some(json!(true)) {
+            found = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(500)).await;
+    }
+    assert!(
+        found,
+        "no {label} on klipcal's page in Mainsail's webcam frame"
+    );
+    // The frame's content box in Mainsail's page, and the button in the frame, read without
+    // scrolling again (scrollIntoView inside the frame scrolls Mainsail's page too).
+    let frame = b
+        .eval(&format!(
+            "(() => {{ const f = [...document.querySelectorAll('iframe')]
+                .find(f => f.src.startsWith({})); const r = f.getBoundingClientRect();
+                return [r.left + f.clientLeft, r.top + f.clientTop]; }})()",
+            serde_json::to_string(inside).unwrap()
+        ))
+        .await;
+    let read = format!(
+        "(() => {{ const r = ({find}).getBoundingClientRect();
+           const x = r.left + r.width / 2, y = r.top + r.height / 2;
+           const at = document.elementFromPoint(x, y);
+           return [x, y, at ? at.textContent.trim() : null]; }})()"
+    );
+    let v = b.eval_in_frame(inside, &read).await.unwrap();
+    assert_eq!(v[2], json!(label), "in the frame: {v}");
+    let (x, y) = (
+        frame[0].as_f64().unwrap() + v[0].as_f64().unwrap(),
+        frame[1].as_f64().unwrap() + v[1].as_f64().unwrap(),
+    );
+    let under = b
+        .eval(&format!(
+            "(() => {{ const e = document.elementFromPoint({x}, {y}); return e ? e.tagName : null; }})()"
+        ))
+        .await;
+    assert_eq!(
+        under,
+        json!("IFRAME"),
+        "Mainsail covers the frame at ({x}, {y})"
+    );
+    (x, y)
+}

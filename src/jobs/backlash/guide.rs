@@ -443,7 +443,7 @@ impl Backlash {
         }
         self.move_along(&s, &step).await?;
         self.core
-            .prompt(&Self::prompt_for(
+            .prompt_unless_closed(&Self::prompt_for(
                 &s,
                 &step,
                 self.core.page_road().as_deref(),

@@ -206,6 +206,21 @@ impl Core {
         }
     }
 
+    /// [`Core::prompt`], unless the user closed klipcal's dialog without answering (✕, a tap
+    /// outside): then it stays closed, and `_KLIPCAL_PROMPT_BACK` brings this one back. A phone
+    /// user closes the full-screen jog dialog to jog on klipcal's page while watching the
+    /// camera (issue 40 item 2): a press there must not cover the page with it again.
+    pub(crate) async fn prompt_unless_closed(&self, p: &Prompt) {
+        {
+            let mut open = self.open();
+            if open.user_closed.is_some() {
+                open.user_closed = Some(p.clone());
+                return;
+            }
+        }
+        self.prompt(p).await;
+    }
+
     /// Closes klipcal's dialog (the flow moved on): within a call after its answer; nothing is
     /// sent when klipcal's dialog is known to be closed already.
     pub(crate) async fn prompt_end(&self) {
