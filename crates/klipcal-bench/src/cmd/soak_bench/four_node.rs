@@ -89,7 +89,16 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
         };
         let rule = |r: &BedResult| r.rule;
         let e = early(&rule);
-        ok &= e == 0;
+        // Air that warms for hours cannot show in the bed's power: without a chamber
+        // thermometer no rule can know it, so only the chamber's runs have a target there.
+        ok &= e == 0 || kind.slow_air;
+        let target0 = |n: usize| {
+            if kind.slow_air {
+                "no target without a chamber sensor".to_string()
+            } else {
+                format!("target 0   {}", pass(n == 0))
+            }
+        };
         let ident: Vec<&BedResult> = res.iter().filter(|r| r.identified).collect();
         let in_time = |r: &BedResult| {
             r.rule
@@ -207,9 +216,9 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
             surf
         );
         println!(
-            "      klipcal: early {e} ({:.0} %)   target 0   {}; soak after reaching the target {}{}",
+            "      klipcal: early {e} ({:.0} %)   {}; soak after reaching the target {}{}",
             100.0 * e as f64 / n,
-            pass(e == 0),
+            target0(e),
             words(soak),
             if steel_open {
                 if soak <= 20.0 {
@@ -249,13 +258,13 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
         );
         if kind.enclosed {
             let pe = early(&|r| r.with_preset);
-            ok &= pe == 0;
+            ok &= pe == 0 || kind.slow_air;
             println!(
                 "      with soak.bed = \"{}\" (and soak.frame = \"enclosed\", which rules out what \
-                 an unknown frame does): early {pe}   target 0   {}; soak after reaching the \
+                 an unknown frame does): early {pe}   {}; soak after reaching the \
                  target {} (defaults: {})",
                 crate::cmd::soak_four_node::preset_name(kind),
-                pass(pe == 0),
+                target0(pe),
                 words(soak_min(&|r| r.with_preset)),
                 words(soak),
             );
@@ -477,9 +486,11 @@ fn run_families(
     per_kind: usize,
     seed: u64,
 ) -> Vec<((Control, Kind), Vec<BedResult>)> {
+    // The slow enclosure last, so the others' seeds do not move.
     let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
         .into_iter()
         .flat_map(|c| Kind::all().into_iter().map(move |k| (c, k)))
+        .chain([(Control::Pid, Kind::slow_enclosure())])
         .collect();
     // Each family draws from its own stream: they run on every core and print in order.
     let indexed: Vec<(usize, Control, Kind)> = families
