@@ -591,8 +591,11 @@ async fn settled(phase: Phase, d: &Daemon, before_meshes: u64, t_back: Instant) 
         let on = match phase {
             Phase::Soak => {
                 // Still heating or soaking well after the fault (a soak that lost its bed
-                // notices within a poll or two).
-                t_back.elapsed() > Duration::from_secs(10) && matches!(st, "heating" | "soaking")
+                // notices within a poll or two), or past the soak: the bed's history carried
+                // over the outage (issue 38 item 6) lets a soak end soon after it, and the
+                // session goes on to print and measure.
+                (t_back.elapsed() > Duration::from_secs(10) && matches!(st, "heating" | "soaking"))
+                    || matches!(st, "printing" | "holding" | "measuring")
             }
             Phase::Print | Phase::Hold => matches!(st, "measuring"),
             Phase::Measuring => st == "measuring" && t_back.elapsed() > Duration::from_secs(5),
