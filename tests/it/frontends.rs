@@ -13,6 +13,7 @@ use serde_json::{json, Value};
 
 use crate::bench::{extension_request, free_port, poll, repo, Bench, Daemon};
 use crate::browser::{artifact, Browser};
+use klipcal::moonraker::Moonraker;
 
 pub const DESKTOP: (u32, u32) = (1280, 800);
 pub const PHONE: (u32, u32) = (390, 844);
@@ -584,7 +585,6 @@ const SLOW_PLANT: &str = r#"{"accel": 10, "bed": {"tau_plate_s": 3000.0, "tau_he
 /// (closed without an answer, brought back, answered), no measuring dialog (issue 40 item 4),
 /// readings typed on the console, Solve and Apply from their dialogs, the next-round question
 /// answered with End.
-#[allow(clippy::too_many_lines)] // 276 lines: to be split along its steps
 async fn ab_round(kind: Kind) {
     let started = std::time::Instant::now();
     let bench = Bench::start_with("corexy", Some(SLOW_PLANT));
@@ -600,6 +600,22 @@ async fn ab_round(kind: Kind) {
     println!("{}: screenshots in {}", kind.name(), ui.shots.display());
     ui.shot("01-dashboard-desktop").await;
 
+    ab_soak_question(&mut ui, &bench, &d, kind).await;
+    ab_print_and_measure(&mut ui, &bench, kind).await;
+    ab_solve_apply_end(&mut ui, &bench, kind).await;
+    let reloaded = ab_reload(&mut ui, &fe, kind).await;
+    ab_console_filter(&mut ui, &bench, &fe, kind, &reloaded).await;
+    drop(d);
+    println!(
+        "{}: A/B round in the browser took {:.0} s",
+        kind.name(),
+        started.elapsed().as_secs_f64()
+    );
+}
+
+/// A/B round, the soak question: asked from the macro button, closed without an answer (the
+/// console, KLIPCAL_STATUS and the page say how to answer; the session waits), brought back.
+async fn ab_soak_question(ui: &mut Ui<'_>, bench: &Bench, d: &Daemon, kind: Kind) {
     // Start from the macro panel.
     ui.click_macro("KLIPCAL_AB_START").await;
     ui.wait_row("session 1 started", Duration::from_secs(20))
@@ -660,7 +676,7 @@ async fn ab_round(kind: Kind) {
         progress.contains("KLIPCAL_SOAK_CHOICE CHOICE=print"),
         "the page does not say how to answer: {progress}"
     );
-    let s = session(&bench).await;
+    let s = session(bench).await;
     assert_eq!(s["state"], "soaking", "{s}");
     // Brought back by the helper the console names.
     ui.type_line("_KLIPCAL_PROMPT_BACK").await;
@@ -668,7 +684,11 @@ async fn ab_round(kind: Kind) {
         .wait_dialog("the bed has not settled", Duration::from_secs(10))
         .await;
     assert_eq!(again.buttons, soak.buttons);
+}
 
+/// A/B round, printing: Print now from the dialog, no dialog over the measuring guide, the
+/// readings typed on the console.
+async fn ab_print_and_measure(ui: &mut Ui<'_>, bench: &Bench, kind: Kind) {
     // Print now, from the dialog.
     ui.press("Print now").await;
     ui.wait_row("chose to print now", Duration::from_secs(15))
@@ -691,7 +711,7 @@ async fn ab_round(kind: Kind) {
     ui.shot("04-measure").await;
 
     // Readings typed on the console.
-    let s = session(&bench).await;
+    let s = session(bench).await;
     for p in s["pairs"].as_array().unwrap() {
         let vals: Vec<String> = crate::session::simulated_readings(p)
             .iter()
@@ -704,6 +724,11 @@ async fn ab_round(kind: Kind) {
         ))
         .await;
     }
+}
+
+/// A/B round, the result: Solve and Apply from their dialogs, the next-round question answered
+/// with End (Back first), only the soak question counted as closed by the user.
+async fn ab_solve_apply_end(ui: &mut Ui<'_>, bench: &Bench, kind: Kind) {
     let solve = ui
         .wait_dialog("all pairs measured", Duration::from_secs(20))
         .await;
@@ -736,7 +761,7 @@ async fn ab_round(kind: Kind) {
     for d in [&solve, &apply] {
         assert!(d.title.starts_with("Round 1 · "), "{:?}", d.title);
     }
-    let s = session(&bench).await;
+    let s = session(bench).await;
     assert_eq!(s["state"], "applied", "{s}");
     // End asks first; Back returns; End + Yes ends the session.
     ui.press("End").await;
@@ -751,11 +776,11 @@ async fn ab_round(kind: Kind) {
     ui.wait_row("cancelled", Duration::from_secs(20)).await;
     ui.wait_no_dialog(Duration::from_secs(10)).await;
     let ended = poll(Duration::from_secs(20), || async {
-        let s = session(&bench).await;
+        let s = session(bench).await;
         (s["state"] == "cancelled").then_some(s)
     })
     .await;
-    assert!(ended.is_some(), "{}", session(&bench).await);
+    assert!(ended.is_some(), "{}", session(bench).await);
     ui.shot("08-ended").await;
     // Only the soak question was closed without an answer: the closes klipcal sends or its
     // helpers ask for (Back, Apply) are not taken for the user's.
@@ -767,7 +792,11 @@ async fn ab_round(kind: Kind) {
         .map(|(_, m)| m)
         .collect();
     assert_eq!(notices.len(), 1, "{}: {notices:#?}", kind.name());
+}
 
+/// A/B round, a reload: no dialog comes back, the console rows live and after the reload
+/// bounded; returns the rows after the reload.
+async fn ab_reload(ui: &mut Ui<'_>, fe: &FrontEnd, kind: Kind) -> Vec<(String, String)> {
     // A reload: the console rebuilt from Moonraker's store, no dialog comes back.
     let live_rows = ui.rows().await;
     let live = live_rows.len();
@@ -807,7 +836,18 @@ async fn ab_round(kind: Kind) {
         ui.shots.display()
     );
     ui.shot("09-reloaded").await;
+    reloaded
+}
 
+/// A/B round, README's console filter saved as the front end saves it: after a reload it hides
+/// klipcal's dialog, RESPOND and asking rows and keeps its answers.
+async fn ab_console_filter(
+    ui: &mut Ui<'_>,
+    bench: &Bench,
+    fe: &FrontEnd,
+    kind: Kind,
+    reloaded: &[(String, String)],
+) {
     // A.4: README's console filter hides klipcal's dialog rows, the raw RESPOND commands and the
     // macros' "asking" lines, and keeps klipcal's answers. Saved as each front end's console
     // settings save it (Mainsail: a custom filter; Fluidd: an "expression" filter), then reload.
@@ -826,7 +866,7 @@ async fn ab_round(kind: Kind) {
     // The front end writes its settings to Moonraker's database without waiting for the
     // answer: reloading before the write lands loads the console without the filter (a CI
     // run on a loaded machine did, with a fixed 1 s wait). Reload once Moonraker holds it.
-    let (m, _c) = crate::backlash::connect(&bench).await;
+    let (m, _c) = crate::backlash::connect(bench).await;
     let namespace = match kind {
         Kind::Mainsail => "mainsail",
         Kind::Fluidd => "fluidd",
@@ -870,12 +910,12 @@ async fn ab_round(kind: Kind) {
         "{}: after a reload {} rows ({} dialog/RESPOND/asking rows); with README's filter {} rows ({})",
         kind.name(),
         reloaded.len(),
-        noise(&reloaded),
+        noise(reloaded),
         filtered.len(),
         noise(&filtered)
     );
     assert!(
-        noise(&reloaded) > 0,
+        noise(reloaded) > 0,
         "nothing to filter: the count proves nothing"
     );
     assert_eq!(
@@ -903,12 +943,6 @@ async fn ab_round(kind: Kind) {
         filtered.len()
     );
     ui.shot("10-reloaded-filtered").await;
-    drop(d);
-    println!(
-        "{}: A/B round in the browser took {:.0} s",
-        kind.name(),
-        started.elapsed().as_secs_f64()
-    );
 }
 
 #[tokio::test]
@@ -1112,9 +1146,7 @@ fn klipcal_rows(rows: &[(String, String)]) -> Vec<String> {
 /// matches the model; on a shifted bed (a swapped plate) the print start is cancelled with the
 /// point and the difference named in an error row. Both front ends watch the same two prints.
 #[tokio::test]
-#[allow(clippy::too_many_lines)] // 206 lines: to be split along its steps
 async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
-    use klipcal::klipper::bed_mesh::{format_profile, MeshParams, MeshProfile};
     let started = std::time::Instant::now();
     let bench = Bench::start_args(
         "corexy",
@@ -1124,6 +1156,33 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
     m.wait_connected(Duration::from_secs(30)).await.unwrap();
     // VGB's COLD and HOT profiles of this very bed (probed now, the same at both temperatures),
     // imported: the model then predicts the surface the check probes.
+    let block = mesh_check_profiles(&m).await;
+    let d = mesh_check_in_print_start(&bench, &block).await;
+
+    let mains = FrontEnd::serve(Kind::Mainsail, &bench).await;
+    let flu = FrontEnd::serve(Kind::Fluidd, &bench).await;
+    let mut bm = Browser::start().await;
+    let mut bf = Browser::start().await;
+    let mut um = Ui::open(&mut bm, &mains, "mesh-check-mainsail").await;
+    let mut uf = Ui::open(&mut bf, &flu, "mesh-check-fluidd").await;
+    println!(
+        "screenshots in {} and {}",
+        um.shots.display(),
+        uf.shots.display()
+    );
+    mesh_check_passes(&m, &mut um, &mut uf).await;
+    mesh_check_fails(&bench, &m, &mut um, &mut uf).await;
+    drop(d);
+    println!(
+        "the mesh check in a print start, both front ends: {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
+}
+
+/// The mesh check's model: the bench's bed probed now and written as VGB's COLD and HOT
+/// profiles (the same at both temperatures), the `#*#` block to append to printer.cfg.
+async fn mesh_check_profiles(m: &Moonraker) -> String {
+    use klipcal::klipper::bed_mesh::{format_profile, MeshParams, MeshProfile};
     m.gcode_within(
         "G28\nBED_MESH_CALIBRATE PROFILE=probed",
         Duration::from_secs(180),
@@ -1154,7 +1213,6 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         min_y: f("min_y"),
         max_y: f("max_y"),
     };
-    let path = bench.dir.path().join("config/printer.cfg");
     let mut block = String::new();
     for name in ["COLD25.0", "HOT35.0"] {
         block.push_str(&format_profile(&MeshProfile {
@@ -1164,6 +1222,13 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         }));
         block.push_str("#*#\n");
     }
+    block
+}
+
+/// README's KLIPCAL_MESH_CHECK put in PRINT_START after homing, the profiles appended, Klipper
+/// restarted, the daemon started, the profiles imported and a part uploaded; returns the daemon.
+async fn mesh_check_in_print_start(bench: &Bench, block: &str) -> Daemon {
+    let path = bench.dir.path().join("config/printer.cfg");
     // README: KLIPCAL_MESH_CHECK in PRINT_START, after homing.
     let text = std::fs::read_to_string(&path).unwrap();
     let with_check = text.replacen(
@@ -1174,12 +1239,12 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
     assert_ne!(with_check, text, "no G28 in the bench's PRINT_START");
     std::fs::write(&path, format!("{with_check}{block}")).unwrap();
     bench.restart_klippy().await;
-    let d = Daemon::ready(&bench, &crate::mesh_job::mesh_settings()).await;
+    let d = Daemon::ready(bench, &crate::mesh_job::mesh_settings()).await;
     extension_request(&bench.files(), "klipcal_mesh_import", json!({}))
         .await
         .unwrap_or_else(|e| panic!("import: {e}\n{}", d.log_text()));
     let imported = poll(Duration::from_secs(120), || async {
-        let s = crate::mesh_job::mesh_session(&bench).await;
+        let s = crate::mesh_job::mesh_session(bench).await;
         matches!(s["state"].as_str(), Some("done" | "failed")).then_some(s)
     })
     .await
@@ -1194,30 +1259,24 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         )
         .await
         .unwrap();
+    d
+}
 
-    let mains = FrontEnd::serve(Kind::Mainsail, &bench).await;
-    let flu = FrontEnd::serve(Kind::Fluidd, &bench).await;
-    let mut bm = Browser::start().await;
-    let mut bf = Browser::start().await;
-    let mut um = Ui::open(&mut bm, &mains, "mesh-check-mainsail").await;
-    let mut uf = Ui::open(&mut bf, &flu, "mesh-check-fluidd").await;
-    println!(
-        "screenshots in {} and {}",
-        um.shots.display(),
-        uf.shots.display()
-    );
-    let print_state = || async {
-        m.objects_query(json!({"print_stats": ["state"]}))
-            .await
-            .ok()
-            .and_then(|v| v["print_stats"]["state"].as_str().map(str::to_string))
-            .unwrap_or_default()
-    };
+/// The print's state (`print_stats.state`), empty when it cannot be read.
+async fn print_state(m: &Moonraker) -> String {
+    m.objects_query(json!({"print_stats": ["state"]}))
+        .await
+        .ok()
+        .and_then(|v| v["print_stats"]["state"].as_str().map(str::to_string))
+        .unwrap_or_default()
+}
 
+/// Mesh check, step 1: the bed matches the model, the print pauses for the check and goes on.
+async fn mesh_check_passes<'a>(m: &Moonraker, um: &mut Ui<'a>, uf: &mut Ui<'a>) {
     // 1. The bed matches the model: the print pauses for the check and goes on.
     let before = [um.rows().await, uf.rows().await];
     m.print_start("part.gcode").await.unwrap();
-    for (k, ui) in [&mut um, &mut uf].into_iter().enumerate() {
+    for (k, ui) in [&mut *um, &mut *uf].into_iter().enumerate() {
         let passed = ui
             .wait_row("thermal mesh check passed", Duration::from_secs(180))
             .await;
@@ -1249,7 +1308,7 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         ui.shot("01-check-passed-desktop").await;
     }
     let done = poll(Duration::from_secs(120), || async {
-        let s = print_state().await;
+        let s = print_state(m).await;
         (s == "complete" || s == "cancelled" || s == "error").then_some(s)
     })
     .await;
@@ -1258,7 +1317,7 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         Some("complete"),
         "the print did not go on after the check"
     );
-    for ui in [&mut um, &mut uf] {
+    for ui in [&mut *um, &mut *uf] {
         let text = phone_console_text(ui).await;
         ui.shot("02-check-passed-phone").await;
         assert!(
@@ -1268,7 +1327,11 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         );
         back_to_dashboard(ui).await;
     }
+}
 
+/// Mesh check, step 2: a shifted bed cancels the print start with an error row naming the
+/// point and the difference.
+async fn mesh_check_fails<'a>(bench: &Bench, m: &Moonraker, um: &mut Ui<'a>, uf: &mut Ui<'a>) {
     // 2. A shifted bed (a swapped plate): the print start is cancelled, said in an error row
     // naming the point and the difference.
     let surface = bench.dir.path().join("comms/surface.json");
@@ -1276,12 +1339,12 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
     sp["tilt_x_um"] = json!(900.0);
     std::fs::write(&surface, sp.to_string()).unwrap();
     bench.restart_klippy().await;
-    for ui in [&mut um, &mut uf] {
+    for ui in [&mut *um, &mut *uf] {
         ui.wait_ready().await;
     }
     let before = [um.rows().await, uf.rows().await];
     m.print_start("part.gcode").await.unwrap();
-    for (k, ui) in [&mut um, &mut uf].into_iter().enumerate() {
+    for (k, ui) in [&mut *um, &mut *uf].into_iter().enumerate() {
         let failed = ui
             .wait_row("from the model", Duration::from_secs(180))
             .await;
@@ -1309,7 +1372,7 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         ui.shot("03-check-failed-desktop").await;
     }
     let ended = poll(Duration::from_secs(60), || async {
-        let s = print_state().await;
+        let s = print_state(m).await;
         (s == "complete" || s == "cancelled" || s == "error").then_some(s)
     })
     .await;
@@ -1318,7 +1381,7 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         Some("cancelled"),
         "the print was not cancelled"
     );
-    for ui in [&mut um, &mut uf] {
+    for ui in [&mut *um, &mut *uf] {
         let text = phone_console_text(ui).await;
         ui.shot("04-check-failed-phone").await;
         assert!(
@@ -1328,11 +1391,6 @@ async fn the_mesh_check_in_a_print_start_in_the_real_mainsail_and_fluidd() {
         );
         ui.desktop().await;
     }
-    drop(d);
-    println!(
-        "the mesh check in a print start, both front ends: {:.0} s",
-        started.elapsed().as_secs_f64()
-    );
 }
 
 /// The G-code of the button `label` in the newest dialog the console lists (what a front end
