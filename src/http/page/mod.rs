@@ -377,14 +377,10 @@ mod tests {
 
     /// A status of each kind, built from the typed structs the agent serializes, with every
     /// nested part filled in.
-    #[allow(clippy::too_many_lines)] // 147 lines: to be split along its steps
     fn typed_status_keys() -> std::collections::BTreeSet<String> {
         use crate::agent::{Connection, DaemonInfo, PageInfo, StatusAnswer};
-        use crate::jobs::ab::{AbRoundStatus, AbStatus};
-        use crate::jobs::backlash::BacklashStatus;
         use crate::jobs::core::envelope::StatusHead;
         use crate::jobs::core::status::{SessionStatus, SessionsStatus};
-        use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
         let head = StatusHead {
             id: 1,
             state: "measuring".into(),
@@ -393,7 +389,50 @@ mod tests {
             notes: vec![],
             finished: false,
         };
-        let ab = AbStatus {
+        let mut last = std::collections::BTreeMap::new();
+        last.insert(
+            "ab".into(),
+            SessionStatus::new("ab", head.clone(), &typed_ab_status()).unwrap(),
+        );
+        last.insert(
+            "mesh".into(),
+            SessionStatus::new("mesh", head.clone(), &typed_mesh_status()).unwrap(),
+        );
+        last.insert(
+            "backlash".into(),
+            SessionStatus::new("backlash", head.clone(), &typed_backlash_status()).unwrap(),
+        );
+        let answer = StatusAnswer {
+            page: Some(PageInfo {
+                address: Some(String::new()),
+                off: Some(String::new()),
+            }),
+            daemon: DaemonInfo {
+                name: "klipcal",
+                version: "0",
+            },
+            connection: Connection {
+                moonraker: "unreachable",
+                klippy_state: Some("ready".into()),
+                last_error: Some(None),
+                message: Some(String::new()),
+            },
+            printer: None,
+            sessions: SessionsStatus {
+                session: last.get("ab").cloned(),
+                last,
+                soak: Some(typed_soak_view()),
+            },
+        };
+        let mut keys = std::collections::BTreeSet::new();
+        keys_of(&serde_json::to_value(answer).unwrap(), &mut keys);
+        keys
+    }
+
+    /// An A/B status with a pair and a round.
+    fn typed_ab_status() -> crate::jobs::ab::AbStatus {
+        use crate::jobs::ab::{AbRoundStatus, AbStatus};
+        AbStatus {
             pairs: Some(vec![crate::layout::Pair {
                 id: "A-D1".into(),
                 group: "A".into(),
@@ -404,8 +443,13 @@ mod tests {
             }]),
             rounds: vec![AbRoundStatus::default()],
             ..AbStatus::default()
-        };
-        let mesh = MeshStatus {
+        }
+    }
+
+    /// A mesh status with a result and a follower that has both a reading and a reason.
+    fn typed_mesh_status() -> crate::jobs::mesh::MeshStatus {
+        use crate::jobs::mesh::{FollowReading, FollowStatus, MeshStatus, ResultDoc};
+        MeshStatus {
             result: Some(ResultDoc {
                 model: "linear".into(),
                 models: vec![],
@@ -431,7 +475,12 @@ mod tests {
                 }),
             },
             ..MeshStatus::default()
-        };
+        }
+    }
+
+    /// A backlash status with cycles, a result, a camera report, a snapshot and a jog button.
+    fn typed_backlash_status() -> crate::jobs::backlash::BacklashStatus {
+        use crate::jobs::backlash::BacklashStatus;
         let cycles = vec![0.1, 0.11, 0.1, 0.12, 0.1]
             .into_iter()
             .map(|b| crate::calib::backlash::Cycle {
@@ -447,7 +496,7 @@ mod tests {
             &crate::config::BacklashConfig::default().params(),
         )
         .unwrap();
-        let backlash = BacklashStatus {
+        BacklashStatus {
             point: [0.0; 3],
             branch: crate::klipper::backlash::detect(&json!({}), &Default::default()).unwrap(),
             axis: None,
@@ -475,63 +524,30 @@ mod tests {
                 press: String::new(),
                 style: String::new(),
             }],
-        };
-        let mut last = std::collections::BTreeMap::new();
-        last.insert(
-            "ab".into(),
-            SessionStatus::new("ab", head.clone(), &ab).unwrap(),
-        );
-        last.insert(
-            "mesh".into(),
-            SessionStatus::new("mesh", head.clone(), &mesh).unwrap(),
-        );
-        last.insert(
-            "backlash".into(),
-            SessionStatus::new("backlash", head.clone(), &backlash).unwrap(),
-        );
-        let answer = StatusAnswer {
-            page: Some(PageInfo {
-                address: Some(String::new()),
-                off: Some(String::new()),
+        }
+    }
+
+    /// A soak view with a question and a live soak.
+    fn typed_soak_view() -> crate::jobs::core::soak_ask::SoakView {
+        crate::jobs::core::soak_ask::SoakView {
+            question: Some(crate::jobs::core::soak_ask::QuestionStatus {
+                title: String::new(),
+                text: String::new(),
+                answers: vec![crate::jobs::core::soak_ask::AnswerStatus {
+                    label: String::new(),
+                    arg: String::new(),
+                    value: String::new(),
+                }],
             }),
-            daemon: DaemonInfo {
-                name: "klipcal",
-                version: "0",
-            },
-            connection: Connection {
-                moonraker: "unreachable",
-                klippy_state: Some("ready".into()),
-                last_error: Some(None),
-                message: Some(String::new()),
-            },
-            printer: None,
-            sessions: SessionsStatus {
-                session: last.get("ab").cloned(),
-                last,
-                soak: Some(crate::jobs::core::soak_ask::SoakView {
-                    question: Some(crate::jobs::core::soak_ask::QuestionStatus {
-                        title: String::new(),
-                        text: String::new(),
-                        answers: vec![crate::jobs::core::soak_ask::AnswerStatus {
-                            label: String::new(),
-                            arg: String::new(),
-                            value: String::new(),
-                        }],
-                    }),
-                    live: Some(crate::jobs::core::soak::LiveSoak {
-                        progress: String::new(),
-                        derivation: String::new(),
-                        eta_s: Some(1.0),
-                        print_now_c: Some(1.0),
-                        fit: None,
-                        at: std::time::Instant::now(),
-                    }),
-                }),
-            },
-        };
-        let mut keys = std::collections::BTreeSet::new();
-        keys_of(&serde_json::to_value(answer).unwrap(), &mut keys);
-        keys
+            live: Some(crate::jobs::core::soak::LiveSoak {
+                progress: String::new(),
+                derivation: String::new(),
+                eta_s: Some(1.0),
+                print_now_c: Some(1.0),
+                fit: None,
+                at: std::time::Instant::now(),
+            }),
+        }
     }
 
     /// The page of a status whose session is a fresh envelope of `kind` in `state`, built the
