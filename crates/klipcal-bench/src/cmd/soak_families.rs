@@ -586,7 +586,6 @@ pub(crate) struct FamilyReport {
 }
 
 /// Runs `beds` beds of one family through the detector.
-#[allow(clippy::too_many_lines)] // 123 lines: to be split along its steps
 pub(crate) fn evaluate(
     name: &'static str,
     beds: usize,
@@ -595,45 +594,107 @@ pub(crate) fn evaluate(
     make: fn(&mut fastrand::Rng) -> Run,
 ) -> FamilyReport {
     let mut rng = fastrand::Rng::with_seed(seed);
-    let mut r = FamilyReport {
-        name,
-        beds,
-        early: 0,
-        within_125: 0,
-        within_150: 0,
-        never: 0,
-        median_ratio: f64::NAN,
-        fixed10_early: 0,
-        fixed15_early: 0,
-        bound_within_125: 0,
-        bound_within_125_half: 0,
-        median_over_bound: f64::NAN,
-        surface_early: 0,
-        surface_within: 0,
-        median_soak_min: f64::NAN,
-        median_surface_min: f64::NAN,
-        identified: 0,
-        covered: 0,
-        g_safe: 0,
-        median_soak_identified_min: f64::NAN,
-        failures: Vec::new(),
-    };
-    let mut soaks_identified = Vec::new();
-    let mut soaks = Vec::new();
-    let mut surfaces = Vec::new();
-    let mut ratios = Vec::new();
-    let mut over_bound = Vec::new();
+    let mut r = FamilyReport::empty(name, beds);
+    let mut samples = Samples::default();
     // The beds are drawn in order (one random stream), then judged on every core.
     let runs: Vec<Run> = (0..beds).map(|_| make(&mut rng)).collect();
     let judged = crate::cmd::par::par_map(&runs, |run| declare(run, params));
     for (k, (run, (declared, why, sigma, coupling))) in runs.iter().zip(judged).enumerate() {
-        let moment = run.t_one_s;
-        if coupling.source == crate::calib::soak::CouplingSource::Identified {
-            r.identified += 1;
-            r.covered += usize::from(coupling.low <= run.g_true && run.g_true <= coupling.high);
-            soaks_identified.push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
+        r.count_coupling(run, declared, &coupling, &mut samples);
+        r.count_bounds(run, declared, sigma, params, &mut samples);
+        if declared.map_or(true, |d| {
+            d < run.t_surface_s || d > 1.5 * run.t_surface_s + 300.0
+        }) {
+            r.failures.push(failure_line(k, run, declared, &why));
         }
-        r.g_safe += usize::from(coupling.g <= run.g_true);
+        r.count_moment(run, declared, &mut samples);
+        r.count_surface(run, declared, &mut samples);
+    }
+    r.take_medians(samples);
+    r
+}
+
+/// The per-bed figures a family's medians are taken over.
+#[derive(Default)]
+struct Samples {
+    soaks_identified: Vec<f64>,
+    soaks: Vec<f64>,
+    surfaces: Vec<f64>,
+    ratios: Vec<f64>,
+    over_bound: Vec<f64>,
+}
+
+/// The line of a bed that missed its target: its time constant, moments, declaration and the
+/// detector's explanation.
+fn failure_line(k: usize, run: &Run, declared: Option<f64>, why: &str) -> String {
+    format!(
+        "bed {k}: slowest τ {:.1} min, max_power {:.2}, reached {:.1} min, 1 % moment {:.1} \
+         min, surface moment {:.1} min, declared {}: {why}",
+        run.tau_s / 60.0,
+        run.max_power,
+        run.t_reach_s / 60.0,
+        run.t_one_s / 60.0,
+        run.t_surface_s / 60.0,
+        declared.map_or("never".to_string(), |d| format!("{:.1} min", d / 60.0)),
+    )
+}
+
+impl FamilyReport {
+    /// A report of `beds` beds with nothing counted yet.
+    fn empty(name: &'static str, beds: usize) -> Self {
+        FamilyReport {
+            name,
+            beds,
+            early: 0,
+            within_125: 0,
+            within_150: 0,
+            never: 0,
+            median_ratio: f64::NAN,
+            fixed10_early: 0,
+            fixed15_early: 0,
+            bound_within_125: 0,
+            bound_within_125_half: 0,
+            median_over_bound: f64::NAN,
+            surface_early: 0,
+            surface_within: 0,
+            median_soak_min: f64::NAN,
+            median_surface_min: f64::NAN,
+            identified: 0,
+            covered: 0,
+            g_safe: 0,
+            median_soak_identified_min: f64::NAN,
+            failures: Vec::new(),
+        }
+    }
+
+    /// The coupling G the detector used: identified, its interval covering the true one, safe.
+    fn count_coupling(
+        &mut self,
+        run: &Run,
+        declared: Option<f64>,
+        coupling: &crate::calib::soak::Coupling,
+        s: &mut Samples,
+    ) {
+        if coupling.source == crate::calib::soak::CouplingSource::Identified {
+            self.identified += 1;
+            self.covered += usize::from(coupling.low <= run.g_true && run.g_true <= coupling.high);
+            s.soaks_identified
+                .push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
+        }
+        self.g_safe += usize::from(coupling.g <= run.g_true);
+    }
+
+    /// The information bound (at τ_max and τ_max / 2) against the 1 % moment, and the
+    /// declaration over the bound.
+    fn count_bounds(
+        &mut self,
+        run: &Run,
+        declared: Option<f64>,
+        sigma: f64,
+        params: &SoakParams,
+        s: &mut Samples,
+    ) {
+        let moment = run.t_one_s;
         let bound = information_bound(
             run.t_reach_s,
             sigma,
@@ -649,75 +710,77 @@ pub(crate) fn evaluate(
             params,
         );
         if bound <= 1.25 * moment + 60.0 {
-            r.bound_within_125 += 1;
+            self.bound_within_125 += 1;
         }
         if half <= 1.25 * moment + 60.0 {
-            r.bound_within_125_half += 1;
+            self.bound_within_125_half += 1;
         }
         if let Some(d) = declared {
-            over_bound.push(d / bound.max(1.0));
+            s.over_bound.push(d / bound.max(1.0));
         }
-        if declared.map_or(true, |d| {
-            d < run.t_surface_s || d > 1.5 * run.t_surface_s + 300.0
-        }) {
-            r.failures.push(format!(
-                "bed {k}: slowest τ {:.1} min, max_power {:.2}, reached {:.1} min, 1 % moment {:.1} \
-                 min, surface moment {:.1} min, declared {}: {why}",
-                run.tau_s / 60.0,
-                run.max_power,
-                run.t_reach_s / 60.0,
-                moment / 60.0,
-                run.t_surface_s / 60.0,
-                declared.map_or("never".to_string(), |d| format!("{:.1} min", d / 60.0)),
-            ));
-        }
+    }
+
+    /// The declaration against the 1 % moment (early, within 1.25 × / 1.5 × + 60 s, never), and
+    /// the fixed 10 and 15 min soaks against it.
+    fn count_moment(&mut self, run: &Run, declared: Option<f64>, s: &mut Samples) {
+        let moment = run.t_one_s;
         match declared {
-            None => r.never += 1,
+            None => self.never += 1,
             Some(d) if d < moment => {
-                r.early += 1;
-                ratios.push(d / moment.max(1.0));
+                self.early += 1;
+                s.ratios.push(d / moment.max(1.0));
             }
             Some(d) => {
                 if d <= 1.25 * moment + 60.0 {
-                    r.within_125 += 1;
+                    self.within_125 += 1;
                 }
                 if d <= 1.5 * moment + 60.0 {
-                    r.within_150 += 1;
+                    self.within_150 += 1;
                 }
-                ratios.push(d / moment.max(1.0));
+                s.ratios.push(d / moment.max(1.0));
             }
         }
-        let ts = run.t_surface_s;
-        soaks.push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
-        surfaces.push((ts - run.t_reach_s).max(0.0) / 60.0);
-        match declared {
-            Some(d) if d < ts => r.surface_early += 1,
-            Some(d) if d <= 1.5 * ts + 300.0 => r.surface_within += 1,
-            _ => {}
-        }
         if run.t_reach_s + 600.0 < moment {
-            r.fixed10_early += 1;
+            self.fixed10_early += 1;
         }
         if run.t_reach_s + 900.0 < moment {
-            r.fixed15_early += 1;
+            self.fixed15_early += 1;
         }
     }
-    let med = |mut v: Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
-    };
-    r.median_soak_min = med(soaks);
-    r.median_soak_identified_min = med(soaks_identified);
-    r.median_surface_min = med(surfaces);
-    ratios.sort_by(f64::total_cmp);
-    if !ratios.is_empty() {
-        r.median_ratio = ratios[ratios.len() / 2];
+
+    /// The declaration against the surface moment, and the soak and surface times.
+    fn count_surface(&mut self, run: &Run, declared: Option<f64>, s: &mut Samples) {
+        let ts = run.t_surface_s;
+        s.soaks
+            .push(declared.map_or(1e9, |d| (d - run.t_reach_s) / 60.0));
+        s.surfaces.push((ts - run.t_reach_s).max(0.0) / 60.0);
+        match declared {
+            Some(d) if d < ts => self.surface_early += 1,
+            Some(d) if d <= 1.5 * ts + 300.0 => self.surface_within += 1,
+            _ => {}
+        }
     }
-    over_bound.sort_by(f64::total_cmp);
-    if !over_bound.is_empty() {
-        r.median_over_bound = over_bound[over_bound.len() / 2];
+
+    /// The medians over the family's beds.
+    fn take_medians(&mut self, s: Samples) {
+        let med = |mut v: Vec<f64>| {
+            v.sort_by(f64::total_cmp);
+            v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+        };
+        self.median_soak_min = med(s.soaks);
+        self.median_soak_identified_min = med(s.soaks_identified);
+        self.median_surface_min = med(s.surfaces);
+        let mut ratios = s.ratios;
+        ratios.sort_by(f64::total_cmp);
+        if !ratios.is_empty() {
+            self.median_ratio = ratios[ratios.len() / 2];
+        }
+        let mut over_bound = s.over_bound;
+        over_bound.sort_by(f64::total_cmp);
+        if !over_bound.is_empty() {
+            self.median_over_bound = over_bound[over_bound.len() / 2];
+        }
     }
-    r
 }
 
 #[cfg(test)]
