@@ -177,8 +177,50 @@ struct Lag {
 /// widens it). A layer behind the first one whose lag is short or whose share is small (a
 /// steel sheet on its magnet) does not show: it only lowers G below b, by at most what its
 /// build allows ([`BedPreset::hidden_s`]).
-#[allow(clippy::too_many_lines)] // 129 lines: to be split along its steps
 fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
+    let n = bins.len();
+    let t0 = heat_up_start(bins)?;
+    let taus = tau_grid();
+    let fits: Vec<IdFit> = taus
+        .iter()
+        .filter_map(|tau| one_lag_fit(bins, t0, *tau))
+        .collect();
+    let best = fits
+        .iter()
+        .min_by(|a, b| a.sse.total_cmp(&b.sse))
+        .ok_or("the heat-up does not fit a bed's heat balance")?;
+    if best.tau > LAG_MAX_S {
+        return Err(LagError::TooSlow(best.tau));
+    }
+    // One lag must do: a stack of two layers that show apart (a plate under glass, sensed in
+    // the pad) fits a second lag clearly better, and then the first lag is the nearer layer,
+    // not the surface: its coupling would be too strong to be safe.
+    let two = best_two_lags(bins, t0, &taus);
+    // The noise is taken about the richer fit (two lags), so a one-lag model that misses a
+    // layer cannot hide its own misfit in the noise it is judged by.
+    let (sse2, res) = two.unwrap_or_else(|| (best.sse, best.res.clone()));
+    let sigma2 = noise_sigma2(sse2, &res, n);
+    if best.sse - sse2 > Z * Z * sigma2 {
+        return Err(format!(
+            "the heat-up shows more than one layer between the thermistor and the surface (two \
+             lags fit it better by {:.0} σ²)",
+            (best.sse - sse2) / sigma2
+        )
+        .into());
+    }
+    let (low, high) = profile_interval(&fits, best, sigma2);
+    if !(low > 0.0 && high.is_finite()) {
+        return Err(format!(
+            "the heat-up's lag does not show (its low end {low:.4} is not above 0)"
+        )
+        .into());
+    }
+    Ok(Lag { low, high })
+}
+
+/// The heat-up's starting temperature T₀, once it is long enough and rose enough to identify
+/// the coupling from.
+fn heat_up_start(bins: &[[f64; 4]]) -> Result<f64, LagError> {
     let n = bins.len();
     if n < ID_MIN_HEAT_BINS + 6 {
         return Err(format!("too short a heat-up to identify the coupling ({n} bins)").into());
@@ -192,90 +234,99 @@ fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
         )
         .into());
     }
-    // The lag filter of T − T₀ for time constant τ, exact for a linear change within a bin.
-    let filtered = |tau: f64| -> Vec<f64> {
-        let mut f = 0.0;
-        let mut out = Vec::with_capacity(n);
-        for (i, b) in bins.iter().enumerate() {
-            if i > 0 {
-                let dt = b[0] - bins[i - 1][0];
-                let x = 0.5 * (b[2] + bins[i - 1][2]) - t0;
-                f += (1.0 - (-dt / tau).exp()) * (x - f);
-            }
-            out.push(f);
+    Ok(t0)
+}
+
+/// The lag filter of T − T₀ for time constant τ, exact for a linear change within a bin.
+fn lag_filtered(bins: &[[f64; 4]], t0: f64, tau: f64) -> Vec<f64> {
+    let mut f = 0.0;
+    let mut out = Vec::with_capacity(bins.len());
+    for (i, b) in bins.iter().enumerate() {
+        if i > 0 {
+            let dt = b[0] - bins[i - 1][0];
+            let x = 0.5 * (b[2] + bins[i - 1][2]) - t0;
+            f += (1.0 - (-dt / tau).exp()) * (x - f);
         }
-        out
-    };
-    let fit = |tau: f64| -> Option<IdFit> {
-        let f = filtered(tau);
-        let x = DMatrix::from_fn(n, 3, |i, j| match j {
-            0 => bins[i][3],
-            1 => bins[i][2] - t0,
-            _ => -f[i],
-        });
-        let y = DVector::from_iterator(n, bins.iter().map(|b| b[1]));
-        let xtx = x.transpose() * &x;
-        let inv = xtx.clone().try_inverse()?;
-        let coef = &inv * (x.transpose() * &y);
-        let res: Vec<f64> = (0..n)
-            .map(|i| y[i] - x.row(i).dot(&coef.transpose()))
-            .collect();
-        let sse = res.iter().map(|r| r * r).sum::<f64>();
-        coef.iter().all(|c| c.is_finite()).then_some(IdFit {
-            tau,
-            coef,
-            sse,
-            inv,
-            res,
-        })
-    };
+        out.push(f);
+    }
+    out
+}
+
+/// The τ grid the lag is scanned on: 10 s to 1 h, steps of 25 %.
+fn tau_grid() -> Vec<f64> {
     let mut taus = Vec::new();
     let mut tau = 10.0;
     while tau <= 3600.0 {
         taus.push(tau);
         tau *= 1.25;
     }
-    let fits: Vec<IdFit> = taus.iter().filter_map(|tau| fit(*tau)).collect();
-    let best = fits
-        .iter()
-        .min_by(|a, b| a.sse.total_cmp(&b.sse))
-        .ok_or("the heat-up does not fit a bed's heat balance")?;
-    if best.tau > LAG_MAX_S {
-        return Err(LagError::TooSlow(best.tau));
-    }
-    // One lag must do: a stack of two layers that show apart (a plate under glass, sensed in
-    // the pad) fits a second lag clearly better, and then the first lag is the nearer layer,
-    // not the surface: its coupling would be too strong to be safe.
-    let two_lags = |t1: f64, t2: f64| -> Option<(f64, Vec<f64>)> {
-        let (f1, f2) = (filtered(t1), filtered(t2));
-        let x = DMatrix::from_fn(n, 4, |i, j| match j {
-            0 => bins[i][3],
-            1 => bins[i][2] - t0,
-            2 => -f1[i],
-            _ => -f2[i],
-        });
-        let y = DVector::from_iterator(n, bins.iter().map(|b| b[1]));
-        let coef = (x.transpose() * &x).try_inverse()? * (x.transpose() * &y);
-        let r = &y - &x * &coef;
-        coef.iter()
-            .all(|c| c.is_finite())
-            .then(|| (r.dot(&r), r.iter().copied().collect()))
-    };
+    taus
+}
+
+/// The heat balance with one lag of time constant `tau` fitted by least squares (C, a, b),
+/// or `None` when it is singular.
+fn one_lag_fit(bins: &[[f64; 4]], t0: f64, tau: f64) -> Option<IdFit> {
+    let n = bins.len();
+    let f = lag_filtered(bins, t0, tau);
+    let x = DMatrix::from_fn(n, 3, |i, j| match j {
+        0 => bins[i][3],
+        1 => bins[i][2] - t0,
+        _ => -f[i],
+    });
+    let y = DVector::from_iterator(n, bins.iter().map(|b| b[1]));
+    let xtx = x.transpose() * &x;
+    let inv = xtx.clone().try_inverse()?;
+    let coef = &inv * (x.transpose() * &y);
+    let res: Vec<f64> = (0..n)
+        .map(|i| y[i] - x.row(i).dot(&coef.transpose()))
+        .collect();
+    let sse = res.iter().map(|r| r * r).sum::<f64>();
+    coef.iter().all(|c| c.is_finite()).then_some(IdFit {
+        tau,
+        coef,
+        sse,
+        inv,
+        res,
+    })
+}
+
+/// The heat balance with two lags `t1` and `t2`: its sum of squares and residuals.
+fn two_lag_fit(bins: &[[f64; 4]], t0: f64, t1: f64, t2: f64) -> Option<(f64, Vec<f64>)> {
+    let n = bins.len();
+    let (f1, f2) = (lag_filtered(bins, t0, t1), lag_filtered(bins, t0, t2));
+    let x = DMatrix::from_fn(n, 4, |i, j| match j {
+        0 => bins[i][3],
+        1 => bins[i][2] - t0,
+        2 => -f1[i],
+        _ => -f2[i],
+    });
+    let y = DVector::from_iterator(n, bins.iter().map(|b| b[1]));
+    let coef = (x.transpose() * &x).try_inverse()? * (x.transpose() * &y);
+    let r = &y - &x * &coef;
+    coef.iter()
+        .all(|c| c.is_finite())
+        .then(|| (r.dot(&r), r.iter().copied().collect()))
+}
+
+/// The best two-lag fit over every other τ of the grid (the second lag at least two steps
+/// beyond the first).
+fn best_two_lags(bins: &[[f64; 4]], t0: f64, taus: &[f64]) -> Option<(f64, Vec<f64>)> {
     let mut two: Option<(f64, Vec<f64>)> = None;
     for (i, t1) in taus.iter().enumerate().step_by(2) {
         for t2 in taus.iter().skip(i + 2).step_by(2) {
-            if let Some(v) = two_lags(*t1, *t2) {
+            if let Some(v) = two_lag_fit(bins, t0, *t1, *t2) {
                 if two.as_ref().map_or(true, |b| v.0 < b.0) {
                     two = Some(v);
                 }
             }
         }
     }
-    // Noise at the one-minute scale (blocks of 6 bins) and beyond: a PID's noise is
-    // correlated, and single bins would understate it. It is taken about the richer fit (two
-    // lags), so a one-lag model that misses a layer cannot hide its own misfit in the noise
-    // it is judged by.
-    let (sse2, res) = two.unwrap_or_else(|| (best.sse, best.res.clone()));
+    two
+}
+
+/// The noise variance σ² at the one-minute scale (blocks of 6 bins) and beyond, at least the
+/// white one: a PID's noise is correlated, and single bins would understate it.
+fn noise_sigma2(sse2: f64, res: &[f64], n: usize) -> f64 {
     let white = sse2 / (n - 4) as f64;
     let m = 6;
     let blocks: Vec<f64> = res
@@ -287,19 +338,16 @@ fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
     } else {
         white
     };
-    let sigma2 = white.max(long);
-    if best.sse - sse2 > Z * Z * sigma2 {
-        return Err(format!(
-            "the heat-up shows more than one layer between the thermistor and the surface (two \
-             lags fit it better by {:.0} σ²)",
-            (best.sse - sse2) / sigma2
-        )
-        .into());
-    }
+    white.max(long)
+}
+
+/// G's interval [b, a] over the 95 % profile: every τ whose fit is within 2² σ² of the best,
+/// each widened by the exact profile at that τ.
+fn profile_interval(fits: &[IdFit], best: &IdFit, sigma2: f64) -> (f64, f64) {
     let (mut low, mut high) = (f64::INFINITY, f64::NEG_INFINITY);
     for IdFit {
         coef: c, sse, inv, ..
-    } in &fits
+    } in fits
     {
         // The 95 % profile: a fit worse than the best by more than 2² σ² is ruled out.
         if (sse - best.sse) > 4.0 * sigma2 {
@@ -312,13 +360,7 @@ fn lag_fit(bins: &[[f64; 4]]) -> Result<Lag, LagError> {
         low = low.min(c[2] - half(2));
         high = high.max(c[1] + half(1));
     }
-    if !(low > 0.0 && high.is_finite()) {
-        return Err(format!(
-            "the heat-up's lag does not show (its low end {low:.4} is not above 0)"
-        )
-        .into());
-    }
-    Ok(Lag { low, high })
+    (low, high)
 }
 
 /// The bed's whole heat capacity, full power·s/K, at its low end, from the energy of a cold
