@@ -207,19 +207,24 @@ fn residual(img: &Gray<'_>, bg: &Background, x: [usize; 2], y: [usize; 2]) -> Ve
     out
 }
 
-impl Reference {
-    /// The reference from the first clicked snapshot: `click_px` ± `click_sd_px` (1 sd).
-    ///
-    /// # Errors
-    /// A bad buffer, nothing standing out under the click, or a nozzle at the picture's edge.
-    #[allow(clippy::too_many_lines)] // 151 lines: to be split along its steps
-    pub fn new(
-        img: &Gray<'_>,
-        click_px: [f64; 2],
-        click_sd_px: f64,
-        p: &RegisterParams,
-    ) -> Result<Reference, ClickRefusal> {
-        check(img)?;
+/// The window around a click: the picture's residual from its static background there, 3×3
+/// smoothed, and the contrast an object under the click needs.
+struct ClickWindow {
+    bg: Background,
+    /// The click's pixel.
+    c: [f64; 2],
+    wx: [usize; 2],
+    wy: [usize; 2],
+    rs: Vec<f32>,
+    /// The pixel noise.
+    sigma: f64,
+    strongest: f64,
+    needed: f64,
+}
+
+impl ClickWindow {
+    /// The window, or why nothing under the click stands out.
+    fn new(img: &Gray<'_>, click_px: [f64; 2], p: &RegisterParams) -> Result<Self, ClickRefusal> {
         let (w, h) = (img.width, img.height);
         let (bg, _) = Background::fit_across(img, BACKGROUND_SAMPLES);
         // A window around the click for finding the object under it.
@@ -243,7 +248,31 @@ impl Reference {
                 needed,
             });
         }
-        let thr = (0.3 * strongest).max(0.5 * needed) as f32;
+        Ok(ClickWindow {
+            bg,
+            c: [cx, cy],
+            wx,
+            wy,
+            rs,
+            sigma,
+            strongest,
+            needed,
+        })
+    }
+
+    /// The box of the object under the click in the picture and its margin: the nearest
+    /// region within the click's reach, or on a nozzle that fills the window the region round
+    /// the click.
+    fn object_box(
+        &self,
+        w: usize,
+        h: usize,
+        click_sd_px: f64,
+    ) -> Result<([usize; 2], [usize; 2], usize), ClickRefusal> {
+        let (wx, wy, rs) = (self.wx, self.wy, &self.rs);
+        let (ww, wh) = (wx[1] - wx[0], wy[1] - wy[0]);
+        let [cx, cy] = self.c;
+        let thr = (0.3 * self.strongest).max(0.5 * self.needed) as f32;
         let mask: Vec<bool> = rs.iter().map(|v| v.abs() > thr).collect();
         let (kx, ky) = (cx as usize - wx[0], cy as usize - wy[0]);
         let near = |r: &Region| {
@@ -256,39 +285,129 @@ impl Reference {
             dx.hypot(dy)
         };
         let reach = 3.0 * click_sd_px + 2.0;
-        let obj = join_nested(regions(&mask, &rs, ww, wh))
+        let obj = join_nested(regions(&mask, rs, ww, wh))
             .into_iter()
             .filter(|r| r.area >= 20 && near(r) <= reach)
             .min_by(|a, b| near(a).total_cmp(&near(b)));
-        let (bx, by, m) = match obj {
+        match obj {
             // The object's box in the picture, plus a margin for the blurred edge.
-            Some(obj) if obj.x0 > 0 && obj.y0 > 0 && obj.x1 + 1 < ww && obj.y1 + 1 < wh => (
+            Some(obj) if obj.x0 > 0 && obj.y0 > 0 && obj.x1 + 1 < ww && obj.y1 + 1 < wh => Ok((
                 [wx[0] + obj.x0, wx[0] + obj.x1 + 1],
                 [wy[0] + obj.y0, wy[0] + obj.y1 + 1],
                 (4.0 + 0.25 * obj.half_extent()).ceil() as usize,
-            ),
-            // A zoomed-in nozzle fills the window (issue 37): nothing is an object on a
-            // background, so the region round the click is the patch, if it has structure.
-            _ => {
-                let hs = (w.min(h) / 8).clamp(12, 48);
-                let (x0, y0) = (
-                    (cx as usize).saturating_sub(hs),
-                    (cy as usize).saturating_sub(hs),
-                );
-                let strong = (y0..(cy as usize + hs + 1).min(h))
-                    .flat_map(|y| (x0..(cx as usize + hs + 1).min(w)).map(move |x| (x, y)))
-                    .filter(|&(x, y)| (wx[0]..wx[1]).contains(&x) && (wy[0]..wy[1]).contains(&y))
-                    .map(|(x, y)| f64::from(rs[(y - wy[0]) * ww + x - wx[0]].abs()))
-                    .fold(0.0, f64::max);
-                if strong < needed {
-                    return Err(ClickRefusal::NothingAtClick {
-                        contrast: f64::from(rs[ky * ww + kx].abs()),
-                        needed,
-                    });
-                }
-                ([x0, cx as usize + hs + 1], [y0, cy as usize + hs + 1], 0)
+            )),
+            _ => self.filled_box(w, h, kx, ky),
+        }
+    }
+
+    /// A zoomed-in nozzle fills the window (issue 37): nothing is an object on a background, so
+    /// the region round the click is the patch, if it has structure.
+    fn filled_box(
+        &self,
+        w: usize,
+        h: usize,
+        kx: usize,
+        ky: usize,
+    ) -> Result<([usize; 2], [usize; 2], usize), ClickRefusal> {
+        let (wx, wy, rs) = (self.wx, self.wy, &self.rs);
+        let ww = wx[1] - wx[0];
+        let [cx, cy] = self.c;
+        let needed = self.needed;
+        let hs = (w.min(h) / 8).clamp(12, 48);
+        let (x0, y0) = (
+            (cx as usize).saturating_sub(hs),
+            (cy as usize).saturating_sub(hs),
+        );
+        let strong = (y0..(cy as usize + hs + 1).min(h))
+            .flat_map(|y| (x0..(cx as usize + hs + 1).min(w)).map(move |x| (x, y)))
+            .filter(|&(x, y)| (wx[0]..wx[1]).contains(&x) && (wy[0]..wy[1]).contains(&y))
+            .map(|(x, y)| f64::from(rs[(y - wy[0]) * ww + x - wx[0]].abs()))
+            .fold(0.0, f64::max);
+        if strong < needed {
+            return Err(ClickRefusal::NothingAtClick {
+                contrast: f64::from(rs[ky * ww + kx].abs()),
+                needed,
+            });
+        }
+        Ok(([x0, cx as usize + hs + 1], [y0, cy as usize + hs + 1], 0))
+    }
+}
+
+/// The patch's template (less the plane of what is left of the static background across it,
+/// less its mean) and its gradient energy Σ∇t∇tᵀ, from the smoothed patch `ext` with 2 px
+/// around it; `m` is the margin around the object.
+fn template(ext: &[f32], size: [usize; 2], m: usize) -> (Vec<f32>, nalgebra::Matrix2<f64>) {
+    let ew = size[0] + 4;
+    let at = |i: usize, j: usize| f64::from(ext[(j + 2) * ew + i + 2]);
+    let n = (size[0] * size[1]) as f64;
+    let mean = (0..size[1])
+        .flat_map(|j| (0..size[0]).map(move |i| (i, j)))
+        .map(|(i, j)| at(i, j))
+        .sum::<f64>()
+        / n;
+    // What is left of the static background across the patch, as a plane fitted to the
+    // margin around the object: left in, it would correlate with the nozzle's gradient
+    // in the next picture and shift the match.
+    let mut nm = nalgebra::Matrix3::<f64>::zeros();
+    let mut nb = nalgebra::Vector3::<f64>::zeros();
+    for j in 0..size[1] {
+        for i in 0..size[0] {
+            if (m..size[0] - m).contains(&i) && (m..size[1] - m).contains(&j) {
+                continue;
             }
-        };
+            let b = nalgebra::Vector3::new(
+                1.0,
+                i as f64 - 0.5 * size[0] as f64,
+                j as f64 - 0.5 * size[1] as f64,
+            );
+            nm += b * b.transpose();
+            nb += b * at(i, j);
+        }
+    }
+    let plane = nm
+        .lu()
+        .solve(&nb)
+        .unwrap_or_else(|| nalgebra::Vector3::new(mean, 0.0, 0.0));
+    let at = |i: usize, j: usize| {
+        at(i, j)
+            - plane[1] * (i as f64 - 0.5 * size[0] as f64)
+            - plane[2] * (j as f64 - 0.5 * size[1] as f64)
+    };
+    let mean = (0..size[1])
+        .flat_map(|j| (0..size[0]).map(move |i| (i, j)))
+        .map(|(i, j)| at(i, j))
+        .sum::<f64>()
+        / n;
+    let mut t = Vec::with_capacity(size[0] * size[1]);
+    let mut g = nalgebra::Matrix2::<f64>::zeros();
+    for j in 0..size[1] {
+        for i in 0..size[0] {
+            t.push((at(i, j) - mean) as f32);
+            let e = |di: i64, dj: i64| {
+                f64::from(ext[((j + 2) as i64 + dj) as usize * ew + ((i + 2) as i64 + di) as usize])
+            };
+            let gr = nalgebra::Vector2::new(0.5 * (e(1, 0) - e(-1, 0)), 0.5 * (e(0, 1) - e(0, -1)));
+            g += gr * gr.transpose();
+        }
+    }
+    (t, g)
+}
+
+impl Reference {
+    /// The reference from the first clicked snapshot: `click_px` ± `click_sd_px` (1 sd).
+    ///
+    /// # Errors
+    /// A bad buffer, nothing standing out under the click, or a nozzle at the picture's edge.
+    pub fn new(
+        img: &Gray<'_>,
+        click_px: [f64; 2],
+        click_sd_px: f64,
+        p: &RegisterParams,
+    ) -> Result<Reference, ClickRefusal> {
+        check(img)?;
+        let (w, h) = (img.width, img.height);
+        let win = ClickWindow::new(img, click_px, p)?;
+        let (bx, by, m) = win.object_box(w, h, click_sd_px)?;
         if bx[0] < m + 3 || by[0] < m + 3 || bx[1] + m + 3 > w || by[1] + m + 3 > h {
             return Err(ClickRefusal::AtEdge { at_px: click_px });
         }
@@ -299,72 +418,18 @@ impl Reference {
         // longer pulls the sub-pixel shift toward half pixels), with 2 px around it for the
         // smoothing and the gradients.
         let ext = box3(
-            &residual(img, &bg, [px[0] - 2, px[1] + 2], [py[0] - 2, py[1] + 2]),
+            &residual(img, &win.bg, [px[0] - 2, px[1] + 2], [py[0] - 2, py[1] + 2]),
             size[0] + 4,
             size[1] + 4,
         );
-        let ew = size[0] + 4;
-        let at = |i: usize, j: usize| f64::from(ext[(j + 2) * ew + i + 2]);
-        let n = (size[0] * size[1]) as f64;
-        let mean = (0..size[1])
-            .flat_map(|j| (0..size[0]).map(move |i| (i, j)))
-            .map(|(i, j)| at(i, j))
-            .sum::<f64>()
-            / n;
-        // What is left of the static background across the patch, as a plane fitted to the
-        // margin around the object: left in, it would correlate with the nozzle's gradient
-        // in the next picture and shift the match.
-        let mut nm = nalgebra::Matrix3::<f64>::zeros();
-        let mut nb = nalgebra::Vector3::<f64>::zeros();
-        for j in 0..size[1] {
-            for i in 0..size[0] {
-                if (m..size[0] - m).contains(&i) && (m..size[1] - m).contains(&j) {
-                    continue;
-                }
-                let b = nalgebra::Vector3::new(
-                    1.0,
-                    i as f64 - 0.5 * size[0] as f64,
-                    j as f64 - 0.5 * size[1] as f64,
-                );
-                nm += b * b.transpose();
-                nb += b * at(i, j);
-            }
-        }
-        let plane = nm
-            .lu()
-            .solve(&nb)
-            .unwrap_or_else(|| nalgebra::Vector3::new(mean, 0.0, 0.0));
-        let at = |i: usize, j: usize| {
-            at(i, j)
-                - plane[1] * (i as f64 - 0.5 * size[0] as f64)
-                - plane[2] * (j as f64 - 0.5 * size[1] as f64)
-        };
-        let mean = (0..size[1])
-            .flat_map(|j| (0..size[0]).map(move |i| (i, j)))
-            .map(|(i, j)| at(i, j))
-            .sum::<f64>()
-            / n;
-        let mut t = Vec::with_capacity(size[0] * size[1]);
-        let mut g = nalgebra::Matrix2::<f64>::zeros();
-        for j in 0..size[1] {
-            for i in 0..size[0] {
-                t.push((at(i, j) - mean) as f32);
-                let e = |di: i64, dj: i64| {
-                    f64::from(
-                        ext[((j + 2) as i64 + dj) as usize * ew + ((i + 2) as i64 + di) as usize],
-                    )
-                };
-                let gr =
-                    nalgebra::Vector2::new(0.5 * (e(1, 0) - e(-1, 0)), 0.5 * (e(0, 1) - e(0, -1)));
-                g += gr * gr.transpose();
-            }
-        }
+        let (t, g) = template(&ext, size, m);
         let Some(g_inv) = g.try_inverse() else {
             return Err(ClickRefusal::NothingAtClick {
-                contrast: strongest,
-                needed,
+                contrast: win.strongest,
+                needed: win.needed,
             });
         };
+        let sigma = win.sigma;
         // The reference's own share of a reading's sd: the patch's noise over its gradient
         // energy (the Cramér–Rao bound of one picture's position), per axis; the 3×3 box
         // leaves a ninth of white noise's variance, its neighbours correlated (ρ = ⅔ per axis,
