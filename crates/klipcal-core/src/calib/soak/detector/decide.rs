@@ -211,102 +211,16 @@ impl SoakDetector {
         self.explanation = status_reason(&self.status);
     }
 
-    #[allow(clippy::too_many_lines)] // 201 lines: to be split along its steps
     pub(super) fn decide(&mut self, now_s: f64, t0: f64) {
         let p = self.params.clone();
         let span = now_s - t0;
-        if self.points.len() < MIN_POINTS {
-            self.soaking_without_a_fit(format!(
-                "collecting power readings ({} of {MIN_POINTS} bins of {:.0} s)",
-                self.points.len(),
-                p.bin_s
-            ));
-            return;
-        }
-        let tests: Option<Vec<DirectionTest>> = self
-            .directions()
-            .iter()
-            .map(|sign| self.test(*sign, now_s))
-            .collect();
-        let Some(tests) = tests else {
-            self.soaking_without_a_fit("power readings do not fit a decay yet".into());
+        let Some((t, ruled_out)) = self.chosen_test(now_s) else {
             return;
         };
-        let ruled_out = tests.iter().all(|t| t.ruled_out);
-        // What is reported: a direction still waited for, and of those (or of all, once
-        // both are ruled out) the one that fits the data better.
-        let Some(t) = tests.into_iter().max_by(|a, b| {
-            (!a.ruled_out)
-                .cmp(&!b.ruled_out)
-                .then(b.best.sse.total_cmp(&a.best.sse))
-        }) else {
-            return;
-        };
-        let DirectionTest {
-            sign,
-            best,
-            white,
-            sigma2,
-            remaining,
-            remaining_upper,
-            remaining_95,
-            ..
-        } = t;
-        let theta = self.threshold();
-        let g = self.decays_at(now_s);
-        let contrib: Vec<(f64, f64)> = self
-            .taus
-            .iter()
-            .enumerate()
-            .map(|(k, tau)| (*tau, best.coef[k + 1] * g[k + 1]))
-            .collect();
-        let left: f64 = contrib.iter().map(|(_, c)| c.max(0.0)).sum();
-        let tau_s = if left > 0.0 {
-            contrib.iter().map(|(tau, c)| tau * c.max(0.0)).sum::<f64>() / left
-        } else {
-            // Nothing left: the τ of the largest decay fitted.
-            self.taus
-                .iter()
-                .zip(best.coef.iter().skip(1))
-                .max_by(|a, b| a.1.total_cmp(b.1))
-                .map_or(grid_min_s(&self.params), |(tau, _)| *tau)
-        };
-        let slowest = contrib.last().map_or(0.0, |(_, c)| *c);
-        let rising = sign < 0.0;
-        let (fall, falling) = if rising {
-            ("rise", "rising")
-        } else {
-            ("fall", "falling")
-        };
-        let fit = DecayFit {
-            tau_s,
-            final_power: sign * best.coef[0],
-            remaining,
-            remaining_upper,
-            amplitude: sign * best.coef.iter().skip(1).take(self.taus.len()).sum::<f64>(),
-            rising,
-            tau_unbounded: slowest > 0.5 * remaining.max(theta),
-            noise_sd: white.sqrt(),
-            test_sd: sigma2.sqrt(),
-            noise_inflation: (sigma2 / white.max(1e-18)).sqrt().max(1.0),
-            threshold: theta,
-            surface_upper_c: self.surface_c(remaining_upper),
-            surface_95_c: self.surface_c(remaining_95),
-        };
+        let fit = self.decay_fit(&t, now_s);
         self.fit = Some(fit);
-        let budget = p.surface_budget_c;
         let span_ok = span >= p.min_soak_s;
-        // A heater between off and its cap always moves a little, and so does a thermistor's
-        // reading: readings frozen for minutes are a stopped Klipper (a shutdown keeps logging
-        // its last values), not a settled bed.
-        let frozen_s = match (self.unchanged_since_s, self.reading) {
-            (Some(since), Some((power, _)))
-                if power > 0.0 && power < self.params.saturated_power * self.max_power =>
-            {
-                now_s - since
-            }
-            _ => 0.0,
-        };
+        let frozen_s = self.frozen_s(now_s);
         let frozen = frozen_s >= FROZEN_S;
         let saturated_recently = self
             .last_saturated_s
@@ -314,35 +228,10 @@ impl SoakDetector {
         // Early in a soak (or on a bed whose power wanders) the best fit can head for a power
         // the heater cannot give; its numbers would only confuse: say so in words instead.
         let plausible = (-0.05..=self.max_power + 0.05).contains(&fit.final_power)
-            && remaining <= self.max_power
-            && remaining_upper <= self.max_power;
-        let surface = if rising { "cool" } else { "warm" };
-        let fit_words = if plausible {
-            format!(
-                "the print surface can still {surface} by at most {:.2} K (budget {budget:.1} K); \
-                 power best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most \
-                 {:.2} % (allowed {:.2} %; power noise {:.2} %); {}; {}",
-                fit.surface_upper_c,
-                remaining * 100.0,
-                tau_s / 60.0,
-                fit.final_power * 100.0,
-                remaining_upper * 100.0,
-                theta * 100.0,
-                sigma2.sqrt() * 100.0,
-                self.coupling.why,
-                self.slowest_words()
-            )
-        } else {
-            format!(
-                "the power is still changing too much to tell where it settles (stable once less \
-                 than {:.2} % can still {fall}, the surface's budget of {budget:.1} K; power \
-                 noise {:.2} %); {}; {}",
-                theta * 100.0,
-                sigma2.sqrt() * 100.0,
-                self.coupling.why,
-                self.slowest_words()
-            )
-        };
+            && t.remaining <= self.max_power
+            && t.remaining_upper <= self.max_power;
+        let fit_words = self.fit_words(&fit, &t, plausible);
+        let falling = if fit.rising { "rising" } else { "falling" };
         if span_ok && ruled_out && !saturated_recently && !frozen {
             self.status = SoakStatus::Stable { at_s: now_s };
             self.explanation = format!(
@@ -356,15 +245,7 @@ impl SoakDetector {
         }
         let mut waits = Vec::new();
         if !ruled_out {
-            if plausible && fit.tau_unbounded && remaining > theta {
-                waits.push(format!(
-                    "power still {falling} steadily ({:.3} %/min); the end of the decay is not \
-                     in sight yet ({fit_words})",
-                    remaining / tau_s * 6000.0
-                ));
-            } else {
-                waits.push(format!("power may still {fall}: {fit_words}"));
-            }
+            waits.push(still_changing(&fit, plausible, &fit_words));
         }
         if frozen {
             waits.push(format!(
@@ -390,28 +271,7 @@ impl SoakDetector {
                 "the heater was at full power within the minimum soak".into()
             });
         }
-        // ETA: the best fit's fall to θ, and the span the test needs to rule out
-        // the slowest decay allowed: its slope θ/τ_max known to ± θ/(Z·τ_max) at this noise
-        // (n bins over a span W give the slope to ± σ·√(12/n)/W).
-        let physical = Some(if remaining > theta {
-            tau_s * (remaining / theta).ln()
-        } else {
-            0.0
-        });
-        let statistical = if ruled_out {
-            Some(0.0)
-        } else {
-            let need = (Z * p.slowest_s() * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta)
-                .powf(2.0 / 3.0);
-            Some((need - span).max(0.0).min(4.0 * p.slowest_s()))
-        };
-        let eta_s = match (physical, statistical) {
-            (Some(a), Some(b)) => Some(a.max(b)),
-            (Some(a), None) if a > 0.0 => Some(a),
-            (None, Some(b)) => Some(b),
-            _ => None,
-        }
-        .map(|e| e.max(p.min_soak_s - span).max(p.bin_s));
+        let eta_s = self.eta_s(&fit, t.sigma2, span, ruled_out);
         // The progress a user sees never goes back within a soak (the ETA may).
         let progress = eta_s
             .map_or(0.0, |eta| (span / (span + eta)).clamp(0.0, 1.0))
@@ -426,5 +286,187 @@ impl SoakDetector {
             reason: waits.join("; "),
         };
         self.explanation = status_reason(&self.status);
+    }
+
+    /// The direction test reported and whether every direction is ruled out, or `None` (the
+    /// status then says why) while there are too few bins or nothing fits yet.
+    fn chosen_test(&mut self, now_s: f64) -> Option<(DirectionTest, bool)> {
+        if self.points.len() < MIN_POINTS {
+            self.soaking_without_a_fit(format!(
+                "collecting power readings ({} of {MIN_POINTS} bins of {:.0} s)",
+                self.points.len(),
+                self.params.bin_s
+            ));
+            return None;
+        }
+        let tests: Option<Vec<DirectionTest>> = self
+            .directions()
+            .iter()
+            .map(|sign| self.test(*sign, now_s))
+            .collect();
+        let Some(tests) = tests else {
+            self.soaking_without_a_fit("power readings do not fit a decay yet".into());
+            return None;
+        };
+        let ruled_out = tests.iter().all(|t| t.ruled_out);
+        // What is reported: a direction still waited for, and of those (or of all, once
+        // both are ruled out) the one that fits the data better.
+        let t = tests.into_iter().max_by(|a, b| {
+            (!a.ruled_out)
+                .cmp(&!b.ruled_out)
+                .then(b.best.sse.total_cmp(&a.best.sse))
+        })?;
+        Some((t, ruled_out))
+    }
+
+    /// The decay fit reported for the test `t`: the weighted τ of what is left, the final
+    /// power, what may still change and the surface's bounds.
+    fn decay_fit(&self, t: &DirectionTest, now_s: f64) -> DecayFit {
+        let DirectionTest {
+            sign,
+            best,
+            white,
+            sigma2,
+            remaining,
+            remaining_upper,
+            remaining_95,
+            ..
+        } = t;
+        let (sign, white, sigma2) = (*sign, *white, *sigma2);
+        let (remaining, remaining_upper, remaining_95) =
+            (*remaining, *remaining_upper, *remaining_95);
+        let theta = self.threshold();
+        let g = self.decays_at(now_s);
+        let contrib: Vec<(f64, f64)> = self
+            .taus
+            .iter()
+            .enumerate()
+            .map(|(k, tau)| (*tau, best.coef[k + 1] * g[k + 1]))
+            .collect();
+        let left: f64 = contrib.iter().map(|(_, c)| c.max(0.0)).sum();
+        let tau_s = if left > 0.0 {
+            contrib.iter().map(|(tau, c)| tau * c.max(0.0)).sum::<f64>() / left
+        } else {
+            // Nothing left: the τ of the largest decay fitted.
+            self.taus
+                .iter()
+                .zip(best.coef.iter().skip(1))
+                .max_by(|a, b| a.1.total_cmp(b.1))
+                .map_or(grid_min_s(&self.params), |(tau, _)| *tau)
+        };
+        let slowest = contrib.last().map_or(0.0, |(_, c)| *c);
+        DecayFit {
+            tau_s,
+            final_power: sign * best.coef[0],
+            remaining,
+            remaining_upper,
+            amplitude: sign * best.coef.iter().skip(1).take(self.taus.len()).sum::<f64>(),
+            rising: sign < 0.0,
+            tau_unbounded: slowest > 0.5 * remaining.max(theta),
+            noise_sd: white.sqrt(),
+            test_sd: sigma2.sqrt(),
+            noise_inflation: (sigma2 / white.max(1e-18)).sqrt().max(1.0),
+            threshold: theta,
+            surface_upper_c: self.surface_c(remaining_upper),
+            surface_95_c: self.surface_c(remaining_95),
+        }
+    }
+
+    /// How long the readings have not changed, s, with the heater between off and its cap
+    /// (else 0). A heater there always moves a little, and so does a thermistor's reading:
+    /// readings frozen for minutes are a stopped Klipper (a shutdown keeps logging its last
+    /// values), not a settled bed.
+    fn frozen_s(&self, now_s: f64) -> f64 {
+        match (self.unchanged_since_s, self.reading) {
+            (Some(since), Some((power, _)))
+                if power > 0.0 && power < self.params.saturated_power * self.max_power =>
+            {
+                now_s - since
+            }
+            _ => 0.0,
+        }
+    }
+
+    /// The fit in words: what the surface and the power may still do, or (an implausible
+    /// fit) that the power is still changing too much to tell.
+    fn fit_words(&self, fit: &DecayFit, t: &DirectionTest, plausible: bool) -> String {
+        let budget = self.params.surface_budget_c;
+        let theta = fit.threshold;
+        let sigma2 = t.sigma2;
+        let fall = if fit.rising { "rise" } else { "fall" };
+        let surface = if fit.rising { "cool" } else { "warm" };
+        if plausible {
+            format!(
+                "the print surface can still {surface} by at most {:.2} K (budget {budget:.1} K); \
+                 power best fit {:.2} % still to {fall} (τ {:.1} min, towards {:.1} %), at most \
+                 {:.2} % (allowed {:.2} %; power noise {:.2} %); {}; {}",
+                fit.surface_upper_c,
+                t.remaining * 100.0,
+                fit.tau_s / 60.0,
+                fit.final_power * 100.0,
+                t.remaining_upper * 100.0,
+                theta * 100.0,
+                sigma2.sqrt() * 100.0,
+                self.coupling.why,
+                self.slowest_words()
+            )
+        } else {
+            format!(
+                "the power is still changing too much to tell where it settles (stable once less \
+                 than {:.2} % can still {fall}, the surface's budget of {budget:.1} K; power \
+                 noise {:.2} %); {}; {}",
+                theta * 100.0,
+                sigma2.sqrt() * 100.0,
+                self.coupling.why,
+                self.slowest_words()
+            )
+        }
+    }
+
+    /// The ETA, s: the best fit's fall to θ, and the span the test needs to rule out the
+    /// slowest decay allowed: its slope θ/τ_max known to ± θ/(Z·τ_max) at this noise (n bins
+    /// over a span W give the slope to ± σ·√(12/n)/W); at least the minimum soak's rest and a
+    /// bin.
+    fn eta_s(&self, fit: &DecayFit, sigma2: f64, span: f64, ruled_out: bool) -> Option<f64> {
+        let p = &self.params;
+        let (remaining, theta, tau_s) = (fit.remaining, fit.threshold, fit.tau_s);
+        let physical = Some(if remaining > theta {
+            tau_s * (remaining / theta).ln()
+        } else {
+            0.0
+        });
+        let statistical = if ruled_out {
+            Some(0.0)
+        } else {
+            let need = (Z * p.slowest_s() * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta)
+                .powf(2.0 / 3.0);
+            Some((need - span).max(0.0).min(4.0 * p.slowest_s()))
+        };
+        match (physical, statistical) {
+            (Some(a), Some(b)) => Some(a.max(b)),
+            (Some(a), None) if a > 0.0 => Some(a),
+            (None, Some(b)) => Some(b),
+            _ => None,
+        }
+        .map(|e| e.max(p.min_soak_s - span).max(p.bin_s))
+    }
+}
+
+/// The wait while a direction is not ruled out: a steady change whose end is not in sight, or
+/// what the power may still do.
+fn still_changing(fit: &DecayFit, plausible: bool, fit_words: &str) -> String {
+    let (fall, falling) = if fit.rising {
+        ("rise", "rising")
+    } else {
+        ("fall", "falling")
+    };
+    if plausible && fit.tau_unbounded && fit.remaining > fit.threshold {
+        format!(
+            "power still {falling} steadily ({:.3} %/min); the end of the decay is not \
+             in sight yet ({fit_words})",
+            fit.remaining / fit.tau_s * 6000.0
+        )
+    } else {
+        format!("power may still {fall}: {fit_words}")
     }
 }
