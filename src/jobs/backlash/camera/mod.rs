@@ -316,73 +316,37 @@ impl Backlash {
     }
 
     /// The measurement itself (the runner's steps; run again from the start after an outage).
-    #[allow(clippy::too_many_lines)] // 162 lines: to be split along its steps
     async fn camera_run(&self, id: i64, run: Run, cam: &Webcam) -> anyhow::Result<()> {
-        let Run {
-            axis,
-            cycles,
-            point,
-            carriage,
-            clicks,
-        } = run;
         let http = self.http()?;
         self.clicks.forget(id);
-        let total = 6 + 2 * cycles;
-        let mut n = 0;
-        // Every frame of this measurement read against its first.
-        let reg: frames::Registration = Default::default();
-        let mut read = |what: String| {
-            n += 1;
-            let (http, reg) = (&http, &reg);
-            let k = n;
-            async move {
-                if clicks {
-                    let what = format!("click {k} of {total} — {what}");
-                    self.progress(
-                        id,
-                        format!(
-                            "click the nozzle's tip in the snapshot on klipcal's page ({what})"
-                        ),
-                        None,
-                    )
-                    .await;
-                    self.ask_click(http, cam, id, &what).await
-                } else {
-                    self.sight(http, cam, id, &what, reg).await
-                }
-            }
-        };
-        let key = result_key(axis, carriage);
-        let approach = self.settings.guide.approach_mm;
-        let mut report = CameraReport {
-            webcam: cam.clone(),
-            scale: None,
-            reference_px: None,
-            cycles: Vec::new(),
-            detection_sd_px: 0.0,
-            axis_px_per_mm: 0.0,
-            frames: 0,
-            refused_frames: 0,
-            last_px: None,
-            clicks: 0,
-            refined: 0,
-            kept: Vec::new(),
-        };
-        // The cycles' readings set the statistics' noise floor; the scale's readings enter
-        // through the scale's uncertainty (a click on the whole-picture zoom of the scale
-        // moves is twice as coarse as one on the cycles' zoom).
-        let count = |r: &mut CameraReport, s: &Seen, cycle: bool| {
-            r.clicks += usize::from(clicks);
-            r.refined += usize::from(s.refined);
-            r.kept.extend(s.kept.clone());
-            r.frames += s.frames;
-            r.refused_frames += s.refused;
-            r.last_px = Some(s.centre_px);
-            if cycle {
-                r.detection_sd_px = r.detection_sd_px.max(s.uncertainty_px);
-            }
-        };
-        // 1. Scale and rotation: each axis at −0.5, 0, +0.5 mm, every one approached moving +.
+        let mut m = Measure::new(id, &run, cam, http, self.settings.guide.approach_mm);
+        let (scale, reference) = self.camera_scale(&mut m).await?;
+        let got = self.camera_cycles(&mut m, &scale, reference).await?;
+        self.camera_record(m, got).await
+    }
+
+    /// One reading of the measurement `m`: the camera's sighting, or the person's click.
+    async fn camera_read(&self, m: &mut Measure<'_>, what: String) -> anyhow::Result<Seen> {
+        m.n += 1;
+        let (k, total) = (m.n, m.total);
+        if m.clicks {
+            let what = format!("click {k} of {total} — {what}");
+            self.progress(
+                m.id,
+                format!("click the nozzle's tip in the snapshot on klipcal's page ({what})"),
+                None,
+            )
+            .await;
+            self.ask_click(&m.http, m.cam, m.id, &what).await
+        } else {
+            self.sight(&m.http, m.cam, m.id, &what, &m.reg).await
+        }
+    }
+
+    /// Step 1, scale and rotation: each axis at −0.5, 0, +0.5 mm, every one approached moving +;
+    /// returns the scale and the reference (X at 0).
+    async fn camera_scale(&self, m: &mut Measure<'_>) -> anyhow::Result<(CameraScale, [f64; 2])> {
+        let (id, point, approach) = (m.id, m.point, m.approach);
         let mut sightings: [Vec<Sighting>; 2] = [Vec::new(), Vec::new()];
         for (k, ax) in [GuideAxis::X, GuideAxis::Y].into_iter().enumerate() {
             self.progress(
@@ -397,8 +361,13 @@ impl Backlash {
             self.go(ax.point_at(point, -0.5 - approach)).await?;
             for t in [-0.5, 0.0, 0.5] {
                 self.go(ax.point_at(point, t)).await?;
-                let s = read(format!("scale: {} at {t:+.1} mm", ax.name().to_uppercase())).await?;
-                count(&mut report, &s, false);
+                let s = self
+                    .camera_read(
+                        m,
+                        format!("scale: {} at {t:+.1} mm", ax.name().to_uppercase()),
+                    )
+                    .await?;
+                m.count(&s, false);
                 sightings[k].push(Sighting {
                     commanded_mm: t,
                     centre_px: s.centre_px,
@@ -410,39 +379,54 @@ impl Backlash {
         let scale = CameraScale::from_sightings(&sightings[0], &sightings[1])
             .map_err(|e| user(e.to_string()))?;
         let reference = sightings[0][1].centre_px;
-        report.axis_px_per_mm = scale.px_per_mm_along(axis);
-        report.scale = Some(scale);
-        report.reference_px = Some(reference);
-        if clicks {
+        m.report.axis_px_per_mm = scale.px_per_mm_along(m.axis);
+        m.report.scale = Some(scale);
+        m.report.reference_px = Some(reference);
+        if m.clicks {
             self.clicks.point_at(id, reference);
         }
-        // 2. The seed's cycles, read from the image.
+        Ok((scale, reference))
+    }
+
+    /// Step 2, the seed's cycles, read from the image.
+    async fn camera_cycles(
+        &self,
+        m: &mut Measure<'_>,
+        scale: &CameraScale,
+        reference: [f64; 2],
+    ) -> anyhow::Result<Vec<crate::calib::backlash::Cycle>> {
+        let (id, axis, point, approach, cycles) = (m.id, m.axis, m.point, m.approach, m.cycles);
+        let key = m.key.clone();
         let mut got = Vec::new();
         for c in 1..=cycles {
             self.progress(
                 id,
                 format!("camera: {} cycle {c}/{cycles}", key_words(&key)),
-                Some((&key, &report)),
+                Some((&key, &m.report)),
             )
             .await;
             self.go(axis.point_at(point, -approach)).await?;
             self.go(point).await?;
             let words = key_words(&key);
-            let plus = read(format!(
-                "{words} cycle {c}/{cycles}: approached from below (moving +)"
-            ))
-            .await?;
-            count(&mut report, &plus, true);
+            let plus = self
+                .camera_read(
+                    m,
+                    format!("{words} cycle {c}/{cycles}: approached from below (moving +)"),
+                )
+                .await?;
+            m.count(&plus, true);
             self.go(axis.point_at(point, approach)).await?;
             self.go(point).await?;
-            let minus = read(format!(
-                "{words} cycle {c}/{cycles}: approached from above (moving −)"
-            ))
-            .await?;
-            count(&mut report, &minus, true);
+            let minus = self
+                .camera_read(
+                    m,
+                    format!("{words} cycle {c}/{cycles}: approached from above (moving −)"),
+                )
+                .await?;
+            m.count(&minus, true);
             let a =
-                camera_scale::approaches(&scale, axis, plus.centre_px, minus.centre_px, reference);
-            report.cycles.push(CameraCycle {
+                camera_scale::approaches(scale, axis, plus.centre_px, minus.centre_px, reference);
+            m.report.cycles.push(CameraCycle {
                 plus_px: plus.centre_px,
                 minus_px: minus.centre_px,
                 plus_mm: a.plus_mm,
@@ -451,29 +435,38 @@ impl Backlash {
             });
             got.push(a.cycle);
         }
+        Ok(got)
+    }
+
+    /// Step 3, into the session as the guided flow's cycles, and the result on the console.
+    async fn camera_record(
+        &self,
+        m: Measure<'_>,
+        got: Vec<crate::calib::backlash::Cycle>,
+    ) -> anyhow::Result<()> {
         // 3. Into the session, as the guided flow's cycles.
-        let again = if clicks {
+        let again = if m.clicks {
             "KLIPCAL_BACKLASH_CLICK"
         } else {
             "KLIPCAL_BACKLASH_CAMERA"
         };
         let s = {
             let _g = self.core.lock().await;
-            let mut s: Session = self.core.load(id)?;
+            let mut s: Session = self.core.load(m.id)?;
             if s.state != State::Measuring {
                 return Ok(()); // cancelled meanwhile
             }
-            s.cycles.insert(key.clone(), got);
-            s.camera.insert(key.clone(), report);
+            s.cycles.insert(m.key.clone(), got);
+            s.camera.insert(m.key.clone(), m.report);
             s.carriage = None;
             s.state = State::Measured;
             s.progress = format!(
                 "{} measured from the camera{}; {}",
-                key_words(&key),
-                if clicks { " by your clicks" } else { "" },
+                key_words(&m.key),
+                if m.clicks { " by your clicks" } else { "" },
                 next_line(&s.detection, again)
             );
-            self.core.save(id, &s)?;
+            self.core.save(m.id, &s)?;
             s
         };
         let lines = self.result_lines(&s)?;
@@ -498,5 +491,73 @@ impl Backlash {
             let _ = self.set_state(s.id, State::Measured, why).await;
         }
         self.core.console(&format!("{TITLE}: {why}")).await;
+    }
+}
+
+/// One camera measurement under way: where and what it reads, how many readings it has taken
+/// of how many, and its report.
+struct Measure<'a> {
+    id: i64,
+    axis: GuideAxis,
+    cycles: usize,
+    point: [f64; 3],
+    approach: f64,
+    clicks: bool,
+    key: String,
+    cam: &'a Webcam,
+    http: reqwest::Client,
+    /// Every frame of this measurement read against its first.
+    reg: frames::Registration,
+    n: usize,
+    total: usize,
+    report: CameraReport,
+}
+
+impl<'a> Measure<'a> {
+    fn new(id: i64, run: &Run, cam: &'a Webcam, http: reqwest::Client, approach: f64) -> Self {
+        Measure {
+            id,
+            axis: run.axis,
+            cycles: run.cycles,
+            point: run.point,
+            approach,
+            clicks: run.clicks,
+            key: result_key(run.axis, run.carriage),
+            cam,
+            http,
+            reg: Default::default(),
+            n: 0,
+            total: 6 + 2 * run.cycles,
+            report: CameraReport {
+                webcam: cam.clone(),
+                scale: None,
+                reference_px: None,
+                cycles: Vec::new(),
+                detection_sd_px: 0.0,
+                axis_px_per_mm: 0.0,
+                frames: 0,
+                refused_frames: 0,
+                last_px: None,
+                clicks: 0,
+                refined: 0,
+                kept: Vec::new(),
+            },
+        }
+    }
+
+    /// A reading counted in the report. The cycles' readings set the statistics' noise floor;
+    /// the scale's readings enter through the scale's uncertainty (a click on the
+    /// whole-picture zoom of the scale moves is twice as coarse as one on the cycles' zoom).
+    fn count(&mut self, s: &Seen, cycle: bool) {
+        let r = &mut self.report;
+        r.clicks += usize::from(self.clicks);
+        r.refined += usize::from(s.refined);
+        r.kept.extend(s.kept.clone());
+        r.frames += s.frames;
+        r.refused_frames += s.refused;
+        r.last_px = Some(s.centre_px);
+        if cycle {
+            r.detection_sd_px = r.detection_sd_px.max(s.uncertainty_px);
+        }
     }
 }
