@@ -13,7 +13,6 @@ struct Offer {
 }
 
 impl Ab {
-    #[allow(clippy::too_many_lines)] // 171 lines: to be split along its steps
     pub(super) async fn soak(&self, s: Session, just_heated: bool) -> anyhow::Result<()> {
         let id = s.id;
         let hold_s = s.options.hold_max_s;
@@ -40,64 +39,18 @@ impl Ab {
             let doc = self.load(id)?;
             // Print now, chosen while soaking (issue 29): from the moment the bed is in its band.
             if doc.soak_choice.as_deref() == Some("print") {
-                if asked.is_some() {
-                    self.core.prompt_end().await;
-                }
-                let words = cost.map_or_else(
-                    || "what the surface may still warm is not known yet".to_string(),
-                    |c| {
-                        format!(
-                            "the surface may still warm by up to {} (95 %)",
-                            crate::calib::soak::cost_words(c)
-                        )
-                    },
-                );
-                let note = format!("the user chose to print now, before the bed settled: {words}");
-                self.update(id, |s| {
-                    s.soak_choice = None;
-                    s.soak_asking = false;
-                    s.notes.push(note.clone());
-                    s.state = State::Printing;
-                    s.progress = format!("printing now, as chosen ({words})");
-                    Ok(())
-                })
-                .await?;
-                // The soak so far, plotted as for a settled bed (issue 40: none was saved).
-                let path = format!("klipcal/ab-s{id}-r{}-soak.svg", doc.rounds.len());
-                let plot = crate::jobs::core::soak::save_soak_picture(&self.core, &params, &path)
-                    .await
-                    .map(|p| format!("; plot: {p}"))
-                    .unwrap_or_default();
-                self.core.console(&format!("{TITLE}: {note}{plot}")).await;
-                return Ok(());
+                return self
+                    .soak_print_now(id, doc.rounds.len(), asked.is_some(), cost, &params)
+                    .await;
             }
             if asked.is_none() && doc.soak_choice.as_deref() == Some("wait") {
                 // Wait, chosen while soaking: the offer closes and the soak goes on.
                 offer.declined = true;
-                self.update(id, |s| {
-                    s.soak_choice = None;
-                    Ok(())
-                })
-                .await?;
-                self.core
-                    .console(&format!(
-                        "{TITLE}: waiting until the bed has settled; KLIPCAL_SOAK_CHOICE \
-                         CHOICE=print prints now"
-                    ))
-                    .await;
+                self.soak_wait_chosen(id).await?;
             }
             if let Some((_, line)) = &asked {
                 if doc.soak_choice.as_deref() == Some("wait") {
-                    self.core.prompt_end().await;
-                    let note = format!("{line}; the user chose to wait 10 min more");
-                    self.update(id, |s| {
-                        s.soak_asking = false;
-                        s.soak_choice = None;
-                        s.notes.push(note);
-                        s.progress = "soaking 10 min more, as chosen".into();
-                        Ok(())
-                    })
-                    .await?;
+                    self.soak_ten_more(id, line).await?;
                     soak.extend(SOAK_MORE_S);
                     asked = None;
                     last.clear();
@@ -105,40 +58,7 @@ impl Ab {
             }
             match soak.poll(&self.core, TITLE).await? {
                 SoakUpdate::Stable { why } => {
-                    if self.core.dialog_title().as_deref() == Some("klipcal: the bed is soaking") {
-                        self.core.prompt_end().await;
-                    }
-                    if let Some((_, line)) = asked.take() {
-                        // Settled while the question waited: what the user was waiting for.
-                        self.core.prompt_end().await;
-                        self.update(id, |s| {
-                            s.soak_asking = false;
-                            s.soak_choice = None;
-                            s.notes
-                                .push(format!("{line}; the bed settled while the question waited"));
-                            Ok(())
-                        })
-                        .await?;
-                    }
-                    // A plot of a soak that did not happen (an unheated bed) says nothing.
-                    let heated = s.options.bed_temp_c > params.skip_below_c;
-                    let n = s.rounds.len();
-                    let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
-                    let plot = if heated {
-                        crate::jobs::core::soak::save_soak_picture(&self.core, &params, &path)
-                            .await
-                            .map(|p| format!("; plot: {p}"))
-                            .unwrap_or_default()
-                    } else {
-                        String::new()
-                    };
-                    self.set_state(
-                        id,
-                        State::Printing,
-                        &format!("bed stable ({why}){plot}; printing"),
-                    )
-                    .await?;
-                    return Ok(());
+                    return self.soak_settled(&s, &params, &why, asked.take()).await;
                 }
                 SoakUpdate::Heating => {
                     if last != "heating" {
@@ -194,6 +114,127 @@ impl Ab {
             }
             tokio::time::sleep(Duration::from_millis(250)).await;
         }
+    }
+
+    /// Print now, chosen while soaking: the session prints, its note says what the surface may
+    /// still warm, and the soak so far is plotted.
+    async fn soak_print_now(
+        &self,
+        id: i64,
+        rounds: usize,
+        asked: bool,
+        cost: Option<f64>,
+        params: &crate::calib::soak::SoakParams,
+    ) -> anyhow::Result<()> {
+        if asked {
+            self.core.prompt_end().await;
+        }
+        let words = cost.map_or_else(
+            || "what the surface may still warm is not known yet".to_string(),
+            |c| {
+                format!(
+                    "the surface may still warm by up to {} (95 %)",
+                    crate::calib::soak::cost_words(c)
+                )
+            },
+        );
+        let note = format!("the user chose to print now, before the bed settled: {words}");
+        self.update(id, |s| {
+            s.soak_choice = None;
+            s.soak_asking = false;
+            s.notes.push(note.clone());
+            s.state = State::Printing;
+            s.progress = format!("printing now, as chosen ({words})");
+            Ok(())
+        })
+        .await?;
+        // The soak so far, plotted as for a settled bed (issue 40: none was saved).
+        let path = format!("klipcal/ab-s{id}-r{}-soak.svg", rounds);
+        let plot = crate::jobs::core::soak::save_soak_picture(&self.core, params, &path)
+            .await
+            .map(|p| format!("; plot: {p}"))
+            .unwrap_or_default();
+        self.core.console(&format!("{TITLE}: {note}{plot}")).await;
+        Ok(())
+    }
+
+    /// Wait, chosen while soaking (no question asked): the choice is cleared and the console
+    /// says how to print now instead.
+    async fn soak_wait_chosen(&self, id: i64) -> anyhow::Result<()> {
+        self.update(id, |s| {
+            s.soak_choice = None;
+            Ok(())
+        })
+        .await?;
+        self.core
+            .console(&format!(
+                "{TITLE}: waiting until the bed has settled; KLIPCAL_SOAK_CHOICE \
+                 CHOICE=print prints now"
+            ))
+            .await;
+        Ok(())
+    }
+
+    /// Wait 10 min more, the answer to the soak question `line`: the question ends and the
+    /// session says so.
+    async fn soak_ten_more(&self, id: i64, line: &str) -> anyhow::Result<()> {
+        self.core.prompt_end().await;
+        let note = format!("{line}; the user chose to wait 10 min more");
+        self.update(id, |s| {
+            s.soak_asking = false;
+            s.soak_choice = None;
+            s.notes.push(note);
+            s.progress = "soaking 10 min more, as chosen".into();
+            Ok(())
+        })
+        .await?;
+        Ok(())
+    }
+
+    /// The bed settled: the dialogs end (a question waiting is noted as answered by the bed),
+    /// the soak is plotted when the bed was heated, and the session prints.
+    async fn soak_settled(
+        &self,
+        s: &Session,
+        params: &crate::calib::soak::SoakParams,
+        why: &str,
+        asked: Option<(tokio::time::Instant, String)>,
+    ) -> anyhow::Result<()> {
+        let id = s.id;
+        if self.core.dialog_title().as_deref() == Some("klipcal: the bed is soaking") {
+            self.core.prompt_end().await;
+        }
+        if let Some((_, line)) = asked {
+            // Settled while the question waited: what the user was waiting for.
+            self.core.prompt_end().await;
+            self.update(id, |s| {
+                s.soak_asking = false;
+                s.soak_choice = None;
+                s.notes
+                    .push(format!("{line}; the bed settled while the question waited"));
+                Ok(())
+            })
+            .await?;
+        }
+        // A plot of a soak that did not happen (an unheated bed) says nothing.
+        let heated = s.options.bed_temp_c > params.skip_below_c;
+        let n = s.rounds.len();
+        let path = format!("klipcal/ab-s{id}-r{n}-soak.svg");
+        let plot = if heated {
+            crate::jobs::core::soak::save_soak_picture(&self.core, params, &path)
+                .await
+                .map(|p| format!("; plot: {p}"))
+                .unwrap_or_default()
+        } else {
+            String::new()
+        };
+        self.set_state(
+            id,
+            State::Printing,
+            &format!("bed stable ({why}){plot}; printing"),
+        )
+        .await?;
+        Ok(())
     }
 
     /// From the moment the bed is in its band: the dialog offers *Print now* with its cost and
