@@ -67,7 +67,8 @@ pub struct BenchCameraArgs {
     pub port: u16,
     /// The camera as JSON: look (ring, dark_tip, empty, two_nozzles, saturated, flat), width,
     /// height, px_per_mm, rotation_deg, mirror, centre_mm, offset_px, radius_px, seed, ring_mm,
-    /// ring_tau_s, drop_every.
+    /// ring_tau_s, drop_every; or photo (a labelled picture of tests/fixtures/nozzle, e.g.
+    /// tamv-nozzle or ktamv-frame, instead of look and radius_px), zoom, reach_mm.
     #[arg(long, default_value = "{}")]
     pub spec: String,
 }
@@ -87,6 +88,10 @@ pub struct BenchBacklashArgs {
     /// Simulated axes per model for the camera procedure (each renders about 40 pictures).
     #[arg(long, default_value_t = 40)]
     pub camera_axes: usize,
+    /// Simulated axes per real photo and model for the end-to-end lines on real-photo frames
+    /// (each makes about 40 frames from the photo).
+    #[arg(long, default_value_t = 10)]
+    pub photo_axes: usize,
     /// Only the guided flow's lines (no camera pictures rendered).
     #[arg(long)]
     pub guided_only: bool,

@@ -14,7 +14,10 @@
 //! - `camera_render` and `calib::sim` (feature `sim`, and this crate's tests): simulated
 //!   nozzle-camera pictures and a simulated machine for the benchmarks and the tests; never in
 //!   the printer's build. `nozzle_photos` (the same): the real nozzle photographs of
-//!   `tests/fixtures/nozzle`, read from the source checkout for the tests and the bench.
+//!   `tests/fixtures/nozzle`, read from the source checkout for the tests and the bench;
+//!   `photo_camera` (the same): a nozzle camera whose frames are one of those photographs
+//!   moved where the simulated nozzle is (the bench's camera server and `klipcal bench
+//!   backlash`).
 
 pub mod calib;
 #[cfg(any(test, feature = "sim"))]
@@ -24,6 +27,8 @@ pub mod klipper;
 pub mod layout;
 #[cfg(any(test, feature = "sim"))]
 pub mod nozzle_photos;
+#[cfg(any(test, feature = "sim"))]
+pub mod photo_camera;
 pub mod plots;
 
 #[cfg(test)]

@@ -61,6 +61,8 @@ struct Manifest {
 #[derive(Debug, Clone)]
 pub struct Photo {
     pub name: String,
+    /// The source file it is made from (`tamv-nozzle.jpg`).
+    pub source: String,
     pub width: usize,
     pub height: usize,
     pub grey: Vec<u8>,
@@ -133,6 +135,7 @@ pub fn load() -> anyhow::Result<Vec<Photo>> {
             }
             Ok(Photo {
                 name: e.name,
+                source: e.from,
                 width: w,
                 height: h,
                 grey: g,

@@ -6,6 +6,12 @@
 //! offset; lighting, defocus, noise and JPEG quality are drawn once per camera from its seed,
 //! the sensor noise afresh for every frame. After each move the nozzle rings for a moment
 //! (a damped oscillation along the move), so a reader must wait until the picture is still.
+//!
+//! With `"photo"` (issue 37, item 5) the frames are a real photograph instead of the renderer's
+//! nozzle: one of `tests/fixtures/nozzle`'s hand-labelled photos moved so that its tip is
+//! where the simulated nozzle is, through [`crate::cmd::photo_camera`] (the camera's rotation
+//! turns it, `zoom` magnifies it, lighting, noise and JPEG 70–90 drawn from the seed), cropped
+//! so that its edges never show while the nozzle stays within `reach_mm` of `centre_mm`.
 //! Tests and the bench only; not in the printer's build.
 
 use std::net::SocketAddr;
@@ -22,13 +28,23 @@ use serde::Deserialize;
 use serde_json::Value;
 
 use crate::cmd::camera_render::{self, Family, Scene};
+use crate::cmd::photo_camera::{self, Lighting, PhotoCamera, Placement};
 
 /// The camera as the bench configures it (`bench.py start --camera JSON`).
 #[derive(Debug, Clone, Deserialize, PartialEq)]
 #[serde(default, deny_unknown_fields)]
 pub(crate) struct CameraSpec {
-    /// ring, dark_tip, or a picture detection must refuse: empty, two_nozzles, saturated, flat.
-    pub look: String,
+    /// ring (the default), dark_tip, or a picture detection must refuse: empty, two_nozzles,
+    /// saturated, flat. Not with `photo`.
+    pub look: Option<String>,
+    /// A real photo instead of the renderer: a picture of tests/fixtures/nozzle/manifest.json
+    /// (`ktamv-frame`) or a source file (`tamv-nozzle.jpg`), with a hand-labelled tip.
+    pub photo: Option<String>,
+    /// The photo's magnification (0: the least that keeps its edges out of the frame).
+    pub zoom: f64,
+    /// How far the nozzle may go from `centre_mm` in X and Y with the photo's edges still out
+    /// of the frame, mm.
+    pub reach_mm: f64,
     /// Snapshot size, px.
     pub width: usize,
     pub height: usize,
@@ -57,7 +73,10 @@ pub(crate) struct CameraSpec {
 impl Default for CameraSpec {
     fn default() -> Self {
         CameraSpec {
-            look: "ring".into(),
+            look: None,
+            photo: None,
+            zoom: 0.0,
+            reach_mm: 0.75,
             width: 640,
             height: 480,
             px_per_mm: 80.0,
@@ -94,6 +113,23 @@ impl CameraSpec {
             "px_per_mm {}: expected 5..1000",
             s.px_per_mm
         );
+        if let Some(p) = &s.photo {
+            anyhow::ensure!(
+                s.look.is_none() && s.radius_px == 0.0,
+                "photo {p:?}: look and radius_px draw the renderer's nozzle; leave them out with \
+                 a photo"
+            );
+        }
+        anyhow::ensure!(
+            s.zoom == 0.0 || (s.zoom.is_finite() && (1.0..=16.0).contains(&s.zoom)),
+            "zoom {}: expected 1..16 (0: the least that hides the photo's edges)",
+            s.zoom
+        );
+        anyhow::ensure!(
+            s.reach_mm.is_finite() && (0.0..=20.0).contains(&s.reach_mm),
+            "reach_mm {}: expected 0..20",
+            s.reach_mm
+        );
         anyhow::ensure!(
             [s.rotation_deg, s.ring_mm, s.ring_tau_s, s.radius_px]
                 .iter()
@@ -109,7 +145,7 @@ impl CameraSpec {
     }
 
     fn family(&self) -> anyhow::Result<Family> {
-        Ok(match self.look.as_str() {
+        Ok(match self.look.as_deref().unwrap_or("ring") {
             "ring" => Family::Ring,
             "dark_tip" => Family::DarkTip,
             "empty" => Family::Empty,
@@ -130,7 +166,7 @@ impl CameraSpec {
         [[s * c, s * si], [-m * s * si, m * s * c]]
     }
 
-    fn origin_px(&self) -> [f64; 2] {
+    pub(crate) fn origin_px(&self) -> [f64; 2] {
         [
             self.width as f64 / 2.0 + self.offset_px[0],
             self.height as f64 / 2.0 + self.offset_px[1],
@@ -178,10 +214,39 @@ fn read_truth(path: &std::path::Path) -> anyhow::Result<Truth> {
     })
 }
 
+/// What the camera shows: the renderer's nozzle, or a real photo.
+enum Content {
+    Render(Scene),
+    Photo(PhotoCamera),
+}
+
+/// The camera on the spec's photo, laid as the spec says; None without one.
+///
+/// # Errors
+/// An unknown or unlabelled photo, or a zoom that would show its edges.
+pub(crate) fn photo_camera(
+    spec: &CameraSpec,
+    rng: &mut fastrand::Rng,
+) -> anyhow::Result<Option<PhotoCamera>> {
+    let Some(name) = &spec.photo else {
+        return Ok(None);
+    };
+    let photo = photo_camera::photo(name)?;
+    let at = Placement {
+        width: spec.width,
+        height: spec.height,
+        rotation_deg: spec.rotation_deg,
+        home_px: spec.origin_px(),
+        reach_px: spec.reach_mm * spec.px_per_mm,
+        zoom: (spec.zoom > 0.0).then_some(spec.zoom),
+    };
+    Ok(Some(PhotoCamera::new(&photo, &at, Lighting::draw(rng))?))
+}
+
 struct Cam {
     spec: CameraSpec,
     state_file: PathBuf,
-    scene: Scene,
+    content: Content,
     rng: fastrand::Rng,
     last: Option<Truth>,
     /// The last move: when it was made, and its unit direction in mm.
@@ -192,24 +257,28 @@ struct Cam {
 impl Cam {
     fn new(spec: CameraSpec, state_file: PathBuf) -> anyhow::Result<Cam> {
         let mut rng = fastrand::Rng::with_seed(spec.seed);
-        let radius = if spec.radius_px > 0.0 {
-            spec.radius_px
-        } else {
-            0.35 * spec.px_per_mm
+        let content = match photo_camera(&spec, &mut rng)? {
+            Some(p) => Content::Photo(p),
+            None => {
+                let radius = if spec.radius_px > 0.0 {
+                    spec.radius_px
+                } else {
+                    0.35 * spec.px_per_mm
+                };
+                Content::Render(camera_render::varied_scene(
+                    spec.family()?,
+                    spec.width,
+                    spec.height,
+                    spec.origin_px(),
+                    radius,
+                    &mut rng,
+                ))
+            }
         };
-        let origin = spec.origin_px();
-        let scene = camera_render::varied_scene(
-            spec.family()?,
-            spec.width,
-            spec.height,
-            origin,
-            radius,
-            &mut rng,
-        );
         Ok(Cam {
             spec,
             state_file,
-            scene,
+            content,
             rng,
             last: None,
             ring: None,
@@ -244,8 +313,12 @@ impl Cam {
             xy = [xy[0] + a * dir[0], xy[1] + a * dir[1]];
         }
         self.frames += 1;
-        let mut scene = self.scene.clone();
         let dropped = self.spec.drop_every > 0 && self.frames % self.spec.drop_every == 0;
+        let mut scene = match &self.content {
+            Content::Photo(p) if dropped => return Ok(p.blank(&mut self.rng)?.1),
+            Content::Photo(p) => return Ok(p.frame(self.spec.to_px(xy), &mut self.rng)?.1),
+            Content::Render(s) => s.clone(),
+        };
         if dropped {
             scene.nozzles_px.clear();
             scene.gradient = [0.0, 0.0];
@@ -372,11 +445,67 @@ mod tests {
         for (text, want) in [
             (r#"{"look": "square"}"#, "square"),
             (r#"{"px_per_mm": 0}"#, "px_per_mm"),
-            (r#"{"zoom": 2}"#, "zoom"),
+            (r#"{"zoom": 0.5}"#, "zoom"),
+            (r#"{"magnify": 2}"#, "magnify"),
+            (
+                r#"{"photo": "tamv-nozzle", "look": "ring"}"#,
+                "leave them out",
+            ),
+            (r#"{"reach_mm": -1}"#, "reach_mm"),
             ("[1]", "JSON object"),
         ] {
             let e = format!("{:#}", CameraSpec::parse(text).unwrap_err());
             assert!(e.contains(want), "{text}: {e}");
         }
+        let dir = tempfile::tempdir().unwrap();
+        for (text, want) in [
+            (r#"{"photo": "nozzle.png"}"#, "ktamv-frame"),
+            (r#"{"photo": "tamv-test-card"}"#, "hand-labelled"),
+            (r#"{"photo": "ktamv-frame", "zoom": 1}"#, "is needed"),
+        ] {
+            let spec = CameraSpec::parse(text).unwrap();
+            let e = Cam::new(spec, dir.path().join("s.json")).err().unwrap();
+            assert!(format!("{e:#}").contains(want), "{text}: {e:#}");
+        }
+    }
+
+    /// Normalised correlation of two pictures of the same size.
+    fn ncc(a: &[f64], b: &[u8]) -> f64 {
+        let n = a.len() as f64;
+        let (ma, mb) = (
+            a.iter().sum::<f64>() / n,
+            b.iter().map(|&v| f64::from(v)).sum::<f64>() / n,
+        );
+        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+        for (x, &y) in a.iter().zip(b) {
+            let (x, y) = (x - ma, f64::from(y) - mb);
+            ab += x * y;
+            aa += x * x;
+            bb += y * y;
+        }
+        ab / (aa * bb).sqrt()
+    }
+
+    /// With a photo, a snapshot is that photo moved to where the camera maps the simulated
+    /// nozzle (lit, noisy, JPEG), not the renderer's nozzle, and a move moves it.
+    #[test]
+    fn a_photo_snapshot_is_the_photo_moved_to_the_simulated_nozzle() {
+        let dir = tempfile::tempdir().unwrap();
+        let state = dir.path().join("nozzle_true.json");
+        std::fs::write(&state, r#"{"nozzle": [100.3, 99.8, 5.0], "moves": 3}"#).unwrap();
+        let text = r#"{"photo": "tamv-nozzle.jpg", "width": 400, "height": 300,
+            "rotation_deg": 10, "px_per_mm": 80, "seed": 3}"#;
+        let spec = CameraSpec::parse(text).unwrap();
+        let want = spec.to_px([100.3, 99.8]);
+        let home = spec.to_px([100.0, 100.0]);
+        let mut cam = Cam::new(spec.clone(), state.clone()).unwrap();
+        let (w, h, g) = camera_render::decode_gray(&cam.snapshot().unwrap()).unwrap();
+        assert_eq!((w, h), (400, 300));
+        let pc = photo_camera(&spec, &mut fastrand::Rng::with_seed(3))
+            .unwrap()
+            .unwrap();
+        let there = ncc(&pc.clean(want), &g);
+        let at_home = ncc(&pc.clean(home), &g);
+        assert!(there > 0.97 && at_home < 0.9, "{there} {at_home}");
     }
 }

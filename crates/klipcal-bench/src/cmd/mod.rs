@@ -14,3 +14,4 @@ pub mod soak_real;
 pub use klipcal::cmd::soak;
 pub use klipcal_core::camera_render;
 pub use klipcal_core::nozzle_photos;
+pub use klipcal_core::photo_camera;
