@@ -28,6 +28,8 @@ pub mod backlash;
 pub mod backlash_guide;
 pub mod budget;
 pub mod camera_scale;
+#[cfg(test)]
+mod click_flow_test;
 pub mod differential;
 pub mod entry;
 pub mod mesh;
