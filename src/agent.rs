@@ -164,7 +164,7 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
         }
     };
     if !script.is_empty() {
-        if let Err(e) = m.gcode(&script).await {
+        if let Err(e) = m.console_script(&script).await {
             warn!(error = %e, "could not answer on the console");
         }
     }

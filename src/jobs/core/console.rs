@@ -254,7 +254,7 @@ async fn send(m: &Moonraker, script: &str, what: &str) {
     if script.is_empty() {
         return;
     }
-    if let Err(e) = m.gcode(script).await {
+    if let Err(e) = m.console_script(script).await {
         warn!(error = %e, "{what}");
     }
 }
