@@ -43,10 +43,14 @@ pub(super) enum ConsoleRoute {
     Moonraker { checked: Instant },
 }
 
-/// Whether every line of `script` is a `RESPOND` command: the only scripts sent past
-/// Moonraker. Klipper reads a line's first word as its command, and klipcal's RESPOND lines
-/// carry no line break (`gcode_cmd` builds them), so a script that passes cannot move, heat
-/// or configure anything.
+/// The commands a console script may hold: Klipper's `RESPOND`, and klipcal.cfg's
+/// `_KLIPCAL_SAY` (one `action_respond_info`: several lines of an answer as one response).
+const CONSOLE_COMMANDS: [&str; 2] = ["RESPOND", "_KLIPCAL_SAY"];
+
+/// Whether every line of `script` is a console command ([`CONSOLE_COMMANDS`]): the only
+/// scripts sent past Moonraker. Klipper reads a line's first word as its command, and
+/// klipcal's lines carry no line break (`gcode_cmd` builds them), so a script that passes
+/// cannot move, heat or configure anything.
 #[must_use]
 pub(crate) fn respond_only(script: &str) -> bool {
     let mut lines = script.lines().filter(|l| !l.trim().is_empty()).peekable();
@@ -55,7 +59,7 @@ pub(crate) fn respond_only(script: &str) -> bool {
             let mut words = l.split_whitespace();
             words
                 .next()
-                .is_some_and(|w| w.eq_ignore_ascii_case("RESPOND"))
+                .is_some_and(|w| CONSOLE_COMMANDS.iter().any(|c| w.eq_ignore_ascii_case(c)))
                 && !l.contains(['\r', '\0'])
         })
 }
@@ -252,12 +256,16 @@ mod tests {
             "RESPOND PREFIX=klipcal MSG=\"a\"\nRESPOND TYPE=command MSG=action:prompt_end"
         ));
         assert!(respond_only("respond msg=\"x\"\n\n"));
+        assert!(respond_only(
+            "_KLIPCAL_SAY MSG=\"a␤b\"\nRESPOND TYPE=command MSG=action:prompt_show"
+        ));
         for not in [
             "",
             "\n",
             "RESPOND MSG=\"a\"\nG1 X10",
             "SET_IDLE_TIMEOUT TIMEOUT=600\nRESPOND MSG=\"a\"",
             "RESPONDX MSG=\"a\"",
+            "_KLIPCAL_SAY_MORE MSG=\"a\"",
             "TURN_OFF_HEATERS",
             "RESPOND MSG=\"a\"\rG28",
         ] {
