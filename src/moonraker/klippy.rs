@@ -229,16 +229,26 @@ impl Moonraker {
             _ => {}
         }
         let route = match verified_socket(self, limit).await {
-            Ok(path) => {
-                info!(socket = %path.display(), "klipcal's console answers go to Klipper's API socket");
-                ConsoleRoute::Direct { path, checked: now }
-            }
+            Ok(path) => ConsoleRoute::Direct { path, checked: now },
             Err(why) => {
-                info!(%why, "klipcal's console answers go through Moonraker");
+                debug!(%why, "klipcal's console answers go through Moonraker");
                 ConsoleRoute::Moonraker { checked: now }
             }
         };
-        *lock(&self.shared.console_route) = route.clone();
+        let before = std::mem::replace(&mut *lock(&self.shared.console_route), route.clone());
+        // Said in the log when the road changes, not at every check.
+        match (&before, &route) {
+            (ConsoleRoute::Direct { path: a, .. }, ConsoleRoute::Direct { path: b, .. })
+                if a == b => {}
+            (ConsoleRoute::Moonraker { .. }, ConsoleRoute::Moonraker { .. }) => {}
+            (_, ConsoleRoute::Direct { path, .. }) => {
+                info!(socket = %path.display(), "klipcal's console answers go to Klipper's API socket");
+            }
+            (_, _) => info!(
+                "klipcal's console answers go through Moonraker (Klipper's API socket is not \
+                 usable from here; RUST_LOG=klipcal=debug says why)"
+            ),
+        }
         match route {
             ConsoleRoute::Direct { path, .. } => Some(path),
             _ => None,
