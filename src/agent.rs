@@ -3,7 +3,7 @@
 //! so its answer goes to the console with `RESPOND`; an HTTP caller gets JSON.
 
 use serde_json::{json, Value};
-use tracing::{info, warn};
+use tracing::info;
 
 use crate::jobs::console::{self, answer_script, holding_prompts};
 use crate::jobs::core::status::SessionsStatus;
@@ -163,11 +163,7 @@ async fn handle(m: &Moonraker, cals: Option<&Calibrations>, call: AgentCall) {
             console::answer_then_prompt(&text, change.as_ref())
         }
     };
-    if !script.is_empty() {
-        if let Err(e) = m.gcode(&script).await {
-            warn!(error = %e, "could not answer on the console");
-        }
-    }
+    console::send_script(m, &script).await;
 }
 
 /// `klipcal_status`'s answer (the agent's, `/api/status`'s and the page's).

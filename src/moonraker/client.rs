@@ -140,6 +140,8 @@ pub(super) struct Shared {
     pub(super) fatal: Mutex<Option<String>>,
     /// The websocket is open (the client may still be identifying itself).
     pub(super) socket_open: std::sync::atomic::AtomicBool,
+    /// Where klipcal's console scripts go (Klipper's API socket or Moonraker; `klippy`).
+    pub(super) console_route: Mutex<super::klippy::ConsoleRoute>,
 }
 
 /// The cloneable handle to the Moonraker connection.

@@ -42,6 +42,7 @@ impl Moonraker {
             identified_once: std::sync::atomic::AtomicBool::new(false),
             fatal: Mutex::new(None),
             socket_open: std::sync::atomic::AtomicBool::new(false),
+            console_route: Mutex::new(super::klippy::ConsoleRoute::default()),
         });
         let handle = Moonraker {
             shared: shared.clone(),

@@ -1,12 +1,14 @@
 //! The Moonraker client: protocol types (pure, `protocol`), the websocket actor that owns the
 //! socket (`connection`), the cloneable handle every task uses (`client`) with its typed
-//! queries (`queries`, answers typed in `answers`), and HTTP file transfer (`http`). It knows
+//! queries (`queries`, answers typed in `answers`), HTTP file transfer (`http`), and klipcal's
+//! console scripts straight to Klipper's API socket when it is the one Moonraker uses (`klippy`). It knows
 //! nothing of calibrations: it carries requests, replies, notifications and agent calls.
 
 pub mod answers;
 mod client;
 mod connection;
 mod http;
+mod klippy;
 pub mod protocol;
 mod queries;
 

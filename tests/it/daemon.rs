@@ -21,7 +21,8 @@ async fn macro_round_trip(m: &Moonraker) -> Option<String> {
     let mut rx = m.events();
     m.gcode("KLIPCAL_STATUS").await.ok()?;
     let e = wait_event(&mut rx, Duration::from_secs(10), |e| {
-        matches!(e, Event::GcodeResponse(l) if l.starts_with("klipcal") && l.contains("rotation_distance"))
+        // The status has several lines: one response `// klipcal …⏎// …` (issue 40 item 6).
+        matches!(e, Event::GcodeResponse(l) if l.trim_start_matches("// ").starts_with("klipcal") && l.contains("rotation_distance"))
     })
     .await?;
     match e {

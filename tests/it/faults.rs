@@ -650,8 +650,10 @@ async fn said_on_the_console(
             };
             !reason.is_empty()
                 && lines.iter().any(|l| {
-                    // As Klipper shows a RESPOND: "klipcal …", or "!! klipcal: …" for an error.
-                    (l.starts_with("klipcal") || l.starts_with("!! klipcal"))
+                    // As Klipper shows a RESPOND: "klipcal …", or "!! klipcal: …" for an error,
+                    // or an answer of several lines in one response, "// klipcal …⏎// …".
+                    (l.trim_start_matches("// ").starts_with("klipcal")
+                        || l.starts_with("!! klipcal"))
                         && l.contains(title)
                         && (l.contains("failed")
                             || l.contains("cancelled")

@@ -65,9 +65,10 @@ fn klipcal_answered(lines: &[String]) -> bool {
         .iter()
         .position(|l| l.contains("asking the klipcal service..."))
         .map_or(0, |i| i + 1);
-    lines[from..]
-        .iter()
-        .any(|l| l.starts_with("klipcal ") || l.starts_with("!! klipcal: "))
+    lines[from..].iter().any(|l| {
+        // An answer of several lines comes as one response (`// klipcal …`, issue 40).
+        l.starts_with("klipcal ") || l.starts_with("// klipcal ") || l.starts_with("!! klipcal: ")
+    })
 }
 
 async fn print_state(m: &Moonraker) -> String {

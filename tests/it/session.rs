@@ -603,12 +603,25 @@ async fn bad_entries_are_refused_whole_and_nothing_entered_is_lost() {
 /// The measuring step says what to measure and how (issue 9 items 5, 7), on an unheated bed
 /// without "hot bed", and gives the page's address (the phone path, issue 26 A.6).
 async fn the_guide_says_what_to_measure_and_where(d: &Daemon, m: &klipcal::moonraker::Moonraker) {
-    let guide: Vec<String> = crate::mainsail::history(m)
-        .await
-        .into_iter()
-        .map(|(_, msg)| msg)
-        .collect();
-    let guide = guide.join("\n");
+    // Said just after the state is stored: wait for it a moment.
+    let said = || async {
+        let h: Vec<String> = crate::mainsail::history(m)
+            .await
+            .into_iter()
+            .map(|(_, msg)| msg)
+            .collect();
+        Some(h.join("\n"))
+    };
+    let guide = poll(Duration::from_secs(10), || async {
+        said()
+            .await
+            .filter(|g| g.contains("KLIPCAL_MEASURE PAIR=A-D1 VALUES="))
+    })
+    .await;
+    let guide = match guide {
+        Some(g) => g,
+        None => said().await.unwrap_or_default(),
+    };
     for words in [
         "round 1: measure the pylons now, with the part still on the bed",
         "5 readings",
@@ -671,7 +684,7 @@ async fn readings_through_the_macro(bench: &Bench, m: &klipcal::moonraker::Moonr
 }
 
 /// The console reads well after a reload (issue 9 item 23): each answer before its dialog,
-/// one script per call.
+/// and no command row for klipcal's own script (issue 40 item 6).
 fn answers_come_before_their_dialogs(h: &[(String, String)]) {
     let pos = |pred: &dyn Fn(&(String, String)) -> bool, what: &str| -> usize {
         h.iter()
@@ -713,11 +726,22 @@ fn answers_come_before_their_dialogs(h: &[(String, String)]) {
         &|(k, msg)| k == "command" && msg == "KLIPCAL_AB_APPLY",
         "apply",
     );
-    let scripts = h[solve + 1..apply]
+    // The solve call's answer and dialog went to Klipper's API socket (issue 40 item 6): its
+    // responses are stored, not the RESPOND script as a command row of its own.
+    let scripts: Vec<&(String, String)> = h[solve + 1..apply]
         .iter()
         .filter(|(k, _)| k == "command")
-        .count();
-    assert_eq!(scripts, 1, "one console script for the solve call: {h:#?}");
+        .collect();
+    assert!(
+        scripts.is_empty(),
+        "klipcal's answer script stored as a command: {scripts:#?}"
+    );
+    assert!(
+        h[solve + 1..apply]
+            .iter()
+            .any(|(k, msg)| k == "response" && msg.contains("klipcal stepper_x")),
+        "the solve call's answer is not in the console's history: {h:#?}"
+    );
 }
 
 /// Dialogs do not repeat the console and close once; the console speaks of no heating with
@@ -738,10 +762,15 @@ fn dialogs_do_not_repeat_the_console(bench: &Bench, h: &[(String, String)]) {
         .iter()
         .filter(|(k, msg)| k == "response" && msg.starts_with("// action:prompt_"))
         .count();
-    let answer_lines = h
+    // An answer of several lines is one row (`// klipcal …⏎// …`, issue 40 item 6): its lines
+    // are counted.
+    let answer_lines: usize = h
         .iter()
-        .filter(|(k, msg)| k == "response" && msg.starts_with("klipcal "))
-        .count();
+        .filter(|(k, msg)| {
+            k == "response" && (msg.starts_with("klipcal ") || msg.starts_with("// klipcal "))
+        })
+        .map(|(_, msg)| msg.lines().count())
+        .sum();
     assert!(
         prompt_lines < answer_lines,
         "{prompt_lines} dialog lines for {answer_lines} answer lines: {h:#?}"

@@ -5,6 +5,8 @@
 
 use std::cell::RefCell;
 use std::future::Future;
+use std::sync::{Mutex, PoisonError};
+use std::time::{Duration, Instant};
 
 use tracing::warn;
 
@@ -45,6 +47,88 @@ pub(crate) fn answer_script(msg: &str, is_error: bool) -> String {
         })
         .collect::<Vec<_>>()
         .join("\n")
+}
+
+/// klipcal.cfg's helper that says an answer of several lines as one console row (Klipper's
+/// `action_respond_info`: one response, a `// ` before each line). Moonraker and the front ends
+/// keep one row per response, and a RESPOND is one line: a status or a measuring guide of seven
+/// lines was seven rows (issue 40 item 6).
+pub(crate) const SAY_MACRO: &str = "_KLIPCAL_SAY";
+
+/// Where one line of [`SAY_MACRO`]'s `MSG` ends (a G-code line cannot hold a line break; the
+/// macro turns this back into one).
+pub(crate) const SAY_LINE_END: char = '␤';
+
+/// `_KLIPCAL_SAY MSG="…"` for answer lines (each made safe as a RESPOND's text).
+#[must_use]
+fn say_line(lines: &[String]) -> Option<String> {
+    let text = lines
+        .iter()
+        .map(|l| gcode_cmd::sanitize_text(l).replace(SAY_LINE_END, " "))
+        .collect::<Vec<_>>()
+        .join(&SAY_LINE_END.to_string());
+    GcodeCmd::new(SAY_MACRO).text("MSG", &text).build().ok()
+}
+
+/// The text of one of klipcal's answer lines (`RESPOND PREFIX=klipcal MSG="…"`, as
+/// [`respond_line`] builds it).
+fn answer_text(line: &str) -> Option<&str> {
+    line.strip_prefix(&format!(
+        "RESPOND PREFIX={} MSG=\"",
+        gcode_cmd::RESPOND_PREFIX
+    ))?
+    .strip_suffix('"')
+}
+
+/// `script` with each run of two or more of klipcal's answer lines said as one console row
+/// through [`SAY_MACRO`]; errors (red, one line each) and dialog actions (one response each,
+/// as the front ends' prompt parsers read them) stay as they are.
+#[must_use]
+pub(crate) fn one_row_per_answer(script: &str) -> String {
+    let mut out: Vec<String> = Vec::new();
+    let mut run: Vec<String> = Vec::new();
+    let flush = |run: &mut Vec<String>, out: &mut Vec<String>| {
+        match run.len() {
+            0 => {}
+            1 => out.push(respond_line(&run[0])),
+            _ => match say_line(run) {
+                Some(l) => out.push(l),
+                None => out.extend(run.iter().map(|t| respond_line(t))),
+            },
+        }
+        run.clear();
+    };
+    for line in script.lines() {
+        match answer_text(line) {
+            Some(t) => run.push(t.to_string()),
+            None => {
+                flush(&mut run, &mut out);
+                out.push(line.to_string());
+            }
+        }
+    }
+    flush(&mut run, &mut out);
+    out.join("\n")
+}
+
+/// Whether Klipper has [`SAY_MACRO`] (an older klipcal.cfg has not), checked at most once a
+/// minute.
+async fn say_macro_known(m: &Moonraker) -> bool {
+    static KNOWN: Mutex<Option<(Instant, bool)>> = Mutex::new(None);
+    let fresh = |k: &Option<(Instant, bool)>| {
+        k.filter(|(at, _)| at.elapsed() < Duration::from_secs(60))
+            .map(|(_, known)| known)
+    };
+    if let Some(known) = fresh(&KNOWN.lock().unwrap_or_else(PoisonError::into_inner)) {
+        return known;
+    }
+    let name = format!("gcode_macro {SAY_MACRO}");
+    let known = m
+        .objects_list()
+        .await
+        .is_ok_and(|objects| objects.iter().any(|o| o.eq_ignore_ascii_case(&name)));
+    *KNOWN.lock().unwrap_or_else(PoisonError::into_inner) = Some((Instant::now(), known));
+    known
 }
 
 /// The argument a dialog's button adds to its G-code: the number of the question it answers
@@ -254,7 +338,14 @@ async fn send(m: &Moonraker, script: &str, what: &str) {
     if script.is_empty() {
         return;
     }
-    if let Err(e) = m.gcode(script).await {
+    let script = if script.lines().filter(|l| answer_text(l).is_some()).count() > 1
+        && say_macro_known(m).await
+    {
+        one_row_per_answer(script)
+    } else {
+        script.to_string()
+    };
+    if let Err(e) = m.console_script(&script).await {
         warn!(error = %e, "{what}");
     }
 }
@@ -274,6 +365,46 @@ mod tests {
         assert!(
             line.contains("not a comment") && line.contains("next"),
             "{line}"
+        );
+    }
+
+    #[test]
+    fn an_answer_of_several_lines_is_one_console_row() {
+        let answer = answer_script("first\nsecond \"quoted\" ␤ here\nthird", false);
+        let dialog = PromptChange::End.script();
+        let error = answer_script("bad", true);
+        let script = [
+            answer.as_str(),
+            dialog.as_str(),
+            &respond_line("alone"),
+            &error,
+        ]
+        .join("\n");
+        let s = one_row_per_answer(&script);
+        let lines: Vec<&str> = s.lines().collect();
+        assert_eq!(
+            lines,
+            [
+                "_KLIPCAL_SAY MSG=\"first␤second 'quoted'   here␤third\"",
+                PROMPT_END,
+                "RESPOND PREFIX=klipcal MSG=\"alone\"",
+                "RESPOND TYPE=error MSG=\"klipcal: bad\"",
+            ]
+        );
+        // Nothing to join: the script as it was.
+        let one = respond_line("only");
+        assert_eq!(one_row_per_answer(&one), one);
+        // The macro klipcal.cfg defines turns the line ends back into line breaks.
+        let cfg = crate::jobs::registry::macros_cfg();
+        let body = cfg
+            .split(&format!("[gcode_macro {SAY_MACRO}]"))
+            .nth(1)
+            .expect("klipcal.cfg has no _KLIPCAL_SAY");
+        let body = body.split("\n[").next().unwrap_or_default();
+        assert!(
+            body.contains(&format!("|replace(\"{SAY_LINE_END}\", \"\\n\")"))
+                && body.contains("action_respond_info(\"klipcal \""),
+            "{body}"
         );
     }
 

@@ -36,6 +36,15 @@ const FRAME: ArgSpec = arg(
     "open: no enclosure; enclosed: in an enclosure or a box",
 );
 
+const SAY_MSG: ArgSpec = arg(
+    "msg",
+    ArgKind::Text,
+    "first␤second",
+    "a quoted text, lines separated by ␤",
+    "",
+    "the lines to say",
+);
+
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
@@ -88,6 +97,15 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             ],
         ),
         parse: |_| Err(anyhow::anyhow!("_KLIPCAL_CANCEL_ASK runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec::local(
+            crate::jobs::core::console::SAY_MACRO,
+            "say an answer of several lines as one console row (klipcal sends it; MSG's lines end at ␤)",
+            &[SAY_MSG],
+            &["{action_respond_info(\"klipcal \" ~ (params.MSG|default(\"\"))|replace(\"␤\", \"\\n\"))}"],
+        ),
+        parse: |_| Err(anyhow::anyhow!("_KLIPCAL_SAY runs in Klipper")),
     },
     Op {
         spec: OpSpec::remote(
