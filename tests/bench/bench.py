@@ -18,6 +18,7 @@ command line before any signal).
                  (--dual-carriage, cartesian only: a second X carriage,
                  [dual_carriage] homing to X max; its play is joint "x1")
                  [--camera '{"look": "ring", "px_per_mm": 80, ...}']
+                 (or '{"photo": "ktamv-frame", ...}': a real photo)
                  [--klipcal-bin PATH]
                  (--camera: the nozzle camera, `klipcal bench camera`
                  serving /?action=snapshot, registered in Moonraker as
