@@ -12,7 +12,8 @@
 //!   per section (`ab`, `mesh`, `backlash`, `http`, `daemon`), each checking its own ranges.
 //! - [`moonraker`]: the Moonraker client — protocol types (pure), the websocket actor that owns
 //!   the socket (`connection`), the cloneable handle (`client`) and its typed queries
-//!   (`queries`, answers typed in `answers`), the agent's remote methods, HTTP file transfer.
+//!   (`queries`, answers typed in `answers`), the agent's remote methods, HTTP file transfer,
+//!   and klipcal's console scripts straight to Klipper's API socket (`klippy`).
 //! - [`jobs`]: the only place Moonraker I/O meets the math. `jobs::core`, the session core
 //!   every calibration shares (stored sessions, one active session, runner, printer guards,
 //!   console and prompts, bed soak, the command table, config transaction, the `Calibration`
