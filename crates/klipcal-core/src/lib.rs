@@ -17,7 +17,8 @@
 //!   `tests/fixtures/nozzle`, read from the source checkout for the tests and the bench;
 //!   `photo_camera` (the same): a nozzle camera whose frames are one of those photographs
 //!   moved where the simulated nozzle is (the bench's camera server and `klipcal bench
-//!   backlash`).
+//!   backlash`); `optic_render` (the same): a second nozzle camera written apart from
+//!   `camera_render`, a shaded nozzle photographed through a lens onto a Bayer sensor.
 
 pub mod calib;
 #[cfg(any(test, feature = "sim"))]
@@ -27,6 +28,8 @@ pub mod klipper;
 pub mod layout;
 #[cfg(any(test, feature = "sim"))]
 pub mod nozzle_photos;
+#[cfg(any(test, feature = "sim"))]
+pub mod optic_render;
 #[cfg(any(test, feature = "sim"))]
 pub mod photo_camera;
 pub mod plots;

@@ -14,4 +14,5 @@ pub mod soak_real;
 pub use klipcal::cmd::soak;
 pub use klipcal_core::camera_render;
 pub use klipcal_core::nozzle_photos;
+pub use klipcal_core::optic_render;
 pub use klipcal_core::photo_camera;

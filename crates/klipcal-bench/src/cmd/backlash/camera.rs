@@ -27,18 +27,18 @@ const WRONG_PX: f64 = 1.0;
 
 /// One family's detection figures.
 #[derive(Debug, Default)]
-struct DetectTally {
-    errors_px: Vec<f64>,
+pub(super) struct DetectTally {
+    pub(super) errors_px: Vec<f64>,
     centroid_errors_px: Vec<f64>,
     covered: usize,
     refused: usize,
-    wrong: usize,
-    n: usize,
+    pub(super) wrong: usize,
+    pub(super) n: usize,
     reasons: std::collections::BTreeMap<String, usize>,
 }
 
 /// A refusal's `reason` tag (the detector's or the click refinement's).
-fn refusal_name(r: &impl serde::Serialize) -> String {
+pub(super) fn refusal_name(r: &impl serde::Serialize) -> String {
     serde_json::to_value(r)
         .ok()
         .and_then(|v| v.get("reason").and_then(|s| s.as_str()).map(String::from))
@@ -46,7 +46,7 @@ fn refusal_name(r: &impl serde::Serialize) -> String {
 }
 
 /// Detection over each rendered family: error, refusals, wrong numbers.
-fn bench_detection(n: usize, seed: u64) -> anyhow::Result<Vec<(Family, DetectTally)>> {
+pub(super) fn bench_detection(n: usize, seed: u64) -> anyhow::Result<Vec<(Family, DetectTally)>> {
     let mut rng = fastrand::Rng::with_seed(seed ^ 0x27);
     let p = DetectParams::default();
     let mut out = Vec::new();
@@ -813,8 +813,8 @@ fn bench_real_photos(seed: u64) -> anyhow::Result<bool> {
     let near_pct = 100.0 * near as f64 / want.max(1) as f64;
     let good = near_pct >= 80.0 && far == 0 && refused == must;
     println!(
-        "  real photos (tests/fixtures/nozzle: TAMV's and kTAMV's published nozzle pictures and \
-         views of them, hand-labelled): found within max(3 px, the label's sd) {near}/{want} = \
+        "  real photos (tests/fixtures/nozzle: TAMV's, kTAMV's and Axiscope's published nozzle \
+         pictures and views of them, hand-labelled): found within max(3 px, the label's sd) {near}/{want} = \
          {near_pct:.0} % (target ≥ 80 %)   more than 10 px off {far} (target 0)   must-refuse \
          refused {refused}/{must} (target all)   refusals {reasons:?}   {}",
         mark(good)

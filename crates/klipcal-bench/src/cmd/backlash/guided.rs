@@ -269,6 +269,7 @@ pub(crate) fn bench(
         guided.push((model.name, worst_g, worst_s));
     }
     if !args.guided_only {
+        all_ok &= super::optic::bench_renderers(args.camera_images.max(5), args.seed)?;
         all_ok &= bench_camera(args, &params, &guided)?;
     }
     Ok(if all_ok {

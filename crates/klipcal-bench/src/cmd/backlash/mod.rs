@@ -7,5 +7,6 @@
 mod camera;
 mod guided;
 mod models;
+mod optic;
 
 pub(crate) use guided::bench;

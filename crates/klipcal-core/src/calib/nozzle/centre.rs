@@ -13,6 +13,8 @@ pub(super) struct Fit {
     /// How closed the edge is: the weakest of eight 45° sectors' mean edge slope over the
     /// mean of all (1: the same all round; 0: a sector without an edge).
     pub(super) closed: f64,
+    /// The edge's height: the median over the rays of the level's rise across it, grey levels.
+    pub(super) step: f64,
 }
 
 fn bilinear(img: &[f32], w: usize, h: usize, x: f64, y: f64) -> Option<f64> {
@@ -174,6 +176,10 @@ pub(super) fn edge_circle(
         scatter: rms,
         used: m,
         closed: closedness(&rays),
+        step: {
+            let mut st: Vec<f64> = rays.iter().map(|r| r.3).collect();
+            median_in_place(&mut st)
+        },
     })
 }
 

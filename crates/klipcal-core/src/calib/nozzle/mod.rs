@@ -408,8 +408,12 @@ impl Field<'_> {
         let top = votes.peaks[0].score;
         let mut tips: Vec<(f64, Fit)> = Vec::new();
         let (mut fitted, mut strongest_refusal) = (0, None);
+        // A tip's own edge rises by as much as the nozzle must stand out (issue 37: a dark
+        // mottle of an out-of-focus bed, round and closed, rose 1.5 grey levels where the real
+        // photos' orifices rise 54–211).
+        let min_step = p.min_contrast.max(p.min_snr * noise);
         for pk in &votes.peaks {
-            match self.fit_at(pk.c, p) {
+            match self.fit_at(pk.c, min_step, p) {
                 Ok(fit) => {
                     fitted += 1;
                     let part_of =
@@ -462,8 +466,9 @@ impl Field<'_> {
 
     /// The innermost strong circle about `c0` ([`inner_edge`]), its centre by radial symmetry,
     /// then its edge fitted along rays ([`edge_circle`]): the fit and the sign of the edge
-    /// (+1: darker inside), or why this peak is not a round nozzle.
-    fn fit_at(&self, c0: [f64; 2], p: &DetectParams) -> Result<Fit, Refusal> {
+    /// (+1: darker inside), or why this peak is not a round nozzle. The tip's edge must rise
+    /// by `min_step` grey levels (median over the rays).
+    fn fit_at(&self, c0: [f64; 2], min_step: f64, p: &DetectParams) -> Result<Fit, Refusal> {
         let (rs, w, h) = (self.rs, self.w, self.h);
         let reach = self.to_frame(c0).min(self.r_max);
         if reach < 4.0 {
@@ -486,7 +491,11 @@ impl Field<'_> {
             .iter()
             .enumerate()
             .filter(|(_, e)| e.1 > 0.0)
-            .find_map(|(k, e)| fit_edge(e.0, e.1).map(|f| (k, f)))
+            .find_map(|(k, e)| {
+                fit_edge(e.0, e.1)
+                    .filter(|f| f.step >= min_step)
+                    .map(|f| (k, f))
+            })
         else {
             return Err(Refusal::NoTip { round: 0 });
         };

@@ -1,5 +1,5 @@
 //! The detector and the registration on real photographs (issue 37, `tests/fixtures/nozzle`:
-//! TAMV's and kTAMV's published nozzle pictures, with the pictures a person must refuse).
+//! TAMV's, kTAMV's and Axiscope's published nozzle pictures, with the pictures a person must refuse).
 
 use super::*;
 use crate::nozzle_photos::{known_shifts, load, Expect, Photo};
