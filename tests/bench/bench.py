@@ -7,12 +7,14 @@ never kills a process it did not start (pids are checked against their
 command line before any signal).
 
   bench.py start --run-dir DIR [--kinematics corexy|cartesian] [--size MM]
-                 [--plant-json JSON|FILE] [--variant mesh]
+                 [--plant-json JSON|FILE] [--variant mesh|chamber]
                  [--surface-json JSON|FILE]
                  (--variant mesh adds the simulated probe [klipcal_bench
                  probe], the frame thermistor [temperature_sensor frame] and
                  finer Z microsteps; the surface parameters go to
-                 comms/surface.json, each probe's truth to comms/probe_log.jsonl)
+                 comms/surface.json, each probe's truth to comms/probe_log.jsonl;
+                 --variant chamber adds [temperature_sensor chamber], reading
+                 the plant's chamber: see plant.py)
                  [--backlash-module none|seed|pr7157]
                  [--play '{"x": 0.08, "y": 0.05}'] [--dual-carriage]
                  (--dual-carriage, cartesian only: a second X carriage,
@@ -319,7 +321,17 @@ min_temp: 0
 max_temp: 100
 
 """
-VARIANTS = ("plain", "mesh")
+CHAMBER_VARIANT = """
+# --- chamber variant (bench.py --variant chamber): the enclosure's thermometer
+[temperature_sensor chamber]
+sensor_type: klipcal_file
+sensor_file: @@COMMS_DIR@@/chamber_temp
+ambient_temp: 25
+min_temp: 0
+max_temp: 100
+
+"""
+VARIANTS = ("plain", "mesh", "chamber")
 
 
 def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
@@ -348,8 +360,9 @@ def render_printer(config_dir, comms_dir, gcodes_dir, kinematics, size_mm,
                                       camera),
     })
     text = render("printer.cfg", values)
-    if variant == "mesh":
-        block = MESH_VARIANT.replace("@@COMMS_DIR@@", comms_dir)
+    blocks = {"mesh": MESH_VARIANT, "chamber": CHAMBER_VARIANT}
+    if variant in blocks:
+        block = blocks[variant].replace("@@COMMS_DIR@@", comms_dir)
         anchor = "[include klipcal.cfg]"
         if anchor not in text:
             raise BenchError("printer.cfg template lacks %s" % anchor)

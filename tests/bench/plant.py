@@ -31,12 +31,17 @@ cooling (a slight hysteresis of the bow). Parameters under "frame": gain
 (0..1), tau_s, lag_s, noise_c. The bench's simulated probe reads the gantry
 temperature (comms/gantry_temp, hidden from klippy), the frame thermistor
 `[temperature_sensor frame]` reads comms/frame_temp.
+The chamber (an enclosure's air, for the soak's chamber thermometer): under
+"chamber", initial_c (default: ambient) warming by warm_c_per_s of simulated
+time until warm_until_s of simulated time, then flat; noise_c. It is written to
+comms/chamber_temp, which `[temperature_sensor chamber]` reads in the bench's
+chamber variant (bench.py --variant chamber).
 Global: accel (simulated seconds per real second), ambient_c, noise_c
 (gaussian sd added to each written reading), seed, period_s (real seconds
 between updates), initial_c (start temperature, default ambient).
 
 Files written in --run-dir/comms: bed_temp, nozzle_temp, frame_temp,
-gantry_temp (one number each,
+gantry_temp, chamber_temp (one number each,
 replaced atomically) and plant_state.json (sim time, temperatures, powers).
 """
 import argparse
@@ -61,6 +66,7 @@ DEFAULTS = {
     "nozzle": {"gain_c": 300.0, "split": 0.3, "tau_heater_s": 6.0,
                "tau_plate_s": 20.0, "sensor_tau_s": 1.0},
     "frame": {"gain": 0.15, "tau_s": 3600.0, "lag_s": 120.0, "noise_c": 0.0},
+    "chamber": {"warm_c_per_s": 0.0, "warm_until_s": 0.0, "noise_c": 0.0},
 }
 
 
@@ -86,6 +92,24 @@ class Frame:
         for _ in range(n):
             self.t_gantry += h * (goal - self.t_gantry) / self.tau_s
             self.t_frame += h * (self.t_gantry - self.t_frame) / self.lag_s
+
+
+class Chamber:
+    """An enclosure's air: warming at a steady rate for a while, then flat."""
+
+    def __init__(self, p, ambient_c):
+        self.initial_c = float(p.get("initial_c", ambient_c))
+        self.rate = float(p["warm_c_per_s"])
+        self.until_s = float(p["warm_until_s"])
+        self.noise_c = float(p.get("noise_c", 0.0))
+        if not (self.until_s >= 0 and self.noise_c >= 0):
+            raise ValueError("bad chamber parameters %r: need warm_until_s>=0, "
+                             "noise_c>=0" % (p,))
+
+    def temp(self, sim_t):
+        return self.initial_c + self.rate * min(sim_t, self.until_s)
+
+
 HEATERS = {"bed": "heater_bed", "nozzle": "extruder"}
 
 
@@ -232,6 +256,7 @@ def main():
         initial = float(params.get("initial_c", ambient))
         masses = {k: Mass2(params[k], ambient, initial) for k in HEATERS}
         frame = Frame(params["frame"], ambient, initial)
+        chamber = Chamber(params["chamber"], ambient)
     except (OSError, ValueError, KeyError, TypeError) as e:
         sys.stderr.write("plant: bad parameters: %s\n" % e)
         sys.exit(2)
@@ -278,6 +303,9 @@ def main():
         write_atomic(os.path.join(comms, "frame_temp"), "%.4f\n" % frame_c)
         write_atomic(os.path.join(comms, "gantry_temp"), "%.4f\n"
                      % frame.t_gantry)
+        chamber_c = chamber.temp(sim_t) + (rng.gauss(0.0, chamber.noise_c)
+                                           if chamber.noise_c else 0.0)
+        write_atomic(os.path.join(comms, "chamber_temp"), "%.4f\n" % chamber_c)
         n += 1
         if n % 5 == 0 or not running[0]:
             state = {"sim_t_s": round(sim_t, 3), "connected": connected,
@@ -291,6 +319,8 @@ def main():
             state["frame"] = {"gantry_c": round(frame.t_gantry, 4),
                               "frame_c": round(frame.t_frame, 4),
                               "reading_c": round(frame_c, 4)}
+            state["chamber"] = {"reading_c": round(chamber_c, 4),
+                                "warming": sim_t < chamber.until_s}
             write_atomic(os.path.join(comms, "plant_state.json"),
                          json.dumps(state))
         if next_step < time.monotonic() - 1.0:

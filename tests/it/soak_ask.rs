@@ -214,3 +214,78 @@ async fn the_first_soak_asks_the_build_writes_the_answer_and_uses_it_at_once() {
     typed(&m, "KLIPCAL_CANCEL", "cancel").await;
     drop(d);
 }
+
+/// The bench's plant with an enclosure's air that warms steadily (0.02 K per real second at
+/// 20 simulated seconds per second) for 300 real seconds, then stays flat, read by the
+/// chamber variant's `[temperature_sensor chamber]`.
+const CHAMBER_PLANT: &str = r#"{"accel": 20, "bed": {"tau_plate_s": 100.0, "tau_heater_s": 20.0},
+    "chamber": {"initial_c": 30.0, "warm_c_per_s": 0.001, "warm_until_s": 6000.0}}"#;
+
+/// Whether the plant's chamber still warms (its own state file).
+fn chamber_warming(bench: &Bench) -> Option<bool> {
+    let text = std::fs::read_to_string(bench.dir.path().join("comms/plant_state.json")).ok()?;
+    let v: Value = serde_json::from_str(&text).ok()?;
+    v["chamber"]["warming"].as_bool()
+}
+
+/// Issue 38: a chamber thermometer that keeps warming holds the soak (the bed alone settles
+/// within a minute or two on this plant), and once it is flat the soak ends. The build and
+/// frame are named (no question), the chamber's window is a test's minute
+/// (`soak.chamber_window_s`), the A/B start is typed as Klipper runs it and STATUS says what
+/// the chamber shows.
+#[tokio::test]
+async fn a_chamber_that_keeps_warming_holds_the_soak_and_a_flat_one_lets_it_end() {
+    let bench = Bench::start_args(
+        "corexy",
+        &["--plant-json", CHAMBER_PLANT, "--variant", "chamber"],
+    );
+    let toml = "[ab]\nbed_temp_c = 60.0\ncooldown_s = 0.0\nhold_max_s = 600.0\n\
+                soak_max_s = 900.0\n\
+                [soak]\nsettle_s = 1.0\nbin_s = 0.5\nmin_soak_s = 3.0\ntau_max_s = 30.0\n\
+                surface_budget_c = 0.1\nbed = \"bare-plate\"\nframe = \"enclosed\"\n\
+                chamber_window_s = 60.0\n";
+    let d = Daemon::ready(&bench, toml).await;
+    let (m, _c) = bench.client(json!({}));
+    m.wait_connected(Duration::from_secs(30)).await.unwrap();
+    typed(&m, "KLIPCAL_AB_START BED=60", "session").await;
+    wait_state(&bench, "soaking", Duration::from_secs(120)).await;
+    let soaking_since = std::time::Instant::now();
+    // While the air warms the soak holds, and STATUS says why.
+    let mut said_warming = None;
+    while chamber_warming(&bench) != Some(false) {
+        let s = session(&bench).await;
+        assert_eq!(
+            s["state"],
+            "soaking",
+            "the soak ended while the chamber still warmed ({:.0} s into it): {s}",
+            soaking_since.elapsed().as_secs_f64()
+        );
+        if said_warming.is_none() && soaking_since.elapsed() > Duration::from_secs(90) {
+            let status = typed(&m, "KLIPCAL_STATUS", "bed soak:").await;
+            if status.contains("chamber sensor temperature_sensor chamber: still warming") {
+                said_warming = Some(status);
+            }
+        }
+        tokio::time::sleep(Duration::from_secs(2)).await;
+    }
+    let held = soaking_since.elapsed();
+    assert!(
+        said_warming.is_some(),
+        "STATUS never said the chamber still warmed:\n{}",
+        d.log_text()
+    );
+    assert!(
+        held > Duration::from_secs(120),
+        "the chamber stopped warming {held:?} into the soak: too soon to show it held"
+    );
+    // Flat: the soak ends once the window has seen it so (a minute), with the sensor named.
+    let s = wait_state(&bench, "printing", Duration::from_secs(240)).await;
+    let said = s["progress"].as_str().unwrap_or("");
+    assert!(
+        said.contains("bed stable")
+            && said.contains("chamber sensor temperature_sensor chamber: flat"),
+        "the declaration did not say the chamber was flat: {said}"
+    );
+    typed(&m, "KLIPCAL_CANCEL", "cancel").await;
+    drop(d);
+}

@@ -652,10 +652,14 @@ impl BedSoak {
     fn derivation(&self) -> String {
         let p = self.detector.params();
         format!(
-            "waiting until the print surface can warm by at most {}: {}; {}{}",
+            "waiting until the print surface can warm by at most {}: {}; {}{}{}",
             kelvin_words(p.surface_budget_c),
             self.detector.coupling().why,
             self.detector.slowest_words(),
+            self.detector
+                .chamber_words()
+                .map(|w| format!("; {w}"))
+                .unwrap_or_default(),
             unset_build_words(p)
                 .map(|w| format!("; {w}"))
                 .unwrap_or_default()

@@ -11,6 +11,7 @@ use crate::cli::BenchSoakArgs;
 use crate::cmd::soak_families::{information_bound, weakest_threshold};
 
 mod bed;
+mod family;
 mod four_node;
 mod real;
 

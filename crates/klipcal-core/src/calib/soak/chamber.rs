@@ -1,38 +1,77 @@
 //! PURE: a chamber thermometer read, not guessed (issue 38). The air and frame around an
 //! enclosed bed warm for as long as they take, which may be far longer than `tau_max_s`: the
-//! heater's power cannot show such a decay, a thermometer in the enclosure can. While it still
-//! warms, the soak waits; once it is flat (its rise over the last [`CHAMBER_WINDOW_S`] at most
-//! [`CHAMBER_FLAT_K_PER_H`] at about three standard errors), nothing around the bed is still
-//! warming for hours, so the rule rules out the bed stack's own decays (as on an open frame)
-//! instead of assuming `tau_max_s`.
+//! heater's power cannot show such a decay, a thermometer in the enclosure can.
+//!
+//! What the air's warming still to come does to the print surface: the surface sits between
+//! the held thermistor (through the stack, conductance G) and the air (convection and
+//! radiation, h), so it takes up h/(G + h) of the air's warming, at most
+//! [`surface_share`] for the build. The air settles as a first-order decay whose time
+//! constant is at most [`CHAMBER_TAU_MAX_S`], so what it still has to rise is at most its rate
+//! times that. Its rate is the upper end (about three standard errors) of a straight line
+//! through the last `soak.chamber_window_s` of readings (its mean slope over the window is at
+//! least the rate now, the air's warming only slowing). The surface's share of what the air
+//! may still rise is reserved out of `soak.surface_budget_c`, up to
+//! [`CHAMBER_BUDGET_SHARE`] of it: the rule rules out what the bed's power may still do
+//! against the rest. While the reserve would need more than that share the chamber is still
+//! warming and the soak waits; once it needs no more, nothing around the bed can warm the
+//! surface beyond its reserve, so the rule rules out the bed stack's own decays (as on an open
+//! frame) instead of assuming `tau_max_s`.
 
 use super::detector::{SoakDetector, SoakStatus};
-use super::Z;
+use super::stack::{StackLimits, BED_PRESETS};
+use super::{SoakParams, Z};
 
-/// The span of chamber readings the trend is taken over, s.
-pub const CHAMBER_WINDOW_S: f64 = 1200.0;
-/// A chamber warming by at most this, K/h, is flat: with the slowest enclosure's time constant
-/// (about 2 h) at most 1 K of air is left to come, and the weakest surface (glass on clips)
-/// takes up at most a fifth of its air's warming.
-pub const CHAMBER_FLAT_K_PER_H: f64 = 0.5;
+/// The slowest enclosure klipcal allows for: its air and frame settle with a time constant of
+/// at most this, s. 6 h: a heavy frame and panels (120 kJ/K, ~130 kg of aluminium's worth)
+/// behind well-insulated walls (6 W/K) settle in 5.6 h; a Voron-sized enclosure (10–40 kJ/K
+/// behind 6–18 W/K) in 10 min to 2 h.
+pub const CHAMBER_TAU_MAX_S: f64 = 6.0 * 3600.0;
+/// The most a print surface exchanges with the air around it, W/m²K: natural convection
+/// (5–10) and radiation (ε 0.95 at 110 °C: about 10).
+pub const SURFACE_H_MAX_W_M2K: f64 = 20.0;
+/// The most of `soak.surface_budget_c` the air's warming still to come may take; the rest is
+/// the bed's own.
+pub const CHAMBER_BUDGET_SHARE: f64 = 0.5;
+
+/// The most of the air's warming the print surface takes up on the build `bed` names (the
+/// weakest when it names none), whose coupling the rule uses now is `g_used` (full power per
+/// K): h/(G + h) = h·R/(1 + h·R) with R the stack's resistance per m² from the thermistor to
+/// the surface, at most the build's (or what `g_used` says at the densest heater, when
+/// weaker).
+#[must_use]
+pub fn surface_share(bed: &str, g_used: f64) -> f64 {
+    let weakest = BED_PRESETS[BED_PRESETS.len() - 1];
+    let b = BED_PRESETS
+        .iter()
+        .find(|b| b.name == bed)
+        .unwrap_or(&weakest);
+    let g = if g_used.is_finite() && g_used > 0.0 {
+        b.g.min(g_used)
+    } else {
+        b.g
+    };
+    let hr = SURFACE_H_MAX_W_M2K / (g * StackLimits::Q_MAX_W_M2);
+    hr / (1.0 + hr)
+}
+
+/// The chamber's rise, K/h, at or below which its warming still to come reaches the surface
+/// by at most its share of the budget (see the module's words).
+#[must_use]
+pub fn flat_k_per_h(params: &SoakParams, g_used: f64) -> f64 {
+    CHAMBER_BUDGET_SHARE * params.surface_budget_c
+        / (surface_share(&params.bed, g_used) * CHAMBER_TAU_MAX_S / 3600.0)
+}
 
 /// What the chamber's readings say.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum ChamberTrend {
     /// Too few readings yet (less than the window), in words.
     Unknown(String),
-    /// Still warming (or not shown flat yet): its rise, K/h, and the most it can be.
-    Warming {
+    /// Its rise over the window, K/h, and the most it can be (about three standard errors).
+    Known {
         /// Fitted rise, K/h.
         k_per_h: f64,
         /// Its upper end at about three standard errors, K/h.
-        high_k_per_h: f64,
-    },
-    /// Flat: its rise at most `high_k_per_h`, K/h, at about three standard errors.
-    Flat {
-        /// Fitted rise, K/h.
-        k_per_h: f64,
-        /// See the variant.
         high_k_per_h: f64,
     },
 }
@@ -41,16 +80,33 @@ pub(crate) enum ChamberTrend {
 #[derive(Debug, Clone)]
 pub(crate) struct Chamber {
     name: String,
+    window_s: f64,
     samples: Vec<(f64, f64)>,
+    /// The bed's latest sample time: readings older than a quarter of the window by then are
+    /// a sensor that stopped, and say nothing of the air now.
+    now_s: f64,
 }
 
+/// How many means the window's line goes through.
+const MEANS: usize = 20;
+
 impl Chamber {
-    /// No readings yet from the sensor named `name` (as Klipper's config names it).
+    /// No readings yet from the sensor named `name` (as Klipper's config names it), its trend
+    /// taken over `window_s`.
     #[must_use]
-    pub(crate) fn new(name: &str) -> Self {
+    pub(crate) fn new(name: &str, window_s: f64) -> Self {
         Chamber {
             name: name.to_string(),
+            window_s,
             samples: Vec::new(),
+            now_s: f64::NEG_INFINITY,
+        }
+    }
+
+    /// The bed's latest sample time (see `now_s`).
+    pub(crate) fn set_now(&mut self, t_s: f64) {
+        if t_s.is_finite() {
+            self.now_s = self.now_s.max(t_s);
         }
     }
 
@@ -63,52 +119,55 @@ impl Chamber {
             return;
         }
         self.samples.push((t_s, temp_c));
-        let keep_from = t_s - 2.0 * CHAMBER_WINDOW_S;
+        let keep_from = t_s - 2.0 * self.window_s;
         let drop = self.samples.iter().take_while(|s| s.0 < keep_from).count();
         self.samples.drain(..drop);
     }
 
-    /// The trend over the last [`CHAMBER_WINDOW_S`]: a straight line through one-minute means
-    /// (so a sensor read often with correlated noise is not taken for a precise one), its
-    /// slope's standard error from their scatter about it.
+    /// The trend over the last window: a straight line through [`MEANS`] means (one a minute
+    /// at the default window, so a sensor read often with correlated noise is not taken for a
+    /// precise one), its slope's standard error from their scatter about it.
     #[must_use]
     pub(crate) fn trend(&self) -> ChamberTrend {
         let Some(&(now, _)) = self.samples.last() else {
             return ChamberTrend::Unknown("no reading yet".into());
         };
-        let from = now - CHAMBER_WINDOW_S;
+        if self.now_s - now > 0.25 * self.window_s {
+            return ChamberTrend::Unknown(format!("no reading for {}", minutes(self.now_s - now)));
+        }
+        let from = now - self.window_s;
         let first = self
             .samples
             .iter()
             .find(|s| s.0 >= from)
             .map_or(now, |s| s.0);
-        if now - first < 0.9 * CHAMBER_WINDOW_S {
+        if now - first < 0.9 * self.window_s {
             return ChamberTrend::Unknown(format!(
-                "{:.0} of {:.0} min of readings",
-                (now - first) / 60.0,
-                CHAMBER_WINDOW_S / 60.0
+                "{} of {} of readings",
+                minutes(now - first),
+                minutes(self.window_s)
             ));
         }
-        let mut means: Vec<(f64, f64)> = Vec::new();
-        let mut k = 0;
-        while k * 60 < CHAMBER_WINDOW_S as usize {
-            let (a, b) = (from + 60.0 * k as f64, from + 60.0 * (k + 1) as f64);
-            let v: Vec<&(f64, f64)> = self
-                .samples
-                .iter()
-                .filter(|s| s.0 >= a && s.0 < b)
-                .collect();
-            if !v.is_empty() {
+        let step = self.window_s / MEANS as f64;
+        let means: Vec<(f64, f64)> = (0..MEANS)
+            .filter_map(|k| {
+                let (a, b) = (from + step * k as f64, from + step * (k + 1) as f64);
+                let v: Vec<&(f64, f64)> = self
+                    .samples
+                    .iter()
+                    .filter(|s| s.0 >= a && s.0 < b)
+                    .collect();
                 let n = v.len() as f64;
-                means.push((
-                    v.iter().map(|s| s.0).sum::<f64>() / n,
-                    v.iter().map(|s| s.1).sum::<f64>() / n,
-                ));
-            }
-            k += 1;
-        }
+                (!v.is_empty()).then(|| {
+                    (
+                        v.iter().map(|s| s.0).sum::<f64>() / n,
+                        v.iter().map(|s| s.1).sum::<f64>() / n,
+                    )
+                })
+            })
+            .collect();
         if means.len() < 8 {
-            return ChamberTrend::Unknown(format!("{} one-minute means", means.len()));
+            return ChamberTrend::Unknown(format!("{} means of {MEANS}", means.len()));
         }
         let n = means.len() as f64;
         let (mt, my) = (
@@ -125,50 +184,27 @@ impl Chamber {
         // Readings come in 0.01 °C steps: never trust the slope better than that allows.
         let sd = (sse / (n - 2.0)).sqrt().max(0.01 / 12f64.sqrt());
         let se = sd / sxx.sqrt();
-        let (k_per_h, high_k_per_h) = (slope * 3600.0, (slope + Z * se) * 3600.0);
-        if high_k_per_h <= CHAMBER_FLAT_K_PER_H {
-            ChamberTrend::Flat {
-                k_per_h,
-                high_k_per_h,
-            }
-        } else {
-            ChamberTrend::Warming {
-                k_per_h,
-                high_k_per_h,
-            }
+        ChamberTrend::Known {
+            k_per_h: slope * 3600.0,
+            high_k_per_h: (slope + Z * se) * 3600.0,
         }
     }
+}
 
-    /// The trend in words for the soak's lines, naming the sensor.
-    #[must_use]
-    pub(crate) fn words(&self) -> String {
-        match self.trend() {
-            ChamberTrend::Unknown(why) => format!(
-                "chamber sensor {}: not read long enough yet ({why})",
-                self.name
-            ),
-            ChamberTrend::Warming { k_per_h, .. } => format!(
-                "chamber sensor {}: still warming ({k_per_h:+.2} K/h over the last {:.0} min; \
-                 flat is at most {CHAMBER_FLAT_K_PER_H} K/h): the enclosure's slow warming is \
-                 waited for",
-                self.name,
-                CHAMBER_WINDOW_S / 60.0
-            ),
-            ChamberTrend::Flat { high_k_per_h, .. } => format!(
-                "chamber sensor {}: flat (at most {high_k_per_h:+.2} K/h over the last {:.0} \
-                 min): nothing around the bed is warming for hours, so only the bed stack's own \
-                 decays are ruled out",
-                self.name,
-                CHAMBER_WINDOW_S / 60.0
-            ),
-        }
+/// A span in words: minutes, or seconds below two minutes (a test's short window).
+fn minutes(s: f64) -> String {
+    if s < 120.0 {
+        format!("{s:.0} s")
+    } else {
+        format!("{:.0} min", s / 60.0)
     }
 }
 
 /// The chamber beside the detector: the same rule with the slowest decay the bed stack's own
 /// (as `soak.frame = "open"`), and the chamber's trend deciding between the two. While the
-/// chamber still warms neither may end the soak; once it is flat either may; before the
-/// chamber has been read for a window, the settings' rule alone.
+/// chamber still warms neither may end the soak; once it is flat either may, each with the
+/// air's share reserved out of its budget; before the chamber has been read for a window, the
+/// settings' rule alone.
 #[derive(Debug, Clone)]
 pub(crate) struct ChamberGate {
     pub(super) chamber: Chamber,
@@ -181,7 +217,7 @@ pub(crate) struct ChamberGate {
 impl ChamberGate {
     pub(super) fn new(name: &str, stack: SoakDetector) -> Self {
         ChamberGate {
-            chamber: Chamber::new(name),
+            chamber: Chamber::new(name, stack.params().chamber_window_s),
             stack,
             status: SoakStatus::Heating,
             explanation: "no samples yet".into(),
@@ -189,13 +225,59 @@ impl ChamberGate {
         }
     }
 
-    /// The status with the chamber's trend, from the settings' rule's (`main`, `why`) and the
-    /// stack's.
-    pub(super) fn decide(&mut self, main: &SoakStatus, why: &str, target_c: f64) {
-        let words = self.chamber.words();
-        let (status, why) = match (self.chamber.trend(), main, self.stack.status()) {
-            (ChamberTrend::Warming { .. }, SoakStatus::Stable { .. }, _)
-            | (ChamberTrend::Warming { .. }, _, SoakStatus::Stable { .. }) => (
+    /// The surface warming the air may still bring, K, at most the budget's share (which is
+    /// what a chamber still warming holds the soak for): reserved out of the rule's budget
+    /// once the chamber has been read for a window, 0 before.
+    pub(super) fn reserve_c(&self, params: &SoakParams, g_used: f64) -> f64 {
+        match self.chamber.trend() {
+            ChamberTrend::Unknown(_) => 0.0,
+            ChamberTrend::Known { high_k_per_h, .. } => {
+                (surface_share(&params.bed, g_used) * high_k_per_h.max(0.0) * CHAMBER_TAU_MAX_S
+                    / 3600.0)
+                    .min(CHAMBER_BUDGET_SHARE * params.surface_budget_c)
+            }
+        }
+    }
+
+    /// Whether the chamber is flat for the rule (`params`, coupling `g_used`).
+    fn flat(&self, params: &SoakParams, g_used: f64) -> Option<bool> {
+        match self.chamber.trend() {
+            ChamberTrend::Unknown(_) => None,
+            ChamberTrend::Known { high_k_per_h, .. } => {
+                Some(high_k_per_h <= flat_k_per_h(params, g_used))
+            }
+        }
+    }
+
+    /// The trend in words for the soak's lines, naming the sensor.
+    pub(super) fn words(&self, params: &SoakParams, g_used: f64) -> String {
+        let name = &self.chamber.name;
+        let window = minutes(self.chamber.window_s);
+        let flat = flat_k_per_h(params, g_used);
+        let share = surface_share(&params.bed, g_used) * 100.0;
+        match (self.chamber.trend(), self.flat(params, g_used)) {
+            (ChamberTrend::Unknown(why), _) => {
+                format!("chamber sensor {name}: not read long enough yet ({why})")
+            }
+            (ChamberTrend::Known { k_per_h, .. }, Some(false)) => format!(
+                "chamber sensor {name}: still warming ({k_per_h:+.2} K/h over the last {window};                  flat is at most {flat:.2} K/h, where the {share:.0} % of the air's warming                  still to come that reaches the print surface is at most {:.2} K): the                  enclosure's slow warming is waited for",
+                CHAMBER_BUDGET_SHARE * params.surface_budget_c
+            ),
+            (ChamberTrend::Known { high_k_per_h, .. }, _) => format!(
+                "chamber sensor {name}: flat (at most {high_k_per_h:+.2} K/h over the last                  {window}; the air's warming still to come may warm the print surface by at                  most {:.2} K, kept out of the budget): nothing around the bed is warming for                  hours, so only the bed stack's own decays are ruled out",
+                self.reserve_c(params, g_used)
+            ),
+        }
+    }
+
+    /// The status with the chamber's trend, from the settings' rule's (`main`, `why`, with its
+    /// coupling `g_used`) and the stack's.
+    pub(super) fn decide(&mut self, main: &SoakStatus, why: &str, target_c: f64, g_used: f64) {
+        let params = self.stack.params().clone();
+        let words = self.words(&params, g_used);
+        let (status, why) = match (self.flat(&params, g_used), main, self.stack.status()) {
+            (Some(false), SoakStatus::Stable { .. }, _)
+            | (Some(false), _, SoakStatus::Stable { .. }) => (
                 SoakStatus::Soaking {
                     progress: 0.0,
                     eta_s: None,
@@ -204,7 +286,7 @@ impl ChamberGate {
                 },
                 words,
             ),
-            (ChamberTrend::Flat { .. }, _, s @ SoakStatus::Stable { .. }) => {
+            (Some(true), _, s @ SoakStatus::Stable { .. }) => {
                 (s.clone(), format!("{}; {words}", self.stack.explanation()))
             }
             (_, s, _) => (s.clone(), format!("{why}; {words}")),
@@ -267,7 +349,7 @@ mod tests {
 
     #[test]
     fn a_chamber_trend_needs_a_full_window_and_ignores_bad_readings() {
-        let mut c = Chamber::new("temperature_fan chamber");
+        let mut c = Chamber::new("temperature_fan chamber", 1200.0);
         for i in 0..600 {
             c.push(f64::from(i), 30.0);
         }
@@ -281,13 +363,82 @@ mod tests {
         for i in 600..1300 {
             c.push(f64::from(i), 30.0);
         }
-        assert!(
-            matches!(c.trend(), ChamberTrend::Flat { .. }),
-            "{:?}",
-            c.trend()
-        );
-        assert!(c
-            .words()
+        let ChamberTrend::Known { high_k_per_h, .. } = c.trend() else {
+            panic!("{:?}", c.trend())
+        };
+        let p = SoakParams::default();
+        assert!(high_k_per_h <= flat_k_per_h(&p, 1.0), "{high_k_per_h}");
+        let gate = ChamberGate {
+            chamber: c,
+            stack: SoakDetector::new(p.clone()),
+            status: SoakStatus::Heating,
+            explanation: String::new(),
+            target_c: None,
+        };
+        assert!(gate
+            .words(&p, 1.0)
             .starts_with("chamber sensor temperature_fan chamber: flat"));
+    }
+
+    #[test]
+    fn a_chamber_that_stopped_reporting_says_nothing_of_the_air_now() {
+        let mut c = Chamber::new("temperature_sensor chamber", 1200.0);
+        for i in 0..1300 {
+            c.push(f64::from(i), 30.0);
+        }
+        c.set_now(1300.0);
+        assert!(matches!(c.trend(), ChamberTrend::Known { .. }));
+        c.set_now(1299.0 + 301.0);
+        match c.trend() {
+            ChamberTrend::Unknown(why) => assert_eq!(why, "no reading for 5 min"),
+            other => panic!("{other:?}"),
+        }
+    }
+
+    /// The surface's share of the air's warming is the most a build allows (glass on a
+    /// pad-sensed plate the most, a bare plate the least), and a chamber flat enough leaves at
+    /// most the budget's share for the air: the weakest build's flat rise is about 0.3 K/h.
+    #[test]
+    fn the_air_reaches_the_surface_by_the_builds_share_and_flat_reserves_at_most_its_share() {
+        let weakest = surface_share("", f64::INFINITY);
+        assert!((0.25..0.3).contains(&weakest), "{weakest}");
+        assert!(surface_share("bare-plate", f64::INFINITY) < 0.02);
+        assert!(surface_share("steel-pad", f64::INFINITY) < weakest);
+        // A heat-up weaker than the build named widens the share.
+        let steel = BED_PRESETS.iter().find(|b| b.name == "steel-pad").unwrap();
+        assert!(surface_share("steel-pad", steel.g / 2.0) > surface_share("steel-pad", steel.g));
+        let p = SoakParams::default();
+        let flat = flat_k_per_h(&p, f64::INFINITY);
+        assert!((0.25..0.35).contains(&flat), "{flat}");
+        let left = weakest * flat * CHAMBER_TAU_MAX_S / 3600.0;
+        assert!((left - CHAMBER_BUDGET_SHARE * p.surface_budget_c).abs() < 1e-9);
+    }
+
+    /// A test's window of seconds (soak.chamber_window_s) takes its means over a twentieth of
+    /// it: a rise shows within it, a flat chamber is flat.
+    #[test]
+    fn a_short_window_reads_a_short_test_chamber() {
+        let mut warm = Chamber::new("temperature_sensor chamber", 60.0);
+        let mut flat = Chamber::new("temperature_sensor chamber", 60.0);
+        for i in 0..200 {
+            let t = f64::from(i) * 0.5;
+            warm.push(t, ((30.0 + 0.01 * t) * 100.0f64).round() / 100.0);
+            flat.push(t, 30.0);
+        }
+        let p = SoakParams {
+            bed: "bare-plate".into(),
+            surface_budget_c: 0.1,
+            bin_s: 0.5,
+            chamber_window_s: 60.0,
+            ..SoakParams::default()
+        };
+        let limit = flat_k_per_h(&p, f64::INFINITY);
+        match (warm.trend(), flat.trend()) {
+            (ChamberTrend::Known { k_per_h, .. }, ChamberTrend::Known { high_k_per_h, .. }) => {
+                assert!((k_per_h - 36.0).abs() < 1.0, "{k_per_h}");
+                assert!(high_k_per_h <= limit, "{high_k_per_h} over {limit}");
+            }
+            other => panic!("{other:?}"),
+        }
     }
 }

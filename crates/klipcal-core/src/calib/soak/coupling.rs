@@ -376,8 +376,32 @@ fn profile_interval(fits: &[IdFit], best: &IdFit, sigma2: f64) -> (f64, f64) {
 /// is below the losses and the answer came out above the true heat capacity on about a
 /// quarter of MPC beds (a correction by the thermistor's own fall was not enough: the
 /// surface, further over its final temperature, falls faster). A thermistor that fell by
-/// more than [`FALL_C`] over the last two minutes gives no heat capacity.
+/// more than [`FALL_C`] over the last two minutes gives no heat capacity from its end: the
+/// heat-up is then cut at its highest reading (the last one, where it first turned back), and
+/// judged there. At its peak the thermistor's node neither takes nor gives heat, and the layers
+/// that lag it (the plate and surface beyond a pad's thermistor, the surface beyond a
+/// plate's) still take heat in; a pad on the far side of a plate's thermistor holds too little
+/// to matter, and the two minutes' mean power before the peak is higher still: the power
+/// taken for the losses is above them, as this bound needs.
 fn heat_capacity_low(bins: &[[f64; 4]]) -> Result<f64, String> {
+    match heat_capacity_to_end(bins) {
+        Err(why) if why.starts_with("the bed fell") => {
+            let peak = bins
+                .iter()
+                .enumerate()
+                .fold(0, |m, (i, b)| if b[2] > bins[m][2] { i } else { m });
+            let cut = &bins[..=peak];
+            if peak + 1 < ID_MIN_HEAT_BINS + 6 || bins[peak][0] - bins[0][0] < 240.0 {
+                return Err(why);
+            }
+            heat_capacity_to_end(cut).map_err(|_| why)
+        }
+        other => other,
+    }
+}
+
+/// [`heat_capacity_low`] with the heat-up judged at its last bin.
+fn heat_capacity_to_end(bins: &[[f64; 4]]) -> Result<f64, String> {
     let n = bins.len();
     let t0 = bins[0][2];
     let end = bins[n - 1][0];

@@ -259,6 +259,12 @@ pub struct SoakDetector {
     /// A coupling identified from an earlier cold heat-up of this bed (see
     /// [`super::carry::CarriedCoupling`]): used on a warm start instead of the fallback.
     carried: Option<Coupling>,
+    /// Surface warming reserved out of the budget for the air around the bed, K (a chamber
+    /// thermometer's, see [`super::chamber`]; 0 without one).
+    reserve_c: f64,
+    /// The ETA's projection: when it was made and what it said, s from then (None: beyond
+    /// its horizon); see `decide`.
+    projection: Option<(f64, Option<f64>)>,
 }
 
 impl SoakDetector {
@@ -324,6 +330,8 @@ impl SoakDetector {
             lowest_c: None,
             print_now_told: None,
             carried: None,
+            reserve_c: 0.0,
+            projection: None,
         }
     }
 
@@ -450,11 +458,13 @@ impl SoakDetector {
     }
 
     /// The power (fraction of full power) that may still fall when the bed is declared: the
-    /// surface budget times the coupling (issue 10's fixed value in the bench's comparison).
+    /// surface budget (less what a chamber's air may still bring) times the coupling (issue
+    /// 10's fixed value in the bench's comparison).
     #[must_use]
     pub fn threshold(&self) -> f64 {
         self.params.fixed_remaining.unwrap_or_else(|| {
-            (self.params.surface_budget_c * self.coupling.g).min(0.5 * self.max_power)
+            ((self.params.surface_budget_c - self.reserve_c) * self.coupling.g)
+                .min(0.5 * self.max_power)
         })
     }
 
@@ -539,12 +549,19 @@ impl SoakDetector {
     /// that are not finite or not later than the previous one are ignored; a change of target
     /// restarts the soak. The status changes at most once per `bin_s`.
     pub fn push(&mut self, t_s: f64, power: f64, temp_c: f64, target_c: f64) -> SoakStatus {
+        if let Some(g) = self.gate.as_mut() {
+            g.chamber.set_now(t_s);
+            // The air's share of the budget, from the chamber's trend so far, for both rules.
+            self.reserve_c = g.reserve_c(&self.params, self.coupling.g);
+            g.stack.reserve_c = g.reserve_c(&self.params, g.stack.coupling.g);
+        }
         let main = self.push_bed(t_s, power, temp_c, target_c);
         match self.gate.take() {
             None => main,
             Some(mut g) => {
                 g.stack.push_bed(t_s, power, temp_c, target_c);
-                g.decide(&main, &self.explanation, target_c);
+                let g_used = self.coupling.g.min(g.stack.coupling.g);
+                g.decide(&main, &self.explanation, target_c, g_used);
                 let status = g.status.clone();
                 self.gate = Some(g);
                 status
@@ -581,7 +598,9 @@ impl SoakDetector {
     /// The chamber thermometer's trend in words, naming it, when there is one.
     #[must_use]
     pub fn chamber_words(&self) -> Option<String> {
-        self.gate.as_ref().map(|g| g.chamber.words())
+        self.gate
+            .as_ref()
+            .map(|g| g.words(&self.params, self.coupling.g.min(g.stack.coupling.g)))
     }
 
     /// [`push`](Self::push) without the chamber.
@@ -748,6 +767,7 @@ impl SoakDetector {
             self.band_since_s = None;
             self.soak_t0_s = None;
             self.progress_floor = 0.0;
+            self.projection = None;
             self.status = SoakStatus::Heating;
             self.explanation = format!(
                 "temperature {temp_c:.1} °C is {:+.1} °C from the target {target:.1} °C \

@@ -48,7 +48,9 @@ mod stack;
 #[cfg(test)]
 mod test_beds;
 
-pub use chamber::CHAMBER_FLAT_K_PER_H;
+pub use chamber::{
+    flat_k_per_h, surface_share, CHAMBER_BUDGET_SHARE, CHAMBER_TAU_MAX_S, SURFACE_H_MAX_W_M2K,
+};
 pub use coupling::{Coupling, CouplingSource};
 pub use detector::SoakDetector;
 pub use detector::SoakStatus;
@@ -102,6 +104,10 @@ pub struct SoakParams {
     /// `temperature_fan enclosure`); "" (the default) takes the first such sensor Klipper's
     /// config has, "none" reads none. Default "".
     pub chamber_sensor: String,
+    /// The span of chamber readings whose trend says whether the air still warms, s: a longer
+    /// one sees a slower warming through a noisier sensor, and waits that much longer before
+    /// it can tell. Default 1200 s (20 min).
+    pub chamber_window_s: f64,
     /// Issue 10's rule, for the bench's comparison only: stable once this much power (fraction
     /// of full power) is ruled out, whatever the surface. Not a setting.
     #[serde(skip)]
@@ -159,6 +165,7 @@ impl Default for SoakParams {
             tau_max_s: 3600.0,
             frame: String::new(),
             chamber_sensor: String::new(),
+            chamber_window_s: 1200.0,
             fixed_remaining: None,
             no_identify: false,
             heater: HeaterFacts::default(),
@@ -277,6 +284,12 @@ impl SoakParams {
                 expected: FRAME_NAMES,
             });
         }
+        check(
+            "chamber_window_s",
+            p.chamber_window_s,
+            p.chamber_window_s >= 20.0 * p.bin_s && p.chamber_window_s <= 14_400.0,
+            "at least 20 bins (bin_s) and at most 14400 s (4 h)",
+        )?;
         if !chamber_sensor_ok(&p.chamber_sensor) {
             return Err(SoakParamsError {
                 key: "chamber_sensor",

@@ -271,7 +271,7 @@ impl SoakDetector {
                 "the heater was at full power within the minimum soak".into()
             });
         }
-        let eta_s = self.eta_s(&fit, t.sigma2, span, ruled_out);
+        let eta_s = self.eta_s(span, ruled_out, now_s);
         // The progress a user sees never goes back within a soak (the ETA may).
         let progress = eta_s
             .map_or(0.0, |eta| (span / (span + eta)).clamp(0.0, 1.0))
@@ -309,6 +309,7 @@ impl SoakDetector {
             return None;
         };
         let ruled_out = tests.iter().all(|t| t.ruled_out);
+        self.update_projection(&tests, now_s);
         // What is reported: a direction still waited for, and of those (or of all, once
         // both are ruled out) the one that fits the data better.
         let t = tests.into_iter().max_by(|a, b| {
@@ -423,34 +424,175 @@ impl SoakDetector {
         }
     }
 
-    /// The ETA, s: the best fit's fall to θ, and the span the test needs to rule out the
-    /// slowest decay allowed: its slope θ/τ_max known to ± θ/(Z·τ_max) at this noise (n bins
-    /// over a span W give the slope to ± σ·√(12/n)/W); at least the minimum soak's rest and a
-    /// bin.
-    fn eta_s(&self, fit: &DecayFit, sigma2: f64, span: f64, ruled_out: bool) -> Option<f64> {
+    /// The ETA, s: when the test would rule out what is still to fall (and to rise), were the
+    /// best fit the truth and the noise to stay as it is (see [`SoakDetector::projected_s`]),
+    /// counted down between its updates; at least the minimum soak's rest and a bin. None when
+    /// even [`ETA_HORIZON_S`] is not enough: then the status says only "more than".
+    fn eta_s(&self, span: f64, ruled_out: bool, now_s: f64) -> Option<f64> {
         let p = &self.params;
-        let (remaining, theta, tau_s) = (fit.remaining, fit.threshold, fit.tau_s);
-        let physical = Some(if remaining > theta {
-            tau_s * (remaining / theta).ln()
-        } else {
-            0.0
-        });
-        let statistical = if ruled_out {
+        let left = if ruled_out {
             Some(0.0)
         } else {
-            let need = (Z * p.slowest_s() * sigma2.sqrt() * (12.0 * p.bin_s).sqrt() / theta)
-                .powf(2.0 / 3.0);
-            Some((need - span).max(0.0).min(4.0 * p.slowest_s()))
+            self.projection
+                .and_then(|(at, eta)| eta.map(|e| (e - (now_s - at)).max(0.0)))
         };
-        match (physical, statistical) {
-            (Some(a), Some(b)) => Some(a.max(b)),
-            (Some(a), None) if a > 0.0 => Some(a),
-            (None, Some(b)) => Some(b),
-            _ => None,
+        left.map(|e| e.max(p.min_soak_s - span).max(p.bin_s))
+    }
+
+    /// Updates the projection ([`SoakDetector::projected_s`] over the directions not ruled
+    /// out, the longest) once every [`ETA_EVERY_S`] of data.
+    fn update_projection(&mut self, tests: &[DirectionTest], now_s: f64) {
+        if self
+            .projection
+            .is_some_and(|(at, _)| now_s - at < ETA_EVERY_S)
+        {
+            return;
         }
-        .map(|e| e.max(p.min_soak_s - span).max(p.bin_s))
+        let mut eta = Some(0.0f64);
+        for t in tests.iter().filter(|t| !t.ruled_out) {
+            eta = match (eta, self.projected_s(t, now_s)) {
+                (Some(a), Some(b)) => Some(a.max(b)),
+                _ => None,
+            };
+        }
+        self.projection = Some((now_s, eta));
+    }
+
+    /// How long from `now_s` until the test in `t`'s direction would rule out θ, were its best
+    /// fit the truth and the noise to stay at `t`'s level: the data to come lie on the best
+    /// fit, so the best fit stays the best and costs nothing more, while the model still
+    /// holding θ then must also miss them. The data to come are bins on the model's own
+    /// decays, summed in closed form; horizons on a grid of factors of 1.25 from one bin to
+    /// [`ETA_HORIZON_S`] (more data only rule out more), searched from the last projection's
+    /// place on it (it moves a step or two between updates), by halving when it moved far.
+    /// None beyond the horizon.
+    fn projected_s(&self, t: &DirectionTest, now_s: f64) -> Option<f64> {
+        let bin = self.params.bin_s;
+        let mut grid = vec![bin];
+        while grid[grid.len() - 1] < ETA_HORIZON_S {
+            let next = (grid[grid.len() - 1] * 1.25).max(grid[grid.len() - 1] + bin);
+            grid.push(next.min(ETA_HORIZON_S));
+        }
+        let last = grid.len() - 1;
+        let passes = |k: usize| self.passes_after(t, now_s, grid[k]);
+        // The first grid point at or after the last projection, counted down.
+        let guess = self
+            .projection
+            .and_then(|(at, eta)| eta.map(|e| e - (now_s - at)))
+            .map(|e| grid.iter().position(|g| *g >= e).unwrap_or(last));
+        let (mut lo, mut hi) = match guess {
+            Some(k) if passes(k) => {
+                // Down while it still passes, a few steps, then halve what is left.
+                let mut k = k;
+                let mut steps = 0;
+                while k > 0 && steps < 3 && passes(k - 1) {
+                    k -= 1;
+                    steps += 1;
+                }
+                if k == 0 || steps < 3 {
+                    return Some(grid[k]);
+                }
+                (0, k)
+            }
+            Some(k) => {
+                let mut k = k;
+                let mut steps = 0;
+                while k < last && steps < 3 {
+                    k += 1;
+                    steps += 1;
+                    if passes(k) {
+                        return Some(grid[k]);
+                    }
+                }
+                if k == last {
+                    return None;
+                }
+                if !passes(last) {
+                    return None;
+                }
+                (k, last)
+            }
+            None => {
+                if !passes(last) {
+                    return None;
+                }
+                if passes(0) {
+                    return Some(grid[0]);
+                }
+                (0, last)
+            }
+        };
+        while hi - lo > 1 {
+            let mid = (lo + hi) / 2;
+            if passes(mid) {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        Some(grid[hi])
+    }
+
+    /// Whether the test in `t`'s direction rules θ out after `ahead_s` more of data on its best
+    /// fit (see [`SoakDetector::projected_s`]).
+    fn passes_after(&self, t: &DirectionTest, now_s: f64, ahead_s: f64) -> bool {
+        let at = now_s + ahead_s;
+        let g = self.decays_at(at);
+        let theta = self.threshold();
+        let c = &t.best.coef;
+        if g.dot(c) >= theta {
+            return false;
+        }
+        if g.amax() == 0.0 {
+            return true;
+        }
+        let f = self.future_xtx(now_s, ahead_s);
+        let h = &self.xtx + &f;
+        let fc = &f * c;
+        let b = &self.xty * t.sign + &fc;
+        let yty = self.yty + c.dot(&fc);
+        match bounded_ls(&h, &b, &self.bounds(), Some((&g, theta))) {
+            Ok(x) => {
+                let sse = (yty - 2.0 * x.dot(&b) + x.dot(&(&h * &x))).max(0.0);
+                sse - t.best.sse > Z * Z * t.sigma2
+            }
+            Err(e) => e == BoundedLsError::PinOutOfBounds,
+        }
+    }
+
+    /// XᵀX of the bins from `now_s` over the next `ahead_s` (their rows: 1, each decay, no
+    /// temperature change), each entry a geometric sum.
+    fn future_xtx(&self, now_s: f64, ahead_s: f64) -> nalgebra::DMatrix<f64> {
+        let origin = self.origin_s.unwrap_or(now_s);
+        let d0 = (now_s - origin).max(0.0);
+        let b = self.params.bin_s;
+        let k = (ahead_s / b).round().max(1.0);
+        let rates: Vec<f64> = std::iter::once(0.0)
+            .chain(self.taus.iter().map(|tau| 1.0 / tau))
+            .collect();
+        let sum = |a: f64| {
+            if a * b < 1e-12 {
+                k
+            } else {
+                let q = (-a * b).exp();
+                (-a * d0).exp() * q * (1.0 - q.powf(k)) / (1.0 - q)
+            }
+        };
+        let n = self.taus.len() + 1 + EXTRA_COLS;
+        nalgebra::DMatrix::from_fn(n, n, |i, j| {
+            if i >= rates.len() || j >= rates.len() {
+                0.0
+            } else {
+                sum(rates[i] + rates[j])
+            }
+        })
     }
 }
+
+/// The ETA's projection is updated once every this much data, s, and counted down between.
+const ETA_EVERY_S: f64 = 120.0;
+/// The longest the ETA looks ahead, s (8 h): beyond it the soak says "more than".
+pub(super) const ETA_HORIZON_S: f64 = 8.0 * 3600.0;
 
 /// The wait while a direction is not ruled out: a steady change whose end is not in sight, or
 /// what the power may still do.
