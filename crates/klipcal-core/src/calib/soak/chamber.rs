@@ -65,8 +65,10 @@ pub fn flat_k_per_h(params: &SoakParams, g_used: f64) -> f64 {
 /// What the chamber's readings say.
 #[derive(Debug, Clone, PartialEq)]
 pub(crate) enum ChamberTrend {
-    /// Too few readings yet (less than the window), in words.
+    /// No reading, or none lately (a sensor that stopped), in words: as without a chamber.
     Unknown(String),
+    /// Readings coming in, but less than a window of them yet, in words.
+    Filling(String),
     /// Its rise over the window, K/h, and the most it can be (about three standard errors).
     Known {
         /// Fitted rise, K/h.
@@ -142,7 +144,7 @@ impl Chamber {
             .find(|s| s.0 >= from)
             .map_or(now, |s| s.0);
         if now - first < 0.9 * self.window_s {
-            return ChamberTrend::Unknown(format!(
+            return ChamberTrend::Filling(format!(
                 "{} of {} of readings",
                 minutes(now - first),
                 minutes(self.window_s)
@@ -167,7 +169,7 @@ impl Chamber {
             })
             .collect();
         if means.len() < 8 {
-            return ChamberTrend::Unknown(format!("{} means of {MEANS}", means.len()));
+            return ChamberTrend::Filling(format!("{} means of {MEANS}", means.len()));
         }
         let n = means.len() as f64;
         let (mt, my) = (
@@ -203,8 +205,8 @@ fn minutes(s: f64) -> String {
 /// The chamber beside the detector: the same rule with the slowest decay the bed stack's own
 /// (as `soak.frame = "open"`), and the chamber's trend deciding between the two. While the
 /// chamber still warms neither may end the soak; once it is flat either may, each with the
-/// air's share reserved out of its budget; before the chamber has been read for a window, the
-/// settings' rule alone.
+/// air's share reserved out of its budget; while its first window fills the soak waits for it;
+/// without readings (none, or none lately), the settings' rule alone.
 #[derive(Debug, Clone)]
 pub(crate) struct ChamberGate {
     pub(super) chamber: Chamber,
@@ -226,11 +228,12 @@ impl ChamberGate {
     }
 
     /// The surface warming the air may still bring, K, at most the budget's share (which is
-    /// what a chamber still warming holds the soak for): reserved out of the rule's budget
-    /// once the chamber has been read for a window, 0 before.
+    /// what a chamber still warming holds the soak for): reserved out of the rule's budget;
+    /// all of the share while the first window fills, none without readings.
     pub(super) fn reserve_c(&self, params: &SoakParams, g_used: f64) -> f64 {
         match self.chamber.trend() {
             ChamberTrend::Unknown(_) => 0.0,
+            ChamberTrend::Filling(_) => CHAMBER_BUDGET_SHARE * params.surface_budget_c,
             ChamberTrend::Known { high_k_per_h, .. } => {
                 (surface_share(&params.bed, g_used) * high_k_per_h.max(0.0) * CHAMBER_TAU_MAX_S
                     / 3600.0)
@@ -240,9 +243,12 @@ impl ChamberGate {
     }
 
     /// Whether the chamber is flat for the rule (`params`, coupling `g_used`).
+    /// None without readings (the settings' rule alone, as without a chamber), false while
+    /// the first window fills (the soak waits for it).
     fn flat(&self, params: &SoakParams, g_used: f64) -> Option<bool> {
         match self.chamber.trend() {
             ChamberTrend::Unknown(_) => None,
+            ChamberTrend::Filling(_) => Some(false),
             ChamberTrend::Known { high_k_per_h, .. } => {
                 Some(high_k_per_h <= flat_k_per_h(params, g_used))
             }
@@ -257,7 +263,10 @@ impl ChamberGate {
         let share = surface_share(&params.bed, g_used) * 100.0;
         match (self.chamber.trend(), self.flat(params, g_used)) {
             (ChamberTrend::Unknown(why), _) => {
-                format!("chamber sensor {name}: not read long enough yet ({why})")
+                format!("chamber sensor {name}: not read ({why}): as without one")
+            }
+            (ChamberTrend::Filling(why), _) => {
+                format!("chamber sensor {name}: not read long enough yet ({why}): waited for")
             }
             (ChamberTrend::Known { k_per_h, .. }, Some(false)) => format!(
                 "chamber sensor {name}: still warming ({k_per_h:+.2} K/h over the last {window};                  flat is at most {flat:.2} K/h, where the {share:.0} % of the air's warming                  still to come that reaches the print surface is at most {:.2} K): the                  enclosure's slow warming is waited for",
@@ -354,7 +363,7 @@ mod tests {
             c.push(f64::from(i), 30.0);
         }
         assert!(
-            matches!(c.trend(), ChamberTrend::Unknown(_)),
+            matches!(c.trend(), ChamberTrend::Filling(_)),
             "{:?}",
             c.trend()
         );
