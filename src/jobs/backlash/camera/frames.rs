@@ -7,10 +7,9 @@ use serde::{Deserialize, Serialize};
 
 use super::super::snapshot::SnapshotInfo;
 use super::super::Backlash;
+use super::meter::{Expect, FrameRefusal, Meter, Reading};
 use super::Webcam;
-use crate::calib::nozzle::{
-    self, ClickReader, ClickReading, DetectParams, Detection, Gray, Refusal,
-};
+use crate::calib::nozzle::{self, DetectParams, Detection, Gray, Refusal};
 use crate::jobs::user;
 
 /// Frames that must agree before a reading is taken. Two were not enough: a nozzle ringing
@@ -18,6 +17,10 @@ use crate::jobs::user;
 /// and on the bench's CoreXY camera test that read A 2.1 µm high (0.0621 mm against 0.060
 /// drawn, every cycle); three frames at different phases must all agree.
 const STILL_FRAMES: usize = 3;
+
+/// The still nozzle's next frame is searched this far (px, each axis) round the frame before
+/// (or a third of the reading's own reach, if more): the ringing's tail, the mount's drift.
+const STILL_REACH_PX: f64 = 3.0;
 
 /// One frame's finding: the nozzle's centre and its 1 sd, px.
 type Frame = ([f64; 2], f64);
@@ -73,23 +76,17 @@ pub(crate) struct Seen {
     pub kept: Option<String>,
 }
 
-/// What a frame gave.
-pub(super) enum Look {
-    /// The nozzle found, and with a [`Registration`] the frame read against its first frame.
-    Found(Detection, Option<ClickReading>),
-    /// The detector refused the frame, but the region of the measurement's first frame was
-    /// found in it by registration round the last reading (issue 37, item 2): a reading all
-    /// the same, and the detector's reason.
-    Registered(ClickReading, Refusal),
-    Refused(Refusal),
+/// What a frame gave: the detector's finding, and with a [`Registration`] the frame measured
+/// against the measurement's first ([`Meter::read`]).
+pub(super) struct Look {
+    pub found: Result<Detection, Refusal>,
+    pub read: Option<Result<Reading, FrameRefusal>>,
 }
 
-/// The measurement's frames read against its first one ([`ClickReader::read_detected`]):
-/// the detector finds the nozzle in each frame on its own, with a sub-pixel error that depends
-/// on where it falls on the pixel grid; registered against the first frame, the shift between
-/// two pictures of the same nozzle is measured to a few hundredths of a pixel. Shared with the
-/// blocking task that reads each frame.
-pub(super) type Registration = std::sync::Arc<std::sync::Mutex<ClickReader>>;
+/// The measurement's frames, measured by registering its first frame's nozzle region round
+/// where the nozzle is expected ([`Meter`], issue 37, item 2); shared with the blocking task
+/// that reads each frame.
+pub(super) type Registration = std::sync::Arc<std::sync::Mutex<Meter>>;
 
 impl Backlash {
     /// A snapshot for the person to click in (no detection): kept for the page; its number,
@@ -135,8 +132,9 @@ impl Backlash {
         http: &reqwest::Client,
         cam: &Webcam,
         keep: Option<(i64, &str)>,
-        reg: Option<&Registration>,
+        reg: Option<(&Registration, Option<Expect>)>,
     ) -> anyhow::Result<Look> {
+        let (reg, expect) = reg.map_or((None, None), |(r, e)| (Some(r), e));
         let reg = reg.cloned();
         let bytes = self.fetch(http, cam).await?;
         let name = cam.name.clone();
@@ -152,144 +150,131 @@ impl Backlash {
                 },
                 &DetectParams::default(),
             );
-            anyhow::Ok((
-                w,
-                h,
-                match found {
-                    Ok(d) => {
-                        let r = reg.map(|reg| {
-                            reg.lock()
-                                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                                .read_detected(
-                                    &Gray {
-                                        width: w,
-                                        height: h,
-                                        data: &grey,
-                                    },
-                                    d.centre_px,
-                                    d.uncertainty_px,
-                                )
-                        });
-                        Look::Found(d, r)
-                    }
-                    Err(refusal) => {
-                        let got = reg.and_then(|reg| {
-                            reg.lock()
-                                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                                .read_undetected(&Gray {
-                                    width: w,
-                                    height: h,
-                                    data: &grey,
-                                })
-                        });
-                        match got {
-                            Some(Ok(r)) => Look::Registered(r, refusal),
-                            _ => Look::Refused(refusal),
-                        }
-                    }
-                },
-            ))
+            let read = reg.map(|reg| {
+                reg.lock()
+                    .unwrap_or_else(std::sync::PoisonError::into_inner)
+                    .read(
+                        &Gray {
+                            width: w,
+                            height: h,
+                            data: &grey,
+                        },
+                        found
+                            .as_ref()
+                            .map(|d| (d.centre_px, d.uncertainty_px))
+                            .map_err(ToString::to_string),
+                        expect,
+                    )
+            });
+            anyhow::Ok((w, h, Look { found, read }))
         })
         .await??;
         if let Some((session, what)) = keep {
-            let (found, refused) = match &look {
-                Look::Found(d, _) => (Some(d), None),
-                Look::Registered(_, r) | Look::Refused(r) => (None, Some(r.to_string())),
-            };
-            let registered = match &look {
-                Look::Registered(r, _) => Some(r),
-                _ => None,
-            };
-            self.frames.keep(
-                session,
-                jpeg,
-                SnapshotInfo {
-                    seq: 0,
-                    width: w,
-                    height: h,
-                    what: what.to_string(),
-                    centre_px: found.map(|d| d.centre_px).or(registered.map(|r| r.at_px)),
-                    radius_px: found.map(|d| d.diagnostics.radius_px),
-                    uncertainty_px: found
-                        .map(|d| d.uncertainty_px)
-                        .or(registered.map(|r| r.sd_px)),
-                    refused: refused.map(|r| {
-                        if registered.is_some() {
-                            format!("{r} (read by registration against the first frame)")
-                        } else {
-                            r
-                        }
-                    }),
-                    click: false,
-                    hint_px: None,
-                    zoom: None,
-                },
-            );
+            self.keep_frame(session, what, jpeg, [w, h], &look);
         }
         Ok(look)
     }
 
+    /// A frame kept for the page with what was read in it: the registered reading, else the
+    /// detector's; the refusal, and when the registration refused a frame the detector found a
+    /// nozzle in, that reason.
+    fn keep_frame(&self, session: i64, what: &str, jpeg: Vec<u8>, size: [usize; 2], look: &Look) {
+        let read = look.read.as_ref().and_then(|r| r.as_ref().ok());
+        let found = look.found.as_ref().ok();
+        let refused = match (&look.read, &look.found) {
+            (Some(Err(r)), _) => Some(r.to_string()),
+            (Some(Ok(_)), Err(r)) => Some(format!(
+                "{r} (read by registration against the first frame)"
+            )),
+            (None, Err(r)) => Some(r.to_string()),
+            _ => None,
+        };
+        self.frames.keep(
+            session,
+            jpeg,
+            SnapshotInfo {
+                seq: 0,
+                width: size[0],
+                height: size[1],
+                what: what.to_string(),
+                centre_px: read
+                    .map(|r| r.at_px)
+                    .or(found.map(|d| d.centre_px))
+                    .filter(|_| !matches!(look.read, Some(Err(_)))),
+                radius_px: found.map(|d| d.diagnostics.radius_px),
+                uncertainty_px: read
+                    .map(|r| r.sd_px)
+                    .or(found.map(|d| d.uncertainty_px))
+                    .filter(|_| !matches!(look.read, Some(Err(_)))),
+                refused,
+                click: false,
+                hint_px: None,
+                zoom: None,
+            },
+        );
+    }
+
     /// The nozzle once it is still: waits out the move, then frames until three agree
-    /// ([`settled`]); a refused frame is taken again (five in a row: the reason). Each frame is
-    /// read against the measurement's first through `reg`; one the registration refuses is
-    /// kept as detected, and said so; one the detector refuses is measured by registration
-    /// alone when the first frame's region is found in it round the last reading (issue 37).
+    /// ([`settled`]). Each frame is measured by registration against the measurement's first
+    /// ([`Meter`]): the first frame of the reading round `expect` (where the commanded move puts
+    /// the nozzle; None: where the detector finds it), the next ones round the frame before. A
+    /// frame neither registration nor detection reads, or where they disagree with the
+    /// reference matching at both places, is taken again (five in a row: the reason).
     pub(super) async fn sight(
         &self,
         http: &reqwest::Client,
         cam: &Webcam,
-        id: i64,
-        what: &str,
+        at: (i64, &str),
         reg: &Registration,
+        expect: Option<Expect>,
     ) -> anyhow::Result<Seen> {
+        let (id, what) = at;
         self.settle_after_move(0.0).await?;
         let (mut frames, mut refused, mut in_a_row) = (0, 0, 0);
         let mut last: Vec<Frame> = Vec::new();
-        let mut kept: Vec<Option<String>> = Vec::new();
+        let mut near = expect;
         while frames < 14 {
             frames += 1;
-            let look = self.look(http, cam, Some((id, what)), Some(reg)).await?;
+            let look = self
+                .look(http, cam, Some((id, what)), Some((reg, near)))
+                .await?;
             // A frame the detector refused but registration read counts as refused by
             // detection, and is a reading.
-            refused += usize::from(matches!(look, Look::Registered(..)));
-            let seen = match look {
-                Look::Found(d, r) => Ok(r.map_or((d.centre_px, d.uncertainty_px, None), |r| {
-                    (r.at_px, r.sd_px, r.kept.map(|k| k.to_string()))
-                })),
-                Look::Registered(r, _) => Ok((r.at_px, r.sd_px, None)),
-                Look::Refused(r) => Err(r),
-            };
-            match seen {
-                Ok((at, sd, why)) => {
+            refused += usize::from(look.found.is_err());
+            match look.read {
+                Some(Ok(r)) => {
                     in_a_row = 0;
-                    last.push((at, sd));
-                    kept.push(why);
-                    if kept.len() > STILL_FRAMES {
-                        kept.remove(0);
-                    }
+                    // The still nozzle's next frame is where this one was.
+                    near = Some(Expect {
+                        at_px: r.at_px,
+                        reach_px: expect.map_or(0.0, |e| e.reach_px / 3.0).max(STILL_REACH_PX),
+                    });
+                    last.push((r.at_px, r.sd_px));
                     if last.len() > STILL_FRAMES {
                         last.remove(0);
                     }
                     if let Some((centre_px, uncertainty_px)) = settled(&last) {
-                        // The frames read: registered, or one kept as detected (the reason).
-                        let read = &kept[kept.len() - (STILL_FRAMES - 1)..];
-                        let why = read.iter().flatten().next().cloned();
                         return Ok(Seen {
                             centre_px,
                             uncertainty_px,
                             frames,
                             refused,
-                            refined: why.is_none(),
-                            kept: why,
+                            refined: true,
+                            kept: None,
                         });
                     }
                 }
-                Err(r) => {
-                    refused += 1;
+                other => {
+                    refused += usize::from(look.found.is_ok());
                     in_a_row += 1;
+                    let why = match (other, look.found) {
+                        (Some(Err(r)), _) => r.to_string(),
+                        (_, Err(r)) => r.to_string(),
+                        _ => "no reading".to_string(),
+                    };
                     if in_a_row >= 5 {
                         return Err(user(format!(
-                            "webcam '{}': five frames in a row without a sure nozzle: {r}",
+                            "webcam '{}': five frames in a row without a sure nozzle: {why}",
                             cam.name
                         )));
                     }

@@ -39,11 +39,11 @@ use crate::jobs::core::table::{arg, ArgKind, ArgSpec, Args, Op, OpSpec};
 use crate::jobs::core::SessionState;
 use crate::jobs::user;
 
-use frames::Look;
 pub(crate) use frames::Seen;
 pub(crate) use webcam::Webcam;
 
 mod frames;
+pub mod meter;
 mod webcam;
 
 /// The camera measurement's operation, declared in the backlash table.
@@ -229,7 +229,7 @@ impl Backlash {
             let b = self.fetch(&http, &cam).await?;
             crate::calib::nozzle::decode_gray(&b)
                 .map_err(|e| user(format!("webcam '{}': {e:#}", cam.name)))?;
-        } else if let Look::Refused(r) = self.look(&http, &cam, None, None).await? {
+        } else if let Err(r) = self.look(&http, &cam, None, None).await?.found {
             return Err(user(format!(
                 "webcam '{}' shows no sure nozzle: {r}",
                 cam.name
@@ -325,8 +325,26 @@ impl Backlash {
         self.camera_record(m, got).await
     }
 
-    /// One reading of the measurement `m`: the camera's sighting, or the person's click.
-    async fn camera_read(&self, m: &mut Measure<'_>, what: String) -> anyhow::Result<Seen> {
+    /// One reading of the measurement `m` at the commanded position `at` (about the camera
+    /// point): the camera's sighting, or the person's click.
+    async fn camera_read(
+        &self,
+        m: &mut Measure<'_>,
+        at: [f64; 3],
+        what: String,
+    ) -> anyhow::Result<Seen> {
+        let seen = self.camera_read_inner(m, at, what).await?;
+        let mm = [at[0] - m.point[0], at[1] - m.point[1]];
+        m.track.add(mm, seen.centre_px);
+        Ok(seen)
+    }
+
+    async fn camera_read_inner(
+        &self,
+        m: &mut Measure<'_>,
+        at: [f64; 3],
+        what: String,
+    ) -> anyhow::Result<Seen> {
         m.n += 1;
         let (k, total) = (m.n, m.total);
         if m.clicks {
@@ -339,7 +357,9 @@ impl Backlash {
             .await;
             self.ask_click(&m.http, m.cam, m.id, &what).await
         } else {
-            self.sight(&m.http, m.cam, m.id, &what, &m.reg).await
+            let expect = m.track.expect([at[0] - m.point[0], at[1] - m.point[1]]);
+            self.sight(&m.http, m.cam, (m.id, &what), &m.reg, expect)
+                .await
         }
     }
 
@@ -360,10 +380,12 @@ impl Backlash {
             .await;
             self.go(ax.point_at(point, -0.5 - approach)).await?;
             for t in [-0.5, 0.0, 0.5] {
-                self.go(ax.point_at(point, t)).await?;
+                let at = ax.point_at(point, t);
+                self.go(at).await?;
                 let s = self
                     .camera_read(
                         m,
+                        at,
                         format!("scale: {} at {t:+.1} mm", ax.name().to_uppercase()),
                     )
                     .await?;
@@ -411,6 +433,7 @@ impl Backlash {
             let plus = self
                 .camera_read(
                     m,
+                    point,
                     format!("{words} cycle {c}/{cycles}: approached from below (moving +)"),
                 )
                 .await?;
@@ -420,6 +443,7 @@ impl Backlash {
             let minus = self
                 .camera_read(
                     m,
+                    point,
                     format!("{words} cycle {c}/{cycles}: approached from above (moving −)"),
                 )
                 .await?;
@@ -508,6 +532,8 @@ struct Measure<'a> {
     http: reqwest::Client,
     /// Every frame of this measurement read against its first.
     reg: frames::Registration,
+    /// The readings so far at their commanded positions: where the next one is expected.
+    track: meter::Track,
     n: usize,
     total: usize,
     report: CameraReport,
@@ -526,6 +552,7 @@ impl<'a> Measure<'a> {
             cam,
             http,
             reg: Default::default(),
+            track: meter::Track::default(),
             n: 0,
             total: 6 + 2 * run.cycles,
             report: CameraReport {

@@ -14,6 +14,7 @@ use crate::cli::BenchBacklashArgs;
 use crate::cmd::camera_render::{self, Family};
 use crate::cmd::nozzle_photos::{self, Expect, Photo};
 use crate::cmd::photo_camera::{Lighting, PhotoCamera, Placement};
+use crate::jobs::backlash::camera::meter::{self, FrameRefusal, Meter, Track};
 
 /// The snapshot size of a printer's nozzle camera, and a realistic scale for it: a USB
 /// endoscope or microscope a few cm under the nozzle sees about 8 mm across 640 px.
@@ -43,6 +44,16 @@ pub(super) fn refusal_name(r: &impl serde::Serialize) -> String {
         .ok()
         .and_then(|v| v.get("reason").and_then(|s| s.as_str()).map(String::from))
         .unwrap_or_default()
+}
+
+/// A camera frame's refusal, by name.
+fn frame_refusal_name(r: &FrameRefusal) -> &'static str {
+    match r {
+        FrameRefusal::NoReference(_) => "no_reference",
+        FrameRefusal::BadReference(_) => "bad_reference",
+        FrameRefusal::TwoPlaces { .. } => "two_places",
+        FrameRefusal::Unregistered { .. } => "unregistered",
+    }
 }
 
 /// Detection over each rendered family: error, refusals, wrong numbers.
@@ -161,6 +172,10 @@ struct Camera {
     /// The daemon's click reading (src/jobs/backlash/click.rs): the first click the reference,
     /// the others refined against it or kept.
     clicks: ClickReader,
+    /// The camera flow's frames measured by registration, and its readings at their
+    /// commanded positions (src/jobs/backlash/camera/meter.rs).
+    meter: Meter,
+    track: Track,
     /// The pictures clicked so far on this axis (true centre, grey), shared with the other
     /// screen's run of the same axis.
     frames: Vec<([f64; 2], std::rc::Rc<Vec<u8>>)>,
@@ -196,6 +211,8 @@ impl Camera {
             render_rng: fastrand::Rng::with_seed(seed ^ 0x5eed_0001),
             click_rng: fastrand::Rng::with_seed(seed ^ 0x5eed_0002),
             clicks: ClickReader::default(),
+            meter: Meter::default(),
+            track: Track::default(),
             frames: Vec::new(),
             seen: 0,
             refined: 0,
@@ -272,11 +289,28 @@ impl Camera {
     fn look(
         &mut self,
         xy: [f64; 2],
+        commanded_mm: [f64; 2],
+        zoom: f64,
+        rng: &mut fastrand::Rng,
+    ) -> anyhow::Result<Option<([f64; 2], f64, usize)>> {
+        let got = self.look_frames(xy, commanded_mm, zoom, rng)?;
+        if let Some((c, _, _)) = &got {
+            self.track.add(commanded_mm, *c);
+        }
+        Ok(got)
+    }
+
+    fn look_frames(
+        &mut self,
+        xy: [f64; 2],
+        commanded_mm: [f64; 2],
         zoom: f64,
         rng: &mut fastrand::Rng,
     ) -> anyhow::Result<Option<([f64; 2], f64, usize)>> {
         let mut got = Vec::new();
         let mut refused = 0;
+        let expect = self.track.expect(commanded_mm);
+        let mut near = expect;
         for _ in 0..FRAMES {
             for _ in 0..5 {
                 for d in &mut self.drift {
@@ -333,27 +367,38 @@ impl Camera {
                     height: self.height,
                     data: &grey,
                 };
-                // As the daemon reads a frame (src/jobs/backlash/camera/frames.rs): detected,
-                // then registered against the axis's first frame; one the detector refuses is
-                // measured by registration alone round the last reading, or taken again.
-                let r = match nozzle::detect(&img, &DetectParams::default()) {
-                    Ok(d) => self
-                        .clicks
-                        .read_detected(&img, d.centre_px, d.uncertainty_px),
-                    Err(_) => {
-                        refused += 1;
-                        match self.clicks.read_undetected(&img) {
-                            Some(Ok(r)) => r,
-                            _ => continue,
+                // As the daemon reads a frame (src/jobs/backlash/camera/frames.rs, meter.rs):
+                // measured by registering the axis's first frame round where the nozzle is
+                // expected, the detector a locator and a cross-check; a frame neither reads is
+                // taken again.
+                let found = nozzle::detect(&img, &DetectParams::default());
+                refused += usize::from(found.is_err());
+                let r = self.meter.read(
+                    &img,
+                    found
+                        .as_ref()
+                        .map(|d| (d.centre_px, d.uncertainty_px))
+                        .map_err(ToString::to_string),
+                    near,
+                );
+                match r {
+                    Ok(r) => {
+                        self.refined += usize::from(!r.reference);
+                        if r.detection_disregarded {
+                            *self.kept.entry("detection_disregarded".into()).or_default() += 1;
                         }
+                        near = Some(meter::Expect {
+                            at_px: r.at_px,
+                            reach_px: expect.map_or(0.0, |e| e.reach_px / 3.0).max(3.0),
+                        });
+                        got.push((r.at_px, r.sd_px));
+                        break;
                     }
-                };
-                self.refined += usize::from(r.refined);
-                if let Some(why) = &r.kept {
-                    *self.kept.entry(refusal_name(why)).or_default() += 1;
+                    Err(e) => {
+                        refused += usize::from(found.is_ok());
+                        *self.kept.entry(frame_refusal_name(&e).into()).or_default() += 1;
+                    }
                 }
-                got.push((r.at_px, r.sd_px));
-                break;
             }
         }
         if got.len() < FRAMES {
@@ -432,7 +477,9 @@ fn camera_run(
         for t in [-0.5, 0.0, 0.5] {
             let axis = if k == 0 { &mut ax } else { &mut ay };
             axis.move_to(t, rng);
-            let Some((c, u, r)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_SCALE, rng)? else {
+            let mut at = [0.0; 2];
+            at[k] = t;
+            let Some((c, u, r)) = cam.look([ax.nozzle, ay.nozzle], at, ZOOM_SCALE, rng)? else {
                 return Ok(None);
             };
             refused += r;
@@ -455,12 +502,14 @@ fn camera_run(
     for _ in 0..cycles {
         ax.move_to(-1.0, rng);
         ax.move_to(0.0, rng);
-        let Some((plus, u1, r1)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_CYCLES, rng)? else {
+        let Some((plus, u1, r1)) = cam.look([ax.nozzle, ay.nozzle], [0.0; 2], ZOOM_CYCLES, rng)?
+        else {
             return Ok(None);
         };
         ax.move_to(1.0, rng);
         ax.move_to(0.0, rng);
-        let Some((minus, u2, r2)) = cam.look([ax.nozzle, ay.nozzle], ZOOM_CYCLES, rng)? else {
+        let Some((minus, u2, r2)) = cam.look([ax.nozzle, ay.nozzle], [0.0; 2], ZOOM_CYCLES, rng)?
+        else {
             return Ok(None);
         };
         refused += r1 + r2;
@@ -761,8 +810,8 @@ fn bench_photo_end_to_end(
             "    model {}: backlash p95 |error| {:.1} µm (target ≤ 3 µm) {}   mean error {:+.1} \
              µm   {c_text}   presses/axis 0 (target 0: the camera flow asks for none)   \
              unfinished {} (target 0)   per photo: {per_photo}   frames refused by the detector \
-             {} of {} read, the others registered against the axis's first ({} kept as \
-             detected {:?})   [anchors: a perfect camera on the same axes {:.1} µm, the rendered \
+             {} of {} read, every reading registered against the axis's first (frames \
+             taken again, or the detector disregarded, by reason: {} {:?})   [anchors: a perfect camera on the same axes {:.1} µm, the rendered \
              camera {:.1} µm]",
             mi + 1,
             1000.0 * e95,
@@ -1068,8 +1117,8 @@ fn model_lines(
                 "   [anchors, same model: a perfect camera (the mechanics alone) {:.1} µm, its \
                  ±2u covering {:.1} % (Student's t over the cycles), guided 5 cycles {:.1} \
                  µm and seed single pass {:.1} µm against b (worst person)]   frames \
-                 retaken {}   frames registered against the axis's first {} (kept as \
-                 detected {:?})",
+                 retaken {}   frames registered against the axis's first {} (frames \
+                 taken again, or the detector disregarded, by reason {:?})",
                 1000.0 * p95(&perfect.errors),
                 perfect.cover_pct(false),
                 1000.0 * g5,

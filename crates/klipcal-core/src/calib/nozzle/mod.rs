@@ -43,7 +43,9 @@ mod register;
 
 pub use decode::decode_gray;
 pub use noise::fine_noise_sd;
-pub use register::{ClickReader, ClickReading, Reference, RegisterParams};
+pub use register::{
+    ClickReader, ClickReading, ClickRefusal, Reference, RegisterParams, DETECTED_CLICK_SD_PX,
+};
 
 /// What the edge fit's least-squares covariance leaves out of a centre's error, px: it treats
 /// the residuals as independent, but the smoothing correlates neighbouring pixels and JPEG's

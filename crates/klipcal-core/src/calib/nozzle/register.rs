@@ -1007,6 +1007,37 @@ impl ClickReader {
         }
         Some(got)
     }
+
+    /// Whether the first frame became the reference (a frame is registered against it).
+    pub fn has_reference(&self) -> bool {
+        matches!(self.reference, Some(Ok(_)))
+    }
+
+    /// A frame measured by registering the reference round `at_px`, searching ± `reach_px`
+    /// along each axis (issue 37, item 2: the camera flow predicts where the nozzle is, and the
+    /// registration measures it there). `None` without a reference.
+    pub fn register_round(
+        &self,
+        img: &Gray<'_>,
+        at_px: [f64; 2],
+        reach_px: f64,
+    ) -> Option<Result<ClickReading, ClickRefusal>> {
+        let Some(Ok(r)) = &self.reference else {
+            return None;
+        };
+        // refine() searches ± agree_sd × hypot(this sd, the reference's).
+        let lim = (reach_px.max(0.5) / self.params.agree_sd).powi(2) - r.click_sd_px().powi(2);
+        let sd = lim.max(0.01).sqrt();
+        Some(
+            r.refine(img, at_px, sd, &self.params)
+                .map(|f| ClickReading {
+                    at_px: f.at_px,
+                    sd_px: f.sd_px,
+                    refined: true,
+                    kept: None,
+                }),
+        )
+    }
 }
 
 /// Keys' cubic convolution weights (a = −½) of the four taps around a point `t` (0 ≤ t < 1)
