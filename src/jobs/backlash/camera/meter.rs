@@ -407,10 +407,21 @@ mod tests {
         let err = apart(r.at_px, moved);
         assert!(err < 0.1 && r.sd_px < 0.1, "{r:?}: {err} px off");
         assert!(r.detection_disregarded, "{r:?}");
-        // Nothing expected: the wrong point is where the registration looks, and finds no
-        // nozzle there: the frame is refused, never kept as detected.
+        // Nothing expected: the registration finds no nozzle at the wrong point, and the wide
+        // search round the last reading measures it; never the detector's point.
         let g2 = frame([home[0] + shift[0], home[1] + shift[1]], &mut rng);
-        let refused = meter.read(&gray(&g2), Ok(wrong), None);
+        let r = meter.read(&gray(&g2), Ok(wrong), None).unwrap();
+        assert!(
+            apart(r.at_px, moved) < 0.1 && r.detection_disregarded,
+            "{r:?}"
+        );
+        // Nothing expected and no reading to search round: refused, never kept as detected.
+        let mut fresh = Meter::default();
+        fresh
+            .read(&gray(&g0), Ok((d0.centre_px, d0.uncertainty_px)), None)
+            .unwrap();
+        fresh.last_px = None;
+        let refused = fresh.read(&gray(&g2), Ok(wrong), None);
         assert!(
             matches!(refused, Err(FrameRefusal::Unregistered { .. })),
             "{refused:?}"
