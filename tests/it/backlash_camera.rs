@@ -99,16 +99,16 @@ async fn wait_measured(files: &klipcal::moonraker::Files, d: &Daemon) -> Value {
     done.unwrap_or_else(|| panic!("the camera measurement did not end\n{}", d.log_text()))
 }
 
-#[tokio::test]
-async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_applies_it() {
-    let camera = json!({"look": "dark_tip", "px_per_mm": 80, "rotation_deg": 23,
-        "offset_px": [15, -10], "centre_mm": [100, 100], "seed": 5, "drop_every": 9});
-    let play = format!(r#"{{"x": {TRUE_X_MM}, "y": 0.05}}"#);
-    let rig = Rig::start("cartesian", "seed", &play, camera, &[], [100.0, 100.0]).await;
-    let Rig {
-        bench, d, m, files, ..
-    } = &rig;
-    // As a user runs it: the macro, through Klipper.
+/// Runs `KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=5` as a user does (the macro, through Klipper)
+/// and checks X's result against the bench's true play: within 3 µm and inside its ±2u, from 5
+/// cycles. Returns the status and the measured play, mm.
+async fn camera_macro_measures_x(
+    m: &klipcal::moonraker::Moonraker,
+    files: &klipcal::moonraker::Files,
+    d: &Daemon,
+    truth_mm: f64,
+    what: &str,
+) -> (Value, f64) {
     m.gcode("KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=5")
         .await
         .unwrap();
@@ -117,9 +117,9 @@ async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_a
     let x = &s["results"]["x"];
     let b = x["backlash_mm"].as_f64().unwrap();
     let u = x["uncertainty_mm"].as_f64().unwrap();
-    let err = b - TRUE_X_MM;
+    let err = b - truth_mm;
     eprintln!(
-        "camera: {b:.4} mm ± {u:.4}, error {:+.1} µm; report {}",
+        "{what}: {b:.4} mm ± {u:.4}, error {:+.1} µm; report {}",
         err * 1e3,
         s["camera"]["x"]
     );
@@ -129,6 +129,19 @@ async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_a
         "error {err} mm outside ±2·{u}: {s}"
     );
     assert_eq!(x["cycles"], 5, "{s}");
+    (s, b)
+}
+
+#[tokio::test]
+async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_applies_it() {
+    let camera = json!({"look": "dark_tip", "px_per_mm": 80, "rotation_deg": 23,
+        "offset_px": [15, -10], "centre_mm": [100, 100], "seed": 5, "drop_every": 9});
+    let play = format!(r#"{{"x": {TRUE_X_MM}, "y": 0.05}}"#);
+    let rig = Rig::start("cartesian", "seed", &play, camera, &[], [100.0, 100.0]).await;
+    let Rig {
+        bench, d, m, files, ..
+    } = &rig;
+    let (s, b) = camera_macro_measures_x(m, files, d, TRUE_X_MM, "camera").await;
     let cam = &s["camera"]["x"];
     assert_eq!(cam["webcam"]["name"], "nozzle", "{cam}");
     assert_eq!(cam["cycles"].as_array().map(Vec::len), Some(5), "{cam}");
@@ -227,27 +240,7 @@ async fn the_camera_macro_measures_the_play_from_real_photo_frames_and_applies_i
         there > 0.95 && off < 0.9,
         "the snapshot against the photo at the nozzle {there:.3}, 0.25 mm away {off:.3}"
     );
-    // As a user runs it: the macro, through Klipper.
-    m.gcode("KLIPCAL_BACKLASH_CAMERA AXIS=X CYCLES=5")
-        .await
-        .unwrap();
-    let s = wait_measured(files, d).await;
-    assert_eq!(s["state"], "measured", "{s}\n{}", d.log_text());
-    let x = &s["results"]["x"];
-    let b = x["backlash_mm"].as_f64().unwrap();
-    let u = x["uncertainty_mm"].as_f64().unwrap();
-    let err = b - X;
-    eprintln!(
-        "real-photo camera: {b:.4} mm ± {u:.4}, error {:+.1} µm; report {}",
-        err * 1e3,
-        s["camera"]["x"]
-    );
-    assert!(err.abs() <= 0.003, "error {err} mm over 3 µm: {s}");
-    assert!(
-        err.abs() <= 2.0 * u + 1e-4,
-        "error {err} mm outside ±2·{u}: {s}"
-    );
-    assert_eq!(x["cycles"], 5, "{s}");
+    let (s, b) = camera_macro_measures_x(m, files, d, X, "real-photo camera").await;
     let scale = &s["camera"]["x"]["scale"];
     let sx = scale["x"]["scale_px_per_mm"].as_f64().unwrap();
     let rot = scale["rotation_deg"].as_f64().unwrap();
