@@ -487,8 +487,15 @@ impl Reference {
             click_px[0] - self.click_px[0],
             click_px[1] - self.click_px[1],
         ];
-        let s = limit.ceil() as i64 + 2;
+        let wanted = limit.ceil() as i64 + 2;
         let c = [pred[0].round() as i64, pred[1].round() as i64];
+        // Near the picture's edge the search is cut to what the picture holds (a peak on the
+        // cut rim is then refused as at the edge, not read).
+        let s = self
+            .room(c)
+            .filter(|room| *room >= 2)
+            .map(|room| room.min(wanted))
+            .ok_or(ClickRefusal::AtEdge { at_px: click_px })?;
         let area = self
             .search_area(img, c, s)
             .ok_or(ClickRefusal::AtEdge { at_px: click_px })?;
@@ -502,6 +509,9 @@ impl Reference {
             });
         }
         let off = |at: [f64; 2]| (at[0] - click_px[0]).abs().max((at[1] - click_px[1]).abs());
+        if s < wanted && map.at_rim(best_shift) {
+            return Err(ClickRefusal::AtEdge { at_px: click_px });
+        }
         if map.at_rim(best_shift) {
             let at_best = [
                 self.click_px[0] + best_shift[0] as f64,
@@ -539,6 +549,22 @@ impl Reference {
             peak: best,
             from_click_px: (at_px[0] - click_px[0]).hypot(at_px[1] - click_px[1]),
         })
+    }
+
+    /// How far the search may reach round the whole-pixel shift `c` with the patch and the
+    /// interpolation's 3 px still inside the picture; `None` when the patch at `c` is not.
+    fn room(&self, c: [i64; 2]) -> Option<i64> {
+        let (w, h) = (self.width as i64, self.height as i64);
+        let lo = [
+            self.origin[0] as i64 + c[0] - 3,
+            self.origin[1] as i64 + c[1] - 3,
+        ];
+        let hi = [
+            w - (self.origin[0] as i64 + self.size[0] as i64 + c[0] + 3),
+            h - (self.origin[1] as i64 + self.size[1] as i64 + c[1] + 3),
+        ];
+        let room = lo[0].min(lo[1]).min(hi[0]).min(hi[1]);
+        (room >= 0).then_some(room)
     }
 
     /// The picture's background-free, smoothed residual over every shift `c` ± `s` searched,
