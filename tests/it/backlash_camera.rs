@@ -174,21 +174,6 @@ async fn the_camera_macro_measures_the_benchs_play_within_its_stated_error_and_a
     );
 }
 
-/// Normalised correlation of two pictures of the same size.
-fn ncc(a: &[f64], b: &[u8]) -> f64 {
-    let n = a.len() as f64;
-    let ma = a.iter().sum::<f64>() / n;
-    let mb = b.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
-    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
-    for (x, &y) in a.iter().zip(b) {
-        let (x, y) = (x - ma, f64::from(y) - mb);
-        ab += x * y;
-        aa += x * x;
-        bb += y * y;
-    }
-    ab / (aa * bb).sqrt()
-}
-
 /// Issue 37, item 5: the whole camera flow — the scale's ±0.5 mm moves, five cycles, apply —
 /// on real picture content: the bench camera serves a kTAMV nozzle-camera frame (a published
 /// photo: defocused, a filament blob, bed sparkles) moved where klippy's nozzle is, turned,
@@ -220,7 +205,7 @@ async fn the_camera_macro_measures_the_play_from_real_photo_frames_and_applies_i
     let (w, h, grey) = klipcal::calib::nozzle::decode_gray(&jpeg).unwrap();
     assert_eq!((w, h), (320, 240));
     let at = crate::backlash::nozzle(bench);
-    use klipcal_core::photo_camera::{photo, Lighting, PhotoCamera, Placement};
+    use klipcal_core::photo_camera::{ncc, photo, Lighting, PhotoCamera, Placement};
     let pc = PhotoCamera::new(
         &photo("ktamv-frame").unwrap(),
         &Placement {

@@ -13,6 +13,7 @@ use serde_json::{json, Value};
 
 use crate::bench::{extension_request, free_port, poll, repo, Bench, Daemon};
 use crate::browser::{artifact, Browser};
+use crate::ops::print_state;
 use klipcal::moonraker::Moonraker;
 
 pub const DESKTOP: (u32, u32) = (1280, 800);
@@ -1279,15 +1280,6 @@ async fn mesh_check_in_print_start(bench: &Bench, block: &str) -> Daemon {
         .await
         .unwrap();
     d
-}
-
-/// The print's state (`print_stats.state`), empty when it cannot be read.
-async fn print_state(m: &Moonraker) -> String {
-    m.objects_query(json!({"print_stats": ["state"]}))
-        .await
-        .ok()
-        .and_then(|v| v["print_stats"]["state"].as_str().map(str::to_string))
-        .unwrap_or_default()
 }
 
 /// Mesh check, step 1: the bed matches the model, the print pauses for the check and goes on.

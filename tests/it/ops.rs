@@ -71,7 +71,8 @@ fn klipcal_answered(lines: &[String]) -> bool {
     })
 }
 
-async fn print_state(m: &Moonraker) -> String {
+/// The print's state (`print_stats.state`), empty when it cannot be read.
+pub(crate) async fn print_state(m: &Moonraker) -> String {
     m.objects_query(json!({"print_stats": ["state"]}))
         .await
         .ok()

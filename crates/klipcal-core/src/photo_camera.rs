@@ -367,6 +367,23 @@ impl PhotoCamera {
     }
 }
 
+/// Normalised correlation of a clean picture (as [`PhotoCamera::clean`] makes it) and a
+/// decoded snapshot of the same size: 1 for the same picture, about 0 for unrelated ones.
+#[must_use]
+pub fn ncc(a: &[f64], b: &[u8]) -> f64 {
+    let n = a.len() as f64;
+    let ma = a.iter().sum::<f64>() / n;
+    let mb = b.iter().map(|&v| f64::from(v)).sum::<f64>() / n;
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (x, &y) in a.iter().zip(b) {
+        let (x, y) = (x - ma, f64::from(y) - mb);
+        ab += x * y;
+        aa += x * x;
+        bb += y * y;
+    }
+    ab / (aa * bb).sqrt()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -469,23 +469,6 @@ mod tests {
         }
     }
 
-    /// Normalised correlation of two pictures of the same size.
-    fn ncc(a: &[f64], b: &[u8]) -> f64 {
-        let n = a.len() as f64;
-        let (ma, mb) = (
-            a.iter().sum::<f64>() / n,
-            b.iter().map(|&v| f64::from(v)).sum::<f64>() / n,
-        );
-        let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
-        for (x, &y) in a.iter().zip(b) {
-            let (x, y) = (x - ma, f64::from(y) - mb);
-            ab += x * y;
-            aa += x * x;
-            bb += y * y;
-        }
-        ab / (aa * bb).sqrt()
-    }
-
     /// With a photo, a snapshot is that photo moved to where the camera maps the simulated
     /// nozzle (lit, noisy, JPEG), not the renderer's nozzle, and a move moves it.
     #[test]
@@ -504,8 +487,8 @@ mod tests {
         let pc = photo_camera(&spec, &mut fastrand::Rng::with_seed(3))
             .unwrap()
             .unwrap();
-        let there = ncc(&pc.clean(want), &g);
-        let at_home = ncc(&pc.clean(home), &g);
+        let there = klipcal_core::photo_camera::ncc(&pc.clean(want), &g);
+        let at_home = klipcal_core::photo_camera::ncc(&pc.clean(home), &g);
         assert!(there > 0.97 && at_home < 0.9, "{there} {at_home}");
     }
 }
