@@ -1397,10 +1397,11 @@ async fn a_daemon_restarted_mid_soak_goes_on_from_the_progress_it_had() {
     let Some(after) = after else {
         panic!("the soak said nothing new: {}", session(&bench).await)
     };
-    // The replay recomputes the progress from the bed's history (1 Hz store samples, not the
-    // live polls): it may differ a little (99 % before, 92 % after, seen), never from 0.
+    // The replay recomputes the projection from the bed's history (1 Hz store samples, not the
+    // live polls) and may project a longer wait (49 % before, 24 % after, seen in CI), but the
+    // percentage said goes on from the stored session's (`soak_done`): it never goes back.
     assert!(
-        after.0 >= 0.5 * before.0 && after.0 > 0.0,
+        after.0 >= before.0 && after.0 > 0.0,
         "{:.0} % before the restart, then: {}",
         before.0,
         after.1

@@ -309,6 +309,10 @@ pub(crate) struct AbBody {
     /// new readings by it).
     #[serde(default)]
     pub last_entry: Option<(String, Vec<f64>)>,
+    /// How far this round's soak had got (0..1), so a daemon restarted mid-soak goes on from
+    /// it; cleared when the soak ends.
+    #[serde(default)]
+    pub soak_done: Option<f64>,
 }
 
 /// The A/B calibration's settings: `[ab]` and `[soak]`.

@@ -542,6 +542,7 @@ impl Ab {
                         heaters_off: false,
                         soak_asking: false,
                         soak_choice: None,
+                        soak_done: None,
                         preheat_since_unix: None,
                         last_entry: None,
                     },

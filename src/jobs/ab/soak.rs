@@ -30,6 +30,7 @@ impl Ab {
         if just_heated {
             soak = soak.bound_just_set();
         }
+        soak = soak.resumed_from(self.load(id)?.soak_done);
         let mut last = String::new();
         let mut cost: Option<f64> = None;
         let mut offer = Offer::default();
@@ -70,11 +71,11 @@ impl Ab {
                     text,
                     print_now_c,
                     eta_s,
-                    ..
+                    progress,
                 } => {
                     cost = print_now_c.or(cost);
                     if asked.is_none() && last != text {
-                        self.set_state(id, State::Soaking, &text).await?;
+                        self.set_soaking(id, &text, progress).await?;
                         last = text;
                     }
                     if asked.is_none() {
@@ -116,6 +117,17 @@ impl Ab {
         }
     }
 
+    /// The soak's line and how far it has got, kept for a daemon restarted mid-soak.
+    async fn set_soaking(&self, id: i64, text: &str, done: f64) -> anyhow::Result<()> {
+        tracing::info!(session = id, state = "soaking", "{text}");
+        self.update(id, |s| {
+            s.set(State::Soaking, text);
+            s.soak_done = Some(done);
+            Ok(())
+        })
+        .await
+    }
+
     /// Print now, chosen while soaking: the session prints, its note says what the surface may
     /// still warm, and the soak so far is plotted.
     async fn soak_print_now(
@@ -142,6 +154,7 @@ impl Ab {
         self.update(id, |s| {
             s.soak_choice = None;
             s.soak_asking = false;
+            s.soak_done = None;
             s.notes.push(note.clone());
             s.state = State::Printing;
             s.progress = format!("printing now, as chosen ({words})");
@@ -228,13 +241,14 @@ impl Ab {
         } else {
             String::new()
         };
-        self.set_state(
-            id,
-            State::Printing,
-            &format!("bed stable ({why}){plot}; printing"),
-        )
-        .await?;
-        Ok(())
+        let line = format!("bed stable ({why}){plot}; printing");
+        tracing::info!(session = id, state = "printing", "{line}");
+        self.update(id, |s| {
+            s.soak_done = None;
+            s.set(State::Printing, line.clone());
+            Ok(())
+        })
+        .await
     }
 
     /// From the moment the bed is in its band: the dialog offers *Print now* with its cost and

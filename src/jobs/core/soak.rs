@@ -466,6 +466,16 @@ impl BedSoak {
         self
     }
 
+    /// A soak resumed after a restart goes on from the progress it had said (`done`, 0..1):
+    /// the replayed history may project a longer wait, but the percentage never goes back.
+    #[must_use]
+    pub(crate) fn resumed_from(mut self, done: Option<f64>) -> Self {
+        if let Some(d) = done.filter(|d| d.is_finite()) {
+            self.best_progress = d.clamp(0.0, 0.99);
+        }
+        self
+    }
+
     /// Allows `extra_s` more from now (the user chose to wait).
     pub(crate) fn extend(&mut self, extra_s: f64) {
         self.max_s = self.start.elapsed().as_secs_f64() + extra_s;
