@@ -207,7 +207,11 @@ async fn the_camera_macro_measures_the_play_from_real_photo_frames_and_applies_i
     let at = crate::backlash::nozzle(bench);
     use klipcal_core::photo_camera::{ncc, photo, Lighting, PhotoCamera, Placement};
     let pc = PhotoCamera::new(
-        &photo("ktamv-frame").unwrap(),
+        &photo(
+            &|f| Ok(std::fs::read(klipcal_core::nozzle_photos::dir().join(f))?),
+            "ktamv-frame",
+        )
+        .unwrap(),
         &Placement {
             width: 320,
             height: 240,

@@ -1,6 +1,7 @@
 //! klipcal-core: the pure part of klipcal. Time and data in, values out: no I/O, no clock, no
-//! async runtime, no network or database crate in this crate's dependencies (the compiler
-//! keeps it so). The daemon (`klipcal`) and the benchmarks (`klipcal-bench`) build on it.
+//! async runtime, no network or database crate in this crate's dependencies (the `purity`
+//! test keeps it so), and no file, socket, process or clock call of the standard library
+//! (this crate's `clippy.toml`, denied under `-D warnings`). The daemon (`klipcal`) and the benchmarks (`klipcal-bench`) build on it.
 //!
 //! - [`calib`]: the math: statistics, differential scale, geometry fit, error budget, the bed
 //!   soak (`calib::soak`), the thermal bed-mesh model, backlash, the nozzle in a picture.
@@ -14,7 +15,8 @@
 //! - `camera_render` and `calib::sim` (feature `sim`, and this crate's tests): simulated
 //!   nozzle-camera pictures and a simulated machine for the benchmarks and the tests; never in
 //!   the printer's build. `nozzle_photos` (the same): the real nozzle photographs of
-//!   `tests/fixtures/nozzle`, read from the source checkout for the tests and the bench;
+//!   `tests/fixtures/nozzle`, their bytes read from the source checkout by the tests and the
+//!   bench;
 //!   `photo_camera` (the same): a nozzle camera whose frames are one of those photographs
 //!   moved where the simulated nozzle is (the bench's camera server and `klipcal bench
 //!   backlash`); `optic_render` (the same): a second nozzle camera written apart from

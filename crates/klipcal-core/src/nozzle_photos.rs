@@ -1,11 +1,16 @@
-//! The real nozzle photographs of `tests/fixtures/nozzle` (issue 37), read from the source
-//! checkout for the tests and `klipcal bench backlash`: each source file as published, cropped,
+//! The real nozzle photographs of `tests/fixtures/nozzle` (issue 37), for the tests and
+//! `klipcal bench backlash`: each source file as published (its bytes handed in by the caller,
+//! who reads them from the source checkout: this crate does no I/O), cropped,
 //! doubled or with a faded copy pasted in as `manifest.json` says, with its hand label and
 //! the outcome a person expects; and the known shifts made of them, read by registration.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
+
+/// The bytes of one file of the fixtures' folder ([`dir`]), by its name there: the caller's
+/// reader (the bench's and the tests' read the source checkout).
+pub type Fixtures<'a> = &'a dyn Fn(&str) -> anyhow::Result<Vec<u8>>;
 use serde::Deserialize;
 
 use crate::calib::nozzle::{decode_gray, Gray, Reference, RegisterParams};
@@ -82,15 +87,25 @@ impl Photo {
     }
 }
 
-/// The fixtures' folder in the source checkout.
+/// The fixtures' folder in the source checkout (where a caller's [`Fixtures`] reads).
+#[must_use]
 pub fn dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../../tests/fixtures/nozzle")
 }
 
-fn read(dir: &Path, file: &str) -> anyhow::Result<(usize, usize, Vec<u8>)> {
-    let path = dir.join(file);
-    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    decode_gray(&bytes).with_context(|| format!("decoding {}", path.display()))
+/// The tests' [`Fixtures`]: the source checkout's files.
+#[cfg(test)]
+#[allow(
+    clippy::disallowed_methods,
+    reason = "the tests read the checkout's fixtures"
+)]
+pub(crate) fn checkout(file: &str) -> anyhow::Result<Vec<u8>> {
+    Ok(std::fs::read(dir().join(file))?)
+}
+
+fn read(files: Fixtures, file: &str) -> anyhow::Result<(usize, usize, Vec<u8>)> {
+    let bytes = files(file).with_context(|| format!("reading {file} of {}", dir().display()))?;
+    decode_gray(&bytes).with_context(|| format!("decoding {file}"))
 }
 
 fn crop(w: usize, h: usize, g: &[u8], c: [usize; 4]) -> anyhow::Result<(usize, usize, Vec<u8>)> {
@@ -107,15 +122,14 @@ fn crop(w: usize, h: usize, g: &[u8], c: [usize; 4]) -> anyhow::Result<(usize, u
 ///
 /// # Errors
 /// A missing or unreadable file, a malformed manifest, a crop outside its source.
-pub fn load() -> anyhow::Result<Vec<Photo>> {
-    let dir = dir();
-    let text = std::fs::read_to_string(dir.join("manifest.json"))
-        .with_context(|| format!("reading {}", dir.join("manifest.json").display()))?;
-    let m: Manifest = serde_json::from_str(&text).context("manifest.json")?;
+pub fn load(files: Fixtures) -> anyhow::Result<Vec<Photo>> {
+    let text = files("manifest.json")
+        .with_context(|| format!("reading manifest.json of {}", dir().display()))?;
+    let m: Manifest = serde_json::from_slice(&text).context("manifest.json")?;
     m.pictures
         .into_iter()
         .map(|e| {
-            let (mut w, mut h, mut g) = read(&dir, &e.from)?;
+            let (mut w, mut h, mut g) = read(files, &e.from)?;
             if let Some(c) = e.crop {
                 (w, h, g) = crop(w, h, &g, c).with_context(|| e.name.clone())?;
             }
@@ -131,7 +145,7 @@ pub fn load() -> anyhow::Result<Vec<Photo>> {
                 (w, g) = (2 * w, out);
             }
             if let Some(ins) = &e.insert {
-                paste(&dir, ins, w, h, &mut g).with_context(|| e.name.clone())?;
+                paste(files, ins, w, h, &mut g).with_context(|| e.name.clone())?;
             }
             Ok(Photo {
                 name: e.name,
@@ -168,8 +182,8 @@ fn shrink(w: usize, h: usize, g: &[u8], k: usize) -> (usize, usize, Vec<u8>) {
 
 /// A copy of another source shrunk by block averaging, its contrast scaled about its mean,
 /// pasted at `at` (its deviation from its own mean added to the picture).
-fn paste(dir: &Path, ins: &Insert, w: usize, h: usize, g: &mut [u8]) -> anyhow::Result<()> {
-    let (sw, sh, s) = read(dir, &ins.from)?;
+fn paste(files: Fixtures, ins: &Insert, w: usize, h: usize, g: &mut [u8]) -> anyhow::Result<()> {
+    let (sw, sh, s) = read(files, &ins.from)?;
     let k = ins.shrink.max(1);
     let (tw, th) = (sw / k, sh / k);
     let mut t = vec![0f64; tw * th];

@@ -30,8 +30,8 @@ const EDGE_PX: f64 = 3.5;
 ///
 /// # Errors
 /// The fixtures cannot be read, no such picture, or one without a hand-labelled tip.
-pub fn photo(name: &str) -> anyhow::Result<Photo> {
-    let all = nozzle_photos::load()?;
+pub fn photo(files: nozzle_photos::Fixtures, name: &str) -> anyhow::Result<Photo> {
+    let all = nozzle_photos::load(files)?;
     let usable: Vec<String> = all
         .iter()
         .filter(|p| p.tip_px.is_some() && p.expect == Expect::Found)
@@ -404,7 +404,7 @@ mod tests {
     /// half-pixel move lies between its neighbours (no nearest pixel).
     #[test]
     fn whole_pixel_moves_copy_the_photo_and_half_pixels_interpolate() {
-        let p = photo("tamv-nozzle").unwrap();
+        let p = photo(&crate::nozzle_photos::checkout, "tamv-nozzle").unwrap();
         let mut at = placement(320, 240, 0.0, 10.0);
         at.zoom = Some(1.0);
         let cam =
@@ -438,7 +438,7 @@ mod tests {
     #[test]
     fn edges_never_show_within_the_reach_and_a_short_zoom_is_refused() {
         for name in ["tamv-nozzle", "ktamv-frame"] {
-            let p = photo(name).unwrap();
+            let p = photo(&crate::nozzle_photos::checkout, name).unwrap();
             let at = placement(320, 240, 12.0, 40.0);
             let cam = PhotoCamera::new(&p, &at, Lighting::draw(&mut fastrand::Rng::with_seed(2)))
                 .unwrap();
@@ -465,13 +465,20 @@ mod tests {
                 assert!(format!("{e:#}").contains("is needed"), "{e:#}");
             }
         }
-        let e = photo("tamv-test-card").unwrap_err();
+        let e = photo(&crate::nozzle_photos::checkout, "tamv-test-card").unwrap_err();
         assert!(format!("{e:#}").contains("hand-labelled"), "{e:#}");
-        let e = photo("nozzle.png").unwrap_err();
+        let e = photo(&crate::nozzle_photos::checkout, "nozzle.png").unwrap_err();
         assert!(format!("{e:#}").contains("ktamv-frame"), "{e:#}");
-        assert_eq!(photo("tamv-nozzle.jpg").unwrap().name, "tamv-nozzle");
         assert_eq!(
-            photo("ktamv-double_camera.jpg").unwrap().name,
+            photo(&crate::nozzle_photos::checkout, "tamv-nozzle.jpg")
+                .unwrap()
+                .name,
+            "tamv-nozzle"
+        );
+        assert_eq!(
+            photo(&crate::nozzle_photos::checkout, "ktamv-double_camera.jpg")
+                .unwrap()
+                .name,
             "ktamv-frame"
         );
     }
@@ -484,7 +491,7 @@ mod tests {
         let p = RegisterParams::default();
         let mut rng = fastrand::Rng::with_seed(9);
         for name in ["tamv-nozzle", "ktamv-frame"] {
-            let ph = photo(name).unwrap();
+            let ph = photo(&crate::nozzle_photos::checkout, name).unwrap();
             let cam = PhotoCamera::new(
                 &ph,
                 &placement(320, 240, -8.0, 30.0),

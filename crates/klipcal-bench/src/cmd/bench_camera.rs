@@ -231,7 +231,7 @@ pub(crate) fn photo_camera(
     let Some(name) = &spec.photo else {
         return Ok(None);
     };
-    let photo = photo_camera::photo(name)?;
+    let photo = photo_camera::photo(&crate::cmd::nozzle_fixture, name)?;
     let at = Placement {
         width: spec.width,
         height: spec.height,

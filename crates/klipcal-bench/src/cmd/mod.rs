@@ -16,3 +16,12 @@ pub use klipcal_core::camera_render;
 pub use klipcal_core::nozzle_photos;
 pub use klipcal_core::optic_render;
 pub use klipcal_core::photo_camera;
+
+/// The benchmarks' [`nozzle_photos::Fixtures`]: the real photographs in the source checkout.
+///
+/// # Errors
+/// The file cannot be read (with its path).
+pub fn nozzle_fixture(file: &str) -> anyhow::Result<Vec<u8>> {
+    let path = nozzle_photos::dir().join(file);
+    std::fs::read(&path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+}

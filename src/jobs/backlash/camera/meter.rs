@@ -354,6 +354,12 @@ mod tests {
     use crate::calib::nozzle::{detect, DetectParams};
     use klipcal_core::photo_camera::{photo, Lighting, PhotoCamera, Placement};
 
+    fn fixture(file: &str) -> anyhow::Result<Vec<u8>> {
+        Ok(std::fs::read(
+            klipcal_core::nozzle_photos::dir().join(file),
+        )?)
+    }
+
     /// Issue 37's wrong feature, reproduced on TAMV's real photo: the detector returns a
     /// confident point (sd 0.2 px) on something 30–38 px from the nozzle the reference was
     /// taken on. Before, the registration round that point refused it (`weak_match`) and the
@@ -361,7 +367,7 @@ mod tests {
     /// expected measures it, and with nothing expected the frame is refused.
     #[test]
     fn a_confidently_wrong_detection_loses_to_the_registration() {
-        let p = photo("tamv-nozzle").unwrap();
+        let p = photo(&fixture, "tamv-nozzle").unwrap();
         let mut rng = fastrand::Rng::with_seed(37);
         let home = [200.0, 150.0];
         let at = Placement {

@@ -721,7 +721,12 @@ fn bench_photo_end_to_end(
     let mark = |b: bool| if b { "PASS" } else { "FAIL" };
     let photos = PHOTO_CAMERAS
         .iter()
-        .map(|(name, size)| Ok((crate::cmd::photo_camera::photo(name)?, *size)))
+        .map(|(name, size)| {
+            Ok((
+                crate::cmd::photo_camera::photo(&crate::cmd::nozzle_fixture, name)?,
+                *size,
+            ))
+        })
         .collect::<anyhow::Result<Vec<_>>>()?;
     let per = args.photo_axes.max(2);
     println!(
@@ -834,7 +839,7 @@ fn bench_photo_end_to_end(
 /// labels and the must-refuse pictures, and known shifts of the photos read by registration.
 fn bench_real_photos(seed: u64) -> anyhow::Result<bool> {
     let mark = |b: bool| if b { "PASS" } else { "FAIL" };
-    let photos = nozzle_photos::load()?;
+    let photos = nozzle_photos::load(&crate::cmd::nozzle_fixture)?;
     let (mut want, mut near, mut far, mut must, mut refused) = (0, 0, 0, 0, 0);
     let mut reasons = std::collections::BTreeMap::<String, usize>::new();
     for p in &photos {

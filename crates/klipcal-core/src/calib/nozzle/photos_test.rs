@@ -22,7 +22,7 @@ fn outcome(p: &Photo) -> Result<f64, Refusal> {
 /// every real nozzle was refused.
 #[test]
 fn real_photos_are_found_or_refused_as_a_person_would() {
-    let photos = load().unwrap();
+    let photos = load(&crate::nozzle_photos::checkout).unwrap();
     let (mut want, mut near, mut fails) = (0, 0, Vec::new());
     for p in &photos {
         let got = outcome(p);
@@ -60,7 +60,7 @@ fn real_photos_are_found_or_refused_as_a_person_would() {
 /// the one above failed: every real nozzle refused ("344.2 grey levels, 702.5 needed").
 #[test]
 fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
-    let photos = load().unwrap();
+    let photos = load(&crate::nozzle_photos::checkout).unwrap();
     let tamv = photos.iter().find(|p| p.name == "tamv-nozzle").unwrap();
     let n = fine_noise_sd(&tamv.gray(), None);
     assert!((0.3..2.0).contains(&n), "{n}");
@@ -81,7 +81,7 @@ fn the_noise_of_a_real_photo_is_its_pixels_not_its_scene() {
 /// reference was refused ("179 grey levels, 487 needed" on TAMV's) and this test failed.
 #[test]
 fn known_shifts_of_real_photos_are_measured_by_registration() {
-    let photos = load().unwrap();
+    let photos = load(&crate::nozzle_photos::checkout).unwrap();
     let t = known_shifts(&photos, 20, 37);
     eprintln!(
         "within {:.1} % median {:.3} cover {:.1} % worst {:?} refused {:?}",
@@ -115,7 +115,7 @@ fn known_shifts_of_real_photos_are_measured_by_registration() {
 /// one (halved) too: issue 37's item 8, 320×240 to 1920×1080.
 #[test]
 fn a_real_photo_is_found_from_320x240_to_1920x1080() {
-    let photos = load().unwrap();
+    let photos = load(&crate::nozzle_photos::checkout).unwrap();
     let tamv = photos.iter().find(|p| p.name == "tamv-nozzle").unwrap();
     let (w, h) = (tamv.width, tamv.height);
     let at = |x: f64, y: f64| {
