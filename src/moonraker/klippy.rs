@@ -256,6 +256,87 @@ impl Moonraker {
     }
 }
 
+/// klipcal.cfg's helper that keeps, in Klipper, until when klipcal says it is there: its
+/// macros a user calls say "asking the klipcal service..." only once that time has passed
+/// (issue 40 item 6: six rows of a round), so that a stopped service still shows.
+pub(crate) const ONLINE_MACRO: &str = "_KLIPCAL_ONLINE";
+
+/// How long one word of [`ONLINE_MACRO`] holds, and how often klipcal says it again.
+pub(crate) const ONLINE_LEASE_S: u32 = 30;
+const ONLINE_EVERY: Duration = Duration::from_secs(10);
+
+/// The script that says klipcal is there for `seconds` more (0: gone).
+#[must_use]
+pub(crate) fn online_script(seconds: u32) -> String {
+    format!("{ONLINE_MACRO} SECONDS={seconds}")
+}
+
+impl Moonraker {
+    /// Says in Klipper, every [`ONLINE_EVERY`] while klipcal is connected and registered with
+    /// Moonraker, that it answers for [`ONLINE_LEASE_S`] more; at shutdown that it is gone.
+    /// Only on Klipper's API socket (no console row); where that socket cannot be used, or
+    /// klipcal.cfg has no such macro yet, nothing is said and the macros always say "asking".
+    /// One word at a time: a Klipper busy with a long command answers it once done.
+    pub(crate) async fn keep_online(self, stop: tokio_util::sync::CancellationToken) {
+        let mut said: Option<PathBuf> = None;
+        loop {
+            let next = tokio::select! {
+                () = stop.cancelled() => break,
+                next = self.say_online(&mut said) => next,
+            };
+            tokio::select! {
+                () = stop.cancelled() => break,
+                () = tokio::time::sleep(next) => {}
+            }
+        }
+        if let Some(path) = said {
+            let limit = Duration::from_secs(1);
+            let _ = request(
+                &path,
+                "gcode/script",
+                json!({"script": online_script(0)}),
+                limit,
+            )
+            .await;
+        }
+    }
+
+    /// One word of [`Moonraker::keep_online`]; how long until the next.
+    async fn say_online(&self, said: &mut Option<PathBuf>) -> Duration {
+        let ready = matches!(
+            self.state(),
+            super::ConnState::Connected { ref klippy_state } if klippy_state == "ready"
+        );
+        let limit = self.shared.opts.request_timeout;
+        let path = match ready {
+            true => self.console_socket(limit).await,
+            false => None,
+        };
+        let Some(path) = path else {
+            return ONLINE_EVERY;
+        };
+        let script = online_script(ONLINE_LEASE_S);
+        match request(
+            &path,
+            "gcode/script",
+            json!({ "script": script }),
+            ONLINE_EVERY * 12,
+        )
+        .await
+        {
+            Ok(_) => {
+                *said = Some(path);
+                ONLINE_EVERY
+            }
+            Err(e) => {
+                // An older klipcal.cfg without the macro: said once a minute at most.
+                debug!(error = ?e, "klipcal could not say in Klipper that it is there");
+                Duration::from_secs(60)
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -45,6 +45,15 @@ const SAY_MSG: ArgSpec = arg(
     "the lines to say",
 );
 
+const ONLINE_SECONDS: ArgSpec = arg(
+    "seconds",
+    ArgKind::Whole { min: 0, max: 3600 },
+    "30",
+    "0..3600",
+    "0",
+    "for how long from now the service answers (0: it stopped)",
+);
+
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
@@ -106,6 +115,24 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             &["{action_respond_info(\"klipcal \" ~ (params.MSG|default(\"\"))|replace(\"␤\", \"\\n\"))}"],
         ),
         parse: |_| Err(anyhow::anyhow!("_KLIPCAL_SAY runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec {
+            variables: &[("until", "0.0")],
+            ..OpSpec::local(
+                crate::moonraker::ONLINE_MACRO,
+                "keep until when the klipcal service answers (klipcal sends it every few seconds; until then its macros do not say \"asking the klipcal service...\")",
+                &[ONLINE_SECONDS],
+                &[
+                    "{% set s = params.SECONDS|default(0)|int(-1) %}",
+                    "{% if s < 0 or s > 3600 %}",
+                    "{action_raise_error(\"_KLIPCAL_ONLINE: SECONDS=\" ~ params.SECONDS ~ \" is not a whole number of seconds from 0 to 3600\")}",
+                    "{% endif %}",
+                    "SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=until VALUE={printer.toolhead.estimated_print_time + s}",
+                ],
+            )
+        },
+        parse: |_| Err(anyhow::anyhow!("_KLIPCAL_ONLINE runs in Klipper")),
     },
     Op {
         spec: OpSpec::remote(
