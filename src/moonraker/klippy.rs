@@ -5,8 +5,8 @@
 //! klipcal's answers and dialogs. Klipper's responses still reach Moonraker (it subscribes to
 //! Klipper's output), so every front end shows them, live and after a reload.
 //!
-//! Only a script of `RESPOND` lines goes this way ([`respond_only`]): nothing that moves, heats,
-//! restarts or configures, so none of klipcal's guards (which sit in front of those) is passed
+//! Only a script of `RESPOND` lines (and `GET_CURRENT_SKEW`, a report) goes this way
+//! ([`respond_only`]): nothing that moves, heats, restarts or configures, so none of klipcal's guards (which sit in front of those) is passed
 //! by. The socket is the one Moonraker names (`server.config` → `server.klippy_uds_address`),
 //! used once the Klipper answering on it is the one Moonraker talks to (its `info` the same as
 //! `printer.info`: two printers on one host each have their own socket, and a klipcal talking
@@ -43,9 +43,10 @@ pub(super) enum ConsoleRoute {
     Moonraker { checked: Instant },
 }
 
-/// The commands a console script may hold: Klipper's `RESPOND`, and klipcal.cfg's
-/// `_KLIPCAL_SAY` (one `action_respond_info`: several lines of an answer as one response).
-const CONSOLE_COMMANDS: [&str; 2] = ["RESPOND", "_KLIPCAL_SAY"];
+/// The commands a console script may hold: Klipper's `RESPOND`, klipcal.cfg's `_KLIPCAL_SAY`
+/// (one `action_respond_info`: several lines of an answer as one response), and
+/// `GET_CURRENT_SKEW` (a report of `[skew_correction]`, which changes nothing).
+const CONSOLE_COMMANDS: [&str; 3] = ["RESPOND", "_KLIPCAL_SAY", "GET_CURRENT_SKEW"];
 
 /// Whether every line of `script` is a console command ([`CONSOLE_COMMANDS`]): the only
 /// scripts sent past Moonraker. Klipper reads a line's first word as its command, and
@@ -350,6 +351,8 @@ mod tests {
         assert!(respond_only(
             "_KLIPCAL_SAY MSG=\"a␤b\"\nRESPOND TYPE=command MSG=action:prompt_show"
         ));
+        // A report that changes nothing.
+        assert!(respond_only("RESPOND MSG=\"why\"\nGET_CURRENT_SKEW"));
         for not in [
             "",
             "\n",
@@ -358,6 +361,7 @@ mod tests {
             "RESPONDX MSG=\"a\"",
             "_KLIPCAL_SAY_MORE MSG=\"a\"",
             "TURN_OFF_HEATERS",
+            "GET_CURRENT_SKEW\nSET_SKEW CLEAR=1",
             "RESPOND MSG=\"a\"\rG28",
         ] {
             assert!(!respond_only(not), "{not:?}");

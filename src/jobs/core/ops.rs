@@ -96,8 +96,9 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             "ask before ending the session (the Cancel of klipcal's dialogs)",
             &[],
             &[
-                "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
-                "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
+                // What ending does is in the title, not a text row of its own (issue 40 item
+                // 6: the question is asked twice a round when Back is pressed once).
+                "RESPOND TYPE=command MSG=\"action:prompt_begin end the session? (heaters off)\"",
                 // The Yes answers the question of the dialog whose Cancel asked (its ASK):
                 // klipcal refuses it once that question has passed (issue 40).
                 "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL{' ASK=%d' % (params.ASK|int) if 'ASK' in params else ''}|error\"",
