@@ -1656,10 +1656,17 @@ async fn print_now_is_offered_with_its_cost_from_the_band_on_through_the_macro_a
         .into_iter()
         .map(|(_, msg)| msg)
         .collect();
+    // Asked in its dialog, whose rows name the question and each answer's macro.
     assert!(
         console
             .iter()
-            .any(|l| l.contains("is the printer enclosed?") && l.contains("FRAME=open")),
+            .any(|l| l.contains("prompt_begin klipcal: is the printer enclosed?")),
+        "{console:#?}"
+    );
+    assert!(
+        console
+            .iter()
+            .any(|l| l.contains("prompt_button Open, no enclosure|KLIPCAL_SOAK_BED FRAME=open")),
         "{console:#?}"
     );
     // The page's API says the same (and keeps saying it: the cost does not flicker off).

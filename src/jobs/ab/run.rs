@@ -193,10 +193,11 @@ impl Ab {
 
     /// Reads Klipper's current XY skew factor: from the G-code and toolhead positions where
     /// they tell it (nothing on the console), else from GET_CURRENT_SKEW, whose four lines land
-    /// on the user's console (`[skew_correction]` has no status to read), so a line before
-    /// them says why they are there (issue 26 A.7). With whether GET_CURRENT_SKEW said every
-    /// plane's factor is 0 (nothing to clear; false when it was not asked).
-    pub(super) async fn current_skew(&self) -> Option<(f64, bool)> {
+    /// on the user's console (`[skew_correction]` has no status to read) right after the
+    /// session's "checking the printer", and the round's line just after them says what was
+    /// done with it (issue 26 A.7; issue 40 item 6: a line before them was a row more). With
+    /// `Some(none)` when GET_CURRENT_SKEW was asked: whether every plane's factor is 0.
+    pub(super) async fn current_skew(&self) -> Option<(f64, Option<bool>)> {
         let st = self
             .core
             .m()
@@ -211,27 +212,22 @@ impl Ab {
             xyz(&st["toolhead"]["position"]),
         ) {
             if let Some(xy) = crate::calib::skew::xy_factor_from_positions(g, t) {
-                return Some((xy, false));
+                return Some((xy, None));
             }
         }
-        // The line and the question in one script (one console row fewer).
-        let why = crate::jobs::core::console::respond_line(&format!(
-            "{TITLE}: asking Klipper for its skew correction (GET_CURRENT_SKEW, answered below) \
-             to turn it off for the calibration print and back on afterwards"
-        ));
         // A report that changes nothing: on Klipper's API socket where klipcal uses it, so
         // that the script is no command row of its own (issue 40 item 6).
         let mut rx = self.core.m().events();
         self.core
             .m()
-            .console_script(&format!("{why}\nGET_CURRENT_SKEW"))
+            .console_script("GET_CURRENT_SKEW")
             .await
             .ok()?;
         let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
         while let Ok(Ok(e)) = tokio::time::timeout_at(deadline, rx.recv()).await {
             if let crate::moonraker::Event::GcodeResponse(text) = e {
-                if let Some(skew) = skew_report(&text) {
-                    return Some(skew);
+                if let Some((xy, none)) = skew_report(&text) {
+                    return Some((xy, Some(none)));
                 }
             }
         }
@@ -324,14 +320,22 @@ impl Ab {
     ) -> anyhow::Result<Option<f64>> {
         let mut skew_before = s.skew_before;
         if facts.has_skew_correction {
-            let (xy, none) = self.current_skew().await.unwrap_or((0.0, false));
+            let (xy, report) = self.current_skew().await.unwrap_or((0.0, None));
             if s.rounds.is_empty() {
                 skew_before = Some(xy);
             }
+            let above = if report.is_some() {
+                " (GET_CURRENT_SKEW above)"
+            } else {
+                ""
+            };
+            let none = report == Some(true);
             if xy != 0.0 {
                 notes.push(format!(
-                    "skew correction (XY factor {xy:.6}) cleared for the calibration print; it is restored afterwards"
+                    "skew correction (XY factor {xy:.6}) cleared for the calibration print{above}; it is restored afterwards"
                 ));
+            } else if none {
+                notes.push(format!("no skew correction to turn off{above}"));
             }
             // Klipper said every factor is 0: nothing to clear (a row fewer; issue 40 item 6).
             if !none {
