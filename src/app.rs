@@ -177,6 +177,8 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
     cancel_on_signal(cancel.clone())?;
     info!(version = env!("CARGO_PKG_VERSION"), url = %config.moonraker.url, "klipcal starting");
     let (m, calls) = Moonraker::spawn(client_options(&config), cancel.clone());
+    // Tells klipcal's macros in Klipper that the service answers (they say "asking" otherwise).
+    let online = tokio::spawn(m.clone().keep_online(cancel.clone()));
     let files = crate::moonraker::Files::new(
         &config.http_base(),
         (!config.moonraker.api_key.is_empty()).then(|| config.moonraker.api_key.clone()),
@@ -272,6 +274,8 @@ async fn serve(config: Config) -> anyhow::Result<ExitCode> {
             );
         }
     }
+    // The macros say "asking" again from now (a second at most).
+    let _ = tokio::time::timeout(Duration::from_millis(1500), online).await;
     // Every task selects on the token; give them a moment to close the socket cleanly.
     let mut state = m.state_watch();
     let _ = tokio::time::timeout(

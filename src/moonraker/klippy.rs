@@ -5,8 +5,8 @@
 //! klipcal's answers and dialogs. Klipper's responses still reach Moonraker (it subscribes to
 //! Klipper's output), so every front end shows them, live and after a reload.
 //!
-//! Only a script of `RESPOND` lines goes this way ([`respond_only`]): nothing that moves, heats,
-//! restarts or configures, so none of klipcal's guards (which sit in front of those) is passed
+//! Only a script of `RESPOND` lines (and `GET_CURRENT_SKEW`, a report) goes this way
+//! ([`respond_only`]): nothing that moves, heats, restarts or configures, so none of klipcal's guards (which sit in front of those) is passed
 //! by. The socket is the one Moonraker names (`server.config` → `server.klippy_uds_address`),
 //! used once the Klipper answering on it is the one Moonraker talks to (its `info` the same as
 //! `printer.info`: two printers on one host each have their own socket, and a klipcal talking
@@ -43,9 +43,10 @@ pub(super) enum ConsoleRoute {
     Moonraker { checked: Instant },
 }
 
-/// The commands a console script may hold: Klipper's `RESPOND`, and klipcal.cfg's
-/// `_KLIPCAL_SAY` (one `action_respond_info`: several lines of an answer as one response).
-const CONSOLE_COMMANDS: [&str; 2] = ["RESPOND", "_KLIPCAL_SAY"];
+/// The commands a console script may hold: Klipper's `RESPOND`, klipcal.cfg's `_KLIPCAL_SAY`
+/// (one `action_respond_info`: several lines of an answer as one response), and
+/// `GET_CURRENT_SKEW` (a report of `[skew_correction]`, which changes nothing).
+const CONSOLE_COMMANDS: [&str; 3] = ["RESPOND", "_KLIPCAL_SAY", "GET_CURRENT_SKEW"];
 
 /// Whether every line of `script` is a console command ([`CONSOLE_COMMANDS`]): the only
 /// scripts sent past Moonraker. Klipper reads a line's first word as its command, and
@@ -256,6 +257,87 @@ impl Moonraker {
     }
 }
 
+/// klipcal.cfg's helper that keeps, in Klipper, until when klipcal says it is there: its
+/// macros a user calls say "asking the klipcal service..." only once that time has passed
+/// (issue 40 item 6: six rows of a round), so that a stopped service still shows.
+pub(crate) const ONLINE_MACRO: &str = "_KLIPCAL_ONLINE";
+
+/// How long one word of [`ONLINE_MACRO`] holds, and how often klipcal says it again.
+pub(crate) const ONLINE_LEASE_S: u32 = 30;
+const ONLINE_EVERY: Duration = Duration::from_secs(10);
+
+/// The script that says klipcal is there for `seconds` more (0: gone).
+#[must_use]
+pub(crate) fn online_script(seconds: u32) -> String {
+    format!("{ONLINE_MACRO} SECONDS={seconds}")
+}
+
+impl Moonraker {
+    /// Says in Klipper, every [`ONLINE_EVERY`] while klipcal is connected and registered with
+    /// Moonraker, that it answers for [`ONLINE_LEASE_S`] more; at shutdown that it is gone.
+    /// Only on Klipper's API socket (no console row); where that socket cannot be used, or
+    /// klipcal.cfg has no such macro yet, nothing is said and the macros always say "asking".
+    /// One word at a time: a Klipper busy with a long command answers it once done.
+    pub(crate) async fn keep_online(self, stop: tokio_util::sync::CancellationToken) {
+        let mut said: Option<PathBuf> = None;
+        loop {
+            let next = tokio::select! {
+                () = stop.cancelled() => break,
+                next = self.say_online(&mut said) => next,
+            };
+            tokio::select! {
+                () = stop.cancelled() => break,
+                () = tokio::time::sleep(next) => {}
+            }
+        }
+        if let Some(path) = said {
+            let limit = Duration::from_secs(1);
+            let _ = request(
+                &path,
+                "gcode/script",
+                json!({"script": online_script(0)}),
+                limit,
+            )
+            .await;
+        }
+    }
+
+    /// One word of [`Moonraker::keep_online`]; how long until the next.
+    async fn say_online(&self, said: &mut Option<PathBuf>) -> Duration {
+        let ready = matches!(
+            self.state(),
+            super::ConnState::Connected { ref klippy_state } if klippy_state == "ready"
+        );
+        let limit = self.shared.opts.request_timeout;
+        let path = match ready {
+            true => self.console_socket(limit).await,
+            false => None,
+        };
+        let Some(path) = path else {
+            return ONLINE_EVERY;
+        };
+        let script = online_script(ONLINE_LEASE_S);
+        match request(
+            &path,
+            "gcode/script",
+            json!({ "script": script }),
+            ONLINE_EVERY * 12,
+        )
+        .await
+        {
+            Ok(_) => {
+                *said = Some(path);
+                ONLINE_EVERY
+            }
+            Err(e) => {
+                // An older klipcal.cfg without the macro: said once a minute at most.
+                debug!(error = ?e, "klipcal could not say in Klipper that it is there");
+                Duration::from_secs(60)
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -269,6 +351,8 @@ mod tests {
         assert!(respond_only(
             "_KLIPCAL_SAY MSG=\"a␤b\"\nRESPOND TYPE=command MSG=action:prompt_show"
         ));
+        // A report that changes nothing.
+        assert!(respond_only("RESPOND MSG=\"why\"\nGET_CURRENT_SKEW"));
         for not in [
             "",
             "\n",
@@ -277,6 +361,7 @@ mod tests {
             "RESPONDX MSG=\"a\"",
             "_KLIPCAL_SAY_MORE MSG=\"a\"",
             "TURN_OFF_HEATERS",
+            "GET_CURRENT_SKEW\nSET_SKEW CLEAR=1",
             "RESPOND MSG=\"a\"\rG28",
         ] {
             assert!(!respond_only(not), "{not:?}");

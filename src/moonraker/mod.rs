@@ -15,6 +15,7 @@ mod queries;
 pub use answers::ConfigFile;
 pub use client::{AgentCall, ClientOptions, ConnState, Event, Moonraker};
 pub use http::Files;
+pub(crate) use klippy::ONLINE_MACRO;
 pub use protocol::RpcError;
 
 /// Everything that can go wrong talking to Moonraker.

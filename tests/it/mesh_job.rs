@@ -986,11 +986,11 @@ async fn a_capture_from_the_macro_says_what_a_user_needs_and_nothing_about_print
         "a capture's lines speak of printing: {printing:#?}"
     );
     // Issue 38 item 9: soak.frame is not set in these settings, and the capture's soak asks
-    // the same question as an A/B round's, with the same buttons.
+    // the same question as an A/B round's, with the same buttons (its dialog alone since
+    // issue 40 item 6).
     assert!(
         rows.iter().any(|(k, t)| k == "response"
-            && t.contains("thermal mesh: is the printer enclosed?")
-            && t.contains("KLIPCAL_SOAK_BED FRAME=open")),
+            && t.contains("prompt_begin klipcal: is the printer enclosed?")),
         "the capture's soak did not ask: {rows:#?}"
     );
     assert!(

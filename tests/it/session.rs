@@ -930,15 +930,30 @@ async fn a_session_driven_through_the_macros_answers_on_the_console() {
     );
     // No dialog left from round 1, none for measuring (issue 40 items 1, 4).
     assert_eq!(crate::mainsail::after_reload(&m).await, None);
-    // With the service gone a macro still says it asked (issue 9 item 9), from Klipper.
-    drop(d);
+    // While the service says it is there (`_KLIPCAL_ONLINE`), a typed macro does not say it
+    // asked (issue 40 item 6); with the service gone it does again (issue 9 item 9), from
+    // Klipper, once the service's last word (30 s) has run out.
+    let asked = |h: &[(String, String)]| {
+        h.iter()
+            .rev()
+            .take(3)
+            .any(|(_, msg)| msg.contains("klipcal asking the klipcal service..."))
+    };
     m.gcode("KLIPCAL_STATUS").await.unwrap();
     let h = crate::mainsail::history(&m).await;
-    let tail: Vec<&String> = h.iter().rev().take(3).map(|(_, msg)| msg).collect();
+    assert!(!asked(&h), "{:?}", &h[h.len().saturating_sub(3)..]);
+    drop(d);
+    let gone = std::time::Instant::now();
+    let said = poll(Duration::from_secs(50), || async {
+        tokio::time::sleep(Duration::from_secs(3)).await;
+        m.gcode("KLIPCAL_STATUS").await.ok()?;
+        asked(&crate::mainsail::history(&m).await).then_some(())
+    })
+    .await;
     assert!(
-        tail.iter()
-            .any(|msg| msg.contains("klipcal asking the klipcal service...")),
-        "{tail:?}"
+        said.is_some(),
+        "no 'asking' row {:.0} s after the service stopped",
+        gone.elapsed().as_secs_f64()
     );
 }
 
@@ -1642,10 +1657,17 @@ async fn print_now_is_offered_with_its_cost_from_the_band_on_through_the_macro_a
         .into_iter()
         .map(|(_, msg)| msg)
         .collect();
+    // Asked in its dialog, whose rows name the question and each answer's macro.
     assert!(
         console
             .iter()
-            .any(|l| l.contains("is the printer enclosed?") && l.contains("FRAME=open")),
+            .any(|l| l.contains("prompt_begin klipcal: is the printer enclosed?")),
+        "{console:#?}"
+    );
+    assert!(
+        console
+            .iter()
+            .any(|l| l.contains("prompt_button Open, no enclosure|KLIPCAL_SOAK_BED FRAME=open")),
         "{console:#?}"
     );
     // The page's API says the same (and keeps saying it: the cost does not flicker off).

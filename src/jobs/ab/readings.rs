@@ -113,7 +113,9 @@ impl Ab {
             self.core
                 .prompt(&Prompt {
                     title: format!("Round {} · all pairs measured", s.rounds.len()),
-                    lines: vec![progress.clone()],
+                    // No text row: the title says it, the row just said where each pair
+                    // stands (issue 40 item 6).
+                    lines: Vec::new(),
                     buttons: vec![Button::new("Solve", "KLIPCAL_AB_SOLVE", "primary")],
                     footer: vec![Button::new("Close", "_KLIPCAL_PROMPT_CLOSE", "info")],
                 })

@@ -39,15 +39,10 @@ impl Ab {
         }
         self.core
             .prompt(&Prompt {
-                title: format!("klipcal: round {round}?"),
-                lines: vec![format!(
-                    "Not yet converged: round {round} prints new pylons with the new values{}.",
-                    if said.is_empty() {
-                        ""
-                    } else {
-                        " (the bed is heating again)"
-                    }
-                )],
+                // The why in the title, no text row (issue 40 item 6): the console row just
+                // before says what was applied and that the bed heats again.
+                title: format!("Not yet converged: round {round}?"),
+                lines: Vec::new(),
                 buttons: vec![Button::new(
                     &format!("Print round {round}"),
                     "KLIPCAL_AB_START",
@@ -172,6 +167,8 @@ impl Ab {
     pub(super) async fn run(&self, id: i64) -> anyhow::Result<()> {
         // The bed's target and its bound were just sent (not by a runner before a restart).
         let mut just_heated = false;
+        // The round's print was started here with its hold, which nothing changed since.
+        let mut held = false;
         loop {
             let s = self.load(id)?;
             match s.state {
@@ -187,8 +184,8 @@ impl Ab {
                     self.set_state(id, State::Heating, "bed heating").await?;
                 }
                 State::Heating | State::Soaking => self.soak(s, just_heated).await?,
-                State::Printing => self.print(s).await?,
-                State::Holding => self.hold(s).await?,
+                State::Printing => held = self.print(s).await?,
+                State::Holding => self.hold(s, held).await?,
                 _ => return Ok(()),
             }
         }
@@ -196,9 +193,11 @@ impl Ab {
 
     /// Reads Klipper's current XY skew factor: from the G-code and toolhead positions where
     /// they tell it (nothing on the console), else from GET_CURRENT_SKEW, whose four lines land
-    /// on the user's console (`[skew_correction]` has no status to read), so a line before
-    /// them says why they are there (issue 26 A.7).
-    pub(super) async fn current_skew(&self) -> Option<f64> {
+    /// on the user's console (`[skew_correction]` has no status to read) right after the
+    /// session's "checking the printer", and the round's line just after them says what was
+    /// done with it (issue 26 A.7; issue 40 item 6: a line before them was a row more). With
+    /// `Some(none)` when GET_CURRENT_SKEW was asked: whether every plane's factor is 0.
+    pub(super) async fn current_skew(&self) -> Option<(f64, Option<bool>)> {
         let st = self
             .core
             .m()
@@ -213,25 +212,22 @@ impl Ab {
             xyz(&st["toolhead"]["position"]),
         ) {
             if let Some(xy) = crate::calib::skew::xy_factor_from_positions(g, t) {
-                return Some(xy);
+                return Some((xy, None));
             }
         }
-        // The line and the question in one script (one console row fewer).
-        let why = crate::jobs::core::console::respond_line(&format!(
-            "{TITLE}: asking Klipper for its skew correction (GET_CURRENT_SKEW, answered below) \
-             to turn it off for the calibration print and back on afterwards"
-        ));
+        // A report that changes nothing: on Klipper's API socket where klipcal uses it, so
+        // that the script is no command row of its own (issue 40 item 6).
         let mut rx = self.core.m().events();
         self.core
             .m()
-            .gcode(&format!("{why}\nGET_CURRENT_SKEW"))
+            .console_script("GET_CURRENT_SKEW")
             .await
             .ok()?;
         let deadline = tokio::time::Instant::now() + Duration::from_secs(3);
         while let Ok(Ok(e)) = tokio::time::timeout_at(deadline, rx.recv()).await {
             if let crate::moonraker::Event::GcodeResponse(text) = e {
-                if let Some(rest) = text.split("XY Skew:").nth(1) {
-                    return rest.split_whitespace().next()?.parse().ok();
+                if let Some((xy, none)) = skew_report(&text) {
+                    return Some((xy, Some(none)));
                 }
             }
         }
@@ -324,23 +320,35 @@ impl Ab {
     ) -> anyhow::Result<Option<f64>> {
         let mut skew_before = s.skew_before;
         if facts.has_skew_correction {
-            let xy = self.current_skew().await.unwrap_or(0.0);
+            let (xy, report) = self.current_skew().await.unwrap_or((0.0, None));
             if s.rounds.is_empty() {
                 skew_before = Some(xy);
             }
+            let above = if report.is_some() {
+                " (GET_CURRENT_SKEW above)"
+            } else {
+                ""
+            };
+            let none = report == Some(true);
             if xy != 0.0 {
                 notes.push(format!(
-                    "skew correction (XY factor {xy:.6}) cleared for the calibration print; it is restored afterwards"
+                    "skew correction (XY factor {xy:.6}) cleared for the calibration print{above}; it is restored afterwards"
                 ));
+            } else if none {
+                notes.push(format!("no skew correction to turn off{above}"));
             }
-            self.core.m().gcode("SET_SKEW CLEAR=1").await?;
+            // Klipper said every factor is 0: nothing to clear (a row fewer; issue 40 item 6).
+            if !none {
+                self.core.m().gcode("SET_SKEW CLEAR=1").await?;
+            }
         }
         Ok(skew_before)
     }
 
     /// The round's print: started (the heaters held for it), or followed when klipcal already
-    /// started it, to its end.
-    pub(super) async fn print(&self, s: Session) -> anyhow::Result<()> {
+    /// started it, to its end. True when it was started here and nothing set Klipper's idle
+    /// timeout since its hold (which then still holds from the print's end).
+    pub(super) async fn print(&self, s: Session) -> anyhow::Result<bool> {
         let id = s.id;
         let round = s
             .rounds
@@ -375,23 +383,20 @@ impl Ab {
         if !follow {
             self.start_print(&s, round).await?;
         }
-        self.follow_print(id).await
+        // Subscribed after the hold's own answer: whatever sets the idle timeout during the
+        // print (a user's PRINT_START) says so on the console.
+        let mut rx = self.core.m().events();
+        self.follow_print(id).await?;
+        Ok(!follow && !idle_timeout_set(&mut rx))
     }
 
     /// Starts the round's print. Klipper keeps the heaters on while it prints; once the print
     /// ends, it turns them off by itself after the hold limit if klipcal is not there to do it.
     async fn start_print(&self, s: &Session, round: &Round) -> anyhow::Result<()> {
         self.core.printer_idle().await?;
-        // Said in the same script as the hold (one console row fewer; issue 26 A.4).
-        self.core
-            .hold_heaters_with(
-                s.options.hold_max_s,
-                &crate::jobs::core::console::respond_line(&format!(
-                    "A/B calibration: printing {}",
-                    round.file
-                )),
-            )
-            .await?;
+        // Nothing said of its own (issue 40 item 6): the print's command and Klipper's
+        // "File opened:" rows name the file, the row before says why it prints now.
+        self.core.hold_heaters_for(s.options.hold_max_s).await?;
         self.core.m().print_start(&round.file).await?;
         let now = now_unix();
         self.update(s.id, |s| {
@@ -670,5 +675,82 @@ fn pylon_job(
             )?)
         }
         Err(e) => Err(user(e.to_string())),
+    }
+}
+
+/// Whether Klipper said it set its idle timeout ("idle_timeout: Timeout set to …") among the
+/// console rows `rx` received; also when some may have been missed.
+fn idle_timeout_set(rx: &mut tokio::sync::broadcast::Receiver<crate::moonraker::Event>) -> bool {
+    use tokio::sync::broadcast::error::TryRecvError;
+    loop {
+        match rx.try_recv() {
+            Ok(crate::moonraker::Event::GcodeResponse(t)) if t.contains("Timeout set to") => {
+                return true
+            }
+            Ok(_) => {}
+            Err(TryRecvError::Empty) => return false,
+            Err(TryRecvError::Lagged(_) | TryRecvError::Closed) => return true,
+        }
+    }
+}
+
+/// GET_CURRENT_SKEW's answer: the XY factor, and whether every plane's factor is 0.
+fn skew_report(text: &str) -> Option<(f64, bool)> {
+    let factor = |plane: &str| -> Option<f64> {
+        text.split(&format!("{plane} Skew:"))
+            .nth(1)?
+            .split_whitespace()
+            .next()?
+            .parse()
+            .ok()
+    };
+    let xy = factor("XY")?;
+    let none = ["XY", "XZ", "YZ"]
+        .iter()
+        .all(|p| factor(p).is_some_and(|f| f == 0.0));
+    Some((xy, none))
+}
+
+#[cfg(test)]
+mod report_tests {
+    use super::*;
+
+    #[test]
+    fn a_skew_report_says_its_xy_factor_and_whether_nothing_is_set() {
+        let zero = "// Current Printer Skew:\n// XY Skew: 0.000000 radians, 0.00 degrees\n\
+                    // XZ Skew: 0.000000 radians, 0.00 degrees\n// YZ Skew: 0.000000 radians, 0.00 degrees";
+        assert_eq!(skew_report(zero), Some((0.0, true)));
+        let xz = zero.replacen("XZ Skew: 0.000000", "XZ Skew: 0.001000", 1);
+        assert_eq!(skew_report(&xz), Some((0.0, false)));
+        let xy = zero.replacen("XY Skew: 0.000000", "XY Skew: -0.002000", 1);
+        assert_eq!(skew_report(&xy), Some((-0.002, false)));
+        // Cut short: the planes not said are not taken for 0.
+        assert_eq!(
+            skew_report("// XY Skew: 0.000000 radians"),
+            Some((0.0, false))
+        );
+        assert_eq!(
+            skew_report("// idle_timeout: Timeout set to 600.00 s"),
+            None
+        );
+    }
+
+    #[test]
+    fn an_idle_timeout_set_during_the_print_is_seen() {
+        use crate::moonraker::Event;
+        let (tx, mut rx) = tokio::sync::broadcast::channel(4);
+        tx.send(Event::GcodeResponse("File selected".into()))
+            .unwrap();
+        assert!(!idle_timeout_set(&mut rx));
+        tx.send(Event::GcodeResponse(
+            "// idle_timeout: Timeout set to 1800.00 s".into(),
+        ))
+        .unwrap();
+        assert!(idle_timeout_set(&mut rx));
+        // Rows missed: not known, so taken as set.
+        for _ in 0..6 {
+            tx.send(Event::GcodeResponse("ok".into())).unwrap();
+        }
+        assert!(idle_timeout_set(&mut rx));
     }
 }

@@ -3,6 +3,9 @@
 
 use super::*;
 
+/// Within this long of the print's end, the hold a print started here set still holds.
+const HOLD_FRESH_S: f64 = 5.0;
+
 /// The offer to print now while the bed soaks: what it said last and when, and whether the
 /// user chose to wait.
 #[derive(Default)]
@@ -341,26 +344,26 @@ impl Ab {
             Ok(())
         })
         .await?;
+        // The dialog alone (issue 40 item 6: the console row said the same): its rows list
+        // the question and its buttons' macros in the console too, STATUS and the page say how
+        // to answer, and so does the console once the dialog is closed without an answer.
         self.core
-            .say_and_prompt(
-                &format!("{TITLE}: {line}: {how}"),
-                &Prompt {
-                    title: "klipcal: the bed has not settled".into(),
-                    // One text row (issue 26 A.4: each prompt line is a console row).
-                    lines: vec![format!(
-                        "{}{}. Print now: the readings may carry some thermal drift. Wait: 10 \
+            .prompt(&Prompt {
+                title: "klipcal: the bed has not settled".into(),
+                // One text row (issue 26 A.4: each prompt line is a console row).
+                lines: vec![format!(
+                    "{}{}. Print now: the readings may carry some thermal drift. Wait: 10 \
                          more minutes. No answer: the bed stays hot and klipcal keeps waiting, \
                          up to {hold_min:.0} min. Cancel: heaters off.",
-                        line[..1].to_uppercase(),
-                        &line[1..]
-                    )],
-                    buttons: vec![
-                        Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
-                        Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
-                    ],
-                    footer: vec![Button::cancel_asking()],
-                },
-            )
+                    line[..1].to_uppercase(),
+                    &line[1..]
+                )],
+                buttons: vec![
+                    Button::new("Print now", "KLIPCAL_SOAK_CHOICE CHOICE=print", "warning"),
+                    Button::new("Wait 10 min", "KLIPCAL_SOAK_CHOICE CHOICE=wait", "primary"),
+                ],
+                footer: vec![Button::cancel_asking()],
+            })
             .await;
         Ok(line)
     }
@@ -402,13 +405,21 @@ impl Ab {
         })
     }
 
-    pub(super) async fn hold(&self, s: Session) -> anyhow::Result<()> {
+    /// The part cools on the bed, then the measuring guide. `held`: this runner started the
+    /// print with the hold limit as Klipper's idle timeout, and nothing changed it since.
+    pub(super) async fn hold(&self, s: Session, held: bool) -> anyhow::Result<()> {
         let id = s.id;
         // Klipper itself turns the heaters off at the hold limit (counted from the print's
-        // end, also when the hold resumes after an outage), even if klipcal stops.
+        // end, also when the hold resumes after an outage), even if klipcal stops. A print
+        // started here already set it as the idle timeout, whose count Klipper starts at the
+        // print's end: set again within seconds of that end it changed nothing but added two
+        // console rows (issue 40 item 6).
         let done = s.print_done_unix.unwrap_or_else(now_unix);
-        let hold = (done + s.options.hold_max_s - now_unix()).max(1.0);
-        self.core.hold_heaters_for(hold).await?;
+        let since_end = now_unix() - done;
+        if !(held && (0.0..HOLD_FRESH_S).contains(&since_end)) {
+            let hold = (s.options.hold_max_s - since_end).max(1.0);
+            self.core.hold_heaters_for(hold).await?;
+        }
         let wait = (done + s.options.cooldown_s - now_unix()).max(0.0);
         if wait > 0.0 {
             let bed = if s.options.bed_temp_c > 0.0 {

@@ -45,6 +45,15 @@ const SAY_MSG: ArgSpec = arg(
     "the lines to say",
 );
 
+const ONLINE_SECONDS: ArgSpec = arg(
+    "seconds",
+    ArgKind::Whole { min: 0, max: 3600 },
+    "30",
+    "0..3600",
+    "0",
+    "for how long from now the service answers (0: it stopped)",
+);
+
 /// The operations every daemon answers besides the calibrations' own.
 pub static CORE_OPS: &[Op<CoreCall>] = &[
     Op {
@@ -87,8 +96,9 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             "ask before ending the session (the Cancel of klipcal's dialogs)",
             &[],
             &[
-                "RESPOND TYPE=command MSG=\"action:prompt_begin klipcal: end the session?\"",
-                "RESPOND TYPE=command MSG=\"action:prompt_text The print (if any) is cancelled and the heaters go off. Readings entered so far stay in the session's record.\"",
+                // What ending does is in the title, not a text row of its own (issue 40 item
+                // 6: the question is asked twice a round when Back is pressed once).
+                "RESPOND TYPE=command MSG=\"action:prompt_begin end the session? (heaters off)\"",
                 // The Yes answers the question of the dialog whose Cancel asked (its ASK):
                 // klipcal refuses it once that question has passed (issue 40).
                 "RESPOND TYPE=command MSG=\"action:prompt_button Yes, end the session|KLIPCAL_CANCEL{' ASK=%d' % (params.ASK|int) if 'ASK' in params else ''}|error\"",
@@ -106,6 +116,24 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
             &["{action_respond_info(\"klipcal \" ~ (params.MSG|default(\"\"))|replace(\"␤\", \"\\n\"))}"],
         ),
         parse: |_| Err(anyhow::anyhow!("_KLIPCAL_SAY runs in Klipper")),
+    },
+    Op {
+        spec: OpSpec {
+            variables: &[("until", "0.0")],
+            ..OpSpec::local(
+                crate::moonraker::ONLINE_MACRO,
+                "keep until when the klipcal service answers (klipcal sends it every few seconds; until then its macros do not say \"asking the klipcal service...\")",
+                &[ONLINE_SECONDS],
+                &[
+                    "{% set s = params.SECONDS|default(0)|int(-1) %}",
+                    "{% if s < 0 or s > 3600 %}",
+                    "{action_raise_error(\"_KLIPCAL_ONLINE: SECONDS=\" ~ params.SECONDS ~ \" is not a whole number of seconds from 0 to 3600\")}",
+                    "{% endif %}",
+                    "SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=until VALUE={printer.toolhead.estimated_print_time + s}",
+                ],
+            )
+        },
+        parse: |_| Err(anyhow::anyhow!("_KLIPCAL_ONLINE runs in Klipper")),
     },
     Op {
         spec: OpSpec::remote(

@@ -531,7 +531,7 @@ impl BedSoak {
                 );
             }
             if self.target_c > self.detector.params().skip_below_c {
-                super::soak_ask::ask(core, title, false).await;
+                super::soak_ask::ask(core, false).await;
             }
         }
         self.reread(core, title).await;
@@ -690,7 +690,7 @@ impl BedSoak {
         if self.soaking_since_s.is_none() {
             self.soaking_since_s = Some(t_s);
             // A question closed without an answer is asked again now (once).
-            super::soak_ask::ask(core, title, true).await;
+            super::soak_ask::ask(core, true).await;
             core.console(&self.first_line(title)).await;
             tracing::info!(derivation = %self.derivation(), "{title}: bed soak begins");
             self.last_console_s = t_s;

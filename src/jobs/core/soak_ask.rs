@@ -88,24 +88,6 @@ fn prompt(step: &Step) -> Prompt {
     }
 }
 
-/// The console line that goes with a step's dialog: the answers as macros, for a console
-/// without the dialog.
-fn console_line(title: &str, step: &Step) -> String {
-    let answers: Vec<String> = step
-        .answers
-        .iter()
-        .map(|(label, arg, word)| {
-            format!("{label}: KLIPCAL_SOAK_BED {}={word}", arg.to_uppercase())
-        })
-        .collect();
-    format!(
-        "{title}: {} {} ({})",
-        step.title.trim_start_matches("klipcal: "),
-        step.lines.join(" "),
-        answers.join(", ")
-    )
-}
-
 /// Whether the dialog open now is the soak question's.
 #[must_use]
 pub(crate) fn showing(core: &Core) -> bool {
@@ -129,8 +111,8 @@ const ASK_TITLES: [&str; 3] = [
 ];
 
 /// A soak starts (`again`: the bed reached its band): asks the step still to ask, when the
-/// build is not set. `title` names the calibration on the console.
-pub(crate) async fn ask(core: &Core, title: &str, again: bool) {
+/// build is not set.
+pub(crate) async fn ask(core: &Core, again: bool) {
     let Some(step) = next_step(core) else {
         core.ask_state().asking = false;
         return;
@@ -145,8 +127,10 @@ pub(crate) async fn ask(core: &Core, title: &str, again: bool) {
         st.asking = true;
         st.shown += 1;
     }
-    core.say_and_prompt(&console_line(title, &step), &prompt(&step))
-        .await;
+    // The dialog alone (issue 40 item 6: a console row said the same): its rows show the
+    // question and each button's macro in the console too, and a close without an answer
+    // says there how to answer.
+    core.prompt(&prompt(&step)).await;
 }
 
 /// The soak ended (settled, or its session did): nothing is asked any more until the next.
@@ -360,7 +344,7 @@ mod tests {
     }
 
     #[test]
-    fn each_step_is_a_dialog_of_macro_buttons_and_a_console_line_naming_them() {
+    fn each_step_is_a_dialog_of_macro_buttons() {
         let step = Answers::default().next("", "").unwrap();
         let p = prompt(&step);
         assert_eq!(p.title, "klipcal: what is on your bed?");
@@ -375,11 +359,7 @@ mod tests {
                 "KLIPCAL_SOAK_BED SURFACE=unknown"
             ]
         );
-        let line = console_line("A/B calibration", &step);
-        assert!(
-            line.contains("Don't know: KLIPCAL_SOAK_BED SURFACE=unknown") && line.contains("min"),
-            "{line}"
-        );
+        assert!(p.lines.iter().any(|l| l.contains("min")), "{p:?}");
         // The dialog's own script is one RESPOND per action, none broken by the text.
         assert!(p
             .script()

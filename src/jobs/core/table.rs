@@ -486,10 +486,16 @@ pub(crate) const fn bed_arg(help: &'static str) -> ArgSpec {
     )
 }
 
-/// The line every remote macro a user calls says first: if nothing follows, the service is not
+/// The line every remote macro a user calls says first when the service has not said for a
+/// while that it answers (`_KLIPCAL_ONLINE`): if nothing follows, the service is not
 /// running. Helpers (`_KLIPCAL_…`, pressed in klipcal's dialogs) and a press of a dialog's
 /// button (`ASK=n`) do not say it.
 pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal service...\"";
+
+/// The condition a macro adds to say [`ASKING`] only once the service's word in
+/// `_KLIPCAL_ONLINE` has run out (it renews it every few seconds while it answers).
+const ONLINE_UNTIL: &str =
+    " and printer[\"gcode_macro _KLIPCAL_ONLINE\"].until < printer.toolhead.estimated_print_time";
 
 /// `config/klipcal.cfg` for `ops`: one `[gcode_macro]` per operation, one
 /// `{% set … = params.X|default(…) %}` statement per argument (how Mainsail and Fluidd find a
@@ -498,6 +504,9 @@ pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal
 #[must_use]
 pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
     let mut out = String::from(HEADER);
+    let online = ops
+        .iter()
+        .any(|o| o.macro_name == crate::moonraker::ONLINE_MACRO);
     for op in ops {
         out.push('\n');
         let _ = writeln!(out, "[gcode_macro {}]", op.macro_name);
@@ -531,11 +540,14 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
                 // Nor does a macro pressed in a dialog (its button carries `ASK=n`, the number
                 // of the question klipcal just asked; issue 40 item 6: four "asking" rows a
                 // round); typed or from the macro panel it does.
+                // Nor while the service says it is there (`_KLIPCAL_ONLINE`, renewed every few
+                // seconds on Klipper's API socket): issue 40 item 6, six rows of a round.
                 if !op.macro_name.starts_with('_') {
                     let _ = writeln!(
                         out,
-                        "  {{% if '{ASK}' not in params %}}\n  {ASKING}\n  {{% endif %}}",
-                        ASK = crate::jobs::core::console::ASK_ARG
+                        "  {{% if '{ASK}' not in params{online} %}}\n  {ASKING}\n  {{% endif %}}",
+                        ASK = crate::jobs::core::console::ASK_ARG,
+                        online = if online { ONLINE_UNTIL } else { "" }
                     );
                 }
                 let _ = writeln!(
@@ -677,9 +689,10 @@ const HEADER: &str = "\
 #   [include klipcal.cfg]
 # They become buttons in Mainsail and Fluidd. Each calls the klipcal daemon through
 # Moonraker (action_call_remote_method); klipcal answers on the console with RESPOND,
-# so [respond] must be enabled in printer.cfg. Each first says it asked the service: if
-# nothing follows, the klipcal service is not running (see docs/troubleshooting.md). A
-# button of klipcal's dialogs (ASK=n) does not: klipcal just asked it.
+# so [respond] must be enabled in printer.cfg. While the klipcal service answers it says so
+# every few seconds (_KLIPCAL_ONLINE); once it has not for 30 s, each macro first says it
+# asked the service: if nothing follows, the service is not running (see
+# docs/troubleshooting.md). A button of klipcal's dialogs (ASK=n) never does.
 # Every parameter sits on its own `{% set … = params.X|default(…) %}` line, so Mainsail
 # and Fluidd show a field for it; every parameter goes to klipcal, which refuses unknown
 # ones and bad values by name (a typo never falls back to a default).

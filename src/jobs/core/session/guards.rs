@@ -254,23 +254,6 @@ impl Core {
         }
     }
 
-    /// Says `msg` on the console and opens a dialog, as one console script.
-    pub(crate) async fn say_and_prompt(&self, msg: &str, p: &Prompt) {
-        let (script, fresh) = self.stamp(p);
-        self.set_open(Some(p.clone()));
-        let change = console::PromptChange::Show(script);
-        let change = fresh.then_some(change);
-        if let Some(c) = &change {
-            if console::hold(c.clone()) {
-                self.console(msg).await;
-                return;
-            }
-        }
-        let script =
-            console::answer_then_prompt(&console::answer_script(msg, false), change.as_ref());
-        console::send_script(&self.inner.m, &script).await;
-    }
-
     /// Shows klipcal's dialog again (the Back of the cancel confirmation, which replaced it):
     /// false when klipcal has no dialog open.
     pub(crate) async fn prompt_again(&self) -> bool {
