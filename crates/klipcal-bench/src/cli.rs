@@ -151,4 +151,9 @@ pub struct BenchSoakArgs {
     /// Also print every bed that failed a target, with the detector's explanation.
     #[arg(long)]
     pub show_failures: bool,
+    /// Run only these beds: `all` (every family, the default), `four-node` (the four-node beds
+    /// under both controls, their ports and grid), `pid` (four-node beds under Klipper's PID,
+    /// its port and the grid) or `mpc` (four-node beds under Kalico's MPC and its port).
+    #[arg(long, default_value = "all", value_parser = ["all", "four-node", "pid", "mpc"])]
+    pub family: String,
 }

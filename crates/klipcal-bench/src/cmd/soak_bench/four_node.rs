@@ -10,7 +10,14 @@ use super::pass;
 /// `klipcal bench soak`'s four-node family (see `soak_four_node`): per kind of bed, every rule
 /// judged on the simulated surface, then "never early" over a grid of the four-node knobs.
 /// True when klipcal's rule was never early.
-pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) -> bool {
+/// With `only`, the beds under that control alone (its port checked; the grid, which runs
+/// Klipper's PID, only with `Control::Pid`); each family's beds are the same as in a whole run.
+pub(super) fn report_four_node(
+    params: &SoakParams,
+    per_kind: usize,
+    seed: u64,
+    only: Option<Control>,
+) -> bool {
     let budget = params.surface_budget_c;
     println!(
         "  four-node beds (pad, aluminium plate, surface, air and frame; 220–400 mm, 150–900 W; \
@@ -18,9 +25,15 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
          every 0.3 s, ADC noise, 0.01 °C), judged on the surface ({budget:.1} K), {per_kind} \
          beds per kind:"
     );
-    let ok_port = report_klipper_port(seed);
-    let mut ok = ok_port & report_kalico_port(seed);
-    for ((control, kind), res) in run_families(params, per_kind, seed) {
+    let wants = |c: Control| !matches!(only, Some(o) if o != c);
+    let mut ok = true;
+    if wants(Control::Pid) {
+        ok &= report_klipper_port(seed);
+    }
+    if wants(Control::Mpc) {
+        ok &= report_kalico_port(seed);
+    }
+    for ((control, kind), res) in run_families(params, per_kind, seed, only) {
         ok &= Family {
             control,
             kind,
@@ -32,7 +45,7 @@ pub(super) fn report_four_node(params: &SoakParams, per_kind: usize, seed: u64) 
     }
     // The grid runs whatever the families said (`ok && …` skipped it, and its figure, once
     // any family missed a target).
-    let grid_ok = report_grid(params, seed);
+    let grid_ok = !wants(Control::Pid) || report_grid(params, seed);
     ok && grid_ok
 }
 
@@ -43,6 +56,7 @@ fn run_families(
     params: &SoakParams,
     per_kind: usize,
     seed: u64,
+    only: Option<Control>,
 ) -> Vec<((Control, Kind), Vec<BedResult>)> {
     // The slow enclosure last, so the others' seeds do not move.
     let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
@@ -51,11 +65,14 @@ fn run_families(
         .chain([(Control::Pid, Kind::slow_enclosure())])
         .collect();
     // Each family draws from its own stream: they run on every core and print in order.
+    // The stream index is the family's place in the whole list, kept when some are left out.
     let indexed: Vec<(usize, Control, Kind)> = families
         .iter()
         .enumerate()
+        .filter(|(_, (c, _))| !matches!(only, Some(o) if o != *c))
         .map(|(k, (c, kind))| (k, *c, *kind))
         .collect();
+    let families: Vec<(Control, Kind)> = indexed.iter().map(|(_, c, k)| (*c, *k)).collect();
     let results: Vec<Vec<BedResult>> = crate::cmd::par::par_map(&indexed, |(k, control, kind)| {
         let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + *k as u64);
         let until = if kind.enclosed {
@@ -289,7 +306,8 @@ mod tests {
         assert!(super::report_four_node(
             &crate::calib::soak::SoakParams::default(),
             per_kind,
-            1
+            1,
+            None
         ));
     }
 }

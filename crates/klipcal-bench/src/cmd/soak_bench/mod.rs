@@ -75,6 +75,9 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
     let started = Instant::now();
     let params = params.clone();
     let beds = args.beds.max(1);
+    if args.family != "all" {
+        return Ok(bench_four_node_only(args, beds, &params, started));
+    }
     let outcomes = run_beds(beds, args.seed, &params);
     report_plant_header(args, beds, &outcomes, &params);
     let early_ok = report_plant_surface(beds, &outcomes);
@@ -89,7 +92,7 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
     // (d) real printers' klippy.log traces: no truth, only what must hold on any bed.
     families_ok &= report_real(&params, args.show_failures);
     // (e) the four-node family under Klipper's own PID, judged on the surface (issue 29).
-    families_ok &= report_four_node(&params, (beds / 16).clamp(4, 30), args.seed);
+    families_ok &= report_four_node(&params, (beds / 16).clamp(4, 30), args.seed, None);
     let elapsed = started.elapsed().as_secs_f64();
     let time_ok = elapsed < 180.0;
     println!(
@@ -101,6 +104,36 @@ pub(crate) fn bench(args: &BenchSoakArgs, params: &SoakParams) -> anyhow::Result
     } else {
         ExitCode::FAILURE
     })
+}
+
+/// `--family four-node|pid|mpc`: the four-node beds alone (under one control, or both), as
+/// `bench` reports them, with the run time; success when no target was missed.
+fn bench_four_node_only(
+    args: &BenchSoakArgs,
+    beds: usize,
+    params: &SoakParams,
+    started: Instant,
+) -> ExitCode {
+    use crate::cmd::soak_four_node::Control;
+    let only = match args.family.as_str() {
+        "pid" => Some(Control::Pid),
+        "mpc" => Some(Control::Mpc),
+        _ => None,
+    };
+    println!(
+        "bench soak --family {}: the four-node beds only (seed {})",
+        args.family, args.seed
+    );
+    let ok = report_four_node(params, (beds / 16).clamp(4, 30), args.seed, only);
+    println!(
+        "  run time {:.1} s (these families only)",
+        started.elapsed().as_secs_f64()
+    );
+    if ok {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::FAILURE
+    }
 }
 
 /// The main plant's beds: their plate τ, noise, the detector's rule and the 1 % moment.

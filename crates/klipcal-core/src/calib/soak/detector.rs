@@ -110,8 +110,18 @@ const FREE_TAUS: f64 = 2.5;
 /// decays share a true one between them.
 const DECAY_BOUND: f64 = 2.0;
 /// Columns after the decays: the temperature's rate of change (heat into the bed's own
-/// capacity, either sign).
+/// capacity, either sign); under MPC also the high-passed temperature (see [`HP_TAUS`]).
 const EXTRA_COLS: usize = 1;
+/// Under Kalico's MPC the temperature itself moves (an overshoot of 1–2 K for some minutes
+/// after the band, then a slow wander of 0.1 K) and the power follows it. A clamped RC
+/// network's power answers a step of its thermistor's temperature with the step's share
+/// that charges the neighbours, decaying as they catch up (a sum of decays with positive
+/// amplitudes, as a heat-up's): so the power's answer to the measured temperature since the
+/// band is the temperature high-passed at the network's time constants, each with a
+/// coefficient ≥ 0. These columns take the answer to the overshoot and the wander out of the
+/// power; what is left is the heat-up's own decays, all positive (see `SoakDetector::free`).
+/// Time constants, s.
+const HP_TAUS: [f64; 6] = [60.0, 120.0, 240.0, 480.0, 960.0, 1920.0];
 /// Ratio between neighbouring time constants of the grid.
 const GRID_RATIO: f64 = std::f64::consts::SQRT_2;
 /// Consecutive bins out of the band that restart the soak clock (fewer are only skipped).
@@ -148,6 +158,9 @@ struct Point {
     /// bed's own heat capacity (a bang-bang heater's on and off, a PID's derivative kick) is
     /// no heat flow to its surroundings, and this column takes it out of the decays.
     rate_c_s: f64,
+    /// The temperature since the band was first reached, high-passed at each of [`HP_TAUS`]
+    /// (used under MPC only).
+    hp: [f64; HP_TAUS.len()],
 }
 
 /// A bin being filled: the time-weighted integrals of power, time and temperature.
@@ -265,6 +278,10 @@ pub struct SoakDetector {
     /// The ETA's projection: when it was made and what it said, s from then (None: beyond
     /// its horizon); see `decide`.
     projection: Option<(f64, Option<f64>)>,
+    /// The temperature when the band was first reached and the low-passed temperatures
+    /// since (for [`HP_TAUS`]).
+    hp_ref: Option<f64>,
+    hp_low: [f64; HP_TAUS.len()],
 }
 
 impl SoakDetector {
@@ -284,7 +301,7 @@ impl SoakDetector {
             tau *= GRID_RATIO;
         }
         taus.push(slowest);
-        let k = taus.len() + 1 + EXTRA_COLS;
+        let k = taus.len() + 1 + extra_cols(&params);
         let coupling = Coupling::fallback(
             &params,
             "not identified yet (from the heat-up, after the first minutes at the target)",
@@ -332,6 +349,8 @@ impl SoakDetector {
             carried: None,
             reserve_c: 0.0,
             projection: None,
+            hp_ref: None,
+            hp_low: [0.0; HP_TAUS.len()],
         }
     }
 
@@ -718,16 +737,53 @@ impl SoakDetector {
         }
     }
 
-    /// The model's row for a bin: 1, then each decay, then the temperature's rate of change.
+    /// The model's row for a bin: 1, then each decay, then the temperature's rate of change
+    /// (and under MPC the high-passed temperature).
     fn row(&self, p: &Point) -> DVector<f64> {
         let origin = self.origin_s.unwrap_or(p.t_s);
         let dt = (p.t_s - origin).max(0.0);
+        let hp = if self.params.heater.mpc {
+            &p.hp[..]
+        } else {
+            &[]
+        };
         DVector::from_iterator(
-            self.taus.len() + 1 + EXTRA_COLS,
+            self.taus.len() + 1 + extra_cols(&self.params),
             std::iter::once(1.0)
                 .chain(self.taus.iter().map(|tau| (-dt / tau).exp()))
-                .chain([p.rate_c_s]),
+                .chain([p.rate_c_s])
+                .chain(hp.iter().copied()),
         )
+    }
+
+    /// The high-passed temperature columns for a bin at `temp_c` (zero before the band).
+    fn hp_now(&self, temp_c: f64) -> [f64; HP_TAUS.len()] {
+        match self.hp_ref {
+            Some(r) => std::array::from_fn(|k| temp_c - r - self.hp_low[k]),
+            None => [0.0; HP_TAUS.len()],
+        }
+    }
+
+    /// Steps the low-passed temperatures by one bin (from the first bin within the band).
+    fn hp_step(&mut self, temp_c: f64, target: f64) {
+        if !temp_c.is_finite() {
+            return;
+        }
+        if self.hp_ref.is_none() && (temp_c - target).abs() <= self.params.temp_band_c {
+            self.hp_ref = Some(temp_c);
+        }
+        if let Some(r) = self.hp_ref {
+            let bin = self.params.bin_s;
+            for (low, tau) in self.hp_low.iter_mut().zip(HP_TAUS) {
+                *low += (temp_c - r - *low) * (1.0 - (-bin / tau).exp());
+            }
+        }
+    }
+
+    /// The temperature's answer is modelled (MPC) and the bed came up into the band from
+    /// below, from room temperature or a lower target: then every decay left is positive.
+    fn temp_model(&self) -> bool {
+        self.params.heater.mpc && self.approach_above == Some(false)
     }
 
     fn add_point(&mut self, p: Point) {
@@ -744,6 +800,7 @@ impl SoakDetector {
             return;
         }
         let Some(target) = self.target_c else { return };
+        self.hp_step(temp_c, target);
         if !self.coupling_final && temp_c.is_finite() {
             self.history.push([t_s, power, temp_c, rate_c_s]);
         }
@@ -783,8 +840,9 @@ impl SoakDetector {
             }
         }
         self.last_in_band_s = Some(t_s);
-        // An overshoot inside the band has the same aftermath on its own time scale.
-        if temp_c > target + OVERSHOOT_C {
+        // An overshoot inside the band has the same aftermath on its own time scale (unless
+        // the temperature's answer is modelled: then the overshoot is in the data).
+        if temp_c > target + OVERSHOOT_C && !self.temp_model() {
             let since = *self.over_since_s.get_or_insert(t_s);
             self.excursion_len_s = self.excursion_len_s.max(t_s - since);
         } else {
@@ -844,15 +902,17 @@ impl SoakDetector {
         }
         let soak_t0 = *self.soak_t0_s.get_or_insert(t_s);
         self.origin_s.get_or_insert(t_s);
+        let hp = self.hp_now(temp_c);
         self.add_point(Point {
             t_s,
             power,
             rate_c_s,
+            hp,
         });
         if self.points.len() > MAX_POINTS {
             let keep = self.points.split_off(MAX_POINTS / 2);
             self.points.clear();
-            let k = self.taus.len() + 1 + EXTRA_COLS;
+            let k = self.taus.len() + 1 + extra_cols(&self.params);
             self.xtx = DMatrix::zeros(k, k);
             self.xty = DVector::zeros(k);
             self.yty = 0.0;
@@ -863,6 +923,11 @@ impl SoakDetector {
         }
         self.decide(t_s, soak_t0);
     }
+}
+
+/// Columns after the decays for these params: the rate, and under MPC [`HP_TAUS`].
+fn extra_cols(p: &SoakParams) -> usize {
+    EXTRA_COLS + if p.heater.mpc { HP_TAUS.len() } else { 0 }
 }
 
 fn status_reason(s: &SoakStatus) -> String {
@@ -1787,5 +1852,71 @@ mod tests {
         let mut d = SoakDetector::new(SoakParams::default());
         d.push(0.0, 0.3, TARGET_C, TARGET_C);
         assert_eq!(d.surface_reach_c(), Some(TARGET_C - COLDEST_ROOM_C));
+    }
+
+    /// A bed whose controller overshoots by about 1.5 K for some minutes after the band and
+    /// then wanders (a PI whose integral winds up during the heat-up, as MPC's dip and limit
+    /// cycle do): `(t, power, reading, surface)` once a second.
+    fn overshooting_bed(g: f64, c_s: f64, seed: u64) -> Vec<[f64; 4]> {
+        let mut rng = fastrand::Rng::with_seed(seed);
+        let (amb, dt, c_th, h_th, h_s) = (22.0, 0.25, 1.5, 0.001, 0.004);
+        let (mut th, mut ts, mut integ, mut power) = (amb, amb, 0.0, 1.0);
+        let mut out = Vec::new();
+        for i in 0..(4 * 7200) {
+            let t = f64::from(i) * dt;
+            if i % 4 == 0 {
+                let reading = th + 0.02 * (rng.f64() - 0.5);
+                let err = TARGET_C - reading;
+                // The integral winds up while the power is capped: the overshoot.
+                integ = (integ + err).clamp(-2000.0, 3000.0);
+                power = (0.08 * err + 0.0002 * integ + 0.03 * (rng.f64() - 0.5)).clamp(0.0, 1.0);
+                out.push([t, power, reading, ts]);
+            }
+            let q = g * (th - ts);
+            th += dt * (power - q - h_th * (th - amb)) / c_th;
+            ts += dt * (q - h_s * (ts - amb)) / c_s;
+        }
+        out
+    }
+
+    /// Under MPC (Kalico's `control: mpc`) the power's answer to the measured temperature is
+    /// modelled instead of freeing every decay up to the overshoot's length: on beds whose
+    /// temperature overshoots by about 1.5 K, never declared while the surface can still warm
+    /// by more than the budget, and sooner than with the overshoot's free decays.
+    #[test]
+    fn an_overshoot_under_mpc_is_taken_out_by_the_temperature_and_never_early() {
+        let mut faster = 0;
+        let mut runs = 0;
+        for (k, (g, c_s)) in [(0.02, 1.0), (0.03, 2.0), (0.05, 3.0), (0.02, 2.0)]
+            .into_iter()
+            .enumerate()
+        {
+            let bed = overshooting_bed(g, c_s, 40 + k as u64);
+            let peak = bed.iter().map(|s| s[2]).fold(f64::MIN, f64::max);
+            assert!(peak > TARGET_C + 1.0, "the bed overshoots: {peak}");
+            let params = |mpc| SoakParams {
+                bed: "steel-pad".into(),
+                frame: "open".into(),
+                heater: if mpc {
+                    crate::calib::soak::HeaterFacts::mpc(None, None)
+                } else {
+                    crate::calib::soak::HeaterFacts::default()
+                },
+                ..SoakParams::default()
+            };
+            let (_, with) = run_bed(params(true), &bed, 0);
+            let (_, without) = run_bed(params(false), &bed, 0);
+            let at = with.expect("declared under MPC");
+            let left = surface_left(&bed, at);
+            assert!(
+                left <= 1.0,
+                "bed {k}: declared at {at} s with {left:.2} K to go"
+            );
+            runs += 1;
+            if without.map_or(true, |w| at < w) {
+                faster += 1;
+            }
+        }
+        assert!(faster * 2 > runs, "sooner on {faster} of {runs}");
     }
 }

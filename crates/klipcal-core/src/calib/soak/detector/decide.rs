@@ -33,28 +33,34 @@ impl SoakDetector {
         } else {
             0.0
         };
+        // With the temperature's answer modelled, the controller's swing is in the data: no
+        // decay is left that may take either sign but a warm start's or an excursion's.
+        let fast_free = !self.temp_model();
         std::iter::once(true)
             .chain(self.taus.iter().map(|tau| {
-                *tau < FREE_TAUS * grid_min_s(&self.params)
+                (fast_free && *tau < FREE_TAUS * grid_min_s(&self.params))
                             // An excursion's aftermath (the controller's integral winding back
                             // after an overshoot lifts the power) may go either way, on the
                             // excursion's own time scale.
                             || *tau <= self.excursion_len_s
                             || *tau <= warm_free_s
             }))
-            .chain([true; EXTRA_COLS])
+            .chain(std::iter::repeat(true).take(extra_cols(&self.params)))
             .collect()
     }
 
     /// Each coefficient's bounds: the constant and the temperature's rate free; a decay at
     /// most `DECAY_BOUND` times `max_power` either way, and not below 0 unless it is free
-    /// (see [`SoakDetector::free`]).
+    /// (see [`SoakDetector::free`]); the high-passed temperature's (MPC) not below 0 after a
+    /// heat-up (the answer of a clamped network to its thermistor's step), else free.
     fn bounds(&self) -> Vec<(f64, f64)> {
         let u = DECAY_BOUND * self.max_power;
         let free = self.free();
         (0..free.len())
             .map(|i| {
-                if i == 0 || i > self.taus.len() {
+                if i > self.taus.len() + EXTRA_COLS && self.temp_model() {
+                    (0.0, f64::INFINITY)
+                } else if i == 0 || i > self.taus.len() {
                     (f64::NEG_INFINITY, f64::INFINITY)
                 } else if free[i] {
                     (-u, u)
@@ -116,6 +122,7 @@ impl SoakDetector {
             t_s,
             power: 0.0,
             rate_c_s: 0.0,
+            hp: [0.0; HP_TAUS.len()],
         });
         g[0] = 0.0;
         // Right after the band is reached the stack is still charging: the surface lags the
@@ -578,7 +585,7 @@ impl SoakDetector {
                 (-a * d0).exp() * q * (1.0 - q.powf(k)) / (1.0 - q)
             }
         };
-        let n = self.taus.len() + 1 + EXTRA_COLS;
+        let n = self.taus.len() + 1 + extra_cols(&self.params);
         nalgebra::DMatrix::from_fn(n, n, |i, j| {
             if i >= rates.len() || j >= rates.len() {
                 0.0
