@@ -257,9 +257,10 @@ impl Moonraker {
     }
 }
 
-/// klipcal.cfg's helper that keeps, in Klipper, until when klipcal says it is there: its
-/// macros a user calls say "asking the klipcal service..." only once that time has passed
-/// (issue 40 item 6: six rows of a round), so that a stopped service still shows.
+/// klipcal.cfg's helper that keeps, in Klipper, that klipcal is there for SECONDS more (its
+/// `[delayed_gcode _KLIPCAL_OFFLINE]` ends that on Klipper's clock): the macros a user calls
+/// say "asking the klipcal service..." only once it has ended (issue 40 item 6: six rows of a
+/// round), so that a stopped service still shows.
 pub(crate) const ONLINE_MACRO: &str = "_KLIPCAL_ONLINE";
 
 /// How long one word of [`ONLINE_MACRO`] holds, and how often klipcal says it again.
