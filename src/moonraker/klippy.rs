@@ -314,8 +314,10 @@ impl Moonraker {
             true => self.console_socket(limit).await,
             false => None,
         };
+        // Not ready yet (klipcal starting, Klipper restarting): looked at again in a second,
+        // so that the macros stop saying "asking" soon after.
         let Some(path) = path else {
-            return ONLINE_EVERY;
+            return Duration::from_secs(1);
         };
         let script = online_script(ONLINE_LEASE_S);
         match request(
