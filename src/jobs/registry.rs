@@ -356,6 +356,9 @@ mod tests {
                 .and_then(|l| l.strip_suffix(']'))
             {
                 out.push((name.to_string(), String::new()));
+            } else if line.starts_with('[') {
+                // Another section (`[delayed_gcode _KLIPCAL_OFFLINE]`): no macro's G-code.
+                out.push((String::new(), String::new()));
             } else if let Some(last) = out.last_mut() {
                 if line.starts_with("  ") {
                     last.1.push_str(line.trim());
@@ -363,6 +366,7 @@ mod tests {
                 }
             }
         }
+        out.retain(|(name, _)| !name.is_empty());
         out
     }
 

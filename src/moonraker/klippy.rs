@@ -257,9 +257,10 @@ impl Moonraker {
     }
 }
 
-/// klipcal.cfg's helper that keeps, in Klipper, until when klipcal says it is there: its
-/// macros a user calls say "asking the klipcal service..." only once that time has passed
-/// (issue 40 item 6: six rows of a round), so that a stopped service still shows.
+/// klipcal.cfg's helper that keeps, in Klipper, that klipcal is there for SECONDS more (its
+/// `[delayed_gcode _KLIPCAL_OFFLINE]` ends that on Klipper's clock): the macros a user calls
+/// say "asking the klipcal service..." only once it has ended (issue 40 item 6: six rows of a
+/// round), so that a stopped service still shows.
 pub(crate) const ONLINE_MACRO: &str = "_KLIPCAL_ONLINE";
 
 /// How long one word of [`ONLINE_MACRO`] holds, and how often klipcal says it again.
@@ -313,8 +314,10 @@ impl Moonraker {
             true => self.console_socket(limit).await,
             false => None,
         };
+        // Not ready yet (klipcal starting, Klipper restarting): looked at again in a second,
+        // so that the macros stop saying "asking" soon after.
         let Some(path) = path else {
-            return ONLINE_EVERY;
+            return Duration::from_secs(1);
         };
         let script = online_script(ONLINE_LEASE_S);
         match request(

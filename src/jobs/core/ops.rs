@@ -119,17 +119,18 @@ pub static CORE_OPS: &[Op<CoreCall>] = &[
     },
     Op {
         spec: OpSpec {
-            variables: &[("until", "0.0")],
+            variables: &[("on", "0")],
             ..OpSpec::local(
                 crate::moonraker::ONLINE_MACRO,
-                "keep until when the klipcal service answers (klipcal sends it every few seconds; until then its macros do not say \"asking the klipcal service...\")",
+                "the klipcal service answers for SECONDS more (klipcal sends it every few seconds; meanwhile its macros do not say \"asking the klipcal service...\"; _KLIPCAL_OFFLINE ends it)",
                 &[ONLINE_SECONDS],
                 &[
                     "{% set s = params.SECONDS|default(0)|int(-1) %}",
                     "{% if s < 0 or s > 3600 %}",
                     "{action_raise_error(\"_KLIPCAL_ONLINE: SECONDS=\" ~ params.SECONDS ~ \" is not a whole number of seconds from 0 to 3600\")}",
                     "{% endif %}",
-                    "SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=until VALUE={printer.toolhead.estimated_print_time + s}",
+                    "SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=on VALUE={1 if s > 0 else 0}",
+                    "UPDATE_DELAYED_GCODE ID=_KLIPCAL_OFFLINE DURATION={s}",
                 ],
             )
         },

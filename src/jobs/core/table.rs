@@ -494,8 +494,18 @@ pub(crate) const ASKING: &str = "RESPOND PREFIX=klipcal MSG=\"asking the klipcal
 
 /// The condition a macro adds to say [`ASKING`] only once the service's word in
 /// `_KLIPCAL_ONLINE` has run out (it renews it every few seconds while it answers).
-const ONLINE_UNTIL: &str =
-    " and printer[\"gcode_macro _KLIPCAL_ONLINE\"].until < printer.toolhead.estimated_print_time";
+const ONLINE_UNTIL: &str = " and not printer[\"gcode_macro _KLIPCAL_ONLINE\"].on";
+
+/// The timer that ends the service's word: Klipper's own clock, pushed back by each
+/// `_KLIPCAL_ONLINE` (a macro has no clock to read; the toolhead's estimated print time stands
+/// still on a Klipper without a real MCU).
+const OFFLINE_TIMER: &str = "
+[delayed_gcode _KLIPCAL_OFFLINE]
+# Runs once klipcal has not said for SECONDS (30) that it answers: its macros say
+# \"asking the klipcal service...\" again from then.
+gcode:
+  SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=on VALUE=0
+";
 
 /// `config/klipcal.cfg` for `ops`: one `[gcode_macro]` per operation, one
 /// `{% set … = params.X|default(…) %}` statement per argument (how Mainsail and Fluidd find a
@@ -560,40 +570,48 @@ pub(crate) fn macros_cfg(ops: &[&OpSpec]) -> String {
                 }
             }
             MacroBody::Local(lines) => {
-                // ASK: the question number a dialog's button adds (any macro takes it).
-                let names: Vec<String> = op
-                    .args
-                    .iter()
-                    .map(|a| format!("{:?}", a.name.to_uppercase()))
-                    .chain([format!("{:?}", super::console::ASK_ARG)])
-                    .collect();
-                let takes = if op.args.is_empty() {
-                    "no arguments".to_string()
-                } else {
-                    op.args
-                        .iter()
-                        .map(|a| a.name.to_uppercase())
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                };
-                let _ = writeln!(
-                    out,
-                    "  {{% for name in params if name not in [{}] %}}",
-                    names.join(", ")
-                );
-                let _ = writeln!(
-                    out,
-                    "  {{action_raise_error(\"{}: unknown argument \" ~ name ~ \"; it takes {takes}\")}}",
-                    op.macro_name
-                );
-                out.push_str("  {% endfor %}\n");
-                for l in lines {
-                    let _ = writeln!(out, "  {l}");
+                local_body(&mut out, op, lines);
+                if op.macro_name == crate::moonraker::ONLINE_MACRO {
+                    out.push_str(OFFLINE_TIMER);
                 }
             }
         }
     }
     out
+}
+
+/// A local macro's G-code: unknown parameters refused by name, then its lines.
+fn local_body(out: &mut String, op: &OpSpec, lines: &[&str]) {
+    // ASK: the question number a dialog's button adds (any macro takes it).
+    let names: Vec<String> = op
+        .args
+        .iter()
+        .map(|a| format!("{:?}", a.name.to_uppercase()))
+        .chain([format!("{:?}", super::console::ASK_ARG)])
+        .collect();
+    let takes = if op.args.is_empty() {
+        "no arguments".to_string()
+    } else {
+        op.args
+            .iter()
+            .map(|a| a.name.to_uppercase())
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
+    let _ = writeln!(
+        out,
+        "  {{% for name in params if name not in [{}] %}}",
+        names.join(", ")
+    );
+    let _ = writeln!(
+        out,
+        "  {{action_raise_error(\"{}: unknown argument \" ~ name ~ \"; it takes {takes}\")}}",
+        op.macro_name
+    );
+    out.push_str("  {% endfor %}\n");
+    for l in lines {
+        let _ = writeln!(out, "  {l}");
+    }
 }
 
 /// How an argument is described in the docs and the page: `60 (0–130)`, `paper\|full`.
