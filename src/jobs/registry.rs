@@ -556,6 +556,36 @@ mod tests {
     }
 
     #[test]
+    fn the_asking_line_waits_on_the_services_word_which_klippers_timer_ends() {
+        // Issue 40 item 6: "asking" only while the service has not said it answers; the word
+        // (`_KLIPCAL_ONLINE SECONDS=n`) starts the timer whose G-code takes it back.
+        for (name, gcode) in macros() {
+            if gcode.contains("asking the klipcal service...") {
+                assert!(
+                    gcode.contains("not printer[\"gcode_macro _KLIPCAL_ONLINE\"].on"),
+                    "{name}: {gcode}"
+                );
+            }
+        }
+        let online = &macros()
+            .into_iter()
+            .find(|(n, _)| n == crate::moonraker::ONLINE_MACRO)
+            .expect("klipcal.cfg has no _KLIPCAL_ONLINE")
+            .1;
+        assert!(online.contains("VARIABLE=on VALUE={1 if s > 0 else 0}"));
+        assert!(online.contains("UPDATE_DELAYED_GCODE ID=_KLIPCAL_OFFLINE DURATION={s}"));
+        let timer = MACROS
+            .split("[delayed_gcode _KLIPCAL_OFFLINE]")
+            .nth(1)
+            .expect("klipcal.cfg has no _KLIPCAL_OFFLINE timer");
+        let timer = timer.split("\n[").next().unwrap_or("");
+        assert!(
+            timer.contains("SET_GCODE_VARIABLE MACRO=_KLIPCAL_ONLINE VARIABLE=on VALUE=0"),
+            "{timer}"
+        );
+    }
+
+    #[test]
     fn every_macro_says_it_asked_and_calls_a_registered_method() {
         let methods = all_methods();
         for (name, gcode) in macros() {
