@@ -361,20 +361,37 @@ fn report_plant_failures(outcomes: &[Outcome]) {
 /// The families written apart from this plant (issue 10), each on its own; true when all
 /// pass.
 fn report_families(args: &BenchSoakArgs, beds: usize, params: &SoakParams) -> bool {
-    let mut families_ok = true;
-    for (k, (name, make)) in [
+    use crate::cmd::soak_families::{bang_bang, evaluate, target_steps, three_node, Run};
+    type Make = fn(&mut fastrand::Rng) -> Run;
+    let families: [(&'static str, Make); 3] = [
         ("three_node (heater, plate, enclosure; PID with filtered derivative on a lagging noisy \
           thermistor; 40 % of beds pwm-capped at max_power 0.6–0.75; 1–4 Hz with gaps)",
-         crate::cmd::soak_families::three_node as fn(&mut fastrand::Rng) -> crate::cmd::soak_families::Run),
-        ("bang_bang (watermark control, power reported 0 or max_power)", crate::cmd::soak_families::bang_bang),
+         three_node),
+        ("bang_bang (watermark control, power reported 0 or max_power)", bang_bang),
         ("target_steps (three_node beds held 20–120 min at one target, then stepped down 15–40 °C \
-          (70 %) or up 10–30 °C; judged from the step)", crate::cmd::soak_families::target_steps),
-    ]
-    .into_iter()
-    .enumerate()
-    {
-        let r = crate::cmd::soak_families::evaluate(name, beds, args.seed + 100 + k as u64, params, make);
-        families_ok &= report_family(k, &r, params, args.show_failures);
+          (70 %) or up 10–30 °C; judged from the step)", target_steps),
+    ];
+    // Each family draws its beds in order from its own stream: the three are drawn side by
+    // side (and judged on every core), then reported in order.
+    let reports: Vec<_> = std::thread::scope(|s| {
+        let handles: Vec<_> = families
+            .iter()
+            .enumerate()
+            .map(|(k, (name, make))| {
+                s.spawn(move || evaluate(name, beds, args.seed + 100 + k as u64, params, *make))
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join()).collect()
+    });
+    let mut families_ok = true;
+    for (k, r) in reports.into_iter().enumerate() {
+        match r {
+            Ok(r) => families_ok &= report_family(k, &r, params, args.show_failures),
+            Err(_) => {
+                println!("  family {}: FAIL: its run panicked", families[k].0);
+                families_ok = false;
+            }
+        }
     }
     families_ok
 }
