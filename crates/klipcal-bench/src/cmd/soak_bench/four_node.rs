@@ -9,9 +9,8 @@ use super::pass;
 
 /// `klipcal bench soak`'s four-node family (see `soak_four_node`): per kind of bed, every rule
 /// judged on the simulated surface, then "never early" over a grid of the four-node knobs.
-/// True when klipcal's rule was never early.
-/// With `only`, the beds under that control alone (its port checked; the grid, which runs
-/// Klipper's PID, only with `Control::Pid`); each family's beds are the same as in a whole run.
+/// True when klipcal's rule was never early. `only`: the beds under that control alone (its
+/// port's check; the grid with PID), each family from the same stream as in a whole run.
 pub(super) fn report_four_node(
     params: &SoakParams,
     per_kind: usize,
@@ -25,15 +24,31 @@ pub(super) fn report_four_node(
          every 0.3 s, ADC noise, 0.01 °C), judged on the surface ({budget:.1} K), {per_kind} \
          beds per kind:"
     );
-    let wants = |c: Control| !matches!(only, Some(o) if o != c);
+    // The ports' checks wait on Klipper's and Kalico's Python: they run beside the beds.
+    let wants = move |c: Control| only.is_none_or(|o| o == c);
+    let (ports, (families, grid)) = std::thread::scope(|s| {
+        let ports = s.spawn(move || {
+            let mut out = Vec::new();
+            if wants(Control::Pid) {
+                out.push(klipper_port(seed));
+            }
+            if wants(Control::Mpc) {
+                out.push(kalico_port(seed));
+            }
+            out
+        });
+        let beds = run_beds(params, per_kind, seed, only);
+        let ports = ports.join().unwrap_or_else(|_| {
+            vec![(false, "    the ports' check: FAIL: it panicked".to_string())]
+        });
+        (ports, beds)
+    });
     let mut ok = true;
-    if wants(Control::Pid) {
-        ok &= report_klipper_port(seed);
+    for (good, line) in ports {
+        println!("{line}");
+        ok &= good;
     }
-    if wants(Control::Mpc) {
-        ok &= report_kalico_port(seed);
-    }
-    for ((control, kind), res) in run_families(params, per_kind, seed, only) {
+    for ((control, kind), res) in families {
         ok &= Family {
             control,
             kind,
@@ -45,70 +60,135 @@ pub(super) fn report_four_node(
     }
     // The grid runs whatever the families said (`ok && …` skipped it, and its figure, once
     // any family missed a target).
-    let grid_ok = !wants(Control::Pid) || report_grid(params, seed);
+    let grid_ok = !wants(Control::Pid) || report_grid(grid);
     ok && grid_ok
 }
 
-/// Every kind under Klipper's PID, then under Kalico's MPC, `per_kind` beds each; each family
-/// draws from its own stream (the PID beds' seeds first, so their figures do not move with
-/// the MPC family) and the families run on every core, returned in order.
-fn run_families(
+/// A four-node family's beds, by control and kind.
+type FamilyRuns = Vec<((Control, Kind), Vec<BedResult>)>;
+/// The grid's beds: kind, knobs and what every rule said (None: the tuning did not finish).
+type GridRuns = Vec<(Kind, Knobs, Option<BedResult>)>;
+
+/// One piece of the four-node part's work: a family (its index) or a grid bed (its index).
+#[derive(Debug, Clone, Copy)]
+enum Job {
+    Family(usize),
+    Grid(usize),
+}
+
+/// What a [`Job`] gave.
+enum Done {
+    Family(Vec<BedResult>),
+    Grid(Option<Box<BedResult>>),
+}
+
+/// The families (see [`families`]) and the grid (see [`grid_beds`]) on every core, the
+/// longest first (the 5 h enclosures with a chamber sensor, then the 3 h open frames, then
+/// the grid's beds filling in), each from its own stream, returned in their order. `only`:
+/// the families under that control (each keeps its stream), the grid only with PID.
+fn run_beds(
     params: &SoakParams,
     per_kind: usize,
     seed: u64,
     only: Option<Control>,
-) -> Vec<((Control, Kind), Vec<BedResult>)> {
-    // The slow enclosure last, so the others' seeds do not move.
-    let families: Vec<(Control, Kind)> = [Control::Pid, Control::Mpc]
+) -> (FamilyRuns, GridRuns) {
+    let wants = |c: Control| only.is_none_or(|o| o == c);
+    let families = families();
+    let grid = if wants(Control::Pid) {
+        grid_beds(seed)
+    } else {
+        Vec::new()
+    };
+    let cost = |j: &Job| match j {
+        Job::Family(k) => {
+            let kind = families[*k].1;
+            3 + usize::from(kind.enclosed) + usize::from(kind.slow_air)
+        }
+        Job::Grid(i) => usize::from(grid[*i].0.enclosed),
+    };
+    let mut jobs: Vec<Job> = (0..families.len())
+        .filter(|k| wants(families[*k].0))
+        .map(Job::Family)
+        .chain((0..grid.len()).map(Job::Grid))
+        .collect();
+    jobs.sort_by_key(|j| std::cmp::Reverse(cost(j)));
+    let done = crate::cmd::par::par_map(&jobs, |job| match *job {
+        Job::Family(k) => {
+            let (control, kind) = families[k];
+            Done::Family(run_family(params, per_kind, seed, k, control, kind))
+        }
+        Job::Grid(i) => {
+            let (kind, knobs, bed_seed) = grid[i];
+            Done::Grid(run_grid_bed(params, kind, knobs, bed_seed).map(Box::new))
+        }
+    });
+    let mut fam: Vec<Option<Vec<BedResult>>> = vec![None; families.len()];
+    let mut grid_out: Vec<Option<BedResult>> = vec![None; grid.len()];
+    for (job, d) in jobs.iter().zip(done) {
+        match (job, d) {
+            (Job::Family(k), Done::Family(r)) => fam[*k] = Some(r),
+            (Job::Grid(i), Done::Grid(r)) => grid_out[*i] = r.map(|b| *b),
+            _ => {}
+        }
+    }
+    (
+        families
+            .into_iter()
+            .zip(fam)
+            .filter_map(|(f, r)| Some((f, r?)))
+            .collect(),
+        grid.into_iter()
+            .zip(grid_out)
+            .map(|((kind, knobs, _), r)| (kind, knobs, r))
+            .collect(),
+    )
+}
+
+/// Every kind under Klipper's PID, then under Kalico's MPC, then the slow enclosure under
+/// Klipper's PID (last, so the others' seeds do not move).
+fn families() -> Vec<(Control, Kind)> {
+    [Control::Pid, Control::Mpc]
         .into_iter()
         .flat_map(|c| Kind::all().into_iter().map(move |k| (c, k)))
         .chain([(Control::Pid, Kind::slow_enclosure())])
-        .collect();
-    // Each family draws from its own stream: they run on every core and print in order.
-    // The stream index is the family's place in the whole list, kept when some are left out.
-    let indexed: Vec<(usize, Control, Kind)> = families
-        .iter()
-        .enumerate()
-        .filter(|(_, (c, _))| !matches!(only, Some(o) if o != *c))
-        .map(|(k, (c, kind))| (k, *c, *kind))
-        .collect();
-    let families: Vec<(Control, Kind)> = indexed.iter().map(|(_, c, k)| (*c, *k)).collect();
-    let results: Vec<Vec<BedResult>> = crate::cmd::par::par_map(&indexed, |(k, control, kind)| {
-        let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + *k as u64);
-        let until = if kind.enclosed {
-            5.0 * 3600.0
-        } else {
-            3.0 * 3600.0
-        };
-        (0..per_kind)
-            .filter_map(|_| {
-                run_bed(
-                    *kind,
-                    *control,
-                    None,
-                    until,
-                    params,
-                    true,
-                    kind.enclosed,
-                    &mut rng,
-                )
-            })
-            .collect()
-    });
-    families.into_iter().zip(results).collect()
+        .collect()
 }
 
-/// "Never early" over a grid of the four-node knobs (coupling, plate thickness, enclosure,
-/// noise at their ends) on every kind, the beds run on every core; true when none was early.
-fn report_grid(params: &SoakParams, seed: u64) -> bool {
-    // Never early over a grid of the knobs (coupling, plate thickness, enclosure, noise) on
-    // every kind.
-    let mut grid_early = Vec::new();
-    let mut grid_n = 0;
-    // Enclosed beds wrongly declared open: reported, not a failure (a user's error).
-    let mut wrong_open: Vec<(f64, String)> = Vec::new();
-    let mut enclosed_n = 0;
-    // The grid's beds, each with its own stream, run on every core and are read in order.
+/// The `k`th family's `per_kind` beds, drawn from its own stream (the PID beds' seeds
+/// first, so their figures do not move with the MPC family).
+fn run_family(
+    params: &SoakParams,
+    per_kind: usize,
+    seed: u64,
+    k: usize,
+    control: Control,
+    kind: Kind,
+) -> Vec<BedResult> {
+    let mut rng = fastrand::Rng::with_seed(seed.wrapping_mul(7919) + 500 + k as u64);
+    let until = if kind.enclosed {
+        5.0 * 3600.0
+    } else {
+        3.0 * 3600.0
+    };
+    (0..per_kind)
+        .filter_map(|_| {
+            run_bed(
+                kind,
+                control,
+                None,
+                until,
+                params,
+                true,
+                kind.enclosed,
+                &mut rng,
+            )
+        })
+        .collect()
+}
+
+/// The grid of the four-node knobs (coupling, plate thickness, enclosure, noise at their
+/// ends) on every kind, each bed with its own stream's seed.
+fn grid_beds(seed: u64) -> Vec<(Kind, Knobs, u64)> {
     let mut rng = fastrand::Rng::with_seed(seed + 9000);
     let mut grid: Vec<(Kind, Knobs, u64)> = Vec::new();
     for kind in Kind::all() {
@@ -131,24 +211,37 @@ fn report_grid(params: &SoakParams, seed: u64) -> bool {
             }
         }
     }
-    let grid_runs = crate::cmd::par::par_map(&grid, |(kind, knobs, bed_seed)| {
-        let until = if kind.enclosed {
-            5.0 * 3600.0
-        } else {
-            3.0 * 3600.0
-        };
-        run_bed(
-            *kind,
-            Control::Pid,
-            Some(*knobs),
-            until,
-            params,
-            !kind.enclosed,
-            false,
-            &mut fastrand::Rng::with_seed(*bed_seed),
-        )
-    });
-    for ((kind, knobs, _), r) in grid.into_iter().zip(grid_runs) {
+    grid
+}
+
+/// One bed of the grid under Klipper's PID.
+fn run_grid_bed(params: &SoakParams, kind: Kind, knobs: Knobs, bed_seed: u64) -> Option<BedResult> {
+    let until = if kind.enclosed {
+        5.0 * 3600.0
+    } else {
+        3.0 * 3600.0
+    };
+    run_bed(
+        kind,
+        Control::Pid,
+        Some(knobs),
+        until,
+        params,
+        !kind.enclosed,
+        false,
+        &mut fastrand::Rng::with_seed(bed_seed),
+    )
+}
+
+/// "Never early" over the grid of the four-node knobs (see [`grid_beds`]); true when none
+/// was early.
+fn report_grid(grid: GridRuns) -> bool {
+    let mut grid_early = Vec::new();
+    let mut grid_n = 0;
+    // Enclosed beds wrongly declared open: reported, not a failure (a user's error).
+    let mut wrong_open: Vec<(f64, String)> = Vec::new();
+    let mut enclosed_n = 0;
+    for (kind, knobs, r) in grid {
         let Some(r) = r else { continue };
         grid_n += 1;
         if r.rule.is_some_and(|d| d < r.moment_s) {
@@ -215,63 +308,63 @@ fn report_grid(params: &SoakParams, seed: u64) -> bool {
     grid_early.is_empty()
 }
 
-/// The port of Klipper's control against Klipper's own Python, on the same readings; true
-/// when they agree.
-fn report_klipper_port(seed: u64) -> bool {
-    match crate::cmd::soak_four_node::klippy_python() {
+/// The port of Klipper's control against Klipper's own Python, on the same readings: whether
+/// they agree, and the report's line.
+fn klipper_port(seed: u64) -> (bool, String) {
+    use crate::cmd::soak_four_node::{klipper_check, klippy_python, GAIN_TOL, PWM_TOL};
+    let (python, script) = match klippy_python() {
+        Ok(p) => p,
         Err(e) => {
-            println!("    the port against Klipper's own heaters.py: FAIL: {e}");
-            false
+            return (
+                false,
+                format!("    the port against Klipper's own heaters.py: FAIL: {e}"),
+            )
         }
-        Ok((python, script)) => {
-            use crate::cmd::soak_four_node::{klipper_check, GAIN_TOL, PWM_TOL};
-            match klipper_check(&python, &script, 8, 1800.0, seed + 77) {
-                Err(e) => {
-                    println!("    the port against Klipper's own heaters.py: FAIL: {e:#}");
-                    false
-                }
-                Ok(r) => {
-                    let good = r.pwm_mismatches == 0
-                        && r.autotune_mismatches == 0
-                        && r.max_gain_rel <= GAIN_TOL;
-                    println!(
-                        "    the port against Klipper's own Python (heaters.py Heater + ControlPID, \
-                         pid_calibrate.py ControlAutoTune, bench venv) on the same readings, {} \
-                         runs (an autotune and 30 min of PID per bed, one bed of each kind): pwm \
-                         differs after {} of {} readings (max {:.1e}; tolerance {PWM_TOL:.0e})   \
-                         target 0   {}; autotune gains differ by {:.1e} relative (tolerance \
-                         {GAIN_TOL:.0e}), {} autotunes ended apart   target 0   {}",
-                        r.runs,
-                        r.pwm_mismatches,
-                        r.updates,
-                        r.max_pwm_diff,
-                        pass(r.pwm_mismatches == 0),
-                        r.max_gain_rel,
-                        r.autotune_mismatches,
-                        pass(r.autotune_mismatches == 0 && r.max_gain_rel <= GAIN_TOL),
-                    );
-                    good
-                }
-            }
+    };
+    match klipper_check(&python, &script, 8, 1800.0, seed + 77) {
+        Err(e) => (
+            false,
+            format!("    the port against Klipper's own heaters.py: FAIL: {e:#}"),
+        ),
+        Ok(r) => {
+            let good =
+                r.pwm_mismatches == 0 && r.autotune_mismatches == 0 && r.max_gain_rel <= GAIN_TOL;
+            let line = format!(
+                "    the port against Klipper's own Python (heaters.py Heater + ControlPID, \
+                 pid_calibrate.py ControlAutoTune, bench venv) on the same readings, {} \
+                 runs (an autotune and 30 min of PID per bed, one bed of each kind): pwm \
+                 differs after {} of {} readings (max {:.1e}; tolerance {PWM_TOL:.0e})   \
+                 target 0   {}; autotune gains differ by {:.1e} relative (tolerance \
+                 {GAIN_TOL:.0e}), {} autotunes ended apart   target 0   {}",
+                r.runs,
+                r.pwm_mismatches,
+                r.updates,
+                r.max_pwm_diff,
+                pass(r.pwm_mismatches == 0),
+                r.max_gain_rel,
+                r.autotune_mismatches,
+                pass(r.autotune_mismatches == 0 && r.max_gain_rel <= GAIN_TOL),
+            );
+            (good, line)
         }
     }
 }
 
-/// The port of Kalico's MPC against Kalico's own Python on the same readings; true when they
-/// agree.
-fn report_kalico_port(seed: u64) -> bool {
+/// The port of Kalico's MPC against Kalico's own Python on the same readings: whether they
+/// agree, and the report's line.
+fn kalico_port(seed: u64) -> (bool, String) {
     use crate::cmd::soak_four_node::{kalico_check, kalico_python, CAL_TOL, PWM_TOL};
     let r = kalico_python()
         .map_err(anyhow::Error::msg)
         .and_then(|(python, script)| kalico_check(&python, &script, 8, 1800.0, seed + 78));
     match r {
-        Err(e) => {
-            println!("    the MPC port against Kalico's own control_mpc.py: FAIL: {e:#}");
-            false
-        }
+        Err(e) => (
+            false,
+            format!("    the MPC port against Kalico's own control_mpc.py: FAIL: {e:#}"),
+        ),
         Ok(r) => {
             let good = r.pwm_mismatches == 0 && r.max_cal_rel <= CAL_TOL && r.beds > 0;
-            println!(
+            let line = format!(
                 "    the MPC port against Kalico's own Python (kalico 2026.10.0.dev0: heaters.py \
                  Heater + control_mpc.py ControlMPC, MpcCalibrate's two passes; bench venv) on \
                  the same readings, {} beds calibrated (MPC_CALIBRATE's transfer test and 30 \
@@ -286,7 +379,7 @@ fn report_kalico_port(seed: u64) -> bool {
                 r.max_cal_rel,
                 pass(r.max_cal_rel <= CAL_TOL),
             );
-            good
+            (good, line)
         }
     }
 }
@@ -306,8 +399,7 @@ mod tests {
         assert!(super::report_four_node(
             &crate::calib::soak::SoakParams::default(),
             per_kind,
-            1,
-            None
+            1
         ));
     }
 }

@@ -87,6 +87,9 @@ pub(crate) struct Chamber {
     /// The bed's latest sample time: readings older than a quarter of the window by then are
     /// a sensor that stopped, and say nothing of the air now.
     now_s: f64,
+    /// What the readings say (see [`Chamber::fit`]), worked out once per reading: the rule
+    /// asks for the trend several times per bed sample.
+    fitted: ChamberTrend,
 }
 
 /// How many means the window's line goes through.
@@ -102,6 +105,7 @@ impl Chamber {
             window_s,
             samples: Vec::new(),
             now_s: f64::NEG_INFINITY,
+            fitted: ChamberTrend::Unknown("no reading yet".into()),
         }
     }
 
@@ -124,6 +128,7 @@ impl Chamber {
         let keep_from = t_s - 2.0 * self.window_s;
         let drop = self.samples.iter().take_while(|s| s.0 < keep_from).count();
         self.samples.drain(..drop);
+        self.fitted = self.fit();
     }
 
     /// The trend over the last window: a straight line through [`MEANS`] means (one a minute
@@ -137,12 +142,19 @@ impl Chamber {
         if self.now_s - now > 0.25 * self.window_s {
             return ChamberTrend::Unknown(format!("no reading for {}", minutes(self.now_s - now)));
         }
+        self.fitted.clone()
+    }
+
+    /// The trend from the readings alone (no sensor-stopped check): see [`Chamber::trend`].
+    /// The readings are in time order, so each mean's readings are one run of them, found by
+    /// bisection.
+    fn fit(&self) -> ChamberTrend {
+        let Some(&(now, _)) = self.samples.last() else {
+            return ChamberTrend::Unknown("no reading yet".into());
+        };
         let from = now - self.window_s;
-        let first = self
-            .samples
-            .iter()
-            .find(|s| s.0 >= from)
-            .map_or(now, |s| s.0);
+        let at = |t: f64| self.samples.partition_point(|s| s.0 < t);
+        let first = self.samples.get(at(from)).map_or(now, |s| s.0);
         if now - first < 0.9 * self.window_s {
             return ChamberTrend::Filling(format!(
                 "{} of {} of readings",
@@ -154,11 +166,8 @@ impl Chamber {
         let means: Vec<(f64, f64)> = (0..MEANS)
             .filter_map(|k| {
                 let (a, b) = (from + step * k as f64, from + step * (k + 1) as f64);
-                let v: Vec<&(f64, f64)> = self
-                    .samples
-                    .iter()
-                    .filter(|s| s.0 >= a && s.0 < b)
-                    .collect();
+                let i = at(a);
+                let v = &self.samples[i..at(b).max(i)];
                 let n = v.len() as f64;
                 (!v.is_empty()).then(|| {
                     (
@@ -354,6 +363,94 @@ mod tests {
             why.contains("temperature_sensor chamber") && why.contains("flat"),
             "{why}"
         );
+    }
+
+    /// The trend as it was worked out before it was kept per reading: every mean's readings
+    /// found by a scan of all of them. The kept one must be the same to the last bit.
+    fn scanned(c: &Chamber) -> ChamberTrend {
+        let Some(&(now, _)) = c.samples.last() else {
+            return ChamberTrend::Unknown("no reading yet".into());
+        };
+        if c.now_s - now > 0.25 * c.window_s {
+            return c.trend();
+        }
+        let from = now - c.window_s;
+        let first = c.samples.iter().find(|s| s.0 >= from).map_or(now, |s| s.0);
+        if now - first < 0.9 * c.window_s {
+            return c.trend();
+        }
+        let step = c.window_s / MEANS as f64;
+        let means: Vec<(f64, f64)> = (0..MEANS)
+            .filter_map(|k| {
+                let (a, b) = (from + step * k as f64, from + step * (k + 1) as f64);
+                let v: Vec<&(f64, f64)> =
+                    c.samples.iter().filter(|s| s.0 >= a && s.0 < b).collect();
+                let n = v.len() as f64;
+                (!v.is_empty()).then(|| {
+                    (
+                        v.iter().map(|s| s.0).sum::<f64>() / n,
+                        v.iter().map(|s| s.1).sum::<f64>() / n,
+                    )
+                })
+            })
+            .collect();
+        if means.len() < 8 {
+            return ChamberTrend::Filling(format!("{} means of {MEANS}", means.len()));
+        }
+        let n = means.len() as f64;
+        let (mt, my) = (
+            means.iter().map(|m| m.0).sum::<f64>() / n,
+            means.iter().map(|m| m.1).sum::<f64>() / n,
+        );
+        let sxx: f64 = means.iter().map(|m| (m.0 - mt).powi(2)).sum();
+        let sxy: f64 = means.iter().map(|m| (m.0 - mt) * (m.1 - my)).sum();
+        let slope = sxy / sxx;
+        let sse: f64 = means
+            .iter()
+            .map(|m| (m.1 - my - slope * (m.0 - mt)).powi(2))
+            .sum();
+        let sd = (sse / (n - 2.0)).sqrt().max(0.01 / 12f64.sqrt());
+        let se = sd / sxx.sqrt();
+        ChamberTrend::Known {
+            k_per_h: slope * 3600.0,
+            high_k_per_h: (slope + Z * se) * 3600.0,
+        }
+    }
+
+    /// Readings at an uneven rate with gaps, on a warming and wobbling air: the trend kept per
+    /// reading is, bit for bit, the one a scan of the readings gives, at every reading.
+    #[test]
+    fn the_trend_kept_per_reading_is_the_scanned_one() {
+        let mut rng = fastrand::Rng::with_seed(7);
+        let mut c = Chamber::new("temperature_sensor chamber", 300.0);
+        let mut t = 0.0;
+        let mut known = 0;
+        for i in 0..3000 {
+            t += if i % 500 == 499 {
+                40.0
+            } else {
+                0.3 + rng.f64()
+            };
+            let air = 30.0 + 0.5 * t / 3600.0 + 0.05 * (t / 37.0).sin() + 0.02 * rng.f64();
+            c.push(t, (air * 100.0).round() / 100.0);
+            c.set_now(t + 0.5);
+            let (kept, scan) = (c.trend(), scanned(&c));
+            known += usize::from(matches!(kept, ChamberTrend::Known { .. }));
+            match (&kept, &scan) {
+                (
+                    ChamberTrend::Known {
+                        k_per_h: a,
+                        high_k_per_h: b,
+                    },
+                    ChamberTrend::Known {
+                        k_per_h: x,
+                        high_k_per_h: y,
+                    },
+                ) => assert!(a.to_bits() == x.to_bits() && b.to_bits() == y.to_bits()),
+                _ => assert_eq!(kept, scan, "at {t} s"),
+            }
+        }
+        assert!(known > 2000, "{known}");
     }
 
     #[test]

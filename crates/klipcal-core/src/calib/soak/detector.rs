@@ -215,6 +215,9 @@ pub struct SoakDetector {
     /// Time origin of the model's exponentials (the first bin of the soak).
     origin_s: Option<f64>,
     points: Vec<Point>,
+    /// Each point's row of the model ([`SoakDetector::row`]), one after another: the noise
+    /// estimate reads every row on every bin, and a row's decays only change with the origin.
+    rows: Vec<f64>,
     /// Normal equations of the model over `points`: XᵀX, Xᵀy, yᵀy.
     xtx: DMatrix<f64>,
     xty: DVector<f64>,
@@ -318,6 +321,7 @@ impl SoakDetector {
             soak_t0_s: None,
             origin_s: None,
             points: Vec::new(),
+            rows: Vec::new(),
             xtx: DMatrix::zeros(k, k),
             xty: DVector::zeros(k),
             yty: 0.0,
@@ -791,6 +795,7 @@ impl SoakDetector {
         self.xtx.ger(1.0, &x, &x, 1.0);
         self.xty.axpy(p.power, &x, 1.0);
         self.yty += p.power * p.power;
+        self.rows.extend(x.iter());
         self.points.push(p);
     }
 
@@ -912,6 +917,7 @@ impl SoakDetector {
         if self.points.len() > MAX_POINTS {
             let keep = self.points.split_off(MAX_POINTS / 2);
             self.points.clear();
+            self.rows.clear();
             let k = self.taus.len() + 1 + extra_cols(&self.params);
             self.xtx = DMatrix::zeros(k, k);
             self.xty = DVector::zeros(k);
@@ -1056,6 +1062,30 @@ mod tests {
                     _ => None,
                 }
             })
+        }
+    }
+
+    /// The rows kept for the noise estimate are, bit for bit, the model's rows of the points
+    /// now (the origin they were worked out from has not moved), and one per point.
+    #[test]
+    fn the_rows_kept_per_point_are_the_models_rows() {
+        let bed = Synthetic {
+            noise_sd: 0.02,
+            ..Synthetic::quiet(1800.0)
+        };
+        let mut d = SoakDetector::new(SoakParams::default());
+        for (t, p, temp) in bed.samples(3.0 * 3600.0) {
+            d.push(t, p, temp, TARGET_C);
+        }
+        let k = d.taus.len() + 1 + EXTRA_COLS;
+        assert!(d.points.len() > 100, "{}", d.points.len());
+        assert_eq!(d.rows.len(), k * d.points.len());
+        for (p, kept) in d.points.iter().zip(d.rows.chunks_exact(k)) {
+            let row = d.row(p);
+            assert!(row
+                .iter()
+                .zip(kept)
+                .all(|(a, b)| a.to_bits() == b.to_bits()));
         }
     }
 

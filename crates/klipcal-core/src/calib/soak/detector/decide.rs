@@ -92,10 +92,12 @@ impl SoakDetector {
     /// to one bin. A PID loop suppresses slow power noise (that is lower), a wandering or
     /// cycling heater has more of it (that is higher).
     fn noise(&self, sign: f64, coef: &DVector<f64>) -> (f64, f64, usize) {
+        let k = coef.len();
         let residuals: Vec<f64> = self
             .points
             .iter()
-            .map(|p| sign * p.power - self.row(p).dot(coef))
+            .zip(self.rows.chunks_exact(k))
+            .map(|(p, row)| sign * p.power - nalgebra::DVectorView::from_slice(row, k).dot(coef))
             .collect();
         let n = residuals.len();
         let used = coef.iter().filter(|c| **c != 0.0).count();
