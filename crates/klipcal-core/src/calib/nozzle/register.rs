@@ -50,6 +50,10 @@ const BACKGROUND_SAMPLES: usize = 64;
 /// The sub-pixel fit's longest step, px.
 const MAX_STEP_PX: f64 = 0.5;
 
+/// The sub-pixel fit may follow the squared difference's minimum this far from the
+/// correlation's whole-pixel peak, px (each axis).
+const MAX_FOLLOW_PX: i64 = 3;
+
 /// A patch cut to stay in view keeps at least this many pixels along each axis (the
 /// smallest object patch the reference takes is about 24 px: 20 px² and its margins).
 const MIN_CUT_PX: i64 = 24;
@@ -612,7 +616,7 @@ impl Reference {
             return Err(ClickRefusal::Ambiguous { peak: best, second });
         }
         // 4. Sub-pixel, and its sd.
-        let (d, sd) = self.subpixel(&area, best_shift, map.parabola(best_shift))?;
+        let (d, sd) = self.subpixel(&area, &map)?;
         let at_px = [self.click_px[0] + d[0], self.click_px[1] + d[1]];
         // 5. The click checks the answer.
         let from_click = off(at_px);
@@ -741,19 +745,20 @@ impl Reference {
     /// structure (a zoomed-in nozzle fills it): Σ t·∇t over a window is its boundary's term,
     /// not zero, and on kTAMV's small frames an unmoved copy read 0.37 px off.
     ///
-    /// It starts from `start` (the correlation peak's parabola, within half a pixel of
-    /// `best`), and a step is never longer than [`MAX_STEP_PX`]: on a blurred patch the first
-    /// Gauss–Newton steps can overshoot and leave the peak's pixel (issue 37's kTAMV frame).
-    fn subpixel(
-        &self,
-        area: &Area,
-        best: [i64; 2],
-        start: [f64; 2],
-    ) -> Result<([f64; 2], f64), ClickRefusal> {
+    /// It starts from the correlation peak's parabola, and a step is never longer than
+    /// [`MAX_STEP_PX`]: on a blurred patch the first Gauss–Newton steps can overshoot. Issue 37:
+    /// on kTAMV's defocused frame, with a 126×131 px patch moved 91 px, the squared
+    /// difference's minimum lay 1.5–2 px from the plain correlation's peak (the correlation has
+    /// no plane for what is left of the lighting); the fit follows it up to [`MAX_FOLLOW_PX`]
+    /// from the peak, inside the searched shifts, where it stopped at 1.5 px and the axis went
+    /// unfinished.
+    fn subpixel(&self, area: &Area, map: &CorrMap) -> Result<([f64; 2], f64), ClickRefusal> {
         let (pw, ph) = (self.size[0], self.size[1]);
         let model = PatchModel::new(&self.t, pw, ph).ok_or(ClickRefusal::NotConverged)?;
-        let mut d = start;
-        for it in 0.. {
+        let (peak, _) = map.best();
+        let mut best = peak;
+        let mut d = map.parabola(peak);
+        for _ in 0..40 {
             let v = area.sample(d, pw, ph);
             let (coef, grad) = model.fit(&v);
             let gain = coef[0];
@@ -766,11 +771,14 @@ impl Reference {
             }
             let step = step * (MAX_STEP_PX / step.norm()).min(1.0);
             d = [d[0] + step[0], d[1] + step[1]];
-            if (d[0] - best[0] as f64).abs() > 1.5
-                || (d[1] - best[1] as f64).abs() > 1.5
-                || it == 39
-            {
-                return Err(ClickRefusal::NotConverged);
+            if (d[0] - best[0] as f64).abs() > 1.5 || (d[1] - best[1] as f64).abs() > 1.5 {
+                // Followed to the next whole pixel while it stays inside the searched shifts
+                // and near the correlation's peak.
+                best = [d[0].round() as i64, d[1].round() as i64];
+                let drift = (best[0] - peak[0]).abs().max((best[1] - peak[1]).abs());
+                if drift > MAX_FOLLOW_PX || !map.inside(best) {
+                    return Err(ClickRefusal::NotConverged);
+                }
             }
         }
         Err(ClickRefusal::NotConverged)
@@ -974,6 +982,14 @@ impl CorrMap {
             0.0
         };
         [best[0] as f64 + dx, best[1] as f64 + dy]
+    }
+
+    /// The shift is inside the searched ones, off their rim (its interpolation's taps are in
+    /// the searched area ± 1.5 px round it).
+    fn inside(&self, shift: [i64; 2]) -> bool {
+        let (i, j) = self.index(shift);
+        let top = 2 * self.s;
+        (1..top).contains(&i) && (1..top).contains(&j)
     }
 
     /// The shift is on the search's rim: the peak may lie beyond.
