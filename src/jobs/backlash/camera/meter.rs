@@ -108,8 +108,11 @@ pub struct Meter {
 }
 
 /// Where neither a prediction nor the detector says where the nozzle is, the search reaches
-/// this share of the picture's shorter side round the last reading (±60 px on 640×480).
-const WIDE_SEARCH_SHARE: f64 = 1.0 / 8.0;
+/// this share of the picture's shorter side round the last reading (±120 px on 640×480, ±75
+/// px on 400×300). Issue 37: the scale's second frame, 0.5 mm from the first at a scale not
+/// known yet, was 30–50 px away on TAMV's 400×300 frames at 60–100 px/mm, beyond an eighth.
+/// The patch is cut to stay in view over the search ([`ClickReader::register_round`]).
+const WIDE_SEARCH_SHARE: f64 = 1.0 / 4.0;
 
 impl Meter {
     /// Reads one frame: `detected` is the detector's centre and sd, or its reason; `expect`

@@ -182,6 +182,8 @@ struct Camera {
     seen: usize,
     refined: usize,
     kept: std::collections::BTreeMap<String, usize>,
+    /// The last frame's refusal, said: why a position could not be read.
+    last_refusal: Option<String>,
 }
 
 impl Camera {
@@ -217,6 +219,7 @@ impl Camera {
             seen: 0,
             refined: 0,
             kept: std::collections::BTreeMap::new(),
+            last_refusal: None,
         }
     }
 
@@ -253,6 +256,14 @@ impl Camera {
         cam.photo = Some(PhotoCamera::new(photo, &at, Lighting::draw(rng))?);
         (cam.width, cam.height) = (w, h);
         Ok(cam)
+    }
+
+    /// Why the position `what` could not be read: the last frame's refusal.
+    fn unread(&self, what: &str) -> String {
+        format!(
+            "{what}: {}",
+            self.last_refusal.as_deref().unwrap_or("no frame refused")
+        )
     }
 
     /// The scene with the nozzle (and a second one, keeping its distance) at `truth`.
@@ -397,6 +408,7 @@ impl Camera {
                     Err(e) => {
                         refused += usize::from(found.is_ok());
                         *self.kept.entry(frame_refusal_name(&e).into()).or_default() += 1;
+                        self.last_refusal = Some(e.to_string());
                     }
                 }
             }
@@ -448,7 +460,7 @@ fn camera_procedure(
     cam.frames = std::mem::take(frames);
     let out = camera_run(&mut cam, model, b_mm, cycles, reader, params, rng);
     *frames = std::mem::take(&mut cam.frames);
-    out
+    Ok(out?.ok())
 }
 
 /// [`camera_procedure`]'s steps on its camera.
@@ -460,7 +472,7 @@ fn camera_run(
     reader: Reader,
     params: &BacklashParams,
     rng: &mut fastrand::Rng,
-) -> anyhow::Result<Option<CameraRun>> {
+) -> anyhow::Result<Result<CameraRun, String>> {
     use crate::jobs::backlash::click::{ZOOM_CYCLES, ZOOM_SCALE};
     let mut ax = PlayAxis::new(model, b_mm, rng);
     let mut ay = PlayAxis::new(model, 0.15 * rng.f64(), rng);
@@ -480,7 +492,9 @@ fn camera_run(
             let mut at = [0.0; 2];
             at[k] = t;
             let Some((c, u, r)) = cam.look([ax.nozzle, ay.nozzle], at, ZOOM_SCALE, rng)? else {
-                return Ok(None);
+                return Ok(Err(
+                    cam.unread(&format!("the scale's move to {t:+.1} mm on axis {k}"))
+                ));
             };
             refused += r;
             readings += 1;
@@ -493,8 +507,9 @@ fn camera_run(
         let axis = if k == 0 { &mut ax } else { &mut ay };
         axis.move_to(0.0, rng);
     }
-    let Ok(scale) = CameraScale::from_sightings(&sightings[0], &sightings[1]) else {
-        return Ok(None);
+    let scale = match CameraScale::from_sightings(&sightings[0], &sightings[1]) {
+        Ok(s) => s,
+        Err(e) => return Ok(Err(format!("scale: {e}"))),
     };
     // The reference: where the nozzle sits at the measurement point, from the X set.
     let reference = sightings[0][1].centre_px;
@@ -504,13 +519,13 @@ fn camera_run(
         ax.move_to(0.0, rng);
         let Some((plus, u1, r1)) = cam.look([ax.nozzle, ay.nozzle], [0.0; 2], ZOOM_CYCLES, rng)?
         else {
-            return Ok(None);
+            return Ok(Err(cam.unread("a cycle's approach from below")));
         };
         ax.move_to(1.0, rng);
         ax.move_to(0.0, rng);
         let Some((minus, u2, r2)) = cam.look([ax.nozzle, ay.nozzle], [0.0; 2], ZOOM_CYCLES, rng)?
         else {
-            return Ok(None);
+            return Ok(Err(cam.unread("a cycle's approach from above")));
         };
         refused += r1 + r2;
         readings += 2;
@@ -519,7 +534,7 @@ fn camera_run(
     }
     let p = camera_scale::axis_params(params, &scale, GuideAxis::X, max_u, repeats);
     Ok(backlash::analyse("x", &cyc, None, &p)
-        .ok()
+        .map_err(|e| format!("analysis: {e}"))
         .map(|r| CameraRun {
             estimate_mm: r.backlash_mm,
             uncertainty_mm: r.uncertainty_mm,
@@ -700,7 +715,7 @@ fn photo_procedure(
     size: [usize; 2],
     params: &BacklashParams,
     rng: &mut fastrand::Rng,
-) -> anyhow::Result<(Option<CameraRun>, f64)> {
+) -> anyhow::Result<(Result<CameraRun, String>, f64)> {
     let mut cam = Camera::on_photo(model, photo, size, rng)?;
     let zoom = cam.photo.as_ref().map_or(1.0, |p| p.zoom);
     Ok((
@@ -773,6 +788,7 @@ fn bench_photo_end_to_end(
         let mut perfect = ReaderTally::default();
         let mut each: Vec<ReaderTally> = photos.iter().map(|_| ReaderTally::default()).collect();
         let mut zooms = vec![(f64::INFINITY, 0.0f64); photos.len()];
+        let mut unfinished = Vec::new();
         for (k, b, lost, pf, got) in runs {
             if let Some(r) = pf? {
                 perfect.add(&r, lost, b);
@@ -780,13 +796,14 @@ fn bench_photo_end_to_end(
             let (run, zoom) = got?;
             zooms[k] = (zooms[k].0.min(zoom), zooms[k].1.max(zoom));
             match run {
-                Some(r) => {
+                Ok(r) => {
                     all.add(&r, lost, b);
                     each[k].add(&r, lost, b);
                 }
-                None => {
+                Err(why) => {
                     all.unfinished += 1;
                     each[k].unfinished += 1;
+                    unfinished.push(format!("{}: {why}", photos[k].0.name));
                 }
             }
         }
@@ -830,6 +847,9 @@ fn bench_photo_end_to_end(
             1000.0 * p95(&perfect.errors),
             1000.0 * rendered_p95_mm.get(mi).copied().unwrap_or(f64::NAN),
         );
+        for why in &unfinished {
+            println!("      unfinished: {why}");
+        }
     }
     Ok(ok)
 }

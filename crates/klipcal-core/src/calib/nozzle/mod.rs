@@ -74,7 +74,10 @@ pub struct Gray<'a> {
 pub struct DetectParams {
     /// Refuse when more than this fraction of pixels is clipped white (≥ 250) …
     pub max_clipped_fraction: f64,
-    /// … or black (≤ 5): a zoomed-in nozzle's cone is often black over a third of the view.
+    /// … or black (≤ 5): a zoomed-in nozzle's cone is often black over a third of the view,
+    /// and TAMV's photo (a bright nozzle on a dark ground) under a dimmer light (gain 0.85,
+    /// offset −10) is black over 64 % with the nozzle plain: what is in the nozzle's light
+    /// is what counts, the contrast checks refuse a nozzle lost in the dark.
     pub max_black_fraction: f64,
     /// The nozzle must stand out from the background by at least this many grey levels.
     pub min_contrast: f64,
@@ -102,7 +105,7 @@ impl Default for DetectParams {
     fn default() -> Self {
         DetectParams {
             max_clipped_fraction: 0.2,
-            max_black_fraction: 0.6,
+            max_black_fraction: 0.85,
             min_contrast: 12.0,
             min_snr: 8.0,
             min_area_px: 20,

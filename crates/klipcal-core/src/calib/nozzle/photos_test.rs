@@ -151,3 +151,56 @@ fn a_real_photo_is_found_from_320x240_to_1920x1080() {
         );
     }
 }
+
+/// Issue 37: TAMV's photo (a bright nozzle on a dark ground) under a dimmer light, as the bench
+/// camera draws it (gain 0.85, offset −10, 10 % less light at the far edges), is black over more than 60 % of the view with the
+/// nozzle plain; the detector took it for saturated and the camera flow could not start. It is
+/// no longer refused as saturated; a picture black all over still is.
+#[test]
+fn a_bright_nozzle_on_a_dark_ground_is_not_saturated() {
+    use crate::photo_camera::{photo, Lighting, PhotoCamera, Placement};
+    let ph = photo("tamv-nozzle").unwrap();
+    let at = Placement {
+        width: 400,
+        height: 300,
+        rotation_deg: 3.0,
+        home_px: [200.0, 150.0],
+        reach_px: 75.0,
+        zoom: None,
+    };
+    let light = Lighting {
+        gain: 0.85,
+        offset: -10.0,
+        gradient: [-0.1, -0.1],
+        flicker: 0.0,
+        flicker_offset: 0.0,
+        noise_sd: 0.5,
+        quality: 85,
+    };
+    let cam = PhotoCamera::new(&ph, &at, light).unwrap();
+    let mut rng = fastrand::Rng::with_seed(37);
+    let tip = [203.4, 147.8];
+    let g = cam.frame(tip, &mut rng).unwrap().0;
+    let black = g.iter().filter(|v| **v <= 5).count() as f64 / g.len() as f64;
+    assert!(black > 0.6, "{black}");
+    let img = Gray {
+        width: 400,
+        height: 300,
+        data: &g,
+    };
+    // Where the detector puts it is the camera flow's locator only (on this photo it may pick
+    // another round feature of the nozzle, which the registration disregards: camera/meter.rs).
+    let got = detect(&img, &DetectParams::default());
+    assert!(!matches!(got, Err(Refusal::Saturated { .. })), "{got:?}");
+    let dark = vec![2u8; 400 * 300];
+    let e = detect(
+        &Gray {
+            width: 400,
+            height: 300,
+            data: &dark,
+        },
+        &DetectParams::default(),
+    )
+    .unwrap_err();
+    assert!(matches!(e, Refusal::Saturated { .. }), "{e}");
+}

@@ -47,6 +47,17 @@ const SD_FLOOR_PX: f64 = 0.003;
 /// detector uses 160): a smooth surface needs few, and a click is read while the person waits.
 const BACKGROUND_SAMPLES: usize = 64;
 
+/// The sub-pixel fit's longest step, px.
+const MAX_STEP_PX: f64 = 0.5;
+
+/// The sub-pixel fit may follow the squared difference's minimum this far from the
+/// correlation's whole-pixel peak, px (each axis).
+const MAX_FOLLOW_PX: i64 = 3;
+
+/// A patch cut to stay in view keeps at least this many pixels along each axis (the
+/// smallest object patch the reference takes is about 24 px: 20 px² and its margins).
+const MIN_CUT_PX: i64 = 24;
+
 /// Residual correlation is summed over this many lags per axis for a shift's sd.
 const LAGS: usize = 4;
 
@@ -167,6 +178,10 @@ pub struct Reference {
     /// The inverse of the patch's gradient energy Σ∇t∇tᵀ.
     g_inv: nalgebra::Matrix2<f64>,
     sd_px: f64,
+    /// The smoothed residual the patch was made from, with 2 px around it, and the margin
+    /// round the object: what a patch cut to stay in view is made from ([`Reference::cut`]).
+    ext: Vec<f32>,
+    margin: usize,
 }
 
 /// A refined reading.
@@ -448,6 +463,59 @@ impl Reference {
             t,
             g_inv,
             sd_px,
+            ext,
+            margin: m,
+        })
+    }
+
+    /// The patch cut on the sides that would leave the picture when it is searched for at
+    /// the whole-pixel shift `c` ± `s` (and the interpolation's 3 px): what of the nozzle
+    /// stays in view over a scale move as long as the picture is wide. Every part of the
+    /// patch moves with the nozzle, so a part measures the same shift. `None` when no cut is
+    /// needed, or what would be left is under [`MIN_CUT_PX`] along an axis (then as much is
+    /// kept), or has no structure to register.
+    fn cut(&self, c: [i64; 2], s: i64) -> Option<Reference> {
+        let wh = [self.width as i64, self.height as i64];
+        let mut keep = [[0usize; 2]; 2];
+        for a in 0..2 {
+            let (o, sz) = (self.origin[a] as i64, self.size[a] as i64);
+            let lo = (s + 3 - (o + c[a])).max(0);
+            let hi = (o + sz + c[a] + s + 3 - wh[a]).max(0);
+            let min = MIN_CUT_PX.min(sz);
+            // Cut no more than leaves `min`, shared as each side needs it.
+            let k = if sz - lo - hi >= min {
+                1.0
+            } else {
+                (sz - min) as f64 / (lo + hi) as f64
+            };
+            let (lo, hi) = (
+                (lo as f64 * k).floor() as usize,
+                (hi as f64 * k).floor() as usize,
+            );
+            keep[a] = [lo, self.size[a] - hi];
+        }
+        if keep == [[0, self.size[0]], [0, self.size[1]]] {
+            return None;
+        }
+        let size = [keep[0][1] - keep[0][0], keep[1][1] - keep[1][0]];
+        let ew = self.size[0] + 4;
+        let ext: Vec<f32> = (keep[1][0]..keep[1][1] + 4)
+            .flat_map(|j| (keep[0][0]..keep[0][1] + 4).map(move |i| (i, j)))
+            .map(|(i, j)| self.ext[j * ew + i])
+            .collect();
+        // The margin round the object is gone on a cut side: the plane is fitted to a rim
+        // no deeper than a quarter of the patch.
+        let m = self.margin.min(size[0] / 4).min(size[1] / 4);
+        let (t, g) = template(&ext, size, m);
+        let g_inv = g.try_inverse()?;
+        Some(Reference {
+            origin: [self.origin[0] + keep[0][0], self.origin[1] + keep[1][0]],
+            size,
+            t,
+            g_inv,
+            ext,
+            margin: m,
+            ..self.clone()
         })
     }
 
@@ -489,8 +557,29 @@ impl Reference {
         ];
         let wanted = limit.ceil() as i64 + 2;
         let c = [pred[0].round() as i64, pred[1].round() as i64];
-        // Near the picture's edge the search is cut to what the picture holds (a peak on the
-        // cut rim is then refused as at the edge, not read).
+        // Near the picture's edge the patch is cut to what stays in view over the search …
+        match self.room(c) {
+            Some(room) if room >= wanted => self.refine_in(img, click_px, limit, c, wanted, p),
+            _ => match self.cut(c, wanted) {
+                Some(r) => r.refine_in(img, click_px, limit, c, wanted, p),
+                None => self.refine_in(img, click_px, limit, c, wanted, p),
+            },
+        }
+    }
+
+    /// [`Reference::refine`]'s search round the whole-pixel shift `c`, ± `wanted` px where
+    /// the picture holds it, and its checks against the click (± `limit` px).
+    fn refine_in(
+        &self,
+        img: &Gray<'_>,
+        click_px: [f64; 2],
+        limit: f64,
+        c: [i64; 2],
+        wanted: i64,
+        p: &RegisterParams,
+    ) -> Result<Refined, ClickRefusal> {
+        // … and the search cut to what the picture holds (a peak on the cut rim is then
+        // refused as at the edge, not read).
         let s = self
             .room(c)
             .filter(|room| *room >= 2)
@@ -527,7 +616,7 @@ impl Reference {
             return Err(ClickRefusal::Ambiguous { peak: best, second });
         }
         // 4. Sub-pixel, and its sd.
-        let (d, sd) = self.subpixel(&area, best_shift)?;
+        let (d, sd) = self.subpixel(&area, &map)?;
         let at_px = [self.click_px[0] + d[0], self.click_px[1] + d[1]];
         // 5. The click checks the answer.
         let from_click = off(at_px);
@@ -655,11 +744,21 @@ impl Reference {
     /// correlation Σ t·I(x + d) instead is biased wherever the patch's own edges carry
     /// structure (a zoomed-in nozzle fills it): Σ t·∇t over a window is its boundary's term,
     /// not zero, and on kTAMV's small frames an unmoved copy read 0.37 px off.
-    fn subpixel(&self, area: &Area, best: [i64; 2]) -> Result<([f64; 2], f64), ClickRefusal> {
+    ///
+    /// It starts from the correlation peak's parabola, and a step is never longer than
+    /// [`MAX_STEP_PX`]: on a blurred patch the first Gauss–Newton steps can overshoot. Issue 37:
+    /// on kTAMV's defocused frame, with a 126×131 px patch moved 91 px, the squared
+    /// difference's minimum lay 1.5–2 px from the plain correlation's peak (the correlation has
+    /// no plane for what is left of the lighting); the fit follows it up to [`MAX_FOLLOW_PX`]
+    /// from the peak, inside the searched shifts, where it stopped at 1.5 px and the axis went
+    /// unfinished.
+    fn subpixel(&self, area: &Area, map: &CorrMap) -> Result<([f64; 2], f64), ClickRefusal> {
         let (pw, ph) = (self.size[0], self.size[1]);
         let model = PatchModel::new(&self.t, pw, ph).ok_or(ClickRefusal::NotConverged)?;
-        let mut d = [best[0] as f64, best[1] as f64];
-        for it in 0.. {
+        let (peak, _) = map.best();
+        let mut best = peak;
+        let mut d = map.parabola(peak);
+        for _ in 0..40 {
             let v = area.sample(d, pw, ph);
             let (coef, grad) = model.fit(&v);
             let gain = coef[0];
@@ -670,12 +769,16 @@ impl Reference {
             if step.norm() < 1e-3 {
                 return Ok((d, self.shift_sd(&model, &v, coef)));
             }
+            let step = step * (MAX_STEP_PX / step.norm()).min(1.0);
             d = [d[0] + step[0], d[1] + step[1]];
-            if (d[0] - best[0] as f64).abs() > 1.5
-                || (d[1] - best[1] as f64).abs() > 1.5
-                || it == 19
-            {
-                return Err(ClickRefusal::NotConverged);
+            if (d[0] - best[0] as f64).abs() > 1.5 || (d[1] - best[1] as f64).abs() > 1.5 {
+                // Followed to the next whole pixel while it stays inside the searched shifts
+                // and near the correlation's peak.
+                best = [d[0].round() as i64, d[1].round() as i64];
+                let drift = (best[0] - peak[0]).abs().max((best[1] - peak[1]).abs());
+                if drift > MAX_FOLLOW_PX || !map.inside(best) {
+                    return Err(ClickRefusal::NotConverged);
+                }
             }
         }
         Err(ClickRefusal::NotConverged)
@@ -852,6 +955,41 @@ impl CorrMap {
             );
         let (i, j) = ((k % self.side) as i64, (k / self.side) as i64);
         ([i - self.s + self.c[0], j - self.s + self.c[1]], v)
+    }
+
+    /// The peak's sub-pixel place by a parabola through it and its neighbours along each axis
+    /// (within half a pixel of `best`; `best` itself on the rim).
+    fn parabola(&self, best: [i64; 2]) -> [f64; 2] {
+        let (i, j) = self.index(best);
+        let at = |i: i64, j: i64| self.map[j as usize * self.side + i as usize];
+        let top = 2 * self.s;
+        let vertex = |a: f64, b: f64, c: f64| {
+            let den = a - 2.0 * b + c;
+            if den < 0.0 {
+                (0.5 * (a - c) / den).clamp(-0.5, 0.5)
+            } else {
+                0.0
+            }
+        };
+        let dx = if i > 0 && i < top {
+            vertex(at(i - 1, j), at(i, j), at(i + 1, j))
+        } else {
+            0.0
+        };
+        let dy = if j > 0 && j < top {
+            vertex(at(i, j - 1), at(i, j), at(i, j + 1))
+        } else {
+            0.0
+        };
+        [best[0] as f64 + dx, best[1] as f64 + dy]
+    }
+
+    /// The shift is inside the searched ones, off their rim (its interpolation's taps are in
+    /// the searched area ± 1.5 px round it).
+    fn inside(&self, shift: [i64; 2]) -> bool {
+        let (i, j) = self.index(shift);
+        let top = 2 * self.s;
+        (1..top).contains(&i) && (1..top).contains(&j)
     }
 
     /// The shift is on the search's rim: the peak may lie beyond.
@@ -1182,6 +1320,67 @@ mod tests {
         // noisiest camera here (the two-nozzle scene) states 0.17–0.23 px and errs up to 0.21.
         assert!(errs[errs.len() - 1] < 0.25, "{errs:?}");
         assert!(covered as f64 >= 0.9 * n as f64, "{covered}/{n}");
+    }
+
+    /// Issue 37: the scale's moves take the nozzle so far that the reference patch, searched
+    /// for where it is expected, would leave the picture. Before, that was refused as at the
+    /// edge and the axis went unfinished; now the patch is cut to what stays in view, and the
+    /// shift is measured all the same, on TAMV's real photo.
+    #[test]
+    fn a_patch_that_would_leave_the_picture_is_cut_to_what_stays_in_view() {
+        use crate::photo_camera::{photo, Lighting, PhotoCamera, Placement};
+        let ph = photo("tamv-nozzle").unwrap();
+        let mut rng = fastrand::Rng::with_seed(37);
+        let (w, h) = (400, 300);
+        let home = [200.0, 150.0];
+        let at = Placement {
+            width: w,
+            height: h,
+            rotation_deg: -6.0,
+            home_px: home,
+            reach_px: 110.0,
+            zoom: None,
+        };
+        let cam = PhotoCamera::new(&ph, &at, Lighting::draw(&mut rng)).unwrap();
+        let g0 = cam.frame(home, &mut rng).unwrap().0;
+        fn g(d: &[u8]) -> Gray<'_> {
+            Gray {
+                width: 400,
+                height: 300,
+                data: d,
+            }
+        }
+        let p = RegisterParams::default();
+        let r = Reference::new(&g(&g0), home, 1.0, &p).unwrap();
+        for (shift, expect_off) in [
+            ([0.0, 100.0], [3.0, -5.0]),
+            ([-40.0, -100.0], [4.0, 2.0]),
+            ([60.0, 98.0], [-5.0, 4.0]),
+        ] {
+            let truth = [home[0] + shift[0], home[1] + shift[1]];
+            let gi = cam.frame(truth, &mut rng).unwrap().0;
+            let click = [truth[0] + expect_off[0], truth[1] + expect_off[1]];
+            // Searched ± 20 px round a point 6 px off: the uncut patch leaves the picture.
+            let limit = p.agree_sd * 4.5f64.hypot(r.click_sd_px());
+            let c = [
+                (click[0] - home[0]).round() as i64,
+                (click[1] - home[1]).round() as i64,
+            ];
+            let wanted = limit.ceil() as i64 + 2;
+            let old = r.refine_in(&g(&gi), click, limit, c, wanted, &p);
+            assert!(
+                matches!(old, Err(ClickRefusal::AtEdge { .. })),
+                "{shift:?}: {old:?}"
+            );
+            let got = r
+                .refine(&g(&gi), click, 4.5, &p)
+                .unwrap_or_else(|e| panic!("{shift:?}: {e}"));
+            let e = [got.at_px[0] - truth[0], got.at_px[1] - truth[1]];
+            assert!(
+                e[0].abs().max(e[1].abs()) < 0.1 && got.sd_px < 0.1,
+                "{shift:?}: {got:?}, {e:?} px off"
+            );
+        }
     }
 
     /// The static background is taken out: under a steep light gradient and vignetting, which
