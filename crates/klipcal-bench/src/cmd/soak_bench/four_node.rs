@@ -25,7 +25,7 @@ pub(super) fn report_four_node(
          beds per kind:"
     );
     // The ports' checks wait on Klipper's and Kalico's Python: they run beside the beds.
-    let wants = move |c: Control| only.is_none_or(|o| o == c);
+    let wants = move |c: Control| !matches!(only, Some(o) if o != c);
     let (ports, (families, grid)) = std::thread::scope(|s| {
         let ports = s.spawn(move || {
             let mut out = Vec::new();
@@ -92,7 +92,7 @@ fn run_beds(
     seed: u64,
     only: Option<Control>,
 ) -> (FamilyRuns, GridRuns) {
-    let wants = |c: Control| only.is_none_or(|o| o == c);
+    let wants = |c: Control| !matches!(only, Some(o) if o != c);
     let families = families();
     let grid = if wants(Control::Pid) {
         grid_beds(seed)
@@ -399,7 +399,8 @@ mod tests {
         assert!(super::report_four_node(
             &crate::calib::soak::SoakParams::default(),
             per_kind,
-            1
+            1,
+            None
         ));
     }
 }

@@ -159,7 +159,7 @@ fn a_real_photo_is_found_from_320x240_to_1920x1080() {
 #[test]
 fn a_bright_nozzle_on_a_dark_ground_is_not_saturated() {
     use crate::photo_camera::{photo, Lighting, PhotoCamera, Placement};
-    let ph = photo("tamv-nozzle").unwrap();
+    let ph = photo(&crate::nozzle_photos::checkout, "tamv-nozzle").unwrap();
     let at = Placement {
         width: 400,
         height: 300,

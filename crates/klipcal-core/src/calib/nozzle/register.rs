@@ -1329,7 +1329,7 @@ mod tests {
     #[test]
     fn a_patch_that_would_leave_the_picture_is_cut_to_what_stays_in_view() {
         use crate::photo_camera::{photo, Lighting, PhotoCamera, Placement};
-        let ph = photo("tamv-nozzle").unwrap();
+        let ph = photo(&crate::nozzle_photos::checkout, "tamv-nozzle").unwrap();
         let mut rng = fastrand::Rng::with_seed(37);
         let (w, h) = (400, 300);
         let home = [200.0, 150.0];
