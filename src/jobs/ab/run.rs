@@ -167,8 +167,6 @@ impl Ab {
     pub(super) async fn run(&self, id: i64) -> anyhow::Result<()> {
         // The bed's target and its bound were just sent (not by a runner before a restart).
         let mut just_heated = false;
-        // The round's print was started here with its hold, which nothing changed since.
-        let mut held = false;
         loop {
             let s = self.load(id)?;
             match s.state {
@@ -184,8 +182,8 @@ impl Ab {
                     self.set_state(id, State::Heating, "bed heating").await?;
                 }
                 State::Heating | State::Soaking => self.soak(s, just_heated).await?,
-                State::Printing => held = self.print(s).await?,
-                State::Holding => self.hold(s, held).await?,
+                State::Printing => self.print(s).await?,
+                State::Holding => self.hold(s).await?,
                 _ => return Ok(()),
             }
         }
@@ -346,9 +344,8 @@ impl Ab {
     }
 
     /// The round's print: started (the heaters held for it), or followed when klipcal already
-    /// started it, to its end. True when it was started here and nothing set Klipper's idle
-    /// timeout since its hold (which then still holds from the print's end).
-    pub(super) async fn print(&self, s: Session) -> anyhow::Result<bool> {
+    /// started it, to its end.
+    pub(super) async fn print(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         let round = s
             .rounds
@@ -383,11 +380,7 @@ impl Ab {
         if !follow {
             self.start_print(&s, round).await?;
         }
-        // Subscribed after the hold's own answer: whatever sets the idle timeout during the
-        // print (a user's PRINT_START) says so on the console.
-        let mut rx = self.core.m().events();
-        self.follow_print(id).await?;
-        Ok(!follow && !idle_timeout_set(&mut rx))
+        self.follow_print(id).await
     }
 
     /// Starts the round's print. Klipper keeps the heaters on while it prints; once the print
@@ -678,22 +671,6 @@ fn pylon_job(
     }
 }
 
-/// Whether Klipper said it set its idle timeout ("idle_timeout: Timeout set to …") among the
-/// console rows `rx` received; also when some may have been missed.
-fn idle_timeout_set(rx: &mut tokio::sync::broadcast::Receiver<crate::moonraker::Event>) -> bool {
-    use tokio::sync::broadcast::error::TryRecvError;
-    loop {
-        match rx.try_recv() {
-            Ok(crate::moonraker::Event::GcodeResponse(t)) if t.contains("Timeout set to") => {
-                return true
-            }
-            Ok(_) => {}
-            Err(TryRecvError::Empty) => return false,
-            Err(TryRecvError::Lagged(_) | TryRecvError::Closed) => return true,
-        }
-    }
-}
-
 /// GET_CURRENT_SKEW's answer: the XY factor, and whether every plane's factor is 0.
 fn skew_report(text: &str) -> Option<(f64, bool)> {
     let factor = |plane: &str| -> Option<f64> {
@@ -733,24 +710,5 @@ mod report_tests {
             skew_report("// idle_timeout: Timeout set to 600.00 s"),
             None
         );
-    }
-
-    #[test]
-    fn an_idle_timeout_set_during_the_print_is_seen() {
-        use crate::moonraker::Event;
-        let (tx, mut rx) = tokio::sync::broadcast::channel(4);
-        tx.send(Event::GcodeResponse("File selected".into()))
-            .unwrap();
-        assert!(!idle_timeout_set(&mut rx));
-        tx.send(Event::GcodeResponse(
-            "// idle_timeout: Timeout set to 1800.00 s".into(),
-        ))
-        .unwrap();
-        assert!(idle_timeout_set(&mut rx));
-        // Rows missed: not known, so taken as set.
-        for _ in 0..6 {
-            tx.send(Event::GcodeResponse("ok".into())).unwrap();
-        }
-        assert!(idle_timeout_set(&mut rx));
     }
 }

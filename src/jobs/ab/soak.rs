@@ -3,9 +3,6 @@
 
 use super::*;
 
-/// Within this long of the print's end, the hold a print started here set still holds.
-const HOLD_FRESH_S: f64 = 5.0;
-
 /// The offer to print now while the bed soaks: what it said last and when, and whether the
 /// user chose to wait.
 #[derive(Default)]
@@ -405,21 +402,18 @@ impl Ab {
         })
     }
 
-    /// The part cools on the bed, then the measuring guide. `held`: this runner started the
-    /// print with the hold limit as Klipper's idle timeout, and nothing changed it since.
-    pub(super) async fn hold(&self, s: Session, held: bool) -> anyhow::Result<()> {
+    /// The part cools on the bed, then the measuring guide.
+    pub(super) async fn hold(&self, s: Session) -> anyhow::Result<()> {
         let id = s.id;
         // Klipper itself turns the heaters off at the hold limit (counted from the print's
-        // end, also when the hold resumes after an outage), even if klipcal stops. A print
-        // started here already set it as the idle timeout, whose count Klipper starts at the
-        // print's end: set again within seconds of that end it changed nothing but added two
-        // console rows (issue 40 item 6).
+        // end, also when the hold resumes after an outage), even if klipcal stops. Set again
+        // here even when the print's start set it (`held`): skipping it (issue 40 item 6, two
+        // console rows) left the bed on past the hold limit with Moonraker down in the fault
+        // matrix (A/B hold × Moonraker down 120 s: on 62 s after a 45 s hold).
         let done = s.print_done_unix.unwrap_or_else(now_unix);
         let since_end = now_unix() - done;
-        if !(held && (0.0..HOLD_FRESH_S).contains(&since_end)) {
-            let hold = (s.options.hold_max_s - since_end).max(1.0);
-            self.core.hold_heaters_for(hold).await?;
-        }
+        let hold = (s.options.hold_max_s - since_end).max(1.0);
+        self.core.hold_heaters_for(hold).await?;
         let wait = (done + s.options.cooldown_s - now_unix()).max(0.0);
         if wait > 0.0 {
             let bed = if s.options.bed_temp_c > 0.0 {
