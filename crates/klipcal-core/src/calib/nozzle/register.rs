@@ -76,6 +76,10 @@ pub struct RegisterParams {
     /// The refined reading may differ from the click by this many sd of the two clicks'
     /// stated precision (each axis).
     pub agree_sd: f64,
+    /// The least distance from the tap searched, px, whatever precision the tap states: a
+    /// finger on a phone lands a few picture px off while the page states its zoomed screen
+    /// precision (0.4 px), so a tap is only a hint (issue 37, item 6).
+    pub min_reach_px: f64,
     /// Refuse a refined reading whose sd exceeds this, px.
     pub max_uncertainty_px: f64,
 }
@@ -88,6 +92,7 @@ impl Default for RegisterParams {
             min_peak: 0.7,
             max_second_ratio: 0.9,
             agree_sd: 3.0,
+            min_reach_px: 6.0,
             max_uncertainty_px: 0.5,
         }
     }
@@ -550,7 +555,7 @@ impl Reference {
                 ),
             });
         }
-        let limit = p.agree_sd * click_sd_px.hypot(self.click_sd_px);
+        let limit = (p.agree_sd * click_sd_px.hypot(self.click_sd_px)).max(p.min_reach_px);
         let pred = [
             click_px[0] - self.click_px[0],
             click_px[1] - self.click_px[1],
