@@ -177,28 +177,7 @@ impl Chamber {
                 })
             })
             .collect();
-        if means.len() < 8 {
-            return ChamberTrend::Filling(format!("{} means of {MEANS}", means.len()));
-        }
-        let n = means.len() as f64;
-        let (mt, my) = (
-            means.iter().map(|m| m.0).sum::<f64>() / n,
-            means.iter().map(|m| m.1).sum::<f64>() / n,
-        );
-        let sxx: f64 = means.iter().map(|m| (m.0 - mt).powi(2)).sum();
-        let sxy: f64 = means.iter().map(|m| (m.0 - mt) * (m.1 - my)).sum();
-        let slope = sxy / sxx;
-        let sse: f64 = means
-            .iter()
-            .map(|m| (m.1 - my - slope * (m.0 - mt)).powi(2))
-            .sum();
-        // Readings come in 0.01 °C steps: never trust the slope better than that allows.
-        let sd = (sse / (n - 2.0)).sqrt().max(0.01 / 12f64.sqrt());
-        let se = sd / sxx.sqrt();
-        ChamberTrend::Known {
-            k_per_h: slope * 3600.0,
-            high_k_per_h: (slope + Z * se) * 3600.0,
-        }
+        fit_trend(&means)
     }
 }
 
@@ -321,6 +300,33 @@ impl ChamberGate {
     }
 }
 
+/// The trend through the window's means (time s, °C): Filling while fewer than 8, else the
+/// least-squares slope and its 3σ upper end, K/h.
+fn fit_trend(means: &[(f64, f64)]) -> ChamberTrend {
+    if means.len() < 8 {
+        return ChamberTrend::Filling(format!("{} means of {MEANS}", means.len()));
+    }
+    let n = means.len() as f64;
+    let (mt, my) = (
+        means.iter().map(|m| m.0).sum::<f64>() / n,
+        means.iter().map(|m| m.1).sum::<f64>() / n,
+    );
+    let sxx: f64 = means.iter().map(|m| (m.0 - mt).powi(2)).sum();
+    let sxy: f64 = means.iter().map(|m| (m.0 - mt) * (m.1 - my)).sum();
+    let slope = sxy / sxx;
+    let sse: f64 = means
+        .iter()
+        .map(|m| (m.1 - my - slope * (m.0 - mt)).powi(2))
+        .sum();
+    // Readings come in 0.01 °C steps: never trust the slope better than that allows.
+    let sd = (sse / (n - 2.0)).sqrt().max(0.01 / 12f64.sqrt());
+    let se = sd / sxx.sqrt();
+    ChamberTrend::Known {
+        k_per_h: slope * 3600.0,
+        high_k_per_h: (slope + Z * se) * 3600.0,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -394,27 +400,7 @@ mod tests {
                 })
             })
             .collect();
-        if means.len() < 8 {
-            return ChamberTrend::Filling(format!("{} means of {MEANS}", means.len()));
-        }
-        let n = means.len() as f64;
-        let (mt, my) = (
-            means.iter().map(|m| m.0).sum::<f64>() / n,
-            means.iter().map(|m| m.1).sum::<f64>() / n,
-        );
-        let sxx: f64 = means.iter().map(|m| (m.0 - mt).powi(2)).sum();
-        let sxy: f64 = means.iter().map(|m| (m.0 - mt) * (m.1 - my)).sum();
-        let slope = sxy / sxx;
-        let sse: f64 = means
-            .iter()
-            .map(|m| (m.1 - my - slope * (m.0 - mt)).powi(2))
-            .sum();
-        let sd = (sse / (n - 2.0)).sqrt().max(0.01 / 12f64.sqrt());
-        let se = sd / sxx.sqrt();
-        ChamberTrend::Known {
-            k_per_h: slope * 3600.0,
-            high_k_per_h: (slope + Z * se) * 3600.0,
-        }
+        fit_trend(&means)
     }
 
     /// Readings at an uneven rate with gaps, on a warming and wobbling air: the trend kept per
