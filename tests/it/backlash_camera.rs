@@ -1227,15 +1227,7 @@ async fn taps_a_few_px_off_in_mainsails_webcam_frame_on_a_phone_read_the_play_on
     let play = format!(r#"{{"a": {PLAY}, "b": {PLAY}}}"#);
     let rig = Rig::start("corexy", "seed", &play, camera, &[], [150.0, 150.0]).await;
     let base = rig.d.page_url().await;
-    // The page as an iframe webcam, as `klipcal install` registers it.
-    rig.files
-        .post(
-            "/server/webcams/item",
-            &json!({"name": "klipcal", "service": "iframe", "stream_url": format!("{base}/"),
-                    "snapshot_url": ""}),
-        )
-        .await
-        .unwrap();
+    crate::page_phone::page_as_webcam(&rig.files, &base).await;
     let fe = FrontEnd::serve(Kind::Mainsail, &rig.bench).await;
     let mut b = Browser::start().await;
     let mut ui = Ui::open(&mut b, &fe, "mainsail-click-phone").await;

@@ -308,15 +308,7 @@ async fn the_pages_jog_buttons_work_inside_mainsails_webcam_frame() {
     let (m, _c) = crate::backlash::connect(&bench).await;
     crate::backlash::set_point(&bench, &m, [100.0, 100.0, 0.0]).await;
     let files = bench.files();
-    // The page as an iframe webcam, as `klipcal install` registers it.
-    files
-        .post(
-            "/server/webcams/item",
-            &json!({"name": "klipcal", "service": "iframe", "stream_url": format!("{base}/"),
-                    "snapshot_url": ""}),
-        )
-        .await
-        .unwrap();
+    page_as_webcam(&files, &base).await;
     extension_request(&files, "klipcal_backlash_set_point", json!({}))
         .await
         .unwrap();
@@ -440,4 +432,16 @@ async fn frame_button(b: &mut Browser, inside: &str, label: &str) -> (f64, f64) 
         "Mainsail covers the frame at ({x}, {y})"
     );
     (x, y)
+}
+
+/// Klipcal's page at `base` as Moonraker's iframe webcam, as `klipcal install` registers it.
+pub(crate) async fn page_as_webcam(files: &klipcal::moonraker::Files, base: &str) {
+    files
+        .post(
+            "/server/webcams/item",
+            &json!({"name": "klipcal", "service": "iframe", "stream_url": format!("{base}/"),
+                    "snapshot_url": ""}),
+        )
+        .await
+        .unwrap();
 }
