@@ -345,14 +345,78 @@ async fn send(m: &Moonraker, script: &str, what: &str) {
     } else {
         script.to_string()
     };
+    let ends = script.lines().filter(|l| l.trim() == PROMPT_END).count();
+    OWN_ENDS.expect(m.url(), ends);
     if let Err(e) = m.console_script(&script).await {
+        OWN_ENDS.forget(m.url(), ends);
         warn!(error = %e, "{what}");
     }
+}
+
+/// The closes klipcal sent whose echo (`// action:prompt_end` on the console) has not come
+/// back yet, per Moonraker. The echo of klipcal's own close can reach the close watcher after
+/// klipcal has already shown its next dialog (the watcher is another task, and a loaded host
+/// delays it): counting the closes sent, not reading the dialog's state when the echo is
+/// read, tells klipcal's echo from the user's ✕ whatever the order.
+static OWN_ENDS: OwnEnds = OwnEnds(Mutex::new(Vec::new()));
+
+/// How long an echo is waited for before its close is forgotten (a lost notification).
+const ECHO_WAIT: Duration = Duration::from_secs(120);
+
+struct OwnEnds(Mutex<Vec<(String, Instant)>>);
+
+impl OwnEnds {
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<(String, Instant)>> {
+        let mut v = self.0.lock().unwrap_or_else(PoisonError::into_inner);
+        v.retain(|(_, at)| at.elapsed() < ECHO_WAIT);
+        v
+    }
+
+    fn expect(&self, url: &str, n: usize) {
+        let mut v = self.lock();
+        for _ in 0..n {
+            v.push((url.to_string(), Instant::now()));
+        }
+    }
+
+    fn forget(&self, url: &str, n: usize) {
+        for _ in 0..n {
+            self.take(url);
+        }
+    }
+
+    fn take(&self, url: &str) -> bool {
+        let mut v = self.lock();
+        let Some(i) = v.iter().position(|(u, _)| u == url) else {
+            return false;
+        };
+        v.remove(i);
+        true
+    }
+}
+
+/// Whether a close seen on `m`'s console is the echo of one klipcal sent (it is then counted
+/// off); false for a close klipcal did not send (the user's ✕ or tap outside).
+pub(crate) fn own_close_echo(m: &Moonraker) -> bool {
+    OWN_ENDS.take(m.url())
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_close_echo_is_klipcals_only_as_often_as_klipcal_sent_one_on_that_printer() {
+        let ends = OwnEnds(Mutex::new(Vec::new()));
+        ends.expect("ws://a", 2);
+        ends.expect("ws://b", 1);
+        // klipcal's two echoes on printer a, late or not; a third close there is the user's.
+        assert!(ends.take("ws://a") && ends.take("ws://a"));
+        assert!(!ends.take("ws://a"));
+        // A send that failed leaves no echo to wait for.
+        ends.forget("ws://b", 1);
+        assert!(!ends.take("ws://b"));
+    }
 
     #[test]
     fn console_answers_cannot_break_out_of_the_respond_command() {

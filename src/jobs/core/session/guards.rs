@@ -333,8 +333,10 @@ impl Core {
     /// console says what still waits and how to answer (issue 26 A.1). Every close klipcal
     /// sends is marked before it is sent, also the ones its helpers ask for
     /// (`_KLIPCAL_PROMPT_CLOSE` and `_KLIPCAL_PROMPT_BACK` only call klipcal, which closes or
-    /// replaces the dialog), so a close seen while klipcal's dialog is marked open is the
-    /// user's: no time window decides, however loaded the host. Runs until shutdown.
+    /// replaces the dialog), and every close klipcal sends is counted until its echo comes
+    /// back ([`console::own_close_echo`]), so a close that is not one of klipcal's, seen while
+    /// klipcal's dialog is marked open, is the user's: no time window decides, however loaded
+    /// the host. Runs until shutdown.
     pub(crate) async fn watch_closes(self) {
         use tokio::sync::broadcast::error::RecvError;
         let mut rx = self.inner.m.events();
@@ -349,7 +351,11 @@ impl Core {
                 Err(RecvError::Closed) => return,
                 _ => continue,
             }
-            // klipcal's own close (marked before it was sent), or no dialog of klipcal's.
+            // klipcal's own close (counted as it was sent, however late its echo comes).
+            if console::own_close_echo(&self.inner.m) {
+                continue;
+            }
+            // No dialog of klipcal's open.
             let Some(p) = self.open().prompt.clone() else {
                 continue;
             };
