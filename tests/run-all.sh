@@ -18,6 +18,10 @@ if ! command -v cargo >/dev/null; then
     exit 1
 fi
 
+# A failing test's message, not its backtrace: the messages say which case failed and why,
+# and a CI log that keeps only an excerpt keeps them.
+export RUST_BACKTRACE=0
+
 echo "== bench setup"
 bash tests/bench/setup.sh
 
