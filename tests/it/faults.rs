@@ -941,6 +941,10 @@ async fn the_fault_matrix_every_phase_survives_every_fault_with_heaters_owned() 
             .iter()
             .map(|f| f.lines().next().unwrap_or("").chars().take(300).collect())
             .collect();
-        panic!("{} cells failed:\n{}\n{table}", cells.len(), cells.join("\n"));
+        panic!(
+            "{} cells failed:\n{}\n{table}",
+            cells.len(),
+            cells.join("\n")
+        );
     }
 }
