@@ -273,6 +273,19 @@ pub(crate) fn online_script(seconds: u32) -> String {
     format!("{ONLINE_MACRO} SECONDS={seconds}")
 }
 
+/// When to say [`ONLINE_MACRO`] again after `e`: an older klipcal.cfg without the macro, once
+/// a minute at most; anything else (Klipper restarting, as after Apply's FIRMWARE_RESTART,
+/// which also forgets the last word) in two seconds, so that the macros do not say "asking"
+/// for a minute while klipcal answers (CI on Kalico: round 2's KLIPCAL_STATUS did).
+fn online_retry(e: &SocketError) -> Duration {
+    match e {
+        SocketError::Klipper(m) if m.to_lowercase().contains("unknown command") => {
+            Duration::from_secs(60)
+        }
+        _ => Duration::from_secs(2),
+    }
+}
+
 impl Moonraker {
     /// Says in Klipper, every [`ONLINE_EVERY`] while klipcal is connected and registered with
     /// Moonraker, that it answers for [`ONLINE_LEASE_S`] more; at shutdown that it is gone.
@@ -333,9 +346,8 @@ impl Moonraker {
                 ONLINE_EVERY
             }
             Err(e) => {
-                // An older klipcal.cfg without the macro: said once a minute at most.
                 debug!(error = ?e, "klipcal could not say in Klipper that it is there");
-                Duration::from_secs(60)
+                online_retry(&e)
             }
         }
     }
@@ -344,6 +356,17 @@ impl Moonraker {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_word_lost_to_a_restart_is_said_again_in_seconds_a_missing_macro_in_a_minute() {
+        // klipcal.log on Kalico after Apply's FIRMWARE_RESTART: the next word waited a minute.
+        let reset = SocketError::Unanswered("Connection reset by peer (os error 104)".into());
+        assert_eq!(online_retry(&reset), Duration::from_secs(2));
+        let refused = SocketError::NotSent("No such file or directory".into());
+        assert_eq!(online_retry(&refused), Duration::from_secs(2));
+        let old_cfg = SocketError::Klipper("Unknown command:\"_KLIPCAL_ONLINE\"".into());
+        assert_eq!(online_retry(&old_cfg), Duration::from_secs(60));
+    }
 
     #[test]
     fn only_respond_scripts_go_past_moonraker() {
