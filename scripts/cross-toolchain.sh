@@ -113,6 +113,22 @@ _cross_foreign_std() {
     return 1
 }
 
+# Debian's compiler at the version apt has now, after `apt-get update`: the foreign
+# architectures' libstd-rust-web-dev comes from the fresh lists, and must equal the compiler's
+# version. A machine whose lists were older installed an older rustc-web than the std apt then
+# offers (a fresh CI machine: rustc-web 1.85 from its image's lists, libstd 1.96 after the
+# update), and every cross target went missing.
+_cross_rustc_current() {
+    local have cand
+    _cross_apt update || true
+    have="$(_cross_installed rustc-web)"
+    cand="$(_cross_candidate rustc-web)"
+    [[ -z "$cand" || "$cand" == "(none)" || "$cand" == "$have" ]] && return 0
+    [[ "$(_cross_candidate cargo-web)" == "$cand" ]] || return 0
+    _cross_say "apt-get install rustc-web=$cand cargo-web=$cand (was $have)"
+    _cross_apt install -y --no-install-recommends "rustc-web=$cand" "cargo-web=$cand" || true
+}
+
 cross_toolchain_setup() {
     local with_qemu=0
     [[ "${1:-}" == "--with-qemu" ]] && with_qemu=1
@@ -128,6 +144,7 @@ cross_toolchain_setup() {
         CROSS_MISSING+=("all targets: apt-get install ${base[*]} failed: $(grep -E '^(E|Err):' "$CROSS_LOG" | tail -n 3 | tr '\n' ' ') (log: $CROSS_LOG)")
         return 1
     fi
+    _cross_rustc_current
     CROSS_RUSTC_VERSION="$(_cross_installed rustc-web)"
     local rv
     rv="$(/usr/bin/rustc --version 2>&1)" || {
